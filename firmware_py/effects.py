@@ -1,0 +1,90 @@
+"""The one catalogue of magnetometer error effects.
+
+Each effect has a stable name used everywhere: the simulator's error model
+(``sim.error_model``) implements its forward physics, the calibration model
+(``firmware_py.calibration``) offers the matching correction term where one exists, and
+the sim-to-real gap diagnosis attributes residuals to it. Define an effect here once;
+other modules look it up by name and must not keep their own lists.
+
+``order`` is the effect's position in the forward pipeline truth -> sensed value.
+``cal_term`` names the calibration-model term that can absorb it (None: cannot be
+calibrated, e.g. noise).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from types import MappingProxyType
+
+
+@dataclass(frozen=True)
+class Effect:
+    name: str
+    order: int
+    summary: str
+    physics: str
+    units: str
+    source: str
+    cal_term: str | None
+
+
+_EFFECTS = (
+    Effect("time_skew", 10, "each axis sampled at its own instant",
+           "Sequential conversion (one multiplexed ADC) samples X, Y, Z at different times; "
+           "for a changing field the axis reading is B_i(t + dt_i). Residual ~ dB/dt * dt_i.",
+           "dt_i in s", "belsten 2.1 (sequential axes, 0.4 s vector period); hardware-facts 8.3", "time_skew"),
+    Effect("interference", 20, "field proportional to named currents",
+           "A current loop of fixed geometry adds D_i * I_i at the sensor (Eq. 4 of belsten, sec. 3.4.2).",
+           "D_i in uT/A", "belsten sec. 3.4.2", "currents"),
+    Effect("misalignment", 30, "sensor axes rotated / non-orthogonal w.r.t. the body frame",
+           "Small rotation and non-orthogonality angles mixing the true field into each axis.",
+           "rad", "lab study (misalignment); belsten Eq. 1 matrix C", "gain_matrix"),
+    Effect("gain", 40, "per-axis scale and soft-iron coupling",
+           "B <- G B with G = diag(scale) + soft-iron off-diagonals.",
+           "unitless", "belsten Tables 2-3; lab study scale factors", "gain_matrix"),
+    Effect("cross_axis", 50, "AMR cross-axis effect",
+           "Field along the easy (magnetisation) axis changes a bridge's sensitivity: "
+           "B_i <- B_i * H0/(H0 + s*B_c) (sign s by set/reset state); set/reset averaging leaves "
+           "a second-order (B_c/H0)^2 term.", "H0 in uT", "hardware-facts 5.4; HMC105x cross-axis +-3 %FS",
+           "cross_products"),
+    Effect("nonlinearity", 60, "on-axis odd-order nonlinearity",
+           "B_i <- B_i + c3_i * B_i^3.", "c3 in 1/uT^2", "HMC105x linearity 0.1 %FS; belsten Fig. 3", "cubic"),
+    Effect("temperature_gain", 70, "sensitivity changes with temperature",
+           "B <- (I + K_S (T - T0)) B.", "1/degC", "belsten Eq. 3 (K_S), Table 7; HMC1053 -2700 ppm/degC",
+           "temperature_gain"),
+    Effect("hysteresis", 80, "remanent offset after a large field",
+           "After an excursion above a threshold the offset shifts by a remanent amount signed by the "
+           "excursion's sign, until the next set/reset or opposite excursion.",
+           "uT", "belsten sec. 2.3.4 (+50 nT after +-150 uT)", "session_offset"),
+    Effect("offset", 90, "constant bias (hard iron, bridge offset after set/reset)",
+           "B <- B + O.", "uT", "belsten Table 1; lab study offsets", "offset"),
+    Effect("temperature_offset", 100, "offset linear in temperature",
+           "B <- B + K_O (T - T0).", "uT/degC", "belsten Eq. 3 (K_O); sec. 2.3.3 -140 nT/degC on X",
+           "temperature_offset"),
+    Effect("drift", 110, "slow offset change in time",
+           "B <- B + r * (t - t0) (random walk optional).", "uT/s", "lab study stability", "drift"),
+    Effect("session_offset", 120, "offset jump per power cycle",
+           "Each power cycle / session draws a new offset step.", "uT", "belsten sec. 3.2 (several power cycles)",
+           "session_offset"),
+    Effect("noise", 130, "white and 1/f noise",
+           "Additive Gaussian white noise plus 1/f (pink) component.", "uT rms",
+           "belsten Table 1 (13-24 nT rms); lab study noise per chip", None),
+    Effect("saturation", 140, "output clipped at the range",
+           "Readings beyond the full-scale range clip (or give the overflow code on digital chips).",
+           "uT", "datasheets (hardware-facts 1-4)", None),
+    Effect("quantization", 150, "finite resolution",
+           "Output rounded to the LSB.", "uT per LSB", "datasheets (hardware-facts 1-4)", None),
+)
+
+#: name -> Effect, in pipeline order. Read-only.
+EFFECTS = MappingProxyType({e.name: e for e in sorted(_EFFECTS, key=lambda e: e.order)})
+
+#: Effect names in forward-pipeline order.
+EFFECT_NAMES: tuple[str, ...] = tuple(EFFECTS)
+
+
+def effect(name: str) -> Effect:
+    """Look an effect up by name; unknown names raise ValueError listing the valid ones."""
+    try:
+        return EFFECTS[name]
+    except KeyError:
+        raise ValueError(f"unknown effect {name!r}; valid: {', '.join(EFFECT_NAMES)}") from None

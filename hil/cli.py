@@ -1,0 +1,57 @@
+"""``magstack`` command line.
+
+Each sub-command lives in its own module under :mod:`hil.commands` and exposes
+``register(subparsers)``, which adds its parser and sets ``func(args) -> int``.
+Modules are discovered, so adding a command never edits this file.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import pkgutil
+import sys
+
+from drivers.errors import MagError
+
+
+def build_parser() -> argparse.ArgumentParser:
+    import hil.commands as commands
+
+    parser = argparse.ArgumentParser(prog="magstack", description="magstack: AMR magnetometer sensor stack")
+    parser.add_argument("--version", action="version", version=f"magstack {version()}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
+        if info.name.startswith("_"):
+            continue
+        module = importlib.import_module(f"hil.commands.{info.name}")
+        module.register(sub)
+    return parser
+
+
+def version() -> str:
+    try:
+        from importlib.metadata import version as _v
+
+        return _v("magstack")
+    except Exception:  # not installed (running from a checkout)
+        return "0.1.0+checkout"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except MagError as exc:
+        print(f"magstack {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"magstack {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,309 @@
+"""Session file v1: the CSV every bench, simulation, fit and apply step reads and writes.
+
+Layout (documented in docs/session-file.md)::
+
+    # magstack-session: 1
+    # dut_chip: hmc1053
+    # ... more "# key: value" metadata lines ...
+    t_s,ref_x_uT,ref_y_uT,ref_z_uT,dut_x_uT,dut_y_uT,dut_z_uT,temp_c,session[,current_<name>_A ...][,flag]
+    1598371866.645000,0.575000,...
+
+``t_s`` is Unix epoch seconds (UTC); fields in uT; ``temp_c`` in degC; ``session`` an integer
+run id. Empty cells and ``nan`` mean "no value" (gaps). Writing is crash-safe: rows go to
+``<out>.part``, flushed and fsynced per block, and the file is renamed to ``<out>`` on
+close; a killed session leaves a ``.part`` file whose every complete row is readable.
+"""
+from __future__ import annotations
+
+import io
+import math
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Mapping, Sequence
+
+import numpy as np
+
+from drivers.errors import SessionFileError
+
+FORMAT_KEY = "magstack-session"
+FORMAT_VERSION = "1"
+REQUIRED_COLUMNS = ("t_s", "ref_x_uT", "ref_y_uT", "ref_z_uT", "dut_x_uT", "dut_y_uT", "dut_z_uT",
+                    "temp_c", "session")
+_CURRENT_RE = re.compile(r"^current_([A-Za-z0-9_]+)_A$")
+#: Optional non-current columns that v1 readers understand.
+OPTIONAL_COLUMNS = ("flag",)
+
+
+@dataclass
+class Session:
+    """A session in memory. Arrays share one length N.
+
+    ``ref_uT``/``dut_uT`` are (N, 3); ``currents_A`` maps a current's name to an (N,) array;
+    ``flag`` is an (N,) int array (0 = ok) or None; ``metadata`` preserves order.
+    """
+
+    t_s: np.ndarray
+    ref_uT: np.ndarray
+    dut_uT: np.ndarray
+    temp_c: np.ndarray
+    session: np.ndarray
+    currents_A: dict[str, np.ndarray] = field(default_factory=dict)
+    metadata: dict[str, str] = field(default_factory=dict)
+    flag: np.ndarray | None = None
+    warnings: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.t_s = np.asarray(self.t_s, dtype=float).reshape(-1)
+        n = self.t_s.size
+        self.ref_uT = np.asarray(self.ref_uT, dtype=float).reshape(n, 3)
+        self.dut_uT = np.asarray(self.dut_uT, dtype=float).reshape(n, 3)
+        self.temp_c = np.asarray(self.temp_c, dtype=float).reshape(n)
+        self.session = np.asarray(self.session).astype(np.int64).reshape(n)
+        self.currents_A = {k: np.asarray(v, dtype=float).reshape(n) for k, v in self.currents_A.items()}
+        for name in self.currents_A:
+            if not re.fullmatch(r"[A-Za-z0-9_]+", name):
+                raise ValueError(f"current name must be [A-Za-z0-9_]+: {name!r}")
+        if self.flag is not None:
+            self.flag = np.asarray(self.flag).astype(np.int64).reshape(n)
+        self.metadata = {str(k): str(v) for k, v in self.metadata.items()}
+
+    def __len__(self) -> int:
+        return self.t_s.size
+
+    @property
+    def columns(self) -> list[str]:
+        cols = list(REQUIRED_COLUMNS) + [f"current_{k}_A" for k in self.currents_A]
+        if self.flag is not None:
+            cols.append("flag")
+        return cols
+
+    def select(self, mask: np.ndarray) -> "Session":
+        """A new Session with the rows where ``mask`` is true."""
+        return Session(self.t_s[mask], self.ref_uT[mask], self.dut_uT[mask], self.temp_c[mask],
+                       self.session[mask], {k: v[mask] for k, v in self.currents_A.items()},
+                       dict(self.metadata), None if self.flag is None else self.flag[mask], list(self.warnings))
+
+    @staticmethod
+    def concatenate(parts: Sequence["Session"]) -> "Session":
+        """Join sessions row-wise; current columns must match; metadata of the first is kept."""
+        if not parts:
+            raise ValueError("nothing to concatenate")
+        names = list(parts[0].currents_A)
+        for p in parts[1:]:
+            if list(p.currents_A) != names:
+                raise SessionFileError(f"current columns differ: {names} vs {list(p.currents_A)}")
+        flags = None
+        if any(p.flag is not None for p in parts):
+            flags = np.concatenate([p.flag if p.flag is not None else np.zeros(len(p), np.int64) for p in parts])
+        return Session(np.concatenate([p.t_s for p in parts]), np.vstack([p.ref_uT for p in parts]),
+                       np.vstack([p.dut_uT for p in parts]), np.concatenate([p.temp_c for p in parts]),
+                       np.concatenate([p.session for p in parts]),
+                       {k: np.concatenate([p.currents_A[k] for p in parts]) for k in names},
+                       dict(parts[0].metadata), flags)
+
+
+def _fmt(x: float, decimals: int) -> str:
+    if x is None or (isinstance(x, float) and math.isnan(x)):
+        return ""
+    return f"{x:.{decimals}f}"
+
+
+def _row_text(t_s, ref, dut, temp_c, session, currents: Iterable[float], flag) -> str:
+    cells = [_fmt(float(t_s), 6), *(_fmt(float(v), 6) for v in ref), *(_fmt(float(v), 6) for v in dut),
+             _fmt(float(temp_c), 4), str(int(session)), *(_fmt(float(c), 6) for c in currents)]
+    if flag is not None:
+        cells.append(str(int(flag)))
+    return ",".join(cells) + "\n"
+
+
+def _check_metadata(metadata: Mapping[str, str]) -> None:
+    for k, v in metadata.items():
+        if not re.fullmatch(r"[A-Za-z0-9_.\-]+", str(k)):
+            raise ValueError(f"metadata key must be [A-Za-z0-9_.-]+: {k!r}")
+        if "\n" in str(v) or "\r" in str(v):
+            raise ValueError(f"metadata value for {k!r} must be one line")
+
+
+class SessionWriter:
+    """Streaming, crash-safe writer. Use as a context manager.
+
+    Rows are buffered and written, flushed and fsynced every ``block_rows`` rows (and
+    on :meth:`flush`/:meth:`close`). On clean close ``<path>.part`` is renamed to ``path``.
+    """
+
+    def __init__(self, path: str | os.PathLike, metadata: Mapping[str, str] | None = None, *,
+                 current_names: Sequence[str] = (), with_flag: bool = False, block_rows: int = 50) -> None:
+        self.path = Path(path)
+        self.part_path = self.path.with_name(self.path.name + ".part")
+        self.current_names = list(current_names)
+        self.with_flag = with_flag
+        self.block_rows = max(1, int(block_rows))
+        meta = {FORMAT_KEY: FORMAT_VERSION, **{k: v for k, v in (metadata or {}).items() if k != FORMAT_KEY}}
+        _check_metadata(meta)
+        self._buf: list[str] = []
+        self.rows_written = 0
+        self._fh = open(self.part_path, "w", encoding="utf-8", newline="")
+        header = "".join(f"# {k}: {v}\n" for k, v in meta.items())
+        cols = list(REQUIRED_COLUMNS) + [f"current_{n}_A" for n in self.current_names]
+        if with_flag:
+            cols.append("flag")
+        self._fh.write(header + ",".join(cols) + "\n")
+        self._sync()
+
+    def _sync(self) -> None:
+        self._fh.flush()
+        os.fsync(self._fh.fileno())
+
+    def write_row(self, t_s: float, ref_uT, dut_uT, temp_c: float, session: int,
+                  currents_A: Mapping[str, float] | None = None, flag: int | None = None) -> None:
+        cur = currents_A or {}
+        missing = [n for n in self.current_names if n not in cur]
+        if missing:
+            raise ValueError(f"row lacks currents {missing}")
+        self._buf.append(_row_text(t_s, ref_uT, dut_uT, temp_c, session,
+                                   (cur[n] for n in self.current_names), flag if self.with_flag else None))
+        if len(self._buf) >= self.block_rows:
+            self.flush()
+
+    def flush(self) -> None:
+        if self._buf:
+            self._fh.write("".join(self._buf))
+            self.rows_written += len(self._buf)
+            self._buf.clear()
+        self._sync()
+
+    def close(self) -> Path:
+        """Flush, fsync, and atomically rename ``.part`` to the final path."""
+        if self._fh.closed:
+            return self.path
+        self.flush()
+        self._fh.close()
+        os.replace(self.part_path, self.path)
+        dir_fd = os.open(self.path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
+        return self.path
+
+    def abort(self) -> None:
+        """Flush what was written and leave the ``.part`` file in place (no rename)."""
+        if not self._fh.closed:
+            self.flush()
+            self._fh.close()
+
+    def __enter__(self) -> "SessionWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def write_session(path: str | os.PathLike, s: Session, *, block_rows: int = 5000) -> Path:
+    """Write a whole :class:`Session` crash-safely."""
+    names = list(s.currents_A)
+    with SessionWriter(path, s.metadata, current_names=names, with_flag=s.flag is not None,
+                       block_rows=block_rows) as w:
+        for i in range(len(s)):
+            w.write_row(s.t_s[i], s.ref_uT[i], s.dut_uT[i], s.temp_c[i], s.session[i],
+                        {n: s.currents_A[n][i] for n in names}, None if s.flag is None else s.flag[i])
+    return Path(path)
+
+
+def _parse_float(cell: str, lineno: int, col: str, path: object) -> float:
+    cell = cell.strip()
+    if cell == "" or cell.lower() == "nan":
+        return math.nan
+    try:
+        v = float(cell)
+    except ValueError:
+        raise SessionFileError(f"{path}: line {lineno}: column {col!r}: not a number: {cell!r}") from None
+    if math.isinf(v):
+        raise SessionFileError(f"{path}: line {lineno}: column {col!r}: infinite value")
+    return v
+
+
+def read_session(source: str | os.PathLike | io.TextIOBase) -> Session:
+    """Read a v1 session file (or a ``.part`` file left by a killed session).
+
+    A final line without newline that does not parse (a write cut short) is dropped
+    with a warning in ``Session.warnings``; any other bad line raises
+    :class:`SessionFileError` naming file, line and column.
+    """
+    if isinstance(source, io.TextIOBase):
+        text, name = source.read(), getattr(source, "name", "<stream>")
+    else:
+        name = str(source)
+        try:
+            text = Path(source).read_text(encoding="utf-8")
+        except FileNotFoundError:
+            raise SessionFileError(f"{name}: no such session file") from None
+        except UnicodeDecodeError as exc:
+            raise SessionFileError(f"{name}: not a text session file ({exc})") from None
+    lines = text.split("\n")
+    cut_tail = not text.endswith("\n")
+    if not cut_tail:
+        lines = lines[:-1]
+    metadata: dict[str, str] = {}
+    i = 0
+    while i < len(lines) and lines[i].startswith("#"):
+        body = lines[i][1:].strip()
+        if ":" in body:
+            k, v = body.split(":", 1)
+            metadata[k.strip()] = v.strip()
+        i += 1
+    if metadata.get(FORMAT_KEY) not in (None, FORMAT_VERSION):
+        raise SessionFileError(f"{name}: unsupported session format version {metadata[FORMAT_KEY]!r}")
+    if i >= len(lines) or (cut_tail and i == len(lines) - 1):
+        raise SessionFileError(f"{name}: no header row (file empty or truncated)")
+    header = [c.strip() for c in lines[i].split(",")]
+    missing = [c for c in REQUIRED_COLUMNS if c not in header]
+    if missing:
+        raise SessionFileError(f"{name}: header lacks required columns {missing}")
+    if len(set(header)) != len(header):
+        raise SessionFileError(f"{name}: duplicate column names in header")
+    current_cols = [c for c in header if _CURRENT_RE.match(c)]
+    unknown = [c for c in header if c not in REQUIRED_COLUMNS and c not in current_cols and c not in OPTIONAL_COLUMNS]
+    warnings: list[str] = []
+    if unknown:
+        warnings.append(f"ignored unknown columns {unknown}")
+    idx = {c: k for k, c in enumerate(header)}
+    rows: list[list[float]] = []
+    data_lines = lines[i + 1:]
+    for j, line in enumerate(data_lines):
+        lineno = i + 2 + j
+        if not line.strip() or line.startswith("#"):
+            continue
+        cells = line.split(",")
+        is_last = j == len(data_lines) - 1
+        try:
+            if len(cells) != len(header):
+                raise SessionFileError(f"{name}: line {lineno}: {len(cells)} cells, header has {len(header)}")
+            rows.append([_parse_float(cells[idx[c]], lineno, c, name) for c in header])
+        except SessionFileError:
+            if is_last and cut_tail:
+                warnings.append(f"dropped incomplete last line {lineno} (write cut short)")
+                break
+            raise
+    arr = np.array(rows, dtype=float).reshape(len(rows), len(header))
+
+    def col(c: str) -> np.ndarray:
+        return arr[:, idx[c]]
+
+    sess = col("session")
+    if np.any(~np.isfinite(sess)) or np.any(sess != np.round(sess)):
+        raise SessionFileError(f"{name}: 'session' column must hold integers on every row")
+    flag = None
+    if "flag" in idx:
+        fl = col("flag")
+        flag = np.where(np.isfinite(fl), fl, 0).astype(np.int64)
+    s = Session(col("t_s"), np.column_stack([col(f"ref_{a}_uT") for a in "xyz"]),
+                np.column_stack([col(f"dut_{a}_uT") for a in "xyz"]), col("temp_c"), sess.astype(np.int64),
+                {_CURRENT_RE.match(c).group(1): col(c) for c in current_cols}, metadata, flag)
+    s.warnings.extend(warnings)
+    return s

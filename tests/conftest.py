@@ -1,0 +1,36 @@
+"""Shared fixtures and the hardware selection options.
+
+``pytest --hil --i2c-bus 1`` runs the tests marked ``hil`` against real hardware;
+without ``--hil`` they are skipped. See hil/README.md for wiring.
+"""
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from drivers.clock import VirtualClock
+
+
+def pytest_addoption(parser):
+    g = parser.getgroup("magstack hardware-in-the-loop")
+    g.addoption("--hil", action="store_true", default=os.environ.get("MAGSTACK_HIL") == "1",
+                help="run hil-marked tests on real hardware (or MAGSTACK_HIL=1)")
+    g.addoption("--i2c-bus", default=os.environ.get("MAGSTACK_I2C_BUS", "1"), help="I2C bus number for --hil")
+    g.addoption("--spi-bus", default=os.environ.get("MAGSTACK_SPI", "0.0"), help="SPI bus.cs for --hil")
+    g.addoption("--fvm-port", default=os.environ.get("MAGSTACK_FVM_PORT", "/dev/ttyUSB0"),
+                help="FVM400 serial port for --hil")
+
+
+def pytest_collection_modifyitems(config, items):
+    if config.getoption("--hil"):
+        return
+    skip = pytest.mark.skip(reason="hardware test: run with --hil (see hil/README.md)")
+    for item in items:
+        if "hil" in item.keywords:
+            item.add_marker(skip)
+
+
+@pytest.fixture
+def clock() -> VirtualClock:
+    return VirtualClock()
