@@ -1,0 +1,85 @@
+"""The flight loop counts every fault class, keeps running, and re-initialises after persistent faults."""
+from __future__ import annotations
+
+import pytest
+
+from drivers.clock import VirtualClock
+from drivers.errors import BusError, BusTimeout, DeviceIdMismatch, StaleData
+from drivers.magnetometer import MagSample
+from firmware_py.sampling_loop import SamplingLoop
+
+
+class ScriptedMag:
+    """Returns or raises the scripted items in order; counts reinit calls."""
+
+    name = "scripted"
+
+    def __init__(self, clock, script):
+        self.clock = clock
+        self.script = list(script)
+        self.reinits = 0
+
+    def data_ready(self) -> bool:
+        return True
+
+    def read(self) -> MagSample:
+        item = self.script.pop(0)
+        if isinstance(item, Exception):
+            raise item
+        return item if isinstance(item, MagSample) else MagSample(self.clock.monotonic_s(), item, 25.0)
+
+    def reinit(self) -> None:
+        self.reinits += 1
+
+
+def ok(b=(1.0, 2.0, 3.0)):
+    return b
+
+
+def test_faults_are_counted_by_class_and_loop_keeps_running():
+    clock = VirtualClock()
+    nan = float("nan")
+    script = [ok(), BusError("nack", address=0x1E), BusTimeout("drdy"), StaleData("same"),
+              DeviceIdMismatch("id"), MagSample(0.0, (nan, 1.0, 1.0), 25.0, overflow=(0,)), ok()]
+    mag = ScriptedMag(clock, script)
+    loop = SamplingLoop(mag, clock, period_s=0.1, reinit_after=100)
+    out = loop.run(len(script))
+    h = loop.health
+    assert (h.samples_ok, h.bus_errors, h.timeouts, h.stale, h.other_errors, h.overflows) == (2, 1, 1, 1, 1, 1)
+    assert h.error_count == 5
+    assert out[-1].error_count == 5 and out[-1].fault is None
+    assert out[1].fault.startswith("bus") and out[5].fault.startswith("overflow")
+    assert out[5].b_uT is None  # a saturated sample is never published as a field
+
+
+def test_cycle_timing_uses_injected_clock():
+    clock = VirtualClock()
+    mag = ScriptedMag(clock, [ok()] * 5)
+    loop = SamplingLoop(mag, clock, period_s=0.25)
+    ts = [p.t_s for p in loop.run(5)]
+    assert ts == pytest.approx([0.0, 0.25, 0.5, 0.75, 1.0])
+
+
+def test_reinit_after_consecutive_faults_then_recovers():
+    clock = VirtualClock()
+    mag = ScriptedMag(clock, [BusError("x")] * 3 + [ok()])
+    loop = SamplingLoop(mag, clock, period_s=0.1, reinit_after=3)
+    out = loop.run(4)
+    assert mag.reinits == 1 and loop.health.reinits == 1
+    assert out[-1].raw_uT == (1.0, 2.0, 3.0)
+
+
+def test_corrector_applied_and_missing_table_counted():
+    clock = VirtualClock()
+    mag = ScriptedMag(clock, [ok(), ok()])
+    tables = iter([None, (10.0, 20.0, 30.0)])
+    loop = SamplingLoop(mag, clock, period_s=0.1, corrector=lambda s: next(tables))
+    a, b = loop.run(2)
+    assert not a.calibrated and loop.health.uncalibrated == 1
+    assert b.calibrated and b.b_uT == (10.0, 20.0, 30.0)
+
+
+@pytest.mark.parametrize("bad", [0.0, -1.0, float("nan"), float("inf")])
+def test_bad_period_rejected(bad):
+    with pytest.raises(ValueError):
+        SamplingLoop(ScriptedMag(VirtualClock(), []), VirtualClock(), period_s=bad)
