@@ -10,8 +10,9 @@ keeps running; after ``reinit_after`` consecutive faults it calls the driver's
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import Protocol
 
 from drivers.clock import Clock
 from drivers.errors import BusError, BusTimeout, MagError, StaleData

@@ -19,9 +19,9 @@ import io
 import math
 import os
 import re
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -79,14 +79,14 @@ class Session:
             cols.append("flag")
         return cols
 
-    def select(self, mask: np.ndarray) -> "Session":
+    def select(self, mask: np.ndarray) -> Session:
         """A new Session with the rows where ``mask`` is true."""
         return Session(self.t_s[mask], self.ref_uT[mask], self.dut_uT[mask], self.temp_c[mask],
                        self.session[mask], {k: v[mask] for k, v in self.currents_A.items()},
                        dict(self.metadata), None if self.flag is None else self.flag[mask], list(self.warnings))
 
     @staticmethod
-    def concatenate(parts: Sequence["Session"]) -> "Session":
+    def concatenate(parts: Sequence[Session]) -> Session:
         """Join sessions row-wise; current columns must match; metadata of the first is kept."""
         if not parts:
             raise ValueError("nothing to concatenate")
@@ -194,7 +194,7 @@ class SessionWriter:
             self.flush()
             self._fh.close()
 
-    def __enter__(self) -> "SessionWriter":
+    def __enter__(self) -> SessionWriter:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:

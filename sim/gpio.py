@@ -1,7 +1,7 @@
 """Simulated GPIO lines wired to chip models by callbacks."""
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 
 class SimOutputLine:

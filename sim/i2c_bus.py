@@ -5,7 +5,8 @@ can inject a NACK on the next N transfers to a given address.
 """
 from __future__ import annotations
 
-from typing import Protocol, Sequence
+from collections.abc import Sequence
+from typing import Protocol
 
 from drivers.bus.i2c import I2CMessage, I2CRead, I2CWrite, _check_address
 from drivers.errors import BusError

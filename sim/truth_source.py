@@ -6,7 +6,8 @@ in degC, currents in A, time in seconds of the simulation clock's monotonic time
 """
 from __future__ import annotations
 
-from typing import Mapping, Protocol, runtime_checkable
+from collections.abc import Mapping
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 

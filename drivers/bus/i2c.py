@@ -6,8 +6,9 @@ message. Any failure raises :class:`drivers.errors.BusError` naming address and 
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Protocol, Sequence, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 from drivers.errors import BusError
 
@@ -75,7 +76,7 @@ class SMBus2I2CBus:
             self._smbus.i2c_rdwr(*msgs)
         except OSError as exc:
             raise BusError(f"I2C transfer failed on {self.name}: {exc}", address=address, operation="i2c_rdwr") from exc
-        return [bytes(list(raw)) for raw, m in zip(msgs, messages) if isinstance(m, I2CRead)]
+        return [bytes(list(raw)) for raw, m in zip(msgs, messages, strict=True) if isinstance(m, I2CRead)]
 
     def close(self) -> None:
         self._smbus.close()

@@ -1,0 +1,85 @@
+"""Scan an I2C bus and identify the magnetometers on it (hardware-facts section 9).
+
+Address 0x1E is shared by the LIS3MDL (SA1 high), HMC5983 (and HMC5883L) and the LSM303DLHC
+magnetometer. Identification, in this order:
+
+1. register 0x0F = 0x3D -> LIS3MDL (WHO_AM_I);
+2. registers 0x0A..0x0C = 'H','4','3' and 0x0F = 0x3C -> LSM303DLHC (undocumented WHO_AM_I;
+   the accelerometer at 0x19 is reported as supporting evidence);
+3. 'H','4','3' without 0x3C at 0x0F -> HMC5983 when the temperature register 0x31 answers,
+   else HMC5883L (not supported by a driver here).
+
+A register that a part does not implement may NACK; that counts as "no match", never as a
+crash. Only bus-level failures of the scan itself propagate.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from drivers.bus.i2c import I2CBus, I2CDevice, I2CWrite
+from drivers.errors import BusError, DeviceNotFound
+
+MAGNETOMETER_ADDRESSES = (0x1C, 0x1E)
+LSM303DLHC_ACCEL_ADDRESS = 0x19
+
+
+@dataclass(frozen=True)
+class ProbeResult:
+    """One device found: ``chip`` is a driver name, "hmc5883l", or None (unknown device)."""
+
+    address: int
+    chip: str | None
+    identity: bytes
+    notes: str = ""
+
+
+def scan(bus: I2CBus, addresses=range(0x08, 0x78)) -> list[int]:
+    """Addresses that acknowledge an address-only write (like ``i2cdetect -q``)."""
+    found = []
+    for a in addresses:
+        try:
+            bus.transfer(a, [I2CWrite(b"")])
+        except BusError:
+            continue
+        found.append(a)
+    return found
+
+
+def _read(dev: I2CDevice, reg: int, n: int = 1) -> bytes | None:
+    try:
+        return dev.read_registers(reg, n)
+    except BusError:
+        return None
+
+
+def identify(bus: I2CBus, address: int, *, present: set[int] | None = None) -> ProbeResult:
+    """Identify the device at ``address``; DeviceNotFound if nothing acknowledges there."""
+    dev = I2CDevice(bus, address)
+    try:
+        bus.transfer(address, [I2CWrite(b"")])
+    except BusError as exc:
+        raise DeviceNotFound(f"no device acknowledges at {address:#04x}: {exc}") from exc
+    who = _read(dev, 0x0F)
+    if who == b"\x3d" and address in MAGNETOMETER_ADDRESSES:
+        return ProbeResult(address, "lis3mdl", who, "WHO_AM_I 0x0F = 0x3D")
+    ids = _read(dev, 0x0A, 3)
+    if ids == b"H43":
+        if who == b"\x3c":
+            notes = "IRA..IRC = 'H43', WHO_AM_I 0x0F = 0x3C"
+            if present is not None:
+                notes += "; accelerometer at 0x19 " + ("present" if LSM303DLHC_ACCEL_ADDRESS in present else "absent")
+            return ProbeResult(address, "lsm303dlhc", ids + who, notes)
+        temp = _read(dev, 0x31)
+        if temp is not None:
+            return ProbeResult(address, "hmc5983", ids, "ID A..C = 'H43', temperature register 0x31 answers")
+        return ProbeResult(address, "hmc5883l", ids, "ID A..C = 'H43', no temperature register: HMC5883L "
+                                                     "(no driver)")
+    ident = (who or b"") + (ids or b"")
+    return ProbeResult(address, None, ident, "unknown device")
+
+
+def probe(bus: I2CBus, addresses=range(0x08, 0x78)) -> list[ProbeResult]:
+    """Scan ``addresses`` and identify every device that acknowledges."""
+    present = scan(bus, addresses)
+    pset = set(present)
+    return [identify(bus, a, present=pset) for a in present]

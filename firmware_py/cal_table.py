@@ -1,0 +1,485 @@
+"""Calibration table: versioned JSON file with CRC-32, validation, and an active-slot store.
+
+Lifecycle (cFE tables): ``load_table(path)`` parses and checks schema + CRC ->
+``validate(table)`` (pure: finite, physical bounds, conditioning, fixed-point headroom
+over the validity range) -> ``CalTableStore`` stages it in the inactive slot; activation
+is a request honoured at the next cycle boundary. Any failure raises
+:class:`CalTableInvalid` and the active table stays in force. Readers get an immutable
+snapshot; "never loaded" is an explicit state (``active is None``).
+
+File layout (``schema_version`` 1), a JSON object with keys: ``schema``
+("magstack-cal-table"), ``schema_version``, ``table_name``, ``device_id``, ``description``,
+``created_utc`` (ISO 8601), ``model`` {name, terms, currents, t0_c}, ``parameters``
+{S, K_S, O, K_O, D, c3, P: {unit, value}; ground_only {...}}, ``validity`` {temp_c: [lo, hi]
+or null, field_uT, currents_A {name: [lo, hi]}}, ``fit`` (statistics, informational), and
+``crc32``: "0x%08x" of zlib.crc32 over the canonical JSON (sorted keys, no spaces, ASCII)
+of the object without ``crc32``.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import os
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from drivers.errors import CalTableInvalid
+from firmware_py import fixed_point
+from firmware_py.calibration.model import CAL_TERMS, GROUND_ONLY_TERMS
+
+SCHEMA = "magstack-cal-table"
+SCHEMA_VERSION = 1
+TABLE_NAME = "mag_cal"
+
+#: Physical bounds checked at validation (value ranges a real AMR calibration stays in).
+BOUNDS = {
+    "S_diag": (0.1, 10.0),          # unitless
+    "S_offdiag": 5.0,               # |.|, unitless
+    "K_S": 0.1,                     # |.| 1/degC
+    "O_uT": 1000.0,                 # |.| uT
+    "K_O_uT_per_degC": 10.0,        # |.| uT/degC
+    "D_uT_per_A": 1000.0,           # |.| uT/A
+    "c3_per_uT2": 1e-3,             # |.| 1/uT^2
+    "P_per_uT": 0.1,                # |.| 1/uT
+    "temp_c": (-55.0, 125.0),       # validity range must lie inside
+    "field_uT": 2000.0,             # validity field must be in (0, this]
+    "current_A": 1000.0,            # |.| validity range of each current
+}
+#: Maximum condition number of S + K_S dT anywhere in the validity temperature range.
+MAX_COND = 1e3
+
+_UNITS = {"S": "1", "K_S": "1/degC", "O": "uT", "K_O": "uT/degC", "D": "uT/A", "c3": "1/uT^2", "P": "1/uT"}
+_TERM_PARAMS = {"gain_matrix": "S", "temperature_gain": "K_S", "offset": "O", "temperature_offset": "K_O",
+                "currents": "D", "cubic": "c3", "cross_products": "P"}
+
+
+def _ro(a) -> np.ndarray:
+    a = np.array(a, dtype=float)
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True)
+class CalTable:
+    """An immutable calibration table (float parameters in the units of ``_UNITS``)."""
+
+    device_id: str
+    terms: tuple[str, ...]
+    S: np.ndarray
+    K_S: np.ndarray = field(default_factory=lambda: _ro(np.zeros((3, 3))))
+    O: np.ndarray = field(default_factory=lambda: _ro(np.zeros(3)))
+    K_O: np.ndarray = field(default_factory=lambda: _ro(np.zeros(3)))
+    D: tuple[tuple[str, np.ndarray], ...] = ()
+    c3: np.ndarray = field(default_factory=lambda: _ro(np.zeros(3)))
+    P: np.ndarray = field(default_factory=lambda: _ro(np.zeros((3, 3))))
+    t0_c: float = 25.0
+    validity_temp_c: tuple[float, float] | None = None
+    validity_field_uT: float = 100.0
+    validity_currents_A: tuple[tuple[str, tuple[float, float]], ...] = ()
+    model_name: str = "eq3"
+    table_name: str = TABLE_NAME
+    description: str = ""
+    created_utc: str = ""
+    fit_stats: Mapping[str, Any] = field(default_factory=dict)
+    ground_only: Mapping[str, Any] = field(default_factory=dict)
+    schema_version: int = SCHEMA_VERSION
+    crc32: int | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("S", "K_S", "P"):
+            object.__setattr__(self, name, _ro(np.asarray(getattr(self, name), dtype=float).reshape(3, 3)))
+        for name in ("O", "K_O", "c3"):
+            object.__setattr__(self, name, _ro(np.asarray(getattr(self, name), dtype=float).reshape(3)))
+        object.__setattr__(self, "D", tuple((str(k), _ro(np.asarray(v, dtype=float).reshape(3)))
+                                            for k, v in self.D))
+        object.__setattr__(self, "terms", tuple(self.terms))
+        object.__setattr__(self, "validity_currents_A", tuple((str(k), (float(a), float(b)))
+                                                              for k, (a, b) in self.validity_currents_A))
+        if self.validity_temp_c is not None:
+            object.__setattr__(self, "validity_temp_c", tuple(float(x) for x in self.validity_temp_c))
+
+    @property
+    def currents(self) -> tuple[str, ...]:
+        return tuple(k for k, _ in self.D)
+
+    def gain_at(self, temp_c: float) -> np.ndarray:
+        """S + K_S (T - t0)."""
+        return self.S + self.K_S * (temp_c - self.t0_c)
+
+    # ------------------------------------------------------------------ JSON
+    def to_document(self) -> dict:
+        """The JSON object (with ``crc32`` computed)."""
+        params: dict[str, Any] = {}
+        for term in self.terms:
+            p = _TERM_PARAMS.get(term)
+            if p == "D":
+                params["D"] = {"unit": _UNITS["D"], "value": {k: v.tolist() for k, v in self.D}}
+            elif p:
+                params[p] = {"unit": _UNITS[p], "value": getattr(self, p).tolist()}
+        if self.ground_only:
+            params["ground_only"] = _jsonable(self.ground_only)
+        doc = {
+            "schema": SCHEMA, "schema_version": self.schema_version, "table_name": self.table_name,
+            "device_id": self.device_id, "description": self.description,
+            "created_utc": self.created_utc or _now_utc(),
+            "model": {"name": self.model_name, "terms": list(self.terms), "currents": list(self.currents),
+                      "t0_c": self.t0_c},
+            "parameters": params,
+            "validity": {"temp_c": None if self.validity_temp_c is None else list(self.validity_temp_c),
+                         "field_uT": self.validity_field_uT,
+                         "currents_A": {k: list(v) for k, v in self.validity_currents_A}},
+            "fit": _jsonable(dict(self.fit_stats)),
+        }
+        doc["crc32"] = f"0x{_crc(doc):08x}"
+        return doc
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_document(), indent=1, sort_keys=True, allow_nan=False) + "\n"
+
+
+def _jsonable(x):
+    if isinstance(x, Mapping):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple, np.ndarray)):
+        return [_jsonable(v) for v in (x.tolist() if isinstance(x, np.ndarray) else x)]
+    if isinstance(x, (np.floating, float)):
+        return float(x) if math.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    return x
+
+
+def _now_utc() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat().replace("+00:00", "Z")
+
+
+def _canonical(doc: Mapping) -> bytes:
+    body = {k: v for k, v in doc.items() if k != "crc32"}
+    return json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=True, allow_nan=False).encode()
+
+
+def _crc(doc: Mapping) -> int:
+    return zlib.crc32(_canonical(doc)) & 0xFFFFFFFF
+
+
+# ---------------------------------------------------------------------- parse
+def table_from_document(doc: Any, source: str = "<table>") -> CalTable:
+    """Parse a JSON object into a CalTable, checking schema, CRC and structure."""
+    def bad(msg: str) -> CalTableInvalid:
+        return CalTableInvalid(f"{source}: {msg}")
+    if not isinstance(doc, dict):
+        raise bad("not a JSON object")
+    if doc.get("schema") != SCHEMA:
+        raise bad(f"foreign file: schema {doc.get('schema')!r}, expected {SCHEMA!r}")
+    if doc.get("schema_version") != SCHEMA_VERSION:
+        raise bad(f"unsupported schema_version {doc.get('schema_version')!r} (supported: {SCHEMA_VERSION})")
+    crc = doc.get("crc32")
+    if not isinstance(crc, str):
+        raise bad("missing crc32")
+    try:
+        want = int(crc, 16)
+        got = _crc(doc)
+    except (ValueError, TypeError) as exc:
+        raise bad(f"cannot check crc32: {exc}") from None
+    if want != got:
+        raise bad(f"CRC-32 mismatch: file says {crc}, content gives 0x{got:08x} (corrupt or edited)")
+    try:
+        model = doc["model"]
+        terms = tuple(model["terms"])
+        unknown = [t for t in terms if t not in CAL_TERMS]
+        if unknown:
+            raise bad(f"unknown terms {unknown}")
+        params = doc["parameters"]
+        kw: dict[str, Any] = {}
+        for term in terms:
+            p = _TERM_PARAMS.get(term)
+            if p is None:
+                continue
+            if p not in params:
+                raise bad(f"term {term!r} present but parameter {p!r} missing")
+            if params[p].get("unit") != _UNITS[p]:
+                raise bad(f"parameter {p}: unit {params[p].get('unit')!r}, expected {_UNITS[p]!r}")
+            val = params[p]["value"]
+            if p == "D":
+                if list(val) != list(model["currents"]):
+                    raise bad(f"D currents {list(val)} differ from model currents {model['currents']}")
+                kw["D"] = tuple((k, np.asarray(v, dtype=float)) for k, v in val.items())
+            else:
+                kw[p] = np.asarray(val, dtype=float)
+        if "gain_matrix" not in terms:
+            raise bad("table has no gain_matrix")
+        v = doc["validity"]
+        vt = v["temp_c"]
+        table = CalTable(
+            device_id=str(doc["device_id"]), terms=terms, t0_c=float(model["t0_c"]),
+            validity_temp_c=None if vt is None else (float(vt[0]), float(vt[1])),
+            validity_field_uT=float(v["field_uT"]),
+            validity_currents_A=tuple((k, (float(a), float(b))) for k, (a, b) in v.get("currents_A", {}).items()),
+            model_name=str(model.get("name", "")), table_name=str(doc.get("table_name", "")),
+            description=str(doc.get("description", "")), created_utc=str(doc.get("created_utc", "")),
+            fit_stats=doc.get("fit", {}) or {}, ground_only=params.get("ground_only", {}) or {},
+            crc32=got, **kw)
+    except CalTableInvalid:
+        raise
+    except (KeyError, TypeError, ValueError, IndexError) as exc:
+        raise bad(f"malformed table ({type(exc).__name__}: {exc})") from None
+    if set(table.currents) != {k for k, _ in table.validity_currents_A}:
+        raise bad("validity.currents_A must name exactly the model currents")
+    return table
+
+
+def load_table(path: str | os.PathLike) -> CalTable:
+    """Read and parse (schema, CRC, structure). Validation is separate: :func:`validate`."""
+    p = Path(path)
+    try:
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise CalTableInvalid(f"{p}: cannot read ({exc.strerror or exc})") from None
+    try:
+        doc = json.loads(raw.decode("utf-8"), parse_constant=lambda c: (_ for _ in ()).throw(
+            ValueError(f"non-finite constant {c}")))
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise CalTableInvalid(f"{p}: not a valid JSON table (corrupt or truncated: {exc})") from None
+    return table_from_document(doc, str(p))
+
+
+def save_table(table: CalTable, path: str | os.PathLike) -> Path:
+    """Atomic write: temp file in the same directory, fsync, rename, fsync the directory."""
+    p = Path(path)
+    text = table.to_json()
+    tmp = p.with_name(f".{p.name}.tmp-{os.getpid()}")
+    try:
+        with open(tmp, "w", encoding="utf-8") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, p)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    fd = os.open(p.parent, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    return p
+
+
+# ---------------------------------------------------------------------- validate
+@dataclass(frozen=True)
+class ValidationResult:
+    ok: bool
+    problems: tuple[str, ...] = ()
+    worst_output_uT: float = math.nan   # fixed-point headroom figure over the validity range
+    max_cond: float = math.nan
+
+    def raise_if_bad(self, source: str = "table") -> None:
+        if not self.ok:
+            raise CalTableInvalid(f"{source}: validation failed: " + "; ".join(self.problems))
+
+
+def validate(table: CalTable) -> ValidationResult:
+    """Pure check of a parsed table; returns every problem found."""
+    pr: list[str] = []
+    arrays = {"S": table.S, "K_S": table.K_S, "O": table.O, "K_O": table.K_O, "c3": table.c3, "P": table.P,
+              **{f"D_{k}": v for k, v in table.D}}
+    for k, a in arrays.items():
+        if not np.all(np.isfinite(a)):
+            pr.append(f"{k} has non-finite values")
+    scalars = {"t0_c": table.t0_c, "validity.field_uT": table.validity_field_uT}
+    if table.validity_temp_c is not None:
+        scalars["validity.temp_c"] = sum(table.validity_temp_c)
+    for k, x in scalars.items():
+        if not math.isfinite(x):
+            pr.append(f"{k} is not finite")
+    if pr:
+        return ValidationResult(False, tuple(pr))
+    if not table.device_id:
+        pr.append("device_id is empty")
+    d = np.diag(table.S)
+    lo, hi = BOUNDS["S_diag"]
+    if np.any((d < lo) | (d > hi)):
+        pr.append(f"S diagonal {d.tolist()} outside [{lo}, {hi}]")
+    off = table.S[~np.eye(3, dtype=bool)]
+    if np.any(np.abs(off) > BOUNDS["S_offdiag"]):
+        pr.append(f"S off-diagonal beyond +-{BOUNDS['S_offdiag']}")
+    for name, a, key, unit in (("K_S", table.K_S, "K_S", "1/degC"), ("O", table.O, "O_uT", "uT"),
+                               ("K_O", table.K_O, "K_O_uT_per_degC", "uT/degC"),
+                               ("c3", table.c3, "c3_per_uT2", "1/uT^2"), ("P", table.P, "P_per_uT", "1/uT")):
+        if np.any(np.abs(a) > BOUNDS[key]):
+            pr.append(f"{name} max |{np.abs(a).max():g}| {unit} beyond physical bound {BOUNDS[key]:g}")
+    for k, v in table.D:
+        if np.any(np.abs(v) > BOUNDS["D_uT_per_A"]):
+            pr.append(f"D_{k} beyond physical bound {BOUNDS['D_uT_per_A']:g} uT/A")
+    if abs(round(table.t0_c * 100) - table.t0_c * 100) > 1e-6:
+        pr.append(f"t0_c {table.t0_c} is not a multiple of 0.01 degC")
+    tlo, thi = BOUNDS["temp_c"]
+    temps = [table.t0_c]
+    if table.validity_temp_c is not None:
+        a, b = table.validity_temp_c
+        if not (tlo <= a <= b <= thi):
+            pr.append(f"validity temp_c [{a}, {b}] not an interval inside [{tlo}, {thi}] degC")
+        temps = [a, b]
+    elif {"temperature_gain", "temperature_offset"} & set(table.terms):
+        pr.append("table has temperature terms but no validity temperature range")
+    if not 0 < table.validity_field_uT <= BOUNDS["field_uT"]:
+        pr.append(f"validity field_uT {table.validity_field_uT} not in (0, {BOUNDS['field_uT']}]")
+    for k, (a, b) in table.validity_currents_A:
+        if not (-BOUNDS["current_A"] <= a <= b <= BOUNDS["current_A"]):
+            pr.append(f"validity current {k} [{a}, {b}] A not an interval within +-{BOUNDS['current_A']}")
+    # conditioning over the validity temperature range (the gain is linear in T: check both ends)
+    conds = []
+    for t in temps:
+        sv = np.linalg.svd(table.gain_at(t), compute_uv=False)
+        conds.append(sv[0] / sv[-1] if sv[-1] > 0 else math.inf)
+    max_cond = float(max(conds))
+    if max_cond > MAX_COND:
+        pr.append(f"gain matrix condition number {max_cond:.3g} > {MAX_COND:g} in the validity range")
+    # fixed-point representation and headroom over the validity box
+    worst = math.nan
+    ground = [t for t in table.terms if t in GROUND_ONLY_TERMS]
+    flight_terms = [t for t in table.terms if t not in ground]
+    fixed_ok = all(t in fixed_point.FIXED_POINT_TERMS for t in flight_terms)
+    if fixed_ok:
+        try:
+            fixed_point.FixedPointTable.from_table(table)
+        except CalTableInvalid as exc:
+            pr.append(f"fixed point: {exc}")
+        worst = worst_case_output_uT(table)
+        if worst > fixed_point.OUT_LIMIT_uT:
+            pr.append(f"fixed point: output up to {worst:.1f} uT over the validity range exceeds the "
+                      f"{fixed_point.OUT_LIMIT_uT:.1f} uT output range (would saturate)")
+        if table.validity_field_uT * 1e3 > fixed_point.B_LIMIT_nT:
+            pr.append("validity field beyond the fixed-point input range")
+    return ValidationResult(not pr, tuple(pr), worst, max_cond)
+
+
+def worst_case_output_uT(table: CalTable) -> float:
+    """Max over axes of an upper bound on |B_cal| for any input in the validity box (uT)."""
+    temps = [table.t0_c] if table.validity_temp_c is None else list(table.validity_temp_c)
+    worst = 0.0
+    for i in range(3):
+        m = 0.0
+        for t in temps:  # every term is linear in T, so its max |.| is at an end of the range
+            dT = t - table.t0_c
+            g = np.abs(table.S[i] + table.K_S[i] * dT).sum() * table.validity_field_uT
+            o = abs(table.O[i] + table.K_O[i] * dT)
+            m = max(m, g + o)
+        for (name, d), (_, (a, b)) in zip(table.D, table.validity_currents_A):
+            m += abs(d[i]) * max(abs(a), abs(b))
+        worst = max(worst, m)
+    return float(worst)
+
+
+# ---------------------------------------------------------------------- from a fit
+def table_from_fit(result, device_id: str, *, description: str = "", created_utc: str = "",
+                   validity_temp_c: tuple[float, float] | None = None, validity_field_uT: float | None = None,
+                   validity_currents_A: Mapping[str, tuple[float, float]] | None = None) -> CalTable:
+    """A table from a :class:`firmware_py.calibration.FitResult`. Validity defaults to what
+    the fit data covered (temperature range, max |B| component, current ranges)."""
+    m = result.model
+    p = m.unpack(result.theta)
+    cov = result.coverage
+    if validity_temp_c is None and math.isfinite(cov.temp_min_c):
+        validity_temp_c = (math.floor(cov.temp_min_c * 100) / 100, math.ceil(cov.temp_max_c * 100) / 100)
+    if validity_field_uT is None:
+        validity_field_uT = float(np.ceil(cov.field_max_uT.max()))
+    vc = dict(validity_currents_A or {})
+    for k in m.currents:
+        vc.setdefault(k, tuple(cov.currents_A.get(k, (0.0, 0.0))))
+    ground = {}
+    if "time_skew" in m.terms:
+        ground["tau_s"] = p["tau"]
+    if "session_offset" in m.terms:
+        ground["session_offset_uT"] = {str(k): v for k, v in p["dO"].items()}
+    if "drift" in m.terms:
+        ground["drift_uT_per_s"] = p["r"]
+        ground["drift_t_ref_s"] = m.t_ref_s
+    return CalTable(device_id=device_id, terms=m.terms, S=p["S"], K_S=p["K_S"], O=p["O"], K_O=p["K_O"],
+                    D=tuple((k, p["D"][k]) for k in m.currents), c3=p["c3"], P=p["P"], t0_c=m.t0_c,
+                    validity_temp_c=validity_temp_c,
+                    validity_field_uT=validity_field_uT,
+                    validity_currents_A=tuple((k, vc[k]) for k in m.currents), model_name=m.name,
+                    description=description, created_utc=created_utc or _now_utc(),
+                    fit_stats=result.stats(), ground_only=ground)
+
+
+# ---------------------------------------------------------------------- store
+class CalTableStore:
+    """Active/inactive slots keyed to one device id (a swapped sensor cannot reuse another
+    sensor's table). ``active`` is None until a table has been activated."""
+
+    def __init__(self, device_id: str) -> None:
+        self.device_id = device_id
+        self._active: CalTable | None = None
+        self._active_fixed: fixed_point.FixedPointTable | None = None
+        self._staged: tuple[CalTable, fixed_point.FixedPointTable | None] | None = None
+        self._activation_requested = False
+        self.last_validation: ValidationResult | None = None
+        self.last_error: str = ""
+        self.load_count = 0
+        self.reject_count = 0
+
+    @property
+    def active(self) -> CalTable | None:
+        return self._active
+
+    @property
+    def active_fixed(self) -> fixed_point.FixedPointTable | None:
+        return self._active_fixed
+
+    def load(self, path: str | os.PathLike) -> ValidationResult:
+        """Parse + check device id + validate into the inactive slot. CalTableInvalid on any
+        failure; the active table is untouched either way."""
+        try:
+            table = load_table(path)
+            if table.device_id != self.device_id:
+                raise CalTableInvalid(f"{path}: foreign table for device {table.device_id!r}, "
+                                      f"this store serves {self.device_id!r}")
+            res = validate(table)
+            self.last_validation = res
+            res.raise_if_bad(str(path))
+            fixed = fixed_point.FixedPointTable.from_table(table) if all(
+                t in fixed_point.FIXED_POINT_TERMS or t in GROUND_ONLY_TERMS for t in table.terms) else None
+        except CalTableInvalid as exc:
+            self.reject_count += 1
+            self.last_error = str(exc)
+            raise
+        self._staged = (table, fixed)
+        self._activation_requested = False
+        self.load_count += 1
+        return res
+
+    def request_activation(self) -> None:
+        if self._staged is None:
+            raise CalTableInvalid("no validated table staged for activation")
+        self._activation_requested = True
+
+    def cycle_boundary(self) -> bool:
+        """Called by the scheduler between cycles: swaps in a requested table. True if swapped."""
+        if not self._activation_requested or self._staged is None:
+            return False
+        self._active, self._active_fixed = self._staged
+        self._staged = None
+        self._activation_requested = False
+        return True
+
+    def load_and_activate(self, path: str | os.PathLike) -> CalTable:
+        self.load(path)
+        self.request_activation()
+        self.cycle_boundary()
+        return self._active
+
+    def telemetry(self) -> dict:
+        a = self._active
+        return {"device_id": self.device_id, "active": a is not None,
+                "active_crc32": None if a is None else f"0x{a.crc32:08x}" if a.crc32 is not None else None,
+                "active_created_utc": None if a is None else a.created_utc,
+                "active_schema_version": None if a is None else a.schema_version,
+                "last_validation_ok": None if self.last_validation is None else self.last_validation.ok,
+                "last_error": self.last_error, "load_count": self.load_count, "reject_count": self.reject_count}

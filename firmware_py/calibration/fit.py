@@ -1,0 +1,576 @@
+"""Linear least-squares fit of the calibration model, with an honest error report.
+
+Pipeline: rows usable for the model -> design matrix -> identifiability (terms the
+data cannot determine are held at their prior, or the fit is refused) -> weighted
+least squares per output axis (optionally Huber IRLS) solved by QR -> parameter
+standard errors, condition numbers, in-sample RMSE -> held-out RMSE by interleaved time
+blocks and by leaving whole sessions out -> noise floor from the residuals.
+
+RMSE conventions (uT): in-sample per axis is ``sqrt(SSE / (N - p_i))`` (fitnlm's, as in
+belsten Table 7); held-out per axis is the plain RMS of out-of-fold residuals; the
+scalar figure is the vector norm of the three per-axis values.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import numpy as np
+import scipy.linalg
+
+from drivers.errors import FitError
+from firmware_py.calibration.model import AXES, CalModel, MODELS, resolve_terms
+
+#: Rank tolerance: a column whose part orthogonal to the columns accepted before it is
+#: below this fraction of its own norm is numerically undetermined.
+RANK_RTOL = 1e-9
+
+
+@dataclass
+class FitData:
+    """Paired samples for a fit. b_meas_uT: DUT (N,3) uT; b_ref_uT: reference (N,3) uT;
+    temp_c (N,) degC; t_s (N,) s; session (N,) int; currents_A {name: (N,) A};
+    weights (N,) >= 0 or None; flag (N,) int, rows with flag != 0 are not used."""
+
+    b_meas_uT: np.ndarray
+    b_ref_uT: np.ndarray
+    temp_c: np.ndarray
+    t_s: np.ndarray
+    session: np.ndarray
+    currents_A: dict[str, np.ndarray] = field(default_factory=dict)
+    weights: np.ndarray | None = None
+    flag: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.b_meas_uT = np.asarray(self.b_meas_uT, dtype=float).reshape(-1, 3)
+        n = self.b_meas_uT.shape[0]
+        self.b_ref_uT = np.asarray(self.b_ref_uT, dtype=float).reshape(n, 3)
+        self.temp_c = np.asarray(self.temp_c, dtype=float).reshape(n)
+        self.t_s = np.asarray(self.t_s, dtype=float).reshape(n)
+        self.session = np.asarray(self.session).astype(np.int64).reshape(n)
+        self.currents_A = {k: np.asarray(v, dtype=float).reshape(n) for k, v in self.currents_A.items()}
+        if self.weights is not None:
+            self.weights = np.asarray(self.weights, dtype=float).reshape(n)
+            if np.any(~np.isfinite(self.weights)) or np.any(self.weights < 0):
+                raise FitError("weights must be finite and >= 0")
+        if self.flag is not None:
+            self.flag = np.asarray(self.flag).astype(np.int64).reshape(n)
+
+    def __len__(self) -> int:
+        return self.t_s.size
+
+    @classmethod
+    def from_session(cls, s, weights=None) -> "FitData":
+        """From any object with Session's attributes (hil.session_file.Session)."""
+        return cls(s.dut_uT, s.ref_uT, s.temp_c, s.t_s, s.session, dict(s.currents_A), weights,
+                   getattr(s, "flag", None))
+
+    def select(self, mask: np.ndarray) -> "FitData":
+        return FitData(self.b_meas_uT[mask], self.b_ref_uT[mask], self.temp_c[mask], self.t_s[mask],
+                       self.session[mask], {k: v[mask] for k, v in self.currents_A.items()},
+                       None if self.weights is None else self.weights[mask],
+                       None if self.flag is None else self.flag[mask])
+
+    def usable(self, terms: Sequence[str], currents: Sequence[str]) -> np.ndarray:
+        """Rows whose every quantity the model needs is finite and whose flag is 0."""
+        ok = np.all(np.isfinite(self.b_meas_uT), axis=1) & np.all(np.isfinite(self.b_ref_uT), axis=1)
+        ok &= np.isfinite(self.t_s)
+        if {"temperature_gain", "temperature_offset"} & set(terms):
+            ok &= np.isfinite(self.temp_c)
+        for name in currents:
+            if name not in self.currents_A:
+                raise FitError(f"data has no current {name!r} (have {sorted(self.currents_A)})")
+            ok &= np.isfinite(self.currents_A[name])
+        if self.flag is not None:
+            ok &= self.flag == 0
+        if self.weights is not None:
+            ok &= self.weights > 0
+        return ok
+
+
+@dataclass
+class FitOptions:
+    """Fit policy. ``on_unidentifiable``: "hold" (at the prior) or "refuse" (FitError).
+
+    Temperature terms are determined only if the data spans ``min_temp_span_c`` degC:
+    ``temperature_gain`` on input axis j counts only samples with ``|B_j| >=
+    field_present_uT`` (field and temperature must vary together), ``temperature_offset``
+    counts every sample. ``priors``: parameter name (e.g. ``"K_S[y,y]"``) -> held value.
+    """
+
+    robust: bool = False
+    huber_k: float = 1.345
+    max_iter: int = 50
+    on_unidentifiable: str = "hold"
+    min_temp_span_c: float = 5.0
+    field_present_uT: float = 5.0
+    min_field_rms_uT: float = 2.0
+    min_sessions: int = 2
+    priors: dict[str, float] = field(default_factory=dict)
+    holdout: bool = True
+    block_s: float = 60.0
+    n_folds: int = 5
+    noise_lag_s: float = 1.0
+    exclude_ref_steps_uT: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.on_unidentifiable not in ("hold", "refuse"):
+            raise FitError(f"on_unidentifiable must be 'hold' or 'refuse', got {self.on_unidentifiable!r}")
+        for name in ("huber_k", "min_temp_span_c", "field_present_uT", "min_field_rms_uT", "block_s", "noise_lag_s"):
+            v = getattr(self, name)
+            if not np.isfinite(v) or v <= 0:
+                raise FitError(f"{name} must be finite and > 0, got {v!r}")
+        if self.exclude_ref_steps_uT is not None and not self.exclude_ref_steps_uT > 0:
+            raise FitError("exclude_ref_steps_uT must be > 0 or None")
+        if self.n_folds < 2:
+            raise FitError("n_folds must be >= 2")
+
+
+@dataclass
+class Coverage:
+    """What the data excites: temperature span (degC) overall and with field on each input
+    axis, field range (uT), current ranges (A), number of sessions, time span (s)."""
+
+    n: int = 0
+    sum_w: float = 0.0
+    temp_min_c: float = np.inf
+    temp_max_c: float = -np.inf
+    temp_with_field_c: np.ndarray = field(default_factory=lambda: np.array([[np.inf, -np.inf]] * 3))
+    field_max_uT: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    currents_A: dict[str, list[float]] = field(default_factory=dict)
+    sessions: set = field(default_factory=set)
+    t_min_s: float = np.inf
+    t_max_s: float = -np.inf
+
+    def update(self, b_uT, temp_c, currents_A, session, t_s, field_present_uT: float, weights=None) -> None:
+        b = np.asarray(b_uT).reshape(-1, 3)
+        if b.shape[0] == 0:
+            return
+        self.n += b.shape[0]
+        self.sum_w += float(b.shape[0] if weights is None else np.sum(weights))
+        t = np.asarray(temp_c)
+        if np.any(np.isfinite(t)):
+            self.temp_min_c = min(self.temp_min_c, float(np.nanmin(t)))
+            self.temp_max_c = max(self.temp_max_c, float(np.nanmax(t)))
+        for j in range(3):
+            sel = (np.abs(b[:, j]) >= field_present_uT) & np.isfinite(t)
+            if np.any(sel):
+                self.temp_with_field_c[j, 0] = min(self.temp_with_field_c[j, 0], float(t[sel].min()))
+                self.temp_with_field_c[j, 1] = max(self.temp_with_field_c[j, 1], float(t[sel].max()))
+        self.field_max_uT = np.maximum(self.field_max_uT, np.abs(b).max(axis=0))
+        for k, v in (currents_A or {}).items():
+            lo, hi = self.currents_A.get(k, [np.inf, -np.inf])
+            self.currents_A[k] = [min(lo, float(np.min(v))), max(hi, float(np.max(v)))]
+        self.sessions.update(int(s) for s in np.unique(session))
+        self.t_min_s = min(self.t_min_s, float(np.min(t_s)))
+        self.t_max_s = max(self.t_max_s, float(np.max(t_s)))
+
+    def temp_span_with_field(self, j: int) -> float:
+        lo, hi = self.temp_with_field_c[j]
+        return float(hi - lo) if hi >= lo else 0.0
+
+    @property
+    def temp_span_c(self) -> float:
+        return float(self.temp_max_c - self.temp_min_c) if self.temp_max_c >= self.temp_min_c else 0.0
+
+
+@dataclass
+class HeldParam:
+    axis: int
+    column: int
+    name: str
+    value: float
+    reason: str
+
+
+@dataclass
+class AxisSolution:
+    theta: np.ndarray     # (p,) coefficients (held ones at their prior, unused 0)
+    se: np.ndarray        # (p,) standard errors (NaN for held / unused)
+    sse: float            # weighted sum of squared residuals, uT^2
+    dof: int
+    cond_scaled: float    # condition number of the column-equilibrated active design
+    cond_raw: float
+
+
+@dataclass
+class FitResult:
+    """Everything a fit produced; ``report()`` renders it as text."""
+
+    model: CalModel
+    theta: np.ndarray                 # (3, p)
+    se: np.ndarray                    # (3, p)
+    held: list[HeldParam]
+    n_used: int
+    n_excluded: int
+    rmse_uT: np.ndarray               # (3,) in-sample, sqrt(SSE/(N-p_i))
+    raw_rmse_uT: np.ndarray           # (3,) RMS of ref - dut before calibration
+    cond_scaled: np.ndarray           # (3,)
+    cond_raw: np.ndarray              # (3,)
+    noise_floor_uT: np.ndarray        # (3,)
+    coverage: Coverage
+    robust: bool = False
+    holdout_blocks_uT: np.ndarray | None = None          # (3,)
+    holdout_sessions_uT: np.ndarray | None = None        # (3,) pooled over left-out sessions
+    holdout_per_session_uT: dict[int, np.ndarray] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def rmse_norm_uT(self) -> float:
+        return float(np.linalg.norm(self.rmse_uT))
+
+    @property
+    def params(self) -> dict:
+        return self.model.unpack(self.theta)
+
+    def stats(self) -> dict:
+        """JSON-friendly fit statistics (uT)."""
+        def nrm(v):
+            return None if v is None else float(np.linalg.norm(v))
+
+        def lst(v):
+            return None if v is None else [float(x) for x in v]
+        return {
+            "n_used": self.n_used, "n_excluded": self.n_excluded, "robust": self.robust,
+            "rmse_uT": lst(self.rmse_uT), "rmse_norm_uT": self.rmse_norm_uT,
+            "raw_rmse_uT": lst(self.raw_rmse_uT), "raw_rmse_norm_uT": nrm(self.raw_rmse_uT),
+            "holdout_blocks_rmse_uT": lst(self.holdout_blocks_uT),
+            "holdout_blocks_rmse_norm_uT": nrm(self.holdout_blocks_uT),
+            "holdout_sessions_rmse_uT": lst(self.holdout_sessions_uT),
+            "holdout_sessions_rmse_norm_uT": nrm(self.holdout_sessions_uT),
+            "noise_floor_uT": lst(self.noise_floor_uT), "noise_floor_norm_uT": nrm(self.noise_floor_uT),
+            "cond_scaled": lst(self.cond_scaled), "cond_raw": lst(self.cond_raw),
+            "held": [{"param": h.name, "value": h.value, "reason": h.reason} for h in self.held],
+        }
+
+    def report(self) -> str:
+        m = self.model
+        L = [f"model {m.name}: terms {', '.join(m.terms)}" + (f"; currents {', '.join(m.currents)}"
+                                                             if m.currents else "") + f"; t0 = {m.t0_c:g} degC",
+             f"rows used {self.n_used}, excluded {self.n_excluded} (NaN / flagged / zero weight)"
+             + ("; robust Huber IRLS" if self.robust else ""),
+             f"coverage: T {self.coverage.temp_min_c:.2f}..{self.coverage.temp_max_c:.2f} degC, "
+             f"|B| max per axis {np.array2string(self.coverage.field_max_uT, precision=1)} uT, "
+             f"sessions {sorted(self.coverage.sessions)}", "",
+             f"{'':24s}{'x':>10s}{'y':>10s}{'z':>10s}{'norm':>10s}   (nT)"]
+
+        def row(label, v):
+            if v is None:
+                return f"{label:24s}{'n/a':>10s}{'n/a':>10s}{'n/a':>10s}{'n/a':>10s}"
+            v = np.asarray(v) * 1e3
+            return f"{label:24s}" + "".join(f"{x:10.1f}" for x in v) + f"{np.linalg.norm(v):10.1f}"
+        L += [row("raw ref-dut RMS", self.raw_rmse_uT), row("in-sample RMSE", self.rmse_uT),
+              row("held-out time blocks", self.holdout_blocks_uT),
+              row("held-out sessions", self.holdout_sessions_uT)]
+        for s, v in sorted(self.holdout_per_session_uT.items()):
+            L.append(row(f"  session {s} left out", v))
+        L += [row("noise floor (residual)", self.noise_floor_uT), "",
+              "condition number (equilibrated / raw): " + ", ".join(
+                  f"{a} {c:.3g} / {r:.3g}" for a, c, r in zip(AXES, self.cond_scaled, self.cond_raw)), "",
+              f"{'parameter':18s}{'value':>14s}{'std err':>12s}  unit"]
+        mask = m.axis_mask()
+        held = {(h.axis, h.column) for h in self.held}
+        for i in range(3):
+            for c, col in enumerate(m.columns):
+                if not mask[i, c]:
+                    continue
+                se = "held" if (i, c) in held else f"{self.se[i, c]:12.3g}"
+                L.append(f"{m.param_name(i, c):18s}{self.theta[i, c]:14.6g}{se:>12s}  {col.unit}")
+        if self.held:
+            L += ["", "identifiability: parameters the data cannot determine (held at prior):"]
+            L += [f"  {h.name} = {h.value:g}: {h.reason}" for h in self.held]
+        L += [f"note: {n}" for n in self.notes]
+        return "\n".join(L)
+
+
+# ---------------------------------------------------------------------- numerics
+def qr_r(A: np.ndarray) -> np.ndarray:
+    """Square upper-triangular R with R^T R = A^T A (zero-padded if A has few rows)."""
+    m = A.shape[1]
+    if A.shape[0] == 0:
+        return np.zeros((m, m))
+    R = np.linalg.qr(A, mode="r")
+    if R.shape[0] < m:
+        R = np.vstack([R, np.zeros((m - R.shape[0], m))])
+    return R
+
+
+def independent_field_rms(model: CalModel, R: np.ndarray, cov: "Coverage") -> np.ndarray:
+    """(3,) uT: RMS of each input axis's field component not explained (least squares) by
+    the other two axes and a constant, i.e. how much the data excites that axis on its own."""
+    cols = {c.index: k for k, c in enumerate(model.columns) if c.term == "gain_matrix"}
+    off = [k for k, c in enumerate(model.columns) if c.term == "offset"]
+    out = np.zeros(3)
+    n = max(cov.sum_w, 1e-300)
+    for j in range(3):
+        others = [cols[k] for k in range(3) if k != j] + off
+        A = R[:, others]
+        v = R[:, cols[j]]
+        coef, *_ = np.linalg.lstsq(A, v, rcond=None)
+        out[j] = np.linalg.norm(v - A @ coef) / np.sqrt(n)
+    return out
+
+
+def identify(model: CalModel, R: np.ndarray, cov: Coverage, options: FitOptions) -> list[HeldParam]:
+    """Parameters the data cannot determine. ``R``: R factor of the weighted [X | Y].
+
+    Coverage rules (temperature terms, sessions) first, then numerical rank: columns
+    are accepted in order (gain and offset first, nuisance terms last) and a column
+    whose component orthogonal to the accepted ones is below RANK_RTOL of its norm is held.
+    """
+    p = model.n_columns
+    mask = model.axis_mask()
+    prior = model.prior()
+    names = {f"{model.param_name(i, c)}": (i, c) for i in range(3) for c in range(p)}
+    for k, v in options.priors.items():
+        if k not in names:
+            raise FitError(f"prior for unknown parameter {k!r}")
+        prior[names[k]] = float(v)
+    held: dict[tuple[int, int], str] = {}
+    orth = independent_field_rms(model, R, cov)
+    for c, col in enumerate(model.columns):
+        reason = None
+        if col.term == "temperature_gain":
+            span = cov.temp_span_with_field(col.index)
+            if span < options.min_temp_span_c:
+                reason = (f"temperature spans only {span:.2f} degC while |B_{AXES[col.index]}| >= "
+                          f"{options.field_present_uT:g} uT (need {options.min_temp_span_c:g} degC)")
+        elif col.term == "temperature_offset":
+            if cov.temp_span_c < options.min_temp_span_c:
+                reason = (f"temperature spans only {cov.temp_span_c:.2f} degC "
+                          f"(need {options.min_temp_span_c:g} degC)")
+        elif col.term in ("gain_matrix", "cubic") and orth[col.index] < options.min_field_rms_uT:
+            reason = (f"field on {AXES[col.index]} not explained by the other axes has RMS "
+                      f"{orth[col.index]:.3g} uT (need {options.min_field_rms_uT:g} uT)")
+        elif col.term == "cross_products":
+            jj, kk = ((0, 1), (0, 2), (1, 2))[col.index]
+            if min(orth[jj], orth[kk]) < options.min_field_rms_uT:
+                reason = (f"{col.feature}: both axes need independent field RMS >= "
+                          f"{options.min_field_rms_uT:g} uT")
+        elif col.term == "session_offset" and len(cov.sessions) < options.min_sessions:
+            reason = f"only {len(cov.sessions)} session(s)"
+        if reason:
+            for i in range(3):
+                if mask[i, c]:
+                    held[(i, c)] = reason
+    norms = np.linalg.norm(R[:, :p], axis=0)
+    priority = {"gain_matrix": 0, "offset": 1}
+    order = sorted(range(p), key=lambda c: (priority.get(model.columns[c].term, 2), c))
+    for i in range(3):
+        accepted: list[int] = []
+        for c in order:
+            if not mask[i, c] or (i, c) in held:
+                continue
+            if norms[c] == 0:
+                held[(i, c)] = "column is zero in the data (never excited)"
+                continue
+            if accepted:
+                A = R[:, accepted] / norms[accepted]
+                v = R[:, c] / norms[c]
+                coef, *_ = np.linalg.lstsq(A, v, rcond=None)
+                resid = np.linalg.norm(v - A @ coef)
+            else:
+                resid = 1.0
+            if resid < RANK_RTOL * 1e3 * np.sqrt(p):
+                others = ", ".join(model.columns[a].feature for a in accepted)
+                held[(i, c)] = f"column {model.columns[c].feature} is a combination of [{others}]"
+            else:
+                accepted.append(c)
+    out = [HeldParam(i, c, model.param_name(i, c), float(prior[i, c]), r) for (i, c), r in sorted(held.items())]
+    if out and options.on_unidentifiable == "refuse":
+        raise FitError("data cannot determine: " + "; ".join(f"{h.name} ({h.reason})" for h in out))
+    return out
+
+
+def solve_axis(R: np.ndarray, p: int, i: int, mask_i: np.ndarray, held: Mapping[int, float],
+               n: int) -> AxisSolution:
+    """Solve output axis ``i`` from the R factor of weighted [X | Y] (p + 3 columns)."""
+    active = [c for c in range(p) if mask_i[c] and c not in held]
+    ycol = R[:, p + i].copy()
+    for c, v in held.items():
+        ycol -= R[:, c] * v
+    k = len(active)
+    theta = np.zeros(p)
+    se = np.full(p, np.nan)
+    for c, v in held.items():
+        theta[c] = v
+    if k == 0:
+        return AxisSolution(theta, se, float(ycol @ ycol), n, np.nan, np.nan)
+    A = R[:, active]
+    scale = np.linalg.norm(A, axis=0)
+    scale[scale == 0] = 1.0
+    R2 = qr_r(np.column_stack([A / scale, ycol]))
+    Rk = R2[:k, :k]
+    diag = np.abs(np.diag(Rk))
+    if diag.min() <= diag.max() * RANK_RTOL:
+        raise FitError(f"axis {AXES[i]}: design is rank deficient after identifiability checks")
+    z = scipy.linalg.solve_triangular(Rk, R2[:k, k])
+    sse = float(R2[k, k] ** 2)
+    dof = n - k
+    sigma2 = sse / dof if dof > 0 else np.nan
+    Rinv = scipy.linalg.solve_triangular(Rk, np.eye(k))
+    var = sigma2 * np.sum(Rinv ** 2, axis=1)
+    theta[active] = z / scale
+    se[active] = np.sqrt(var) / scale
+    sv = np.linalg.svd(Rk, compute_uv=False)
+    svr = np.linalg.svd(A, compute_uv=False)
+    return AxisSolution(theta, se, sse, dof, float(sv[0] / sv[-1]),
+                        float(svr[0] / svr[-1]) if svr[-1] > 0 else np.inf)
+
+
+def noise_floor(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, lag_s: float) -> np.ndarray:
+    """Per-axis white-noise level (uT) of residuals: robust (MAD) spread of differences of
+    samples ``lag_s`` apart within a session, divided by sqrt(2). Differencing removes
+    slow misfit; the MAD ignores field-step transitions."""
+    out = np.full(3, np.nan)
+    diffs = []
+    for s in np.unique(session):
+        idx = np.flatnonzero(session == s)
+        idx = idx[np.argsort(t_s[idx], kind="stable")]
+        t = t_s[idx]
+        j = np.searchsorted(t, t + lag_s)
+        ok = j < t.size
+        jj = j[ok]
+        ii = np.flatnonzero(ok)
+        good = np.abs((t[jj] - t[ii]) - lag_s) <= 0.25 * lag_s
+        diffs.append(resid_uT[idx[jj[good]]] - resid_uT[idx[ii[good]]])
+    d = np.vstack(diffs) if diffs else np.zeros((0, 3))
+    if d.shape[0] >= 10:
+        med = np.median(d, axis=0)
+        out = 1.4826 * np.median(np.abs(d - med), axis=0) / np.sqrt(2.0)
+    return out
+
+
+# ---------------------------------------------------------------------- the fit
+def reference_steps(b_ref_uT: np.ndarray, session: np.ndarray, step_uT: float) -> np.ndarray:
+    """Rows on either side of a reference change above ``step_uT`` (any axis) between
+    consecutive rows of one session: field transitions, where interpolating two
+    asynchronous streams is least trustworthy (the authors' step 4)."""
+    d = np.abs(np.diff(b_ref_uT, axis=0))
+    big = (np.nanmax(d, axis=1) > step_uT) & (session[1:] == session[:-1]) if len(session) > 1 else np.zeros(0, bool)
+    out = np.zeros(len(session), dtype=bool)
+    out[1:] |= big
+    out[:-1] |= big
+    return out
+
+
+def build_model(data: FitData, terms: Sequence[str], currents: Sequence[str], t0_c: float,
+                name: str) -> CalModel:
+    sessions = tuple(int(s) for s in np.unique(data.session)) if "session_offset" in terms else ()
+    t_ref = float(np.mean(data.t_s)) if len(data) else 0.0
+    return CalModel(tuple(terms), tuple(currents), sessions, t0_c, t_ref, name)
+
+
+def _fit_core(data: FitData, model: CalModel, options: FitOptions):
+    X = model.design(data.b_meas_uT, data.temp_c, data.currents_A, data.session, data.t_s)
+    Y = data.b_ref_uT
+    w = np.ones(len(data)) if data.weights is None else data.weights
+    sw = np.sqrt(w)[:, None]
+    cov = Coverage()
+    cov.update(data.b_meas_uT, data.temp_c, {k: data.currents_A[k] for k in model.currents}, data.session,
+               data.t_s, options.field_present_uT, w)
+    p = model.n_columns
+    R = qr_r(np.hstack([X, Y]) * sw)
+    held = identify(model, R, cov, options)
+    mask = model.axis_mask()
+    theta = np.zeros((3, p))
+    se = np.full((3, p), np.nan)
+    conds = np.full((2, 3), np.nan)
+    for i in range(3):
+        h = {x.column: x.value for x in held if x.axis == i}
+        Ri = R
+        sol = solve_axis(Ri, p, i, mask[i], h, len(data))
+        if options.robust:
+            for _ in range(options.max_iter):
+                r = Y[:, i] - X @ sol.theta
+                scale = 1.4826 * np.median(np.abs(r - np.median(r)))
+                if not scale > 0:
+                    break
+                u = np.abs(r) / (options.huber_k * scale)
+                wr = np.where(u <= 1, 1.0, 1.0 / np.maximum(u, 1e-300))
+                Ri = qr_r(np.hstack([X, Y]) * np.sqrt(w * wr)[:, None])
+                new = solve_axis(Ri, p, i, mask[i], h, len(data))
+                change = np.max(np.abs(new.theta - sol.theta) / (np.abs(sol.theta) + 1e-12))
+                sol = new
+                if change < 1e-10:
+                    break
+        theta[i], se[i], conds[0, i], conds[1, i] = sol.theta, sol.se, sol.cond_scaled, sol.cond_raw
+    return X, theta, se, held, conds, cov
+
+
+def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, currents: Sequence[str] = (),
+        t0_c: float = 25.0, options: FitOptions | None = None) -> FitResult:
+    """Fit the calibration model to paired data; see the module docstring."""
+    options = options or FitOptions()
+    all_terms = resolve_terms(model, terms, currents)
+    name = model if all_terms == MODELS.get(model) else f"{model}+" + "+".join(
+        t for t in all_terms if t not in MODELS[model])
+    ok = data.usable(all_terms, currents)
+    if options.exclude_ref_steps_uT is not None:
+        ok &= ~reference_steps(data.b_ref_uT, data.session, options.exclude_ref_steps_uT)
+    d = data.select(ok)
+    cm = build_model(d, all_terms, currents, t0_c, name)
+    if len(d) <= cm.n_columns:
+        raise FitError(f"{len(d)} usable rows for {cm.n_columns} columns: not enough data")
+    X, theta, se, held, conds, cov = _fit_core(d, cm, options)
+    resid = d.b_ref_uT - cm.predict(theta, X)
+    p_i = cm.axis_mask().sum(axis=1) - np.array([sum(1 for h in held if h.axis == i) for i in range(3)])
+    rmse = np.sqrt(np.sum(resid ** 2, axis=0) / np.maximum(len(d) - p_i, 1))
+    raw = np.sqrt(np.mean((d.b_ref_uT - d.b_meas_uT) ** 2, axis=0))
+    res = FitResult(cm, theta, se, held, len(d), int((~ok).sum()), rmse, raw, conds[0], conds[1],
+                    noise_floor(resid, d.t_s, d.session, options.noise_lag_s), cov, options.robust)
+    if options.holdout:
+        res.holdout_blocks_uT = _holdout_blocks(d, all_terms, currents, t0_c, name, options, res.notes)
+        res.holdout_sessions_uT, res.holdout_per_session_uT = _holdout_sessions(
+            d, all_terms, currents, t0_c, name, options, res.notes)
+    return res
+
+
+def _predict_out(train: FitData, test: FitData, terms, currents, t0_c, name, options) -> np.ndarray:
+    cm = build_model(train, terms, currents, t0_c, name)
+    _, theta, *_ = _fit_core(train, cm, options)
+    Xt = cm.design(test.b_meas_uT, test.temp_c, test.currents_A, test.session, test.t_s)
+    return test.b_ref_uT - cm.predict(theta, Xt)
+
+
+def _holdout_blocks(d: FitData, terms, currents, t0_c, name, options, notes) -> np.ndarray | None:
+    fold = np.zeros(len(d), dtype=np.int64)
+    for s in np.unique(d.session):
+        m = d.session == s
+        fold[m] = np.floor((d.t_s[m] - d.t_s[m].min()) / options.block_s).astype(np.int64) % options.n_folds
+    sq, cnt = np.zeros(3), 0
+    for f in np.unique(fold):
+        test = fold == f
+        if (~test).sum() == 0 or test.sum() == 0:
+            continue
+        try:
+            r = _predict_out(d.select(~test), d.select(test), terms, currents, t0_c, name, options)
+        except FitError as exc:
+            notes.append(f"time-block fold {f} skipped: {exc}")
+            continue
+        sq += np.sum(r ** 2, axis=0)
+        cnt += r.shape[0]
+    if cnt == 0:
+        notes.append("held-out by time blocks: no fold could be fitted")
+        return None
+    return np.sqrt(sq / cnt)
+
+
+def _holdout_sessions(d: FitData, terms, currents, t0_c, name, options, notes):
+    sessions = np.unique(d.session)
+    if sessions.size < 2:
+        notes.append("held-out by sessions: needs at least two sessions")
+        return None, {}
+    per: dict[int, np.ndarray] = {}
+    sq, cnt = np.zeros(3), 0
+    for s in sessions:
+        test = d.session == s
+        try:
+            r = _predict_out(d.select(~test), d.select(test), terms, currents, t0_c, name, options)
+        except FitError as exc:
+            notes.append(f"session {int(s)} left out: skipped: {exc}")
+            continue
+        per[int(s)] = np.sqrt(np.mean(r ** 2, axis=0))
+        sq += np.sum(r ** 2, axis=0)
+        cnt += r.shape[0]
+    return (np.sqrt(sq / cnt) if cnt else None), per

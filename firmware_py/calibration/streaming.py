@@ -1,0 +1,105 @@
+"""Streaming fit: QR accumulation by block, memory independent of the sample count.
+
+Each block's weighted ``[X | Y]`` is stacked under the running upper-triangular ``R``
+(``(p+3) x (p+3)``) and re-factorised, so ``R^T R`` always equals the Gram matrix of all
+rows seen (QR avoids squaring the condition number, unlike normal equations). Solving
+uses the same identifiability rules and per-axis solver as the batch :func:`fit`, so
+the two agree to rounding on the same data.
+
+Limits (raise FitError): the model is fixed before the first block (sessions for
+``session_offset`` and ``t_ref_s`` for ``drift`` must be given up front); ``time_skew``
+(needs neighbouring samples across blocks) and robust IRLS (needs all residuals)
+are batch-only. Held-out errors and the noise floor need the data again: they are
+not produced here.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from drivers.errors import FitError
+from firmware_py.calibration.fit import (Coverage, FitOptions, FitResult, identify, qr_r, solve_axis)
+from firmware_py.calibration.model import CalModel
+
+
+class StreamingFit:
+    """Accumulate blocks with :meth:`add`, then :meth:`solve`."""
+
+    def __init__(self, model: CalModel, options: FitOptions | None = None) -> None:
+        if "time_skew" in model.terms:
+            raise FitError("time_skew is batch-only (needs neighbouring samples)")
+        self.options = options or FitOptions()
+        if self.options.robust:
+            raise FitError("robust IRLS is batch-only")
+        self.model = model
+        m = model.n_columns + 3
+        self._R = np.zeros((m, m))
+        self._raw_sq = np.zeros(3)
+        self._n_raw = 0
+        self.coverage = Coverage()
+        self.n_used = 0
+        self.n_excluded = 0
+
+    def add(self, b_meas_uT, b_ref_uT, temp_c=None, currents_A=None, session=None, t_s=None,
+            weights=None) -> None:
+        """One block of rows (same meanings and units as :class:`FitData`). Rows with a
+        non-finite needed value or zero weight are counted as excluded."""
+        b = np.asarray(b_meas_uT, dtype=float).reshape(-1, 3)
+        n = b.shape[0]
+        y = np.asarray(b_ref_uT, dtype=float).reshape(n, 3)
+        temp = np.full(n, np.nan) if temp_c is None else np.asarray(temp_c, dtype=float).reshape(n)
+        sess = np.full(n, self.model.sessions[0] if self.model.sessions else 0) if session is None \
+            else np.asarray(session).reshape(n)
+        t = np.zeros(n) if t_s is None else np.asarray(t_s, dtype=float).reshape(n)
+        cur = {k: np.asarray((currents_A or {})[k], dtype=float).reshape(n) for k in self.model.currents
+               if k in (currents_A or {})}
+        ok = np.all(np.isfinite(b), axis=1) & np.all(np.isfinite(y), axis=1)
+        if {"temperature_gain", "temperature_offset"} & set(self.model.terms):
+            ok &= np.isfinite(temp)
+        for k in self.model.currents:
+            if k not in cur:
+                raise FitError(f"block has no current {k!r}")
+            ok &= np.isfinite(cur[k])
+        if "session_offset" in self.model.terms:
+            unknown = set(np.unique(sess[ok]).tolist()) - set(self.model.sessions)
+            if unknown:
+                raise FitError(f"sessions {sorted(unknown)} not declared in the model {self.model.sessions}")
+        w = np.ones(n) if weights is None else np.asarray(weights, dtype=float).reshape(n)
+        if np.any(~np.isfinite(w)) or np.any(w < 0):
+            raise FitError("weights must be finite and >= 0")
+        ok &= w > 0
+        self.n_excluded += int((~ok).sum())
+        if not ok.any():
+            return
+        b, y, temp, sess, t, w = b[ok], y[ok], temp[ok], sess[ok], t[ok], w[ok]
+        cur = {k: v[ok] for k, v in cur.items()}
+        X = self.model.design(b, temp, cur, sess, t)
+        self._R = qr_r(np.vstack([self._R, np.hstack([X, y]) * np.sqrt(w)[:, None]]))
+        self.coverage.update(b, temp, cur, sess, t, self.options.field_present_uT, w)
+        self._raw_sq += np.sum((y - b) ** 2, axis=0)
+        self.n_used += b.shape[0]
+
+    @property
+    def state_bytes(self) -> int:
+        """Size of the accumulated state (constant in the number of rows)."""
+        return self._R.nbytes + self._raw_sq.nbytes
+
+    def solve(self) -> FitResult:
+        p = self.model.n_columns
+        if self.n_used <= p:
+            raise FitError(f"{self.n_used} usable rows for {p} columns: not enough data")
+        held = identify(self.model, self._R, self.coverage, self.options)
+        mask = self.model.axis_mask()
+        theta = np.zeros((3, p))
+        se = np.full((3, p), np.nan)
+        conds = np.full((2, 3), np.nan)
+        rmse = np.zeros(3)
+        for i in range(3):
+            h = {x.column: x.value for x in held if x.axis == i}
+            sol = solve_axis(self._R, p, i, mask[i], h, self.n_used)
+            theta[i], se[i], conds[0, i], conds[1, i] = sol.theta, sol.se, sol.cond_scaled, sol.cond_raw
+            rmse[i] = np.sqrt(sol.sse / max(sol.dof, 1))
+        res = FitResult(self.model, theta, se, held, self.n_used, self.n_excluded, rmse,
+                        np.sqrt(self._raw_sq / self.n_used), conds[0], conds[1], np.full(3, np.nan),
+                        self.coverage)
+        res.notes.append("streaming fit: RMSE is the weighted in-sample value; no held-out or noise floor")
+        return res

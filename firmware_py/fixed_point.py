@@ -1,0 +1,258 @@
+"""Integer-only on-board applier of a calibration table (Eq. 3 + currents).
+
+Units and Q formats (every coefficient is an int32; ``Qm.f`` = f fractional bits)::
+
+    input  B_j     int32 nT, clipped to +-2**24 nT (16.7 mT)          -> SATURATED flag
+    input  T       int32 centi-degC, clipped to +-2**15 (+-327.68 degC) -> SATURATED flag
+    input  I_k     int32 mA, clipped to +-2**20 mA (1048 A)             -> SATURATED flag
+    S_ij           value * 2**27   (Q4.27,   unitless,    |S|   < 16)
+    K_S,ij         value * 2**34   (1/degC,               |K_S| < 0.125 /degC)
+    O_i            nT * 2**8       (Q23.8 nT,             |O|   < 8388 uT)
+    K_O,i          nT/degC * 2**16 (Q15.16 nT/degC,       |K_O| < 32.7 uT/degC)
+    D_k,i          nT/mA * 2**20   (Q11.20 nT/mA = uT/A,  |D|   < 2048 uT/A)
+    t0             int32 centi-degC (the table's t0_c, a multiple of 0.01 degC)
+    output B_cal,i int32 nT * 2**8 (Q23.8 nT, LSB 1/256 nT), saturated to int32 -> SATURATED flag
+
+Per sample, with dTc = T - t0 (centi-degC) and an int64 accumulator in units of 2**-27 nT::
+
+    G_ij  = S_ij + rdiv(K_S,ij * dTc, 12800)             # 2**-34/degC * 0.01 degC -> 2**-27
+    acc_i = sum_j G_ij * B_j + (O_i << 19) + rdiv(K_O,i * dTc << 11, 100) + sum_k (D_k,i * I_k) << 7
+    out_i = sat32(rshift_round(acc_i, 19))
+
+``rdiv``/``rshift_round`` round half away from zero. Overflow-freedom of the int64
+accumulator follows from the int32 coefficients and the input clips, for any table:
+|G| < 2**33, |G B| < 2**57 (three terms < 2**58.6), |O << 19| < 2**50, the K_O product
+< 2**57 before the division, each current term < 2**58 and at most MAX_CURRENTS = 4,
+so |acc| < 2**61 < 2**63. The output saturates (never wraps); validation refuses tables
+whose worst case over their validity range would saturate.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.errors import CalTableInvalid
+from firmware_py.float_applier import ApplyFlag
+
+S_FRAC = 27
+K_S_FRAC = 34
+O_FRAC = 8
+K_O_FRAC = 16
+D_FRAC = 20
+OUT_FRAC = 8
+ACC_FRAC = 27
+INT32_MIN, INT32_MAX = -(2 ** 31), 2 ** 31 - 1
+B_LIMIT_nT = 2 ** 24
+T_LIMIT_cdeg = 2 ** 15
+I_LIMIT_mA = 2 ** 20
+MAX_CURRENTS = 4
+#: Output range in uT (int32 with 8 fractional bits of nT).
+OUT_LIMIT_uT = INT32_MAX / 2 ** OUT_FRAC / 1e3
+#: The terms the integer applier carries.
+FIXED_POINT_TERMS = ("gain_matrix", "temperature_gain", "offset", "temperature_offset", "currents")
+
+
+def _q(value: float, frac: int, what: str) -> int:
+    """Quantise to int32 with ``frac`` fractional bits; out of range -> CalTableInvalid."""
+    if not np.isfinite(value):
+        raise CalTableInvalid(f"{what} is not finite ({value!r})")
+    q = int(round(float(value) * 2 ** frac))
+    if not INT32_MIN <= q <= INT32_MAX:
+        lim = 2 ** 31 / 2 ** frac
+        raise CalTableInvalid(f"{what} = {value:g} does not fit its Q format (|value| < {lim:g})")
+    return q
+
+
+def rdiv(a: int, d: int) -> int:
+    """Integer division rounding half away from zero (d > 0)."""
+    q = (abs(a) + d // 2) // d
+    return q if a >= 0 else -q
+
+
+def rshift_round(a: int, n: int) -> int:
+    """a / 2**n rounded half away from zero."""
+    q = (abs(a) + (1 << (n - 1))) >> n
+    return q if a >= 0 else -q
+
+
+def _clip(v: int, lim: int) -> tuple[int, bool]:
+    if v > lim:
+        return lim, True
+    if v < -lim:
+        return -lim, True
+    return v, False
+
+
+@dataclass(frozen=True)
+class FixedPointTable:
+    """A calibration table in integer form (see the module docstring for formats)."""
+
+    S: tuple[tuple[int, int, int], ...]
+    K_S: tuple[tuple[int, int, int], ...]
+    O: tuple[int, int, int]
+    K_O: tuple[int, int, int]
+    D: tuple[tuple[int, int, int], ...]      # one row per current, in table.currents order
+    t0_cdeg: int
+    field_limit_nT: int                      # validity: |B_j| <= this
+    temp_range_cdeg: tuple[int, int] | None  # validity (None: table has no temperature terms)
+    current_ranges_mA: tuple[tuple[int, int], ...]
+
+    @classmethod
+    def from_table(cls, table) -> "FixedPointTable":
+        """Quantise a :class:`firmware_py.cal_table.CalTable`; CalTableInvalid if a term is
+        not supported or a coefficient does not fit its Q format."""
+        extra = [t for t in table.terms if t not in FIXED_POINT_TERMS and t not in
+                 ("time_skew", "session_offset", "drift")]
+        if extra:
+            raise CalTableInvalid(f"terms {extra} are not supported by the fixed-point applier "
+                                  f"(supported: {', '.join(FIXED_POINT_TERMS)})")
+        if len(table.currents) > MAX_CURRENTS:
+            raise CalTableInvalid(f"{len(table.currents)} currents; the fixed-point applier takes at most "
+                                  f"{MAX_CURRENTS}")
+        t0 = round(table.t0_c * 100)
+        if abs(t0 - table.t0_c * 100) > 1e-6:
+            raise CalTableInvalid(f"t0_c = {table.t0_c!r} is not a multiple of 0.01 degC")
+        S = tuple(tuple(_q(table.S[i][j], S_FRAC, f"S[{i},{j}]") for j in range(3)) for i in range(3))
+        K = tuple(tuple(_q(table.K_S[i][j], K_S_FRAC, f"K_S[{i},{j}] (1/degC)") for j in range(3))
+                  for i in range(3))
+        O = tuple(_q(table.O[i] * 1e3, O_FRAC, f"O[{i}] (nT)") for i in range(3))
+        KO = tuple(_q(table.K_O[i] * 1e3, K_O_FRAC, f"K_O[{i}] (nT/degC)") for i in range(3))
+        D = tuple(tuple(_q(d[i], D_FRAC, f"D_{name}[{i}] (nT/mA)") for i in range(3)) for name, d in table.D)
+        tr = None
+        if table.validity_temp_c is not None:
+            lo, hi = table.validity_temp_c
+            tr = (int(np.floor(lo * 100)), int(np.ceil(hi * 100)))
+        return cls(S, K, O, KO, D, int(t0), int(np.floor(table.validity_field_uT * 1e3)), tr,
+                   tuple((int(np.floor(lo * 1e3)), int(np.ceil(hi * 1e3))) for _, (lo, hi)
+                         in table.validity_currents_A))
+
+    # ----------------------------------------------------------- per sample (flight path)
+    def apply_sample(self, b_nT, temp_cdeg: int = 0, currents_mA=()) -> tuple[tuple[int, int, int], int]:
+        """One sample, integers only. Returns ((Bx, By, Bz) in nT * 2**8, ApplyFlag bits)."""
+        status = 0
+        b = []
+        for v in b_nT:
+            c, hit = _clip(int(v), B_LIMIT_nT)
+            status |= ApplyFlag.SATURATED if hit else 0
+            if abs(c) > self.field_limit_nT:
+                status |= ApplyFlag.OUT_OF_VALIDITY
+            b.append(c)
+        t, hit = _clip(int(temp_cdeg), T_LIMIT_cdeg)
+        status |= ApplyFlag.SATURATED if hit else 0
+        if self.temp_range_cdeg is not None and not self.temp_range_cdeg[0] <= t <= self.temp_range_cdeg[1]:
+            status |= ApplyFlag.OUT_OF_VALIDITY
+        if len(currents_mA) != len(self.D):
+            raise ValueError(f"expected {len(self.D)} currents, got {len(currents_mA)}")
+        cur = []
+        for k, v in enumerate(currents_mA):
+            c, hit = _clip(int(v), I_LIMIT_mA)
+            status |= ApplyFlag.SATURATED if hit else 0
+            lo, hi = self.current_ranges_mA[k]
+            if not lo <= c <= hi:
+                status |= ApplyFlag.OUT_OF_VALIDITY
+            cur.append(c)
+        dtc = t - self.t0_cdeg
+        out = []
+        for i in range(3):
+            acc = 0
+            for j in range(3):
+                g = self.S[i][j] + rdiv(self.K_S[i][j] * dtc, 12800)
+                acc += g * b[j]
+            acc += self.O[i] << (ACC_FRAC - O_FRAC)
+            acc += rdiv((self.K_O[i] * dtc) << (ACC_FRAC - K_O_FRAC), 100)
+            for k in range(len(cur)):
+                acc += (self.D[k][i] * cur[k]) << (ACC_FRAC - D_FRAC)
+            o = rshift_round(acc, ACC_FRAC - OUT_FRAC)
+            if o > INT32_MAX:
+                o, status = INT32_MAX, status | ApplyFlag.SATURATED
+            elif o < INT32_MIN:
+                o, status = INT32_MIN, status | ApplyFlag.SATURATED
+            out.append(o)
+        return (out[0], out[1], out[2]), int(status)
+
+    # ----------------------------------------------------------- vectorised (same integers)
+    def apply_block(self, b_nT, temp_cdeg=None, currents_mA=None) -> tuple[np.ndarray, np.ndarray]:
+        """(N,3) int nT, (N,) centi-degC, (N,k) mA -> ((N,3) int64 nT*2**8, (N,) flags).
+        Bit-identical to :meth:`apply_sample`; int64 throughout (no overflow, see module doc)."""
+        b = np.asarray(b_nT)
+        if not np.issubdtype(b.dtype, np.integer):
+            raise TypeError("b_nT must be an integer array")
+        b = b.astype(np.int64).reshape(-1, 3)
+        n = b.shape[0]
+        t = np.zeros(n, np.int64) + self.t0_cdeg if temp_cdeg is None else np.asarray(temp_cdeg)
+        if not np.issubdtype(t.dtype, np.integer):
+            raise TypeError("temp_cdeg must be an integer array")
+        t = t.astype(np.int64).reshape(n)
+        cur = np.zeros((n, 0), np.int64) if currents_mA is None else np.asarray(currents_mA)
+        if cur.size and not np.issubdtype(cur.dtype, np.integer):
+            raise TypeError("currents_mA must be an integer array")
+        cur = cur.astype(np.int64).reshape(n, -1)
+        if cur.shape[1] != len(self.D):
+            raise ValueError(f"expected {len(self.D)} currents, got {cur.shape[1]}")
+        status = np.zeros(n, np.int64)
+        bc = np.clip(b, -B_LIMIT_nT, B_LIMIT_nT)
+        tc = np.clip(t, -T_LIMIT_cdeg, T_LIMIT_cdeg)
+        cc = np.clip(cur, -I_LIMIT_mA, I_LIMIT_mA)
+        sat = np.any(bc != b, axis=1) | (tc != t) | np.any(cc != cur, axis=1)
+        status[sat] |= int(ApplyFlag.SATURATED)
+        oov = np.any(np.abs(bc) > self.field_limit_nT, axis=1)
+        if self.temp_range_cdeg is not None:
+            oov |= (tc < self.temp_range_cdeg[0]) | (tc > self.temp_range_cdeg[1])
+        for k, (lo, hi) in enumerate(self.current_ranges_mA):
+            oov |= (cc[:, k] < lo) | (cc[:, k] > hi)
+        status[oov] |= int(ApplyFlag.OUT_OF_VALIDITY)
+        dtc = tc - self.t0_cdeg
+        S = np.array(self.S, np.int64)
+        K = np.array(self.K_S, np.int64)
+        out = np.empty((n, 3), np.int64)
+        for i in range(3):
+            acc = np.zeros(n, np.int64)
+            for j in range(3):
+                acc += (S[i, j] + _rdiv_v(K[i, j] * dtc, 12800)) * bc[:, j]
+            acc += np.int64(self.O[i]) << (ACC_FRAC - O_FRAC)
+            acc += _rdiv_v((np.int64(self.K_O[i]) * dtc) << (ACC_FRAC - K_O_FRAC), 100)
+            for k in range(cc.shape[1]):
+                acc += (np.int64(self.D[k][i]) * cc[:, k]) << (ACC_FRAC - D_FRAC)
+            o = _rshift_round_v(acc, ACC_FRAC - OUT_FRAC)
+            hit = (o > INT32_MAX) | (o < INT32_MIN)
+            status[hit] |= int(ApplyFlag.SATURATED)
+            out[:, i] = np.clip(o, INT32_MIN, INT32_MAX)
+        return out, status
+
+
+def _rdiv_v(a: np.ndarray, d: int) -> np.ndarray:
+    q = (np.abs(a) + d // 2) // d
+    return np.where(a >= 0, q, -q)
+
+
+def _rshift_round_v(a: np.ndarray, n: int) -> np.ndarray:
+    q = (np.abs(a) + (np.int64(1) << (n - 1))) >> n
+    return np.where(a >= 0, q, -q)
+
+
+# ------------------------------------------------------------- ground-side conversions
+def to_fixed_inputs(b_uT, temp_c=None, currents_A=None):
+    """Float readings (uT, degC, A; (N,...)) -> int64 nT, centi-degC, mA (rounded).
+    Non-finite entries become 0 and their rows are returned in the ``bad`` mask."""
+    b = np.asarray(b_uT, dtype=float).reshape(-1, 3)
+    n = b.shape[0]
+    bad = ~np.all(np.isfinite(b), axis=1)
+    with np.errstate(invalid="ignore"):
+        bi = np.round(np.clip(np.nan_to_num(b) * 1e3, -2 ** 40, 2 ** 40)).astype(np.int64)
+        ti = None
+        if temp_c is not None:
+            t = np.asarray(temp_c, dtype=float).reshape(n)
+            bad |= ~np.isfinite(t)
+            ti = np.round(np.clip(np.nan_to_num(t) * 100, -2 ** 40, 2 ** 40)).astype(np.int64)
+        ci = None
+        if currents_A is not None:
+            c = np.asarray(currents_A, dtype=float).reshape(n, -1)
+            bad |= ~np.all(np.isfinite(c), axis=1)
+            ci = np.round(np.clip(np.nan_to_num(c) * 1e3, -2 ** 40, 2 ** 40)).astype(np.int64)
+    return bi, ti, ci, bad
+
+
+def output_to_uT(q_out) -> np.ndarray:
+    """Applier output (nT * 2**8) -> float uT (ground side only)."""
+    return np.asarray(q_out, dtype=float) / (2 ** OUT_FRAC * 1e3)

@@ -1,0 +1,484 @@
+"""Align two independently clocked vector streams (device under test and reference).
+
+Conventions (all times in seconds, fields in uT):
+
+* ``offset_s`` is added to the *reference* timestamps to put them on the DUT clock:
+  ``t_ref_on_dut = t_ref + offset_s``. The value of the reference at DUT time ``t`` is the
+  reference stream interpolated at ``t - offset_s`` (reference clock).
+* ``skew_s[i]`` is the per-axis time skew of DUT axis ``i`` in the sense of the
+  ``time_skew`` effect (:mod:`firmware_py.effects`): DUT axis ``i`` reads the field at DUT
+  time ``t + skew_s[i]``. It is measured relative to the common ``offset_s`` (a common shift
+  of all three axes cannot be told apart from the clock offset).
+* ``axis_map`` is a signed permutation: DUT axis ``i`` = ``sign[i]`` * reference axis
+  ``perm[i]`` (up to gain and offset).
+
+Every estimate is the minimiser of the residual of a linear least-squares fit (3x3 gain
+matrix + offset vector), so it is invariant to the axis map and to gains and offsets. The
+uncertainty comes from the curvature of that residual, ``var = 2 s^2 / SSR''``, with the
+residual variance ``s^2`` inflated for the residuals' lag-1 autocorrelation (effective sample
+size). When the data cannot determine a parameter (static field, no overlap, periodic
+ambiguity) :class:`drivers.errors.AlignmentError` is raised (offset) or the per-axis result
+is flagged ``determined=False`` with a reason (skew, axis map).
+
+Only numpy is needed; reference streams are interpolated linearly, never extrapolated.
+"""
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drivers.errors import AlignmentError
+
+AXES = "xyz"
+
+
+# --------------------------------------------------------------------------- interpolation
+def interp_no_extrapolation(t_src: np.ndarray, y_src: np.ndarray, t_query: np.ndarray,
+                            max_gap_s: float = math.inf) -> tuple[np.ndarray, np.ndarray]:
+    """Linearly interpolate ``y_src`` (N,k) at ``t_query`` (M,); never extrapolate.
+
+    Returns ``(y (M,k), valid (M,))``. A query outside ``[t_src[0], t_src[-1]]`` or inside a
+    source interval longer than ``max_gap_s`` is invalid and gets NaN. Non-finite source rows
+    are removed first (they become gaps). ``t_src`` must be strictly increasing after that.
+    """
+    t_src = np.asarray(t_src, dtype=float).reshape(-1)
+    y = np.asarray(y_src, dtype=float)
+    one_d = y.ndim == 1
+    y = y.reshape(t_src.size, -1)
+    tq = np.asarray(t_query, dtype=float).reshape(-1)
+    ok = np.isfinite(t_src) & np.all(np.isfinite(y), axis=1)
+    t_src, y = t_src[ok], y[ok]
+    out = np.full((tq.size, y.shape[1]), np.nan)
+    if t_src.size < 2:
+        return (out[:, 0] if one_d else out), np.zeros(tq.size, bool)
+    if np.any(np.diff(t_src) <= 0):
+        raise AlignmentError("source timestamps must be strictly increasing")
+    idx = np.searchsorted(t_src, tq, side="right")
+    inside = np.isfinite(tq) & (tq >= t_src[0]) & (tq <= t_src[-1])
+    hi = np.clip(idx, 1, t_src.size - 1)
+    lo = hi - 1
+    span = t_src[hi] - t_src[lo]
+    valid = inside & (span <= max_gap_s)
+    w = np.where(valid, (tq - t_src[lo]) / np.where(span > 0, span, 1.0), 0.0)
+    vals = y[lo] * (1 - w)[:, None] + y[hi] * w[:, None]
+    out[valid] = vals[valid]
+    return (out[:, 0] if one_d else out), valid
+
+
+def _interp_batch(t_src: np.ndarray, y_src: np.ndarray, tq: np.ndarray, max_gap_s: float):
+    """Interpolation of (N,k) at a 2-D query array tq (C,M) -> (C,M,k), valid (C,M)."""
+    shape = tq.shape
+    y, valid = interp_no_extrapolation(t_src, y_src, tq.reshape(-1), max_gap_s)
+    return y.reshape(*shape, -1), valid.reshape(shape)
+
+
+# --------------------------------------------------------------------------- linear fits
+def linear_fit(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least-squares ``y ~ x @ M.T + c`` on finite rows; returns ``(M (k,3), c (k,), residual (n,k))``."""
+    x = np.asarray(x, float)
+    y = np.asarray(y, float)
+    ok = np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(y), axis=1)
+    X = np.column_stack([x[ok], np.ones(ok.sum())])
+    coef, *_ = np.linalg.lstsq(X, y[ok], rcond=None)
+    resid = y[ok] - X @ coef
+    return coef[:-1].T, coef[-1], resid
+
+
+def linear_fit_rmse_uT(ref_uT: np.ndarray, dut_uT: np.ndarray) -> dict[str, float]:
+    """RMSE of the calibration-direction linear fit ``ref ~ A dut + b`` (12 parameters).
+
+    Returns per-axis RMSE, the vector-norm RMSE ``sqrt(mean |r|^2)`` in uT and the row count.
+    """
+    _, _, r = linear_fit(dut_uT, ref_uT)
+    if r.shape[0] < 5:
+        raise AlignmentError(f"only {r.shape[0]} paired rows: too few for a linear fit")
+    rms = np.sqrt(np.mean(r ** 2, axis=0))
+    return {"x": float(rms[0]), "y": float(rms[1]), "z": float(rms[2]),
+            "vector": float(np.sqrt(np.mean(np.sum(r ** 2, axis=1)))), "n": int(r.shape[0])}
+
+
+def _batched_ssr(X: np.ndarray, Y: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each candidate c: SSR of ``Y[c] ~ [X[c], 1]`` on rows valid[c].
+
+    X (C,M,p) or (M,p); Y (C,M,k) or (M,k); returns (ssr (C,), sst (C,), n (C,)).
+    """
+    C = valid.shape[0]
+    X = np.broadcast_to(X, (C,) + X.shape[-2:]) if X.ndim == 2 else X
+    Y = np.broadcast_to(Y, (C,) + Y.shape[-2:]) if Y.ndim == 2 else Y
+    w = valid.astype(float)
+    Xw = np.where(valid[..., None], X, 0.0)
+    Yw = np.where(valid[..., None], Y, 0.0)
+    n = w.sum(axis=1)
+    Xa = np.concatenate([Xw, w[..., None]], axis=2)
+    xtx = np.einsum("cmi,cmj->cij", Xa, Xa)
+    xty = np.einsum("cmi,cmk->cik", Xa, Yw)
+    yty = np.einsum("cmk,cmk->c", Yw, Yw)
+    p = Xa.shape[2]
+    ridge = 1e-12 * np.trace(xtx, axis1=1, axis2=2)[:, None, None] * np.eye(p)
+    ok = n > p + 2
+    beta = np.zeros_like(xty)
+    if ok.any():
+        beta[ok] = np.linalg.solve(xtx[ok] + ridge[ok], xty[ok])
+    ssr = yty - np.einsum("cik,cik->c", beta, xty)
+    ysum = Yw.sum(axis=1)
+    sst = yty - np.sum(ysum ** 2, axis=1) / np.maximum(n, 1)
+    ssr = np.where(ok, np.maximum(ssr, 0.0), np.nan)
+    return ssr, np.where(ok, sst, np.nan), n
+
+
+# --------------------------------------------------------------------------- results
+@dataclass
+class ParamEstimate:
+    """A scalar estimate with a 1-sigma uncertainty; ``determined`` False gives the reason."""
+
+    value: float
+    sigma: float
+    determined: bool = True
+    reason: str = ""
+
+    def as_dict(self) -> dict:
+        return {"value": self.value, "sigma": self.sigma, "determined": self.determined, "reason": self.reason}
+
+
+@dataclass
+class OffsetEstimate:
+    offset_s: float
+    sigma_s: float
+    r2: float
+    n_pairs: int
+    searched_s: tuple[float, float]
+    runner_up_ratio: float
+    curve_s: np.ndarray = field(repr=False, default_factory=lambda: np.empty(0))
+    curve_unexplained: np.ndarray = field(repr=False, default_factory=lambda: np.empty(0))
+
+
+@dataclass
+class AxisMap:
+    """DUT axis i = sign[i] * reference axis perm[i] (plus gain/offset)."""
+
+    perm: tuple[int, int, int]
+    sign: tuple[int, int, int]
+    dominance: tuple[float, float, float]
+    t_stat: tuple[float, float, float]
+    determined: tuple[bool, bool, bool]
+    reasons: tuple[str, str, str]
+
+    def describe(self) -> str:
+        parts = []
+        for i in range(3):
+            s = "-" if self.sign[i] < 0 else "+"
+            tag = "" if self.determined[i] else f" (undetermined: {self.reasons[i]})"
+            parts.append(f"dut_{AXES[i]} = {s}ref_{AXES[self.perm[i]]}{tag}")
+        return "; ".join(parts)
+
+    def apply_to_ref(self, ref_uT: np.ndarray) -> np.ndarray:
+        """Reference vectors expressed in DUT axes: out[:, i] = sign[i] * ref[:, perm[i]]."""
+        ref = np.asarray(ref_uT, float)
+        return np.column_stack([self.sign[i] * ref[:, self.perm[i]] for i in range(3)])
+
+
+@dataclass
+class AlignmentReport:
+    offset: OffsetEstimate
+    skew_s: list[ParamEstimate]
+    axis_map: AxisMap
+    rmse_uT: dict[str, float]
+    notes: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        return {
+            "offset_s": self.offset.offset_s, "offset_sigma_s": self.offset.sigma_s, "r2": self.offset.r2,
+            "n_pairs": self.offset.n_pairs, "runner_up_ratio": self.offset.runner_up_ratio,
+            "skew_s": {AXES[i]: e.as_dict() for i, e in enumerate(self.skew_s)},
+            "axis_map": {"perm": list(self.axis_map.perm), "sign": list(self.axis_map.sign),
+                         "determined": list(self.axis_map.determined), "reasons": list(self.axis_map.reasons),
+                         "dominance": list(self.axis_map.dominance), "t_stat": list(self.axis_map.t_stat),
+                         "text": self.axis_map.describe()},
+            "rmse_uT": self.rmse_uT, "notes": list(self.notes),
+        }
+
+
+# --------------------------------------------------------------------------- helpers
+def _clean(t: np.ndarray, v: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
+    t = np.asarray(t, float).reshape(-1)
+    v = np.asarray(v, float)
+    if v.ndim != 2 or v.shape != (t.size, 3):
+        raise AlignmentError(f"{what}: expected (N,3) field array matching {t.size} timestamps, got {v.shape}")
+    ok = np.isfinite(t) & np.all(np.isfinite(v), axis=1)
+    t, v = t[ok], v[ok]
+    order = np.argsort(t, kind="stable")
+    t, v = t[order], v[order]
+    keep = np.concatenate([[True], np.diff(t) > 0])
+    if t.size < 10:
+        raise AlignmentError(f"{what}: only {t.size} finite samples; need at least 10")
+    return t[keep], v[keep]
+
+
+def _eff_factor(resid: np.ndarray) -> float:
+    """sqrt(n / n_eff) from the residuals' mean lag-1 autocorrelation (>= 1)."""
+    r = resid - resid.mean(axis=0)
+    num = np.sum(r[1:] * r[:-1])
+    den = np.sum(r * r)
+    rho = float(num / den) if den > 0 else 0.0
+    rho = min(max(rho, 0.0), 0.95)
+    return math.sqrt((1 + rho) / (1 - rho))
+
+
+def _parabola_min(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """Vertex and second derivative of the least-squares parabola through (x, y)."""
+    x0 = x.mean()
+    a, b, _ = np.polyfit(x - x0, y, 2)
+    if a <= 0:
+        return float(x[np.argmin(y)]), 0.0
+    return float(x0 - b / (2 * a)), float(2 * a)
+
+
+def _refine(cost_fn, center: float, half_s: float, step_s: float) -> tuple[float, float, float, np.ndarray]:
+    """Fine search of cost_fn around center; returns (argmin, ssr_min, ssr'' , residual-count)."""
+    grid = center + np.arange(-half_s, half_s + step_s / 2, step_s)
+    ssr, n = cost_fn(grid)
+    if not np.any(np.isfinite(ssr)):
+        return center, math.nan, 0.0, n
+    k = int(np.nanargmin(ssr))
+    best = float(grid[k])
+    # Fit the curvature on the part of the valley below the median rise (at least 5 points).
+    win = max(5, int(round(0.6 * half_s / step_s)))
+    sl = slice(max(0, k - win), min(grid.size, k + win + 1))
+    xs, ys = grid[sl], ssr[sl]
+    okm = np.isfinite(ys)
+    vertex, curv = (best, 0.0)
+    if okm.sum() >= 5:
+        vertex, curv = _parabola_min(xs[okm], ys[okm])
+        if not (grid[0] <= vertex <= grid[-1]):
+            vertex = best
+    return vertex, float(np.nanmin(ssr)), curv, n[k]
+
+
+# --------------------------------------------------------------------------- clock offset
+def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarray, ref_uT: np.ndarray, *,
+                          prior_s: float | None = None, search_halfwidth_s: float | None = None,
+                          step_s: float | None = None, min_overlap: float = 0.5, max_gap_s: float | None = None,
+                          min_r2: float = 0.9, max_sigma_s: float = 1.0,
+                          ambiguity_ratio: float = 2.0) -> OffsetEstimate:
+    """Clock offset (add to reference time to get DUT time) minimising ``ref ~ A dut + b``.
+
+    Coarse search: every offset in ``prior_s +- search_halfwidth_s`` (default: every offset that
+    overlaps at least ``min_overlap`` of the shorter stream) at ``step_s`` (default half the
+    reference's median period); refine on a 5 ms grid and take the vertex of the residual
+    parabola. Raises AlignmentError when the streams do not overlap, when the best fit explains
+    less than ``min_r2`` of the reference variance (static field: nothing to align on), when the
+    uncertainty exceeds ``max_sigma_s`` or when another, distant minimum fits within
+    ``ambiguity_ratio`` of the best unexplained variance (periodic signal).
+    """
+    t_dut, dut = _clean(t_dut, dut_uT, "DUT")
+    t_ref, ref = _clean(t_ref, ref_uT, "reference")
+    dt_ref = float(np.median(np.diff(t_ref)))
+    dt_dut = float(np.median(np.diff(t_dut)))
+    gap = max_gap_s if max_gap_s is not None else max(4 * dt_ref, 1.0)
+    h = step_s if step_s is not None else dt_ref / 2
+    dur_dut, dur_ref = t_dut[-1] - t_dut[0], t_ref[-1] - t_ref[0]
+    need = min_overlap * min(dur_dut, dur_ref)
+    if prior_s is not None and search_halfwidth_s is not None:
+        lo, hi = prior_s - search_halfwidth_s, prior_s + search_halfwidth_s
+    else:
+        lo = t_dut[0] - t_ref[-1] + need
+        hi = t_dut[-1] - t_ref[0] - need
+        if prior_s is not None and search_halfwidth_s is None:
+            pass  # prior only used for reporting; full overlap range searched
+    if not hi > lo:
+        raise AlignmentError(f"streams cannot overlap by {min_overlap:.0%}: DUT {dur_dut:.1f} s, "
+                             f"reference {dur_ref:.1f} s")
+    n_cand = int(math.ceil((hi - lo) / h)) + 1
+    if n_cand > 200_000:
+        raise AlignmentError(f"offset search range {hi - lo:.0f} s too wide; give a prior and halfwidth")
+    grid = np.linspace(lo, hi, n_cand)
+    min_rows = max(10, int(0.2 * t_dut.size))
+
+    def cost(offsets: np.ndarray, rows: slice | None = None):
+        out_ssr = np.full(offsets.size, np.nan)
+        out_sst = np.full(offsets.size, np.nan)
+        out_n = np.zeros(offsets.size)
+        chunk = max(1, 2_000_000 // max(1, t_dut.size * 3))
+        for s in range(0, offsets.size, chunk):
+            o = offsets[s:s + chunk]
+            tq = t_dut[None, :] - o[:, None]
+            y, valid = _interp_batch(t_ref, ref, tq, gap)
+            ssr, sst, n = _batched_ssr(dut, y, valid)
+            out_ssr[s:s + chunk], out_sst[s:s + chunk], out_n[s:s + chunk] = ssr, sst, n
+        bad = out_n < min_rows
+        out_ssr[bad] = np.nan
+        return out_ssr, out_sst, out_n
+
+    ssr, sst, n = cost(grid)
+    if not np.any(np.isfinite(ssr)):
+        raise AlignmentError("no offset in the searched range gives enough overlapping samples "
+                             f"(searched {lo:.1f}..{hi:.1f} s)")
+    unexpl = ssr / sst
+    k = int(np.nanargmin(unexpl))
+    best_u = float(unexpl[k])
+    # Runner-up: the best local minimum further than max(2 s, 4 DUT periods) away.
+    far = np.abs(grid - grid[k]) > max(2.0, 4 * dt_dut)
+    u = np.where(np.isfinite(unexpl), unexpl, np.inf)
+    locmin = np.zeros_like(far)
+    locmin[1:-1] = (u[1:-1] <= u[:-2]) & (u[1:-1] <= u[2:])
+    cand = far & locmin & np.isfinite(unexpl)
+    runner = float(np.min(unexpl[cand])) if cand.any() else math.inf
+    ratio = runner / best_u if best_u > 0 else math.inf
+
+    def fine_cost(offs: np.ndarray):
+        s, _, nn = cost(offs)
+        return s, nn
+
+    vertex, ssr_min, curv, n_pairs = _refine(fine_cost, float(grid[k]), max(2 * h, 0.25), 0.005)
+    # residual statistics at the vertex
+    y, valid = interp_no_extrapolation(t_ref, ref, t_dut - vertex, gap)
+    _, _, resid = linear_fit(dut[valid], y[valid])
+    p = 4 * 3
+    dof = max(1, resid.size - p)
+    s2 = float(np.sum(resid ** 2)) / dof
+    # SSR sums 3 components; curvature of the total SSR vs. total residual variance
+    sigma = math.sqrt(2 * s2 / curv) * _eff_factor(resid) if curv > 0 else math.inf
+    r2 = 1.0 - best_u
+    est = OffsetEstimate(vertex, sigma, r2, int(valid.sum()), (float(lo), float(hi)), ratio, grid, unexpl)
+    if r2 < min_r2:
+        raise AlignmentError(f"the data do not determine the clock offset: best linear fit explains only "
+                             f"{r2:.1%} of the reference variance (static or unrelated field?)")
+    if not sigma <= max_sigma_s:
+        raise AlignmentError(f"the data do not determine the clock offset: uncertainty {sigma:.3g} s "
+                             f"> {max_sigma_s} s")
+    if ratio < ambiguity_ratio:
+        raise AlignmentError(f"clock offset ambiguous: a minimum {abs(grid[np.nanargmin(np.where(cand, unexpl, np.nan))] - vertex):.1f} s "
+                             f"away fits almost as well (ratio {ratio:.2f} < {ambiguity_ratio})")
+    return est
+
+
+# --------------------------------------------------------------------------- per-axis skew
+def estimate_axis_skew(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarray, ref_uT: np.ndarray,
+                       offset_s: float, *, max_skew_s: float | None = None, max_gap_s: float | None = None,
+                       min_r2: float = 0.9, max_sigma_s: float | None = None) -> list[ParamEstimate]:
+    """Per-axis time skew of the DUT relative to ``offset_s`` (see module doc for the sign).
+
+    For axis ``i`` the skew minimises the residual of ``dut_i ~ a . ref(t + skew - offset) + c``.
+    An axis whose fit explains less than ``min_r2`` of its variance, or whose uncertainty exceeds
+    ``max_sigma_s`` (default: one DUT sample period), is returned with ``determined=False``.
+    """
+    t_dut, dut = _clean(t_dut, dut_uT, "DUT")
+    t_ref, ref = _clean(t_ref, ref_uT, "reference")
+    dt_ref = float(np.median(np.diff(t_ref)))
+    dt_dut = float(np.median(np.diff(t_dut)))
+    gap = max_gap_s if max_gap_s is not None else max(4 * dt_ref, 1.0)
+    half = max_skew_s if max_skew_s is not None else dt_dut
+    sig_max = max_sigma_s if max_sigma_s is not None else dt_dut
+    grid = np.arange(-half, half + 0.0025, 0.005)
+    tq = t_dut[None, :] + grid[:, None] - offset_s
+    y, valid = _interp_batch(t_ref, ref, tq, gap)
+    # rows valid for every candidate so that all costs use the same samples
+    common = np.all(valid, axis=0)
+    out: list[ParamEstimate] = []
+    if common.sum() < 10:
+        return [ParamEstimate(math.nan, math.nan, False, "too little overlap") for _ in range(3)]
+    yv = y[:, common, :]
+    vmask = np.ones(yv.shape[:2], bool)
+    for i in range(3):
+        target = dut[common, i:i + 1]
+        ssr, sst, _ = _batched_ssr(yv, np.broadcast_to(target, (grid.size,) + target.shape), vmask)
+        k = int(np.nanargmin(ssr))
+        r2 = 1 - ssr[k] / sst[k]
+        win = max(5, int(round(0.3 * half / 0.005)))
+        sl = slice(max(0, k - win), min(grid.size, k + win + 1))
+        vertex, curv = _parabola_min(grid[sl], ssr[sl])
+        if not (grid[0] <= vertex <= grid[-1]):
+            vertex = float(grid[k])
+        _, _, resid = linear_fit(yv[k], target)
+        s2 = float(np.sum(resid ** 2)) / max(1, resid.size - 4)
+        sigma = math.sqrt(2 * s2 / curv) * _eff_factor(resid) if curv > 0 else math.inf
+        if r2 < min_r2:
+            out.append(ParamEstimate(vertex, sigma, False, f"axis fit explains only {r2:.1%} of its variance "
+                                                           "(axis not exercised)"))
+        elif not sigma <= sig_max:
+            out.append(ParamEstimate(vertex, sigma, False, f"uncertainty {sigma:.3g} s > {sig_max:.3g} s"))
+        elif k in (0, grid.size - 1):
+            out.append(ParamEstimate(vertex, sigma, False, f"minimum at the search edge (+-{half:.3g} s)"))
+        else:
+            out.append(ParamEstimate(vertex, sigma, True, ""))
+    return out
+
+
+# --------------------------------------------------------------------------- axis map
+def estimate_axis_map(dut_uT: np.ndarray, ref_on_dut_uT: np.ndarray, *, min_t: float = 10.0,
+                      min_dominance: float = 3.0) -> AxisMap:
+    """Signed permutation relating time-aligned DUT and reference samples.
+
+    Fits ``dut ~ G ref + c``; the permutation maximises ``sum_i |G[i, perm[i]]| * std(ref_perm[i])``
+    (the field each reference axis contributes), the sign is that of ``G[i, perm[i]]``. DUT axis
+    ``i`` is determined when its coefficient's t statistic is at least ``min_t`` and its
+    contribution dominates the other reference axes in that row by ``min_dominance``.
+    """
+    dut = np.asarray(dut_uT, float)
+    ref = np.asarray(ref_on_dut_uT, float)
+    ok = np.all(np.isfinite(dut), axis=1) & np.all(np.isfinite(ref), axis=1)
+    dut, ref = dut[ok], ref[ok]
+    if dut.shape[0] < 10:
+        raise AlignmentError(f"only {dut.shape[0]} paired samples: cannot estimate the axis map")
+    X = np.column_stack([ref, np.ones(ref.shape[0])])
+    coef, *_ = np.linalg.lstsq(X, dut, rcond=None)
+    G = coef[:3].T  # (dut axis, ref axis)
+    resid = dut - X @ coef
+    dof = max(1, ref.shape[0] - 4)
+    xtx_inv = np.linalg.pinv(X.T @ X)
+    se = np.sqrt(np.outer(np.sum(resid ** 2, axis=0) / dof, np.diag(xtx_inv)[:3]))  # (dut, ref)
+    contrib = np.abs(G) * ref.std(axis=0)[None, :]
+    best, best_score = None, -1.0
+    for perm in itertools.permutations(range(3)):
+        score = sum(contrib[i, perm[i]] for i in range(3))
+        if score > best_score:
+            best, best_score = perm, score
+    perm = tuple(int(p) for p in best)
+    sign, dom, tst, det, why = [], [], [], [], []
+    for i in range(3):
+        j = perm[i]
+        sign.append(1 if G[i, j] >= 0 else -1)
+        others = [contrib[i, m] for m in range(3) if m != j]
+        d = contrib[i, j] / max(max(others), 1e-300)
+        t = abs(G[i, j]) / se[i, j] if se[i, j] > 0 else math.inf
+        dom.append(float(d))
+        tst.append(float(t))
+        if t < min_t:
+            det.append(False)
+            why.append(f"coefficient t={t:.1f} < {min_t:g} (reference axis {AXES[j]} not exercised)")
+        elif d < min_dominance:
+            det.append(False)
+            why.append(f"dominance {d:.2f} < {min_dominance:g} over other reference axes")
+        else:
+            det.append(True)
+            why.append("")
+    return AxisMap(perm, tuple(sign), tuple(dom), tuple(tst), tuple(det), tuple(why))
+
+
+# --------------------------------------------------------------------------- all together
+def align_streams(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarray, ref_uT: np.ndarray, *,
+                  prior_s: float | None = None, search_halfwidth_s: float | None = None,
+                  max_gap_s: float | None = None, min_r2: float = 0.9) -> AlignmentReport:
+    """Clock offset, per-axis skew and axis map of a DUT/reference pair, with uncertainties.
+
+    Raises AlignmentError when the clock offset cannot be determined; skew and axis-map entries
+    that the data do not determine are flagged in the report. ``rmse_uT`` is the residual of the
+    12-parameter linear fit ``ref ~ A dut + b`` with the reference interpolated onto the DUT
+    timestamps at the estimated offset.
+    """
+    off = estimate_clock_offset(t_dut, dut_uT, t_ref, ref_uT, prior_s=prior_s,
+                                search_halfwidth_s=search_halfwidth_s, max_gap_s=max_gap_s, min_r2=min_r2)
+    skew = estimate_axis_skew(t_dut, dut_uT, t_ref, ref_uT, off.offset_s, max_gap_s=max_gap_s, min_r2=min_r2)
+    td, dut = _clean(t_dut, dut_uT, "DUT")
+    tr, ref = _clean(t_ref, ref_uT, "reference")
+    gap = max_gap_s if max_gap_s is not None else max(4 * float(np.median(np.diff(tr))), 1.0)
+    y, valid = interp_no_extrapolation(tr, ref, td - off.offset_s, gap)
+    amap = estimate_axis_map(dut[valid], y[valid])
+    rmse = linear_fit_rmse_uT(y[valid], dut[valid])
+    notes = []
+    if prior_s is not None:
+        notes.append(f"estimated offset differs from the prior {prior_s:.3f} s by {off.offset_s - prior_s:+.3f} s")
+    return AlignmentReport(off, skew, amap, rmse, notes)

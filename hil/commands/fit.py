@@ -1,0 +1,97 @@
+"""``magstack fit``: fit the calibration model to session files and write a table."""
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from drivers.errors import FitError
+from firmware_py.cal_table import save_table, table_from_fit, validate
+from firmware_py.calibration import FitData, FitOptions, fit
+from firmware_py.calibration.model import CAL_TERMS, MODELS
+from hil.session_file import Session, read_session
+
+
+def _split(values) -> list[str]:
+    out: list[str] = []
+    for v in values or ():
+        out += [x for x in v.split(",") if x]
+    return out
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("fit", help="fit the calibration model to session files",
+                              description="Fit the calibration model (several files = separate sessions), "
+                                          "print the report and write a calibration table.")
+    p.add_argument("sessions", nargs="+", metavar="SESSION.csv")
+    p.add_argument("--model", default="eq3", choices=sorted(MODELS))
+    p.add_argument("--terms", nargs="*", default=[], metavar="TERM",
+                   help=f"extra terms (comma or space separated): {', '.join(CAL_TERMS)}")
+    p.add_argument("--currents", default="", metavar="NAME,...", help="current columns to fit (D_k terms)")
+    p.add_argument("--robust", action="store_true", help="Huber IRLS instead of plain least squares")
+    p.add_argument("--t0", type=float, default=25.0, help="reference temperature t0_c, degC (default 25)")
+    p.add_argument("--exclude-steps", type=float, default=None, metavar="UT",
+                   help="exclude rows next to a reference change above UT between rows (field transitions)")
+    p.add_argument("--min-temp-span", type=float, default=5.0, metavar="DEGC",
+                   help="temperature span needed to fit temperature terms (default 5)")
+    p.add_argument("--field-present", type=float, default=5.0, metavar="UT",
+                   help="|B| counted as field on an axis for coverage rules (default 5)")
+    p.add_argument("--refuse-unidentifiable", action="store_true",
+                   help="fail instead of holding undetermined parameters at their prior")
+    p.add_argument("--no-holdout", action="store_true", help="skip held-out evaluation")
+    p.add_argument("--block-s", type=float, default=60.0, help="time-block length for held-out folds (s)")
+    p.add_argument("--device-id", default=None, help="device id for the table (default: session metadata)")
+    p.add_argument("--description", default="")
+    p.add_argument("--out", required=True, metavar="cal.json")
+    p.set_defaults(func=run)
+
+
+def load_sessions(paths) -> tuple[Session, list[str]]:
+    """Read files; each keeps its session ids unless ids collide across files, in which case
+    every (file, session) pair gets a new id 1..M (the mapping is returned as text lines)."""
+    parts = [read_session(p) for p in paths]
+    notes = []
+    for path, s in zip(paths, parts):
+        notes += [f"{path}: {w}" for w in s.warnings]
+    ids = [set(np.unique(s.session).tolist()) for s in parts]
+    if sum(len(i) for i in ids) != len(set().union(*ids)):
+        new = 0
+        for path, s in zip(paths, parts):
+            remap = {}
+            for old in sorted(set(np.unique(s.session).tolist())):
+                new += 1
+                remap[old] = new
+                notes.append(f"{path}: session {old} -> {new}")
+            s.session = np.array([remap[int(x)] for x in s.session], dtype=np.int64)
+    names = [list(s.currents_A) for s in parts]
+    if any(n != names[0] for n in names):
+        common = [c for c in names[0] if all(c in n for n in names)]
+        for s in parts:
+            s.currents_A = {k: s.currents_A[k] for k in common}
+        notes.append(f"current columns differ between files; kept the common ones {common}")
+    return Session.concatenate(parts), notes
+
+
+def run(args: argparse.Namespace) -> int:
+    session, notes = load_sessions(args.sessions)
+    device_id = args.device_id or session.metadata.get("device_id") or session.metadata.get("dut_chip")
+    if not device_id:
+        raise FitError("no device id in the session metadata: pass --device-id")
+    opts = FitOptions(robust=args.robust, on_unidentifiable="refuse" if args.refuse_unidentifiable else "hold",
+                      min_temp_span_c=args.min_temp_span, field_present_uT=args.field_present,
+                      holdout=not args.no_holdout, block_s=args.block_s, exclude_ref_steps_uT=args.exclude_steps)
+    result = fit(FitData.from_session(session), args.model, _split(args.terms), _split([args.currents]),
+                 args.t0, opts)
+    for n in notes:
+        print(f"note: {n}")
+    print(result.report())
+    table = table_from_fit(result, device_id, description=args.description or
+                           f"fit of {', '.join(str(p) for p in args.sessions)}")
+    v = validate(table)
+    save_table(table, args.out)
+    print(f"\nwrote {args.out} (device {device_id}, crc32 {table.to_document()['crc32']})")
+    if not v.ok:
+        print("table VALIDATION FAILED (not loadable on board): " + "; ".join(v.problems))
+        return 1
+    print(f"table validates: worst-case output {v.worst_output_uT:.1f} uT, max cond {v.max_cond:.3g}")
+    return 0

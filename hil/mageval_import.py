@@ -1,0 +1,234 @@
+"""Import the AV-MagEval bench files (MIT-STARLab/AV-MagEval-Data) as a magstack Session.
+
+``dataN.csv`` (DUT logger: HMC1053 ``x_test..z_test`` in uT, temperatures in kelvin) and
+``refN.csv`` (FVM400 fluxgate: ``time, bx, by, bz`` in uT, clock ~4 h behind) are paired:
+
+1. the reference axes are mapped onto the DUT axes (authors' map by default:
+   ``dut_x = ref_y, dut_y = ref_x, dut_z = -ref_z``);
+2. the clock offset (added to reference time) is estimated from the data with
+   :func:`hil.alignment.estimate_clock_offset`; when the data do not determine it (static
+   field) the authors' ``4 h - 0.5 s`` prior is used and the fact is recorded (or, with
+   ``on_undetermined="raise"``, AlignmentError is raised);
+3. one stream is linearly interpolated onto the other's timestamps (or both onto a uniform
+   grid, the authors' method), never extrapolated; targets outside the source's span or inside
+   a source gap longer than ``max_gap_s`` are marked NaN with ``flag`` bits or dropped, and
+   counted;
+4. temperature: the chosen kelvin column (``temp_pi`` by default, as the authors' calibration)
+   minus 273.15.
+
+Everything done is written into ``Session.metadata``. ``t_s`` is the DUT logger's epoch (UTC).
+"""
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from drivers.errors import AlignmentError, SessionFileError
+from hil.alignment import estimate_clock_offset, interp_no_extrapolation
+from hil.session_file import Session
+
+#: DUT logger header (dataN.csv).
+DATA_COLUMNS = ("time", "x_test", "y_test", "z_test", "x_U7", "y_U7", "z_U7", "x_U9", "y_U9", "z_U9",
+                "temp_mag", "temp_pi")
+#: Authors' axis map: DUT axis i = sign[i] * reference component perm[i] (0=bx, 1=by, 2=bz).
+AUTHORS_AXIS_MAP: tuple[tuple[int, int], ...] = ((1, 1), (0, 1), (2, -1))
+#: Authors' hand-picked clock correction, seconds added to the reference clock.
+AUTHORS_OFFSET_S = 4 * 3600 - 0.5
+KELVIN_OFFSET = 273.15
+#: flag bits in the returned Session
+FLAG_NO_REF = 1
+FLAG_NO_DUT = 2
+
+
+def _parse_rows(path: Path, ncols: int, header: Sequence[str] | None, bad_lines: str) -> tuple[np.ndarray, int]:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise SessionFileError(f"{path}: no such file") from None
+    except UnicodeDecodeError as exc:
+        raise SessionFileError(f"{path}: not a text CSV file ({exc})") from None
+    lines = text.splitlines()
+    start = 0
+    if header is not None:
+        if not lines:
+            raise SessionFileError(f"{path}: empty file (expected header {','.join(header)})")
+        got = [c.strip() for c in lines[0].split(",")]
+        if got[:len(header)] != list(header):
+            raise SessionFileError(f"{path}: header {got} is not the AV-MagEval data header {list(header)}")
+        start = 1
+    rows, skipped = [], 0
+    for k, line in enumerate(lines[start:], start=start + 1):
+        if not line.strip():
+            continue
+        cells = line.split(",")
+        try:
+            if len(cells) != ncols:
+                raise ValueError(f"{len(cells)} cells, expected {ncols}")
+            vals = [float(c) for c in cells]
+            if not all(math.isfinite(v) for v in vals):
+                raise ValueError("non-finite value")
+        except ValueError as exc:
+            if bad_lines == "skip":
+                skipped += 1
+                continue
+            raise SessionFileError(f"{path}: line {k}: {exc}: {line[:80]!r}") from None
+        rows.append(vals)
+    if len(rows) < 2:
+        raise SessionFileError(f"{path}: only {len(rows)} usable rows")
+    return np.asarray(rows, dtype=float), skipped
+
+
+def _monotonic(t: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, list[np.ndarray], int]:
+    """Sort by time and drop repeated timestamps (keep first); returns the count removed."""
+    order = np.argsort(t, kind="stable")
+    t = t[order]
+    keep = np.concatenate([[True], np.diff(t) > 0])
+    return t[keep], [a[order][keep] for a in arrays], int((~keep).sum())
+
+
+def read_mageval_data(data_csv: str | os.PathLike, *, bad_lines: str = "raise") -> tuple[dict[str, np.ndarray], int]:
+    """Columns of a ``dataN.csv`` file by name, plus the number of skipped bad lines."""
+    arr, skipped = _parse_rows(Path(data_csv), len(DATA_COLUMNS), DATA_COLUMNS, bad_lines)
+    return {c: arr[:, i] for i, c in enumerate(DATA_COLUMNS)}, skipped
+
+
+def read_mageval_ref(ref_csv: str | os.PathLike, *, bad_lines: str = "raise") -> tuple[np.ndarray, np.ndarray, int]:
+    """``(t_s (N,), b_uT (N,3) in raw reference axes, skipped)`` from a ``refN.csv`` file."""
+    arr, skipped = _parse_rows(Path(ref_csv), 4, None, bad_lines)
+    return arr[:, 0], arr[:, 1:4], skipped
+
+
+def apply_axis_map(ref_uT: np.ndarray, axis_map: Sequence[tuple[int, int]]) -> np.ndarray:
+    """Reference vectors in DUT axes: ``out[:, i] = sign_i * ref[:, perm_i]``."""
+    amap = [(int(p), int(s)) for p, s in axis_map]
+    if len(amap) != 3 or sorted(p for p, _ in amap) != [0, 1, 2] or any(s not in (1, -1) for _, s in amap):
+        raise ValueError(f"axis_map must be a signed permutation ((perm, +-1) x3), got {axis_map!r}")
+    return np.column_stack([s * ref_uT[:, p] for p, s in amap])
+
+
+def import_mageval(data_csv: str | os.PathLike, ref_csv: str | os.PathLike, *,
+                   axis_map: Sequence[tuple[int, int]] = AUTHORS_AXIS_MAP,
+                   temp_column: str = "temp_pi",
+                   clock_offset_s: float | None = None,
+                   offset_prior_s: float = AUTHORS_OFFSET_S,
+                   offset_search_halfwidth_s: float | None = None,
+                   on_undetermined: str = "prior",
+                   onto: str | float = "dut",
+                   max_gap_s: float = 1.0,
+                   gaps: str = "nan",
+                   bad_lines: str = "raise",
+                   session_id: int = 0,
+                   metadata: Mapping[str, str] | None = None) -> Session:
+    """Pair an AV-MagEval ``dataN.csv`` with its ``refN.csv`` into an aligned :class:`Session`.
+
+    Parameters
+    ----------
+    axis_map: signed permutation, DUT axis i = sign * reference column perm (0=bx,1=by,2=bz).
+    temp_column: ``"temp_pi"`` (authors' choice) or ``"temp_mag"``; kelvin -> degC.
+    clock_offset_s: seconds added to the reference clock; ``None`` = estimate from the data.
+    offset_prior_s: used as fallback when the data do not determine the offset (and reported).
+    offset_search_halfwidth_s: search ``prior +- this``; ``None`` = every offset with >= 50 % overlap.
+    on_undetermined: ``"prior"`` (fall back, recorded in metadata) or ``"raise"`` (AlignmentError).
+    onto: ``"dut"`` (reference interpolated onto DUT times), ``"ref"`` (DUT and temperature onto
+        reference times, shifted to the DUT clock) or a grid step in s (both onto a uniform grid
+        over the overlap, the authors' method with 0.25).
+    max_gap_s: a target inside a source gap longer than this is a gap (NaN), never bridged.
+    gaps: ``"nan"`` keeps gap rows with NaN and ``flag`` bits (1: no reference, 2: no DUT);
+        ``"drop"`` removes them. Either way the count is in the metadata.
+    bad_lines: ``"raise"`` (SessionFileError naming the line) or ``"skip"`` (counted in metadata).
+    """
+    if temp_column not in ("temp_pi", "temp_mag"):
+        raise ValueError(f"temp_column must be 'temp_pi' or 'temp_mag', got {temp_column!r}")
+    if on_undetermined not in ("prior", "raise"):
+        raise ValueError(f"on_undetermined must be 'prior' or 'raise', got {on_undetermined!r}")
+    if gaps not in ("nan", "drop"):
+        raise ValueError(f"gaps must be 'nan' or 'drop', got {gaps!r}")
+    if bad_lines not in ("raise", "skip"):
+        raise ValueError(f"bad_lines must be 'raise' or 'skip', got {bad_lines!r}")
+    if not (isinstance(onto, str) and onto in ("dut", "ref")):
+        try:
+            step = float(onto)
+        except (TypeError, ValueError):
+            raise ValueError(f"onto must be 'dut', 'ref' or a grid step in s, got {onto!r}") from None
+        if not (math.isfinite(step) and step > 0):
+            raise ValueError(f"grid step must be > 0 s, got {onto!r}")
+    if not (max_gap_s > 0):
+        raise ValueError(f"max_gap_s must be > 0, got {max_gap_s}")
+
+    cols, skipped_dut = read_mageval_data(data_csv, bad_lines=bad_lines)
+    t_ref_raw, ref_raw, skipped_ref = read_mageval_ref(ref_csv, bad_lines=bad_lines)
+    dut_raw = np.column_stack([cols["x_test"], cols["y_test"], cols["z_test"]])
+    temp_c_raw = cols[temp_column] - KELVIN_OFFSET
+    t_dut, (dut, temp_c), dup_dut = _monotonic(cols["time"], dut_raw, temp_c_raw)
+    t_ref, (ref_native,), dup_ref = _monotonic(t_ref_raw, ref_raw)
+    ref = apply_axis_map(ref_native, axis_map)
+
+    meta: dict[str, str] = {
+        "source": "MIT-STARLab/AV-MagEval-Data release 1.0 (Belsten et al. 2023)",
+        "dut_file": Path(data_csv).name, "ref_file": Path(ref_csv).name,
+        "dut_chip": "hmc1053", "reference": "fvm400",
+        "axis_map": "; ".join(f"dut_{'xyz'[i]} = {'-' if s < 0 else '+'}ref_col{p + 2}"
+                              for i, (p, s) in enumerate(axis_map)),
+        "temp_source": f"{temp_column} (K) - {KELVIN_OFFSET}",
+    }
+    if clock_offset_s is not None:
+        offset = float(clock_offset_s)
+        meta["clock_offset_method"] = "given"
+        meta["clock_offset_sigma_s"] = "nan"
+    else:
+        try:
+            est = estimate_clock_offset(t_dut, dut, t_ref, ref, prior_s=offset_prior_s,
+                                        search_halfwidth_s=offset_search_halfwidth_s, max_gap_s=max_gap_s)
+            offset = est.offset_s
+            meta["clock_offset_method"] = "estimated (min residual of ref ~ A dut + b)"
+            meta["clock_offset_sigma_s"] = f"{est.sigma_s:.4f}"
+            meta["clock_offset_r2"] = f"{est.r2:.6f}"
+        except AlignmentError as exc:
+            if on_undetermined == "raise":
+                raise
+            offset = float(offset_prior_s)
+            meta["clock_offset_method"] = f"prior (data do not determine it: {exc})"
+            meta["clock_offset_sigma_s"] = "nan"
+    meta["clock_offset_s"] = f"{offset:.4f}"
+    meta["clock_offset_vs_authors_s"] = f"{offset - AUTHORS_OFFSET_S:+.4f}"
+    t_ref_dut = t_ref + offset  # reference timestamps on the DUT clock
+
+    flag: np.ndarray
+    if isinstance(onto, str) and onto == "dut":
+        t_out = t_dut
+        ref_out, ok_ref = interp_no_extrapolation(t_ref_dut, ref, t_out, max_gap_s)
+        dut_out, ok_dut = dut, np.ones(t_out.size, bool)
+        temp_out = temp_c
+        meta["resampling"] = f"reference linearly interpolated onto DUT timestamps (max gap {max_gap_s} s)"
+    else:
+        if isinstance(onto, str):  # "ref"
+            t_out = t_ref_dut
+            meta["resampling"] = f"DUT linearly interpolated onto reference timestamps (max gap {max_gap_s} s)"
+        else:
+            lo, hi = max(t_dut[0], t_ref_dut[0]), min(t_dut[-1], t_ref_dut[-1])
+            if hi <= lo:
+                raise AlignmentError("DUT and reference do not overlap at the chosen clock offset")
+            t_out = lo + np.arange(0, (hi - lo) + 1e-9, float(onto))
+            meta["resampling"] = (f"both linearly interpolated onto a uniform {float(onto)} s grid over the "
+                                  f"overlap (max gap {max_gap_s} s)")
+        ref_out, ok_ref = interp_no_extrapolation(t_ref_dut, ref, t_out, max_gap_s)
+        dt_both, ok_dut = interp_no_extrapolation(t_dut, np.column_stack([dut, temp_c]), t_out, max_gap_s)
+        dut_out, temp_out = dt_both[:, :3], dt_both[:, 3]
+    flag = np.where(ok_ref, 0, FLAG_NO_REF) | np.where(ok_dut, 0, FLAG_NO_DUT)
+    n_gap = int(np.count_nonzero(flag))
+    meta["gap_rows"] = str(n_gap)
+    meta["gap_policy"] = gaps
+    meta["skipped_bad_lines"] = f"dut={skipped_dut} ref={skipped_ref}"
+    meta["duplicate_timestamps_removed"] = f"dut={dup_dut} ref={dup_ref}"
+    meta.update({str(k): str(v) for k, v in (metadata or {}).items()})
+    sess = Session(t_out, ref_out, dut_out, temp_out, np.full(t_out.size, int(session_id)), {}, meta,
+                   flag.astype(np.int64))
+    if gaps == "drop":
+        sess = sess.select(flag == 0)
+    if len(sess) == 0:
+        raise AlignmentError("no paired rows: DUT and reference do not overlap at the chosen clock offset")
+    return sess

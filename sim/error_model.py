@@ -1,0 +1,573 @@
+"""Forward sensor error model: true field -> what a magnetometer reports, effect by effect.
+
+One ordered pipeline (the order and names come from :mod:`firmware_py.effects`, the single
+catalogue) applied to a :class:`~sim.truth_source.TruthSource`::
+
+    time_skew -> interference -> misalignment -> gain -> cross_axis -> nonlinearity
+    -> temperature_gain -> hysteresis -> offset -> temperature_offset -> drift
+    -> session_offset -> noise -> saturation -> quantization
+
+All quantities are in stack units: field in uT (sensor frame), temperature in degC, time in s,
+currents in A. The parameter object :class:`ErrorParams` has one group of fields per effect;
+its defaults are *neutral* (identity gain, zero offsets, no noise, infinite range, no
+quantisation), so ``ErrorParams()`` with every effect on reproduces truth exactly.
+
+Each effect is switchable: ``ErrorModel(params, effects={...})``. Switching an effect off
+removes its contribution exactly (the stage is skipped; random streams of the other effects
+are unchanged because every random effect draws from its own seeded stream).
+
+``quantization`` and ``saturation`` use ``params.lsb_uT`` / ``params.range_uT``, so a
+measurement-level simulation (``magstack simulate``) gets them from the preset. Register-level
+chip models that quantise to their own LSB and clip to their own code range should switch
+both off (``effects=without("quantization", "saturation")``) and do it themselves.
+
+The model is stateful (random streams, hysteresis state, 1/f noise state, drift random walk):
+calling :meth:`ErrorModel.sense` at t0, t1, ... gives exactly the same values as one
+:meth:`ErrorModel.sense_series` call over the same instants with a fresh model of the same seed.
+"""
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field, fields
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from drivers.errors import ConfigurationError
+from firmware_py.effects import EFFECT_NAMES, effect
+
+__all__ = ["ErrorParams", "ErrorModel", "TruthSamples", "sample_truth", "without", "CROSS_AXIS_MODES"]
+
+#: Set/reset state assumed by the ``cross_axis`` effect: ``set`` or ``reset`` (single polarity,
+#: first-order error) or ``set_reset`` (the difference of a set and a reset reading, leaving the
+#: second-order term only; hardware-facts 5.3/5.4).
+CROSS_AXIS_MODES = ("set", "reset", "set_reset")
+
+_CURRENT_NAME_RE = re.compile(r"^[A-Za-z0-9_]+$")
+#: The cross field is limited to this fraction of H0 in the cross-axis formula (the AMR model
+#: diverges at |B_c| = H0, far outside every supported range; beyond it the bridge would flip).
+_CROSS_AXIS_CLAMP = 0.9
+#: Smallest quantisation step accepted (uT): 1 fT, far below any magnetometer's resolution.
+_MIN_LSB_uT = 1e-9
+#: Number of first-order (Lorentzian) processes per decade synthesising 1/f noise.
+_PINK_POLES_PER_DECADE = 2.0
+
+
+def _vec3(name: str, value: Any, *, allow_inf: bool = False, nonneg: bool = False) -> np.ndarray:
+    arr = np.array(value, dtype=float)
+    if arr.ndim == 0:
+        arr = np.full(3, float(arr))
+    if arr.shape != (3,):
+        raise ConfigurationError(f"{name} must be a scalar or a 3-vector, got shape {arr.shape}")
+    _check_values(name, arr, allow_inf=allow_inf, nonneg=nonneg)
+    arr.setflags(write=False)
+    return arr
+
+
+def _check_values(name: str, arr: np.ndarray, *, allow_inf: bool = False, nonneg: bool = False) -> None:
+    if np.isnan(arr).any() or (not allow_inf and np.isinf(arr).any()):
+        raise ConfigurationError(f"{name} must be finite, got {arr.tolist()}")
+    if nonneg and (arr < 0).any():
+        raise ConfigurationError(f"{name} must be >= 0, got {arr.tolist()}")
+
+
+def _mat3(name: str, value: Any) -> np.ndarray:
+    arr = np.array(value, dtype=float)
+    if arr.shape != (3, 3):
+        raise ConfigurationError(f"{name} must be a 3x3 matrix, got shape {arr.shape}")
+    _check_values(name, arr)
+    arr.setflags(write=False)
+    return arr
+
+
+def _scalar(name: str, value: Any, *, allow_inf: bool = False, positive: bool = False, nonneg: bool = False) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ConfigurationError(f"{name} must be a number, got {value!r}") from None
+    if math.isnan(v) or (not allow_inf and math.isinf(v)):
+        raise ConfigurationError(f"{name} must be finite, got {v}")
+    if positive and not v > 0:
+        raise ConfigurationError(f"{name} must be > 0, got {v}")
+    if nonneg and v < 0:
+        raise ConfigurationError(f"{name} must be >= 0, got {v}")
+    return v
+
+
+@dataclass(frozen=True, eq=False)
+class ErrorParams:
+    """Parameters of every effect, in stack units. Defaults are neutral (truth in = truth out).
+
+    Vectors are per sensor axis (x, y, z); matrices map body-frame input (columns) to sensor
+    axes (rows). Values are validated and frozen on construction (``ConfigurationError``, a
+    ``ValueError``, names the bad field). Use :func:`dataclasses.replace` to derive variants.
+    """
+
+    # time_skew: axis i is sampled at t + axis_delay_s[i] (s); sequential conversion.
+    axis_delay_s: Any = (0.0, 0.0, 0.0)
+    # interference: field added at the sensor per named current, uT/A, body frame (3,).
+    interference_uT_per_A: Mapping[str, Any] = field(default_factory=dict)
+    # misalignment: non-orthogonality angles (a_xy, a_xz, a_yz) in rad (deviation from 90 deg
+    # between the named pair of sensor axes) and a small rotation vector (rad) of the sensor frame.
+    misalignment_rad: Any = (0.0, 0.0, 0.0)
+    rotation_rad: Any = (0.0, 0.0, 0.0)
+    # gain: 3x3 scale and soft-iron coupling, b_axis = G @ b (rows: affected axis, cols: incident).
+    gain_matrix: Any = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    # cross_axis: AMR anisotropy field H0 (uT; inf = no effect), the easy (magnetisation) axis of
+    # each bridge (index of the body axis whose field is the "cross field"), set/reset mode.
+    cross_axis_h0_uT: float = math.inf
+    cross_axis_easy_axis: tuple[int, int, int] = (1, 0, 0)
+    cross_axis_mode: str = "set_reset"
+    # nonlinearity: b_i += cubic_per_uT2[i] * b_i**3 (1/uT^2).
+    cubic_per_uT2: Any = (0.0, 0.0, 0.0)
+    # temperature_gain: b <- (I + K_S dT + diag(k_s2) dT^2) b, dT = T - temp_ref_c.
+    k_s_per_c: Any = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    k_s2_per_c2: Any = (0.0, 0.0, 0.0)
+    temp_ref_c: float = 25.0
+    # hysteresis: remanent offset (uT, per axis) after |b_i| >= threshold, signed by the excursion.
+    hysteresis_uT: Any = (0.0, 0.0, 0.0)
+    hysteresis_threshold_uT: float = math.inf
+    # offset (uT) and temperature_offset (uT/degC, about temp_ref_c).
+    offset_uT: Any = (0.0, 0.0, 0.0)
+    k_o_uT_per_c: Any = (0.0, 0.0, 0.0)
+    # drift: linear rate (uT/s) from drift_t0_s plus a random walk (uT/sqrt(s)).
+    drift_uT_per_s: Any = (0.0, 0.0, 0.0)
+    drift_walk_uT_per_sqrt_s: Any = (0.0, 0.0, 0.0)
+    drift_t0_s: float = 0.0
+    # session_offset: each session id draws a Gaussian offset with this sigma (uT), fixed per seed.
+    session_offset_sigma_uT: Any = (0.0, 0.0, 0.0)
+    # noise: per-sample white sigma (uT) and total 1/f sigma (uT) over noise_pink_band_hz.
+    noise_white_uT: Any = (0.0, 0.0, 0.0)
+    noise_pink_uT: Any = (0.0, 0.0, 0.0)
+    noise_pink_band_hz: tuple[float, float] = (1e-3, 10.0)
+    # saturation: |b_i| clipped to range_uT (inf = none); quantization: step lsb_uT (0 = none).
+    range_uT: float = math.inf
+    lsb_uT: Any = (0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        s = object.__setattr__
+        s(self, "axis_delay_s", _vec3("axis_delay_s", self.axis_delay_s))
+        if not isinstance(self.interference_uT_per_A, Mapping):
+            raise ConfigurationError("interference_uT_per_A must be a mapping name -> (3,) uT/A")
+        interf = {}
+        for name, vec in self.interference_uT_per_A.items():
+            if not isinstance(name, str) or not _CURRENT_NAME_RE.match(name):
+                raise ConfigurationError(f"current name {name!r} must match [A-Za-z0-9_]+")
+            interf[name] = _vec3(f"interference_uT_per_A[{name!r}]", vec)
+        s(self, "interference_uT_per_A", MappingProxyType(dict(sorted(interf.items()))))
+        s(self, "misalignment_rad", _vec3("misalignment_rad", self.misalignment_rad))
+        if (np.abs(self.misalignment_rad) >= math.pi / 4).any():
+            raise ConfigurationError(f"misalignment_rad must be < pi/4 in magnitude, got {self.misalignment_rad}")
+        s(self, "rotation_rad", _vec3("rotation_rad", self.rotation_rad))
+        s(self, "gain_matrix", _mat3("gain_matrix", self.gain_matrix))
+        s(self, "cross_axis_h0_uT", _scalar("cross_axis_h0_uT", self.cross_axis_h0_uT, allow_inf=True, positive=True))
+        easy = tuple(self.cross_axis_easy_axis)
+        if len(easy) != 3 or any(not isinstance(e, (int, np.integer)) or isinstance(e, bool) or e not in (0, 1, 2)
+                                 for e in easy) or any(easy[i] == i for i in range(3)):
+            raise ConfigurationError(f"cross_axis_easy_axis must be 3 axis indices (0..2), none its own axis, "
+                                     f"got {self.cross_axis_easy_axis!r}")
+        s(self, "cross_axis_easy_axis", tuple(int(e) for e in easy))
+        if self.cross_axis_mode not in CROSS_AXIS_MODES:
+            raise ConfigurationError(f"cross_axis_mode {self.cross_axis_mode!r}; valid: {', '.join(CROSS_AXIS_MODES)}")
+        s(self, "cubic_per_uT2", _vec3("cubic_per_uT2", self.cubic_per_uT2))
+        s(self, "k_s_per_c", _mat3("k_s_per_c", self.k_s_per_c))
+        s(self, "k_s2_per_c2", _vec3("k_s2_per_c2", self.k_s2_per_c2))
+        s(self, "temp_ref_c", _scalar("temp_ref_c", self.temp_ref_c))
+        s(self, "hysteresis_uT", _vec3("hysteresis_uT", self.hysteresis_uT))
+        s(self, "hysteresis_threshold_uT",
+          _scalar("hysteresis_threshold_uT", self.hysteresis_threshold_uT, allow_inf=True, positive=True))
+        s(self, "offset_uT", _vec3("offset_uT", self.offset_uT))
+        s(self, "k_o_uT_per_c", _vec3("k_o_uT_per_c", self.k_o_uT_per_c))
+        s(self, "drift_uT_per_s", _vec3("drift_uT_per_s", self.drift_uT_per_s))
+        s(self, "drift_walk_uT_per_sqrt_s", _vec3("drift_walk_uT_per_sqrt_s", self.drift_walk_uT_per_sqrt_s,
+                                                  nonneg=True))
+        s(self, "drift_t0_s", _scalar("drift_t0_s", self.drift_t0_s))
+        s(self, "session_offset_sigma_uT", _vec3("session_offset_sigma_uT", self.session_offset_sigma_uT,
+                                                 nonneg=True))
+        s(self, "noise_white_uT", _vec3("noise_white_uT", self.noise_white_uT, nonneg=True))
+        s(self, "noise_pink_uT", _vec3("noise_pink_uT", self.noise_pink_uT, nonneg=True))
+        band = tuple(self.noise_pink_band_hz)
+        if len(band) != 2:
+            raise ConfigurationError(f"noise_pink_band_hz must be (f_lo, f_hi), got {self.noise_pink_band_hz!r}")
+        f_lo = _scalar("noise_pink_band_hz[0]", band[0], positive=True)
+        f_hi = _scalar("noise_pink_band_hz[1]", band[1], positive=True)
+        if not f_hi > f_lo:
+            raise ConfigurationError(f"noise_pink_band_hz needs f_lo < f_hi, got {band!r}")
+        s(self, "noise_pink_band_hz", (f_lo, f_hi))
+        s(self, "range_uT", _scalar("range_uT", self.range_uT, allow_inf=True, positive=True))
+        s(self, "lsb_uT", _vec3("lsb_uT", self.lsb_uT, nonneg=True))
+        if ((self.lsb_uT > 0) & (self.lsb_uT < _MIN_LSB_uT)).any():
+            raise ConfigurationError(f"lsb_uT must be 0 (no quantisation) or >= {_MIN_LSB_uT} uT, got {self.lsb_uT}")
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, ErrorParams):
+            return NotImplemented
+        return self.to_dict() == other.to_dict()
+
+    __hash__ = None  # type: ignore[assignment]
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-serialisable plain dict (lists, floats; inf as the string 'inf')."""
+        out: dict[str, Any] = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, Mapping):
+                v = {k: np.asarray(x).tolist() for k, x in v.items()}
+            elif isinstance(v, np.ndarray):
+                v = v.tolist()
+            elif isinstance(v, tuple):
+                v = list(v)
+            out[f.name] = _json_inf(v)
+        return out
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> ErrorParams:
+        """Inverse of :meth:`to_dict`; unknown keys raise ConfigurationError naming the valid ones."""
+        names = {f.name for f in fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise ConfigurationError(f"unknown ErrorParams field(s) {sorted(unknown)}; "
+                                     f"valid: {', '.join(sorted(names))}")
+        kw = {k: _unjson_inf(v) for k, v in d.items()}
+        for k in ("cross_axis_easy_axis",):
+            if k in kw:
+                kw[k] = tuple(kw[k])
+        if "noise_pink_band_hz" in kw:
+            kw["noise_pink_band_hz"] = tuple(kw["noise_pink_band_hz"])
+        return cls(**kw)
+
+
+def _json_inf(v: Any) -> Any:
+    if isinstance(v, float) and math.isinf(v):
+        return "inf" if v > 0 else "-inf"
+    if isinstance(v, list):
+        return [_json_inf(x) for x in v]
+    if isinstance(v, dict):
+        return {k: _json_inf(x) for k, x in v.items()}
+    return v
+
+
+def _unjson_inf(v: Any) -> Any:
+    if v in ("inf", "-inf"):
+        return float(v)
+    if isinstance(v, list):
+        return [_unjson_inf(x) for x in v]
+    if isinstance(v, dict):
+        return {k: _unjson_inf(x) for k, x in v.items()}
+    return v
+
+
+def without(*names: str) -> tuple[str, ...]:
+    """Every catalogue effect except ``names`` (each must be a known effect name)."""
+    for n in names:
+        effect(n)
+    return tuple(n for n in EFFECT_NAMES if n not in names)
+
+
+@dataclass
+class TruthSamples:
+    """Truth sampled at N instants: b_uT (N,3), temp_c (N,), currents_A name->(N,), session (N,) int."""
+
+    b_uT: np.ndarray
+    temp_c: np.ndarray
+    currents_A: dict[str, np.ndarray]
+    session: np.ndarray
+
+
+def sample_truth(truth: Any, t_s: np.ndarray) -> TruthSamples:
+    """Sample a TruthSource at the instants ``t_s`` (N,).
+
+    Uses the optional vectorised methods ``field_series_uT``, ``temp_series_c``,
+    ``currents_series_A`` and ``session_series`` when the source has them (see
+    :mod:`sim.coil_programs`), otherwise loops over the scalar protocol. Non-finite truth raises
+    ConfigurationError naming the instant.
+    """
+    t = np.asarray(t_s, dtype=float).reshape(-1)
+    n = t.size
+    if hasattr(truth, "field_series_uT"):
+        b = np.asarray(truth.field_series_uT(t), dtype=float).reshape(n, 3)
+    else:
+        b = np.array([np.asarray(truth.field_uT(float(x)), dtype=float).reshape(3) for x in t]).reshape(n, 3)
+    if hasattr(truth, "temp_series_c"):
+        temp = np.asarray(truth.temp_series_c(t), dtype=float).reshape(n)
+    else:
+        temp = np.array([float(truth.temp_c(float(x))) for x in t], dtype=float).reshape(n)
+    if hasattr(truth, "currents_series_A"):
+        cur = {k: np.asarray(v, dtype=float).reshape(n) for k, v in truth.currents_series_A(t).items()}
+    else:
+        per = [truth.currents_A(float(x)) for x in t]
+        keys = sorted({k for p in per for k in p})
+        cur = {k: np.array([float(p.get(k, 0.0)) for p in per], dtype=float) for k in keys}
+    if hasattr(truth, "session_series"):
+        sess = np.asarray(truth.session_series(t)).reshape(n).astype(np.int64)
+    else:
+        sess = np.array([int(truth.session(float(x))) for x in t], dtype=np.int64)
+    for name, arr in (("field_uT", b), ("temp_c", temp), *((f"currents_A[{k!r}]", v) for k, v in cur.items())):
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            idx = np.argwhere(bad)[0][0]
+            raise ConfigurationError(f"truth source returned non-finite {name} at t_s={t[idx]!r}")
+    return TruthSamples(b, temp, cur, sess)
+
+
+def _session_at(truth: Any, t: np.ndarray) -> np.ndarray:
+    """Session id (N,) int at the instants ``t``."""
+    if hasattr(truth, "session_series"):
+        return np.asarray(truth.session_series(t)).reshape(t.size).astype(np.int64)
+    return np.array([int(truth.session(float(x))) for x in t], dtype=np.int64)
+
+
+def _rotation_matrix(rotvec: np.ndarray) -> np.ndarray:
+    """Rodrigues rotation matrix for a rotation vector (rad)."""
+    theta = float(np.linalg.norm(rotvec))
+    if theta == 0.0:
+        return np.eye(3)
+    k = rotvec / theta
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(theta) * kx + (1.0 - math.cos(theta)) * (kx @ kx)
+
+
+def misalignment_matrix(misalignment_rad: np.ndarray, rotation_rad: np.ndarray) -> np.ndarray:
+    """M = W @ R: rows of W are the sensor axes' unit vectors (non-orthogonal frame), R a rotation.
+
+    With angles (a_xy, a_xz, a_yz): e_x = (1,0,0); e_y = (sin a_xy, cos a_xy, 0); e_z a unit
+    vector with e_x.e_z = sin a_xz and e_y.e_z = sin a_yz. So the angle between sensor axes i and j
+    is exactly 90 deg - a_ij (lower-triangular frame, x along body x, y in the body x-y plane).
+    """
+    a_xy, a_xz, a_yz = (float(a) for a in misalignment_rad)
+    sz = math.sin(a_xz)
+    cz = (math.sin(a_yz) - math.sin(a_xy) * sz) / math.cos(a_xy)
+    w = np.array([[1.0, 0.0, 0.0],
+                  [math.sin(a_xy), math.cos(a_xy), 0.0],
+                  [sz, cz, math.sqrt(max(0.0, 1.0 - sz * sz - cz * cz))]])
+    return w @ _rotation_matrix(np.asarray(rotation_rad, dtype=float))
+
+
+class ErrorModel:
+    """Stateful forward model: ``sense(t, truth)`` -> (3,) uT as the sensor reports it.
+
+    ``effects=None`` turns every catalogue effect on; otherwise only the named ones (unknown
+    names raise ValueError listing the valid ones). ``seed`` (int >= 0) fixes every random
+    stream: white noise, 1/f noise, drift random walk and the per-session offsets (each drawn
+    from its own stream, so switching one random effect off leaves the others' draws unchanged).
+    """
+
+    def __init__(self, params: ErrorParams, *, seed: int = 0, effects: Iterable[str] | None = None) -> None:
+        if not isinstance(params, ErrorParams):
+            raise TypeError(f"params must be ErrorParams, got {type(params).__name__}")
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ConfigurationError(f"seed must be an int >= 0, got {seed!r}")
+        if effects is None:
+            enabled = frozenset(EFFECT_NAMES)
+        else:
+            if isinstance(effects, str):
+                effects = [effects]
+            names = list(effects)
+            for n in names:
+                effect(n)  # raises ValueError listing the valid names
+            enabled = frozenset(names)
+        self.params = params
+        self.seed = int(seed)
+        self.enabled: frozenset[str] = enabled
+        m = misalignment_matrix(params.misalignment_rad, params.rotation_rad)
+        self._misalign = m
+        # pink-noise synthesis: K first-order processes with log-spaced corners of equal variance
+        f_lo, f_hi = params.noise_pink_band_hz
+        k = max(1, int(math.ceil(math.log10(f_hi / f_lo) * _PINK_POLES_PER_DECADE)) + 1)
+        self._pink_fc = np.geomspace(f_lo, f_hi, k)
+        self._pink_sigma = params.noise_pink_uT[None, :] / math.sqrt(k)  # (1,3) per pole
+        self.reset()
+
+    # ------------------------------------------------------------------ state
+    def reset(self) -> None:
+        """Forget all state (random streams restart from the seed, hysteresis and 1/f state cleared)."""
+        ss = np.random.SeedSequence(self.seed)
+        white, pink, walk = ss.spawn(3)
+        self._rng_white = np.random.default_rng(white)
+        self._rng_pink = np.random.default_rng(pink)
+        self._rng_walk = np.random.default_rng(walk)
+        self._last_t: float | None = None
+        self._pink_state = np.zeros((self._pink_fc.size, 3))
+        self._walk_state = np.zeros(3)
+        self._hyst_state = np.zeros(3)  # -1, 0, +1 per axis
+        self._session_offsets: dict[int, np.ndarray] = {}
+
+    def session_offset_uT(self, session: int) -> np.ndarray:
+        """The offset (3,) uT drawn for ``session`` (deterministic in seed and session id)."""
+        session = int(session)
+        off = self._session_offsets.get(session)
+        if off is None:
+            rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x5E55, session % (1 << 63)]))
+            off = rng.standard_normal(3) * self.params.session_offset_sigma_uT
+            self._session_offsets[session] = off
+        return off
+
+    # ------------------------------------------------------------------ public
+    def sense(self, t_s: float, truth: Any) -> np.ndarray:
+        """One vector sample (3,) uT at ``t_s`` (s, non-decreasing between calls)."""
+        return self._run(np.array([float(t_s)]), truth)[0]
+
+    def sense_series(self, t_s: np.ndarray, truth: Any) -> np.ndarray:
+        """Samples (N,3) uT at the non-decreasing instants ``t_s`` (N,); continues the model state."""
+        t = np.asarray(t_s, dtype=float).reshape(-1)
+        if t.size == 0:
+            return np.zeros((0, 3))
+        return self._run(t, truth)
+
+    # ------------------------------------------------------------------ pipeline
+    def _run(self, t: np.ndarray, truth: Any) -> np.ndarray:
+        p = self.params
+        on = self.enabled
+        if not np.isfinite(t).all():
+            raise ConfigurationError("t_s must be finite")
+        if t.size > 1 and (np.diff(t) < 0).any():
+            raise ConfigurationError("t_s must be non-decreasing")
+        if self._last_t is not None and t[0] < self._last_t:
+            raise ConfigurationError(f"t_s={t[0]!r} is before the previous sample at {self._last_t!r}")
+        n = t.size
+        delays = p.axis_delay_s if "time_skew" in on else np.zeros(3)
+
+        # truth at each axis' own instant: (N, K, ...) with K = 1 (no skew) or 3
+        if np.all(delays == delays[0]):
+            ts = sample_truth(truth, t + delays[0])
+            b = ts.b_uT[:, None, :]
+            temp = np.repeat(ts.temp_c[:, None], 3, axis=1)
+            currents = {k: v[:, None] for k, v in ts.currents_A.items()}
+            session = ts.session
+        else:
+            per_axis = [sample_truth(truth, t + d) for d in delays]
+            b = np.stack([s.b_uT for s in per_axis], axis=1)
+            temp = np.stack([s.temp_c for s in per_axis], axis=1)
+            names = sorted({k for s in per_axis for k in s.currents_A})
+            currents = {k: np.stack([s.currents_A.get(k, np.zeros(n)) for s in per_axis], axis=1) for k in names}
+            session = _session_at(truth, t)
+        b = b.copy()
+
+        if "interference" in on:
+            for name, d in p.interference_uT_per_A.items():
+                cur = currents.get(name)
+                if cur is not None:  # a named current absent from the truth carries 0 A
+                    b = b + cur[..., None] * d
+        if "misalignment" in on:
+            b = b @ self._misalign.T
+        if "gain" in on:
+            b = b @ p.gain_matrix.T
+        if "cross_axis" in on and math.isfinite(p.cross_axis_h0_uT):
+            h0 = p.cross_axis_h0_uT
+            bc = np.clip(b[..., list(p.cross_axis_easy_axis)], -_CROSS_AXIS_CLAMP * h0, _CROSS_AXIS_CLAMP * h0)
+            if p.cross_axis_mode == "set":
+                factor = h0 / (h0 + bc)
+            elif p.cross_axis_mode == "reset":
+                factor = h0 / (h0 - bc)
+            else:
+                factor = h0 * h0 / (h0 * h0 - bc * bc)
+            b = b * factor
+        if "nonlinearity" in on:
+            b = b + p.cubic_per_uT2 * b ** 3
+        d_t = temp - p.temp_ref_c  # (N, 3) per axis instant
+        if "temperature_gain" in on:
+            # b_k <- b_k + dT_k * (K_S @ b_k) + k_s2 * dT_k^2 * b_k, per instant k
+            b = (b + d_t[:, :, None] * (b @ p.k_s_per_c.T)
+                 + p.k_s2_per_c2 * (d_t[:, :, None] ** 2) * b)
+        # each axis takes its own instant's reading
+        if b.shape[1] == 1:
+            y = b[:, 0, :].copy()
+        else:
+            y = np.stack([b[:, i, i] for i in range(3)], axis=1)
+
+        if "hysteresis" in on:
+            y = y + self._hysteresis(y) * p.hysteresis_uT
+        if "offset" in on:
+            y = y + p.offset_uT
+        if "temperature_offset" in on:
+            y = y + p.k_o_uT_per_c * d_t
+        prev_t = self._last_t
+        if "drift" in on:
+            y = y + p.drift_uT_per_s * (t - p.drift_t0_s)[:, None] + self._walk(t, prev_t)
+        if "session_offset" in on:
+            offs = np.array([self.session_offset_uT(s) for s in np.unique(session)]).reshape(-1, 3)
+            idx = np.searchsorted(np.unique(session), session)
+            y = y + offs[idx]
+        if "noise" in on:
+            y = y + self._rng_white.standard_normal((n, 3)) * p.noise_white_uT
+            y = y + self._pink(t, prev_t)
+        if "saturation" in on and math.isfinite(p.range_uT):
+            y = np.clip(y, -p.range_uT, p.range_uT)
+        if "quantization" in on:
+            lsb = p.lsb_uT
+            q = lsb > 0
+            if q.any():
+                codes = np.round(y[:, q] / lsb[q])
+                if "saturation" in on and math.isfinite(p.range_uT):
+                    lim = np.floor(p.range_uT / lsb[q])
+                    codes = np.clip(codes, -lim, lim)
+                y[:, q] = codes * lsb[q] + 0.0  # + 0.0: no negative zeros
+        self._last_t = float(t[-1])
+        return y
+
+    def _hysteresis(self, y: np.ndarray) -> np.ndarray:
+        """Per-axis remanence sign (-1/0/+1) after each sample; updates the state."""
+        thr = self.params.hysteresis_threshold_uT
+        n = y.shape[0]
+        out = np.empty_like(y)
+        events = np.where(np.abs(y) >= thr, np.sign(y), 0.0)
+        ar = np.arange(n)
+        for i in range(3):
+            e = events[:, i]
+            last = np.maximum.accumulate(np.where(e != 0, ar, -1))
+            out[:, i] = np.where(last >= 0, e[np.maximum(last, 0)], self._hyst_state[i])
+        self._hyst_state = out[-1].copy()
+        return out
+
+    def _walk(self, t: np.ndarray, prev_t: float | None) -> np.ndarray:
+        sig = self.params.drift_walk_uT_per_sqrt_s
+        z = self._rng_walk.standard_normal((t.size, 3))
+        dt = np.diff(t, prepend=t[0] if prev_t is None else prev_t)
+        steps = z * np.sqrt(dt)[:, None] * sig
+        w = self._walk_state + np.cumsum(steps, axis=0)
+        self._walk_state = w[-1].copy()
+        return w
+
+    def _pink(self, t: np.ndarray, prev_t: float | None) -> np.ndarray:
+        """Sum of K Ornstein-Uhlenbeck processes (exact discretisation for any dt): ~1/f in band."""
+        sig = self._pink_sigma  # (1,3)
+        k = self._pink_fc.size
+        z = self._rng_pink.standard_normal((t.size, k, 3))
+        if not (self.params.noise_pink_uT > 0).any():
+            return np.zeros((t.size, 3))
+        tau = 1.0 / (2.0 * math.pi * self._pink_fc)  # (K,)
+        x = self._pink_state
+        out = np.empty((t.size, 3))
+        start = 0
+        if prev_t is None:  # stationary start
+            x = z[0] * sig
+            out[0] = x.sum(axis=0)
+            start = 1
+            prev = t[0]
+        else:
+            prev = prev_t
+        dts = np.diff(np.concatenate([[prev], t[start:]]))
+        if dts.size:
+            if np.allclose(dts, dts[0], rtol=1e-9, atol=0.0):
+                from scipy.signal import lfilter
+                phi = np.exp(-dts[0] / tau)  # (K,)
+                gain = np.sqrt(1.0 - phi ** 2)
+                for j in range(k):
+                    e = z[start:, j, :] * sig[0] * gain[j]
+                    xs, _ = lfilter([1.0], [1.0, -phi[j]], e, axis=0, zi=(phi[j] * x[j])[None, :])
+                    if j == 0:
+                        acc = xs.copy()
+                    else:
+                        acc += xs
+                    x[j] = xs[-1]
+                out[start:] = acc
+            else:
+                for i, dt in enumerate(dts):
+                    phi = np.exp(-dt / tau)[:, None]
+                    x = phi * x + np.sqrt(1.0 - phi ** 2) * sig * z[start + i]
+                    out[start + i] = x.sum(axis=0)
+        self._pink_state = np.array(x, dtype=float)
+        return out

@@ -1,0 +1,72 @@
+"""The default simulated I2C bench: LIS3MDL, HMC5983 and LSM303DLHC on simulated buses.
+
+Real wiring cannot put the HMC5983 and the LSM303DLHC magnetometer on one bus (both are fixed
+at 0x1E), so the bench has two buses sharing one :class:`~drivers.clock.VirtualClock` and one
+truth source:
+
+- ``sim-i2c-1``: LIS3MDL at 0x1C (SA1 low) and HMC5983 at 0x1E;
+- ``sim-i2c-2``: LSM303DLHC magnetometer at 0x1E.
+
+Each chip senses the truth through its own ``sensor`` (default
+``ErrorModel(preset(chip), seed=...)`` without its quantization/saturation); ``sensors`` overrides it per chip name.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from drivers.clock import VirtualClock
+from sim.hmc5983_model import HMC5983Model
+from sim.i2c_bus import SimI2CBus
+from sim.i2c_register_model import default_sensor
+from sim.lis3mdl_model import LIS3MDLModel
+from sim.lsm303dlhc_model import LSM303DLHCModel
+from sim.truth_source import StaticTruth
+
+CHIPS = ("lis3mdl", "hmc5983", "lsm303dlhc")
+
+
+@dataclass
+class I2CBench:
+    """Buses by name, and for each chip (bus name, address, model)."""
+
+    clock: object
+    truth: object
+    buses: dict[str, SimI2CBus] = field(default_factory=dict)
+    chips: dict[str, tuple[str, int, object]] = field(default_factory=dict)
+
+    def add(self, chip: str, bus_name: str, address: int, model) -> None:
+        bus = self.buses.setdefault(bus_name, SimI2CBus(bus_name))
+        bus.attach(address, model)
+        self.chips[chip] = (bus_name, address, model)
+
+    def _entry(self, chip: str):
+        try:
+            return self.chips[chip]
+        except KeyError:
+            from drivers.errors import DeviceNotFound
+
+            raise DeviceNotFound(f"no {chip!r} on the simulated bench; present: {', '.join(self.chips)}") from None
+
+    def bus_for(self, chip: str) -> SimI2CBus:
+        return self.buses[self._entry(chip)[0]]
+
+    def address(self, chip: str) -> int:
+        return self._entry(chip)[1]
+
+    def model(self, chip: str):
+        return self._entry(chip)[2]
+
+
+def default_bench(clock=None, truth=None, *, seed: int = 0, sensors: dict | None = None) -> I2CBench:
+    """The three chips on two buses, one clock (default VirtualClock), one truth (default StaticTruth)."""
+    clock = clock if clock is not None else VirtualClock()
+    truth = truth if truth is not None else StaticTruth()
+    sensors = dict(sensors or {})
+    for chip in CHIPS:
+        if chip not in sensors:
+            sensors[chip] = default_sensor(chip, seed)
+    bench = I2CBench(clock, truth)
+    bench.add("lis3mdl", "sim-i2c-1", 0x1C, LIS3MDLModel(clock, truth, sensors["lis3mdl"], address=0x1C))
+    bench.add("hmc5983", "sim-i2c-1", 0x1E, HMC5983Model(clock, truth, sensors["hmc5983"], address=0x1E))
+    bench.add("lsm303dlhc", "sim-i2c-2", 0x1E, LSM303DLHCModel(clock, truth, sensors["lsm303dlhc"], address=0x1E))
+    return bench

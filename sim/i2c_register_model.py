@@ -1,0 +1,282 @@
+"""Generic register-file model of an I2C chip, and the converting magnetometer core on top.
+
+:class:`RegisterFileModel` is an :class:`sim.i2c_bus.I2CTarget`: the first byte of a write
+message sets the register pointer, further bytes are written at the pointer, reads return
+bytes from the pointer; after each byte the pointer moves by the chip's auto-increment rule
+(:meth:`RegisterFileModel.next_pointer`). Registers are declared with :class:`Reg` (RO / RW /
+WO mode, power-on value, bits that must keep a fixed value). Illegal access fails loudly with
+:class:`~drivers.errors.BusError`: an unmapped register, a write to a read-only register, a
+read of a write-only register, a fixed-bit violation, a multi-byte access the chip's
+auto-increment rule does not allow.
+
+Fault injection: :meth:`RegisterFileModel.inject_stuck` freezes registers (the chip core can
+no longer update them), :meth:`RegisterFileModel.inject_bit_flip` XORs a mask into the value
+the controller reads. NACKs are injected on the bus (:meth:`sim.i2c_bus.SimI2CBus.inject_nack`).
+
+:class:`MagnetometerModel` adds the conversion schedule: conversions happen only at the
+configured output rate in virtual time, evaluated lazily at the start of each bus message
+(never one ``sense()`` per register read), from a ``sensor`` object with
+``sense(t_s, truth) -> ndarray(3) in uT`` and a :class:`sim.truth_source.TruthSource`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Iterable
+
+import numpy as np
+
+from drivers.errors import BusError
+
+RO, RW, WO = "RO", "RW", "WO"
+
+
+@dataclass(frozen=True)
+class Reg:
+    """One register: address, name, access mode, power-on value, fixed bits (mask/value)."""
+
+    addr: int
+    name: str
+    mode: str = RW
+    reset: int = 0x00
+    fixed_mask: int = 0x00
+    fixed_value: int = 0x00
+
+    def __post_init__(self) -> None:
+        if self.mode not in (RO, RW, WO):
+            raise ValueError(f"register mode must be RO, RW or WO, got {self.mode!r}")
+
+
+class IdealSensor:
+    """A sensor that reports the true field exactly (tests, and the ideal-physics reference)."""
+
+    def sense(self, t_s: float, truth) -> np.ndarray:
+        return np.asarray(truth.field_uT(t_s), dtype=float)
+
+
+def default_sensor(chip: str, seed: int = 0):
+    """The default sensed-value model of ``chip``: ``ErrorModel(preset(chip), seed=seed)`` with
+    quantization and saturation off (the chip model quantises to its LSB and saturates itself)."""
+    from sim.error_model import ErrorModel, without
+    from sim.presets import preset
+
+    return ErrorModel(preset(chip), seed=seed, effects=without("quantization", "saturation"))
+
+
+class RegisterFileModel:
+    """Register file with pointer, auto-increment hook, access checks and fault injection."""
+
+    def __init__(self, regs: Iterable[Reg], *, name: str, address: int | None = None) -> None:
+        self.name = name
+        self.address = address
+        self.regs: dict[int, Reg] = {}
+        for r in regs:
+            if r.addr in self.regs:
+                raise ValueError(f"{name}: register {r.addr:#04x} declared twice")
+            self.regs[r.addr] = r
+        self.values = bytearray(256)
+        self.pointer = 0
+        self._stuck: set[int] = set()
+        self._flips: dict[int, list] = {}
+        self.reset_registers()
+
+    # -- errors ----------------------------------------------------------------------
+    def _fail(self, message: str, operation: str) -> BusError:
+        return BusError(f"{self.name}: {message}", address=self.address, operation=operation)
+
+    # -- hooks for chip models ---------------------------------------------------------
+    def decode_subaddress(self, byte: int) -> tuple[int, bool]:
+        """(register, auto-increment allowed) from the sub-address byte of a write message."""
+        return byte, True
+
+    def next_pointer(self, reg: int) -> int:
+        """Register the pointer moves to after a byte at ``reg`` was accessed."""
+        return (reg + 1) & 0xFF
+
+    def update(self) -> None:
+        """Called at every (repeated) start: chip models bring their state up to 'now'."""
+
+    def on_read(self, reg: int) -> None:
+        """Side effects of the controller reading ``reg`` (after its byte was returned)."""
+
+    def on_write(self, reg: int, value: int, old: int) -> None:
+        """Side effects of the controller writing ``value`` to ``reg`` (already stored)."""
+
+    def on_transaction_end(self) -> None:
+        """Unused by the bus protocol (no stop callback); kept for symmetry."""
+
+    # -- register file -----------------------------------------------------------------
+    def reset_registers(self) -> None:
+        """Power-on values (stuck registers keep their frozen value)."""
+        for a, r in self.regs.items():
+            if a not in self._stuck:
+                self.values[a] = r.reset
+
+    def core_set(self, reg: int, value: int) -> bool:
+        """The chip core updates a register (ignored when the register is stuck). True if stored."""
+        if reg in self._stuck:
+            return False
+        self.values[reg] = value & 0xFF
+        return True
+
+    def core_set_block(self, reg: int, data: bytes) -> bool:
+        """The chip core updates consecutive registers from ``reg``; False if any is stuck."""
+        ok = True
+        for i, b in enumerate(data):
+            ok &= self.core_set(reg + i, b)
+        return ok
+
+    # -- fault injection -----------------------------------------------------------------
+    def inject_stuck(self, registers: Iterable[int]) -> None:
+        """Freeze ``registers`` at their present value: the core can no longer change them."""
+        for r in registers:
+            if r not in self.regs:
+                raise ValueError(f"{self.name}: no register {r:#04x}")
+            self._stuck.add(r)
+
+    def inject_bit_flip(self, reg: int, mask: int, count: int | None = None) -> None:
+        """XOR ``mask`` into the next ``count`` controller reads of ``reg`` (None: every read)."""
+        if reg not in self.regs:
+            raise ValueError(f"{self.name}: no register {reg:#04x}")
+        self._flips[reg] = [mask & 0xFF, count]
+
+    def clear_faults(self) -> None:
+        self._stuck.clear()
+        self._flips.clear()
+
+    # -- I2CTarget ----------------------------------------------------------------------
+    def i2c_start(self) -> None:
+        self.update()
+
+    def i2c_write(self, data: bytes) -> None:
+        if not data:
+            return  # address-only "quick write" (bus scan): acknowledged, no effect
+        reg, autoinc = self.decode_subaddress(data[0])
+        if len(data) > 2 and not autoinc:
+            raise self._fail(f"multi-byte write at {reg:#04x} without auto-increment", f"write {reg:#04x}")
+        self.pointer = reg
+        self._autoinc = autoinc
+        for value in data[1:]:
+            r = self.regs.get(reg)
+            if r is None:
+                raise self._fail(f"write to unmapped register {reg:#04x}", f"write {reg:#04x}")
+            if r.mode == RO:
+                raise self._fail(f"write to read-only register {r.name} ({reg:#04x})", f"write {reg:#04x}")
+            if (value & r.fixed_mask) != r.fixed_value:
+                raise self._fail(f"write {value:#04x} to {r.name} violates fixed bits (mask {r.fixed_mask:#04x} "
+                                 f"must be {r.fixed_value:#04x})", f"write {reg:#04x}")
+            old = self.values[reg]
+            self.values[reg] = value
+            self.on_write(reg, value, old)
+            reg = self.next_pointer(reg)
+            self.pointer = reg
+
+    _autoinc = True
+
+    def i2c_read(self, length: int) -> bytes:
+        if length > 1 and not self._autoinc:
+            raise self._fail(f"{length}-byte read at {self.pointer:#04x} without auto-increment flag",
+                             f"read {self.pointer:#04x}")
+        out = bytearray(length)
+        reg = self.pointer
+        values, regs, flips = self.values, self.regs, self._flips
+        for i in range(length):
+            r = regs.get(reg)
+            if r is None:
+                raise self._fail(f"read of unmapped register {reg:#04x}", f"read {reg:#04x}")
+            if r.mode == WO:
+                raise self._fail(f"read of write-only register {r.name} ({reg:#04x})", f"read {reg:#04x}")
+            v = values[reg]
+            if flips and reg in flips:
+                f = flips[reg]
+                v ^= f[0]
+                if f[1] is not None:
+                    f[1] -= 1
+                    if f[1] <= 0:
+                        del flips[reg]
+            out[i] = v
+            self.on_read(reg)
+            reg = self.next_pointer(reg)
+        self.pointer = reg
+        return bytes(out)
+
+
+class MagnetometerModel(RegisterFileModel):
+    """A register file plus a lazily evaluated conversion schedule in virtual time.
+
+    Subclasses define ``running()`` (is the chip converting continuously), ``period_s()``,
+    and ``store_sample(t_s, b_uT, temp_c, overwrote)`` (encode into output registers and
+    status). :meth:`restart` (re)starts the schedule with the first conversion after
+    ``first_delay_s``; :meth:`trigger_single` schedules one conversion.
+    """
+
+    def __init__(self, regs: Iterable[Reg], *, name: str, clock, truth, sensor, address: int | None = None):
+        self.clock = clock
+        self.truth = truth
+        self.sensor = sensor
+        self._next_conv_s = math.inf
+        self._single_pending = False
+        self.unread = False          # a converted set has not been fully read yet
+        self.conversions = 0
+        super().__init__(regs, name=name, address=address)
+
+    # to override
+    def running(self) -> bool:
+        raise NotImplementedError
+
+    def period_s(self) -> float:
+        raise NotImplementedError
+
+    def store_sample(self, t_s: float, b_uT: np.ndarray, temp_c: float, overwrote: bool) -> None:
+        raise NotImplementedError
+
+    def after_single(self) -> None:
+        """Mode change after a single conversion completed (chip-specific)."""
+
+    # schedule
+    def restart(self, first_delay_s: float | None = None) -> None:
+        """Start continuous conversions: first one ``first_delay_s`` from now (default one period)."""
+        now = self.clock.monotonic_s()
+        self._single_pending = False
+        self._next_conv_s = now + (self.period_s() if first_delay_s is None else first_delay_s)
+
+    def stop(self) -> None:
+        self._next_conv_s = math.inf
+        self._single_pending = False
+
+    def trigger_single(self, delay_s: float) -> None:
+        self._single_pending = True
+        self._next_conv_s = self.clock.monotonic_s() + delay_s
+
+    def update(self) -> None:
+        now = self.clock.monotonic_s()
+        if now < self._next_conv_s:
+            return
+        if self._single_pending:
+            t_c = self._next_conv_s
+            self._single_pending = False
+            self._next_conv_s = math.inf
+            self._convert(t_c)
+            self.after_single()
+            return
+        if not self.running():
+            self._next_conv_s = math.inf
+            return
+        period = self.period_s()
+        k = math.floor((now - self._next_conv_s) / period)
+        t_c = self._next_conv_s + k * period
+        self._next_conv_s = t_c + period
+        self._convert(t_c, skipped=k)
+
+    def _convert(self, t_c: float, skipped: int = 0) -> None:
+        b = np.asarray(self.sensor.sense(t_c, self.truth), dtype=float)
+        if b.shape != (3,) or not np.all(np.isfinite(b)):
+            raise ValueError(f"{self.name}: sensor returned {b!r}, expected 3 finite values in uT")
+        overwrote = self.unread or skipped > 0
+        self.conversions += 1
+        self.store_sample(t_c, b, float(self.truth.temp_c(t_c)), overwrote)
+
+
+def codes_from_field(b_uT: np.ndarray, uT_per_lsb) -> list[int]:
+    """Round the field to integer codes (no saturation applied)."""
+    return [int(round(float(b_uT[i]) / uT_per_lsb[i])) for i in range(3)]

@@ -1,0 +1,302 @@
+"""Calibration model and fit: recovery, identifiability, robust, held-out, streaming."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from drivers.errors import FitError
+from firmware_py.calibration import CAL_TERMS, FitData, FitOptions, fit
+from firmware_py.calibration.fit import noise_floor, reference_steps
+from firmware_py.calibration.model import CalModel, resolve_terms, time_derivative
+from firmware_py.calibration.streaming import StreamingFit
+from firmware_py.calibration.synthetic import make_data, random_theta
+from firmware_py.effects import EFFECTS
+
+N = 3000
+T0_S = 1.6e9
+ALL = ("gain_matrix", "temperature_gain", "offset", "temperature_offset", "currents", "cubic",
+       "cross_products", "time_skew", "session_offset", "drift")
+
+
+def _model(terms, currents=(), sessions=(), n=N):
+    # t_ref = mean time of make_data's stamps, as the fit chooses it
+    return CalModel(terms, currents, sessions, 25.0, T0_S + (n - 1) * 0.25 / 2)
+
+
+def test_cal_terms_come_from_the_effect_catalogue():
+    assert set(CAL_TERMS) == {e.cal_term for e in EFFECTS.values() if e.cal_term}
+    assert resolve_terms("eq3") == ("gain_matrix", "temperature_gain", "offset", "temperature_offset")
+    with pytest.raises(FitError, match="valid:"):
+        resolve_terms("eq3", ["bogus"])
+    with pytest.raises(FitError, match="unknown model"):
+        resolve_terms("eq9")
+
+
+def test_eq3_has_24_parameters():
+    m = CalModel(resolve_terms("eq3"))
+    assert int(m.axis_mask().sum()) == 24
+    m4 = CalModel(resolve_terms("eq3", currents=("a", "b")), ("a", "b"))
+    assert int(m4.axis_mask().sum()) == 30
+
+
+def test_noise_free_recovery_of_every_term():
+    rng = np.random.default_rng(1)
+    m = _model(ALL, ("solar", "heater"), (1, 2, 3))
+    th = random_theta(m, rng)
+    d = make_data(m, th, N, rng, noise_uT=0.0)
+    r = fit(d, "eq3", ALL[4:], ("solar", "heater"), options=FitOptions(holdout=False))
+    assert r.held == []
+    mask = m.axis_mask()
+    rel = np.abs(r.theta - th)[mask] / np.maximum(np.abs(th[mask]), 1e-6)
+    assert rel.max() < 1e-6
+    assert r.rmse_norm_uT < 1e-9
+
+
+def test_standard_errors_match_the_scatter_of_refits():
+    rng = np.random.default_rng(2)
+    m = _model(resolve_terms("eq3"))
+    th = random_theta(m, rng)
+    est, ses = [], []
+    for _ in range(30):
+        d = make_data(m, th, 800, rng, noise_uT=0.05)
+        r = fit(d, options=FitOptions(holdout=False))
+        est.append(r.theta[0])
+        ses.append(r.se[0])
+    ratio = np.std(est, axis=0) / np.mean(ses, axis=0)
+    assert np.all((ratio > 0.6) & (ratio < 1.5)), ratio
+
+
+def test_temperature_terms_without_excursion_are_held_and_named():
+    rng = np.random.default_rng(3)
+    m = _model(resolve_terms("eq3"))
+    th = random_theta(m, rng)
+    d = make_data(m, th, N, rng, temp_span_c=(24.0, 24.5))
+    r = fit(d, options=FitOptions(holdout=False))
+    names = {h.name for h in r.held}
+    assert names == {f"K_S[{i},{j}]" for i in "xyz" for j in "xyz"} | {f"K_O[{i}]" for i in "xyz"}
+    assert all(h.value == 0.0 and "temperature spans only" in h.reason for h in r.held)
+    assert all(r.theta[h.axis, h.column] == 0.0 and np.isnan(r.se[h.axis, h.column]) for h in r.held)
+    with pytest.raises(FitError, match="K_S\\[x,x\\]"):
+        fit(d, options=FitOptions(holdout=False, on_unidentifiable="refuse"))
+
+
+def test_temperature_gain_needs_field_and_temperature_together():
+    """Belsten sec. 3.3: X saw field while heated, Y and Z only at room temperature."""
+    rng = np.random.default_rng(4)
+    m = _model(resolve_terms("eq3"))
+    th = random_theta(m, rng)
+    d = make_data(m, th, N, rng)
+    first = np.arange(N) < N // 2
+    d.b_meas_uT[first, 1:] = rng.normal(0, 0.05, size=(first.sum(), 2))  # first half: X field only, heated
+    d.temp_c[~first] = 24.0                                                # second half: room temperature
+    d.b_ref_uT = m.predict(th, m.design(d.b_meas_uT, d.temp_c, {}, d.session, d.t_s))
+    r = fit(d, options=FitOptions(holdout=False))
+    held = {h.name for h in r.held}
+    assert held == {f"K_S[{i},{j}]" for i in "xyz" for j in "yz"}
+    kx = [c for c, col in enumerate(r.model.columns) if col.param == "K_S" and col.index == 0][0]
+    np.testing.assert_allclose(r.theta[:, kx], th[:, kx], rtol=1e-6)
+
+
+def test_prior_for_held_parameter_is_used():
+    rng = np.random.default_rng(5)
+    m = _model(resolve_terms("eq3"))
+    th = random_theta(m, rng)
+    d = make_data(m, th, N, rng, temp_span_c=(24.0, 24.2))
+    r = fit(d, options=FitOptions(holdout=False, priors={"K_O[z]": 0.16}))
+    h = [x for x in r.held if x.name == "K_O[z]"][0]
+    assert h.value == 0.16 and r.params["K_O"][2] == 0.16
+    with pytest.raises(FitError, match="unknown parameter"):
+        fit(d, options=FitOptions(holdout=False, priors={"K_O[w]": 1.0}))
+
+
+def test_axis_never_excited_holds_its_gain_column_at_identity():
+    rng = np.random.default_rng(6)
+    m = _model(("gain_matrix", "offset"))
+    th = random_theta(m, rng)
+    d = make_data(m, th, N, rng)
+    d.b_meas_uT[:, 2] = 0.3 * d.b_meas_uT[:, 0] + rng.normal(0, 0.01, N)   # Z only follows X
+    r = fit(d, "gain_offset", options=FitOptions(holdout=False))
+    assert {h.name for h in r.held} == {"S[x,z]", "S[y,z]", "S[z,z]"}
+    assert r.params["S"][2, 2] == 1.0
+
+
+def test_exactly_collinear_current_is_held():
+    rng = np.random.default_rng(7)
+    m = _model(resolve_terms("eq3"))
+    th = random_theta(m, rng)
+    d = make_data(m, th, N, rng)
+    d.currents_A = {"a": np.full(N, 0.7)}            # constant current == offset column
+    r = fit(d, currents=("a",), options=FitOptions(holdout=False))
+    assert {h.name for h in r.held} == {"D_a[x]", "D_a[y]", "D_a[z]"}
+    assert all("combination" in h.reason for h in r.held)
+
+
+def test_robust_irls_ignores_outliers():
+    rng = np.random.default_rng(8)
+    m = _model(resolve_terms("eq3"))
+    th = random_theta(m, rng)
+    d = make_data(m, th, N, rng, noise_uT=0.02)
+    bad = rng.choice(N, N // 20, replace=False)
+    d.b_ref_uT[bad] += rng.normal(0, 30.0, size=(bad.size, 3))
+    plain = fit(d, options=FitOptions(holdout=False))
+    rob = fit(d, options=FitOptions(holdout=False, robust=True))
+    err_p = np.abs(plain.params["S"] - m.unpack(th)["S"]).max()
+    err_r = np.abs(rob.params["S"] - m.unpack(th)["S"]).max()
+    assert err_r < 1e-3 < err_p
+
+
+def test_nan_and_flagged_rows_are_excluded_and_counted():
+    rng = np.random.default_rng(9)
+    m = _model(resolve_terms("eq3"))
+    th = random_theta(m, rng)
+    d = make_data(m, th, N, rng, noise_uT=0.0)
+    d.b_meas_uT[5, 1] = np.nan
+    d.temp_c[6] = np.nan
+    d.b_ref_uT[7, 0] = 1e6  # garbage row, flagged
+    d.flag = np.zeros(N, np.int64)
+    d.flag[7] = 1
+    r = fit(d, options=FitOptions(holdout=False))
+    assert r.n_excluded == 3 and r.n_used == N - 3
+    assert r.rmse_norm_uT < 1e-9
+
+
+def test_weights_enter_the_fit():
+    rng = np.random.default_rng(10)
+    m = _model(("gain_matrix", "offset"))
+    th = random_theta(m, rng)
+    d = make_data(m, th, N, rng, noise_uT=0.0)
+    d.b_ref_uT[: N // 2] += 1.0         # first half biased by 1 uT
+    d.weights = np.r_[np.zeros(N // 2) + 1e-12, np.ones(N - N // 2)]
+    r = fit(d, "gain_offset", options=FitOptions(holdout=False))
+    np.testing.assert_allclose(r.params["O"], m.unpack(th)["O"], atol=1e-6)
+    with pytest.raises(FitError):
+        FitData(d.b_meas_uT, d.b_ref_uT, d.temp_c, d.t_s, d.session, weights=-np.ones(N))
+
+
+def test_holdout_and_noise_floor_measure_the_injected_noise():
+    rng = np.random.default_rng(11)
+    m = _model(resolve_terms("eq3") + ("session_offset",), sessions=(1, 2, 3))
+    th = random_theta(m, rng)
+    d = make_data(m, th, 6000, rng, noise_uT=0.03)
+    r = fit(d, terms=("session_offset",))
+    assert r.rmse_uT == pytest.approx([0.03] * 3, rel=0.1)
+    assert r.noise_floor_uT == pytest.approx([0.03] * 3, rel=0.15)
+    assert r.holdout_blocks_uT == pytest.approx([0.03] * 3, rel=0.15)
+    assert set(r.holdout_per_session_uT) == {1, 2, 3}
+    # an unseen session gets the mean offset: its error is about the size of its own offset step
+    assert np.all(r.holdout_sessions_uT > r.rmse_uT)
+    text = r.report()
+    for word in ("in-sample RMSE", "held-out time blocks", "held-out sessions", "noise floor",
+                 "condition number"):
+        assert word in text
+
+
+def test_session_offsets_sum_to_zero_and_absorb_steps():
+    rng = np.random.default_rng(12)
+    m = _model(("gain_matrix", "offset", "session_offset"), sessions=(4, 9))
+    th = random_theta(m, rng)
+    d = make_data(m, th, N, rng, noise_uT=0.0)
+    r = fit(d, "gain_offset", ("session_offset",), options=FitOptions(holdout=False))
+    dO = r.params["dO"]
+    np.testing.assert_allclose(dO[4] + dO[9], 0.0, atol=1e-12)
+    assert r.rmse_norm_uT < 1e-9
+
+
+def test_one_session_cannot_fit_session_offsets():
+    rng = np.random.default_rng(13)
+    m = _model(("gain_matrix", "offset"))
+    d = make_data(m, random_theta(m, rng), 500, rng)
+    r = fit(d, "gain_offset", ("session_offset",), options=FitOptions(holdout=False))
+    assert r.model.n_columns == 4  # a single session gives no contrast columns
+    assert "needs at least two sessions" not in r.report()
+
+
+def test_not_enough_rows():
+    rng = np.random.default_rng(14)
+    m = _model(resolve_terms("eq3"))
+    d = make_data(m, random_theta(m, rng), 8, rng)
+    with pytest.raises(FitError, match="not enough data"):
+        fit(d)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1), noise=st.floats(0.0, 0.1))
+def test_property_fit_never_worse_than_truth_in_sample(seed, noise):
+    rng = np.random.default_rng(seed)
+    m = _model(resolve_terms("eq3", currents=("a",)), ("a",), n=600)
+    th = random_theta(m, rng)
+    d = make_data(m, th, 600, rng, noise_uT=noise)
+    r = fit(d, currents=("a",), options=FitOptions(holdout=False))
+    X = m.design(d.b_meas_uT, d.temp_c, d.currents_A, d.session, d.t_s)
+    sse_true = np.sum((d.b_ref_uT - m.predict(th, X)) ** 2, axis=0)
+    sse_fit = np.sum((d.b_ref_uT - r.model.predict(r.theta, X)) ** 2, axis=0)
+    assert np.all(sse_fit <= sse_true * (1 + 1e-9) + 1e-18)
+
+
+def test_streaming_equals_batch():
+    rng = np.random.default_rng(15)
+    terms = ("gain_matrix", "temperature_gain", "offset", "temperature_offset", "currents", "cubic",
+             "session_offset", "drift")
+    m = _model(terms, ("a", "b"), (1, 2), n=5000)
+    th = random_theta(m, rng)
+    d = make_data(m, th, 5000, rng, noise_uT=0.02)
+    batch = fit(d, "eq3", ("cubic", "session_offset", "drift"), ("a", "b"), options=FitOptions(holdout=False))
+    sf = StreamingFit(batch.model)
+    for k in range(0, 5000, 777):
+        s = slice(k, k + 777)
+        sf.add(d.b_meas_uT[s], d.b_ref_uT[s], d.temp_c[s], {n: v[s] for n, v in d.currents_A.items()},
+               d.session[s], d.t_s[s])
+    res = sf.solve()
+    np.testing.assert_allclose(res.theta, batch.theta, rtol=1e-7, atol=1e-10)
+    np.testing.assert_allclose(res.rmse_uT, batch.rmse_uT, rtol=1e-6)
+    assert sf.state_bytes == (batch.model.n_columns + 3) ** 2 * 8 + 24
+
+
+def test_streaming_refuses_batch_only_features():
+    m = CalModel(("gain_matrix", "offset", "time_skew"))
+    with pytest.raises(FitError, match="batch-only"):
+        StreamingFit(m)
+    with pytest.raises(FitError, match="batch-only"):
+        StreamingFit(CalModel(("gain_matrix", "offset")), FitOptions(robust=True))
+    sf = StreamingFit(CalModel(("gain_matrix", "offset", "session_offset"), sessions=(1, 2)))
+    with pytest.raises(FitError, match="not declared"):
+        sf.add(np.zeros((2, 3)), np.zeros((2, 3)), session=[1, 5])
+
+
+def test_time_derivative_and_time_skew_recovery():
+    t = np.arange(100) * 0.5
+    b = np.column_stack([np.sin(t), 2 * t, np.zeros_like(t)])
+    d = time_derivative(b, t, np.zeros(100))
+    np.testing.assert_allclose(d[1:-1, 1], 2.0)
+    np.testing.assert_allclose(d[1:-1, 0], (np.sin(t[2:]) - np.sin(t[:-2])) / 1.0)
+    # a gap breaks the run: one-sided differences at its edges, never across it
+    t2 = np.r_[t[:50], t[50:] + 100.0]
+    d2 = time_derivative(np.column_stack([t2, t2, t2]), t2)
+    np.testing.assert_allclose(d2[:, 0], 1.0)
+
+
+def test_reference_steps_marks_both_sides_of_a_transition():
+    ref = np.zeros((6, 3))
+    ref[3:, 0] = 10.0
+    m = reference_steps(ref, np.zeros(6, np.int64), 0.1)
+    assert m.tolist() == [False, False, True, True, False, False]
+
+
+def test_noise_floor_ignores_slow_misfit():
+    rng = np.random.default_rng(16)
+    t = np.arange(20000) * 0.25
+    r = np.column_stack([0.5 * np.sin(t / 300.0)] * 3) + rng.normal(0, 0.04, (20000, 3))
+    nf = noise_floor(r, t, np.zeros(20000, np.int64), 1.0)
+    assert nf == pytest.approx([0.04] * 3, rel=0.05)
+
+
+def test_bad_options_raise():
+    with pytest.raises(FitError):
+        FitOptions(on_unidentifiable="maybe")
+    with pytest.raises(FitError):
+        FitOptions(min_temp_span_c=float("nan"))
+    with pytest.raises(FitError, match="multiple of 0.01"):
+        CalModel(("gain_matrix",), t0_c=25.001)
+    with pytest.raises(FitError, match="gain_matrix"):
+        CalModel(("offset",))

@@ -1,0 +1,168 @@
+"""Truth generators: bench coil programs implement TruthSource, series == scalar, documented shapes."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from drivers.errors import ConfigurationError
+from sim.coil_programs import (
+    PROGRAMS,
+    ProgramTruth,
+    STEP_LEVELS_uT,
+    constant_field,
+    cycling_temp,
+    heating_profile,
+    piecewise_linear,
+    program,
+    pulse_current,
+    register_program,
+    rotation_profile,
+    square_current,
+    steps_profile,
+)
+from sim.truth_source import TruthSource
+
+REQUIRED = {"steps_x", "steps_y", "steps_z", "sweep_x", "sweep_y", "sweep_z", "rotation", "zero_field",
+            "large_field", "heating", "temp_cycling", "currents"}
+
+
+def test_required_programs_exist_and_are_truth_sources():
+    assert REQUIRED <= set(PROGRAMS)
+    for name in PROGRAMS:
+        tr = program(name, 120.0, sessions=3)
+        assert isinstance(tr, TruthSource)
+        t = np.linspace(-5.0, 130.0, 97)
+        b = tr.field_series_uT(t)
+        assert b.shape == (97, 3) and np.isfinite(b).all()
+        # scalar protocol agrees with the vectorised one
+        for x in t[::8]:
+            np.testing.assert_array_equal(tr.field_uT(x), tr.field_series_uT(np.array([x]))[0])
+            assert tr.temp_c(x) == tr.temp_series_c(np.array([x]))[0]
+            assert tr.session(x) == tr.session_series(np.array([x]))[0]
+            assert tr.currents_A(x) == {k: v[0] for k, v in tr.currents_series_A(np.array([x])).items()}
+
+
+def test_unknown_program_names_valid_ones():
+    with pytest.raises(ValueError, match="valid: .*steps_x"):
+        program("orbit_leo")
+    with pytest.raises(ConfigurationError):
+        program("steps_x", -1.0)
+
+
+def test_steps_visit_every_plateau_on_its_axis_only():
+    tr = program("steps_y", 420.0, sessions=1)
+    hold = 420.0 / len(STEP_LEVELS_uT)
+    mids = (np.arange(len(STEP_LEVELS_uT)) + 0.5) * hold
+    b = tr.field_series_uT(mids)
+    np.testing.assert_array_equal(b[:, 1], STEP_LEVELS_uT)
+    assert np.all(b[:, [0, 2]] == 0)
+    assert max(STEP_LEVELS_uT) == 50.0 and min(STEP_LEVELS_uT) == -50.0
+    # transitions are finite-rate ramps: never a jump larger than slope * dt
+    t = np.arange(0, 420, 0.01)
+    assert np.abs(np.diff(tr.field_series_uT(t)[:, 1])).max() <= 10.0 / 0.5 * 0.01 + 1e-9
+
+
+def test_sweep_is_triangle_pm50_with_constant_rate():
+    tr = program("sweep_z", 200.0, sessions=1)
+    t = np.linspace(0, 200, 2001)
+    z = tr.field_series_uT(t)[:, 2]
+    assert z.max() == pytest.approx(50.0) and z.min() == pytest.approx(-50.0)
+    rate = np.abs(np.diff(z) / np.diff(t))
+    np.testing.assert_allclose(rate, 4 * 50.0 / 200.0, rtol=1e-6)  # 0 -> +50 -> -50 -> 0 = 200 uT in 200 s
+
+
+def test_rotation_keeps_magnitude_and_covers_the_sphere():
+    f = rotation_profile(600.0, magnitude_uT=50.0)
+    b = f(np.linspace(0, 600, 6001))
+    np.testing.assert_allclose(np.linalg.norm(b, axis=1), 50.0)
+    u = b / 50.0
+    # both hemispheres and all azimuth octants visited
+    assert u[:, 2].max() > 0.99 and u[:, 2].min() < -0.99
+    oct_ = {(np.sign(x), np.sign(y)) for x, y in u[:, :2] if abs(x) > 0.1 and abs(y) > 0.1}
+    assert len(oct_) == 4
+
+
+def test_large_field_reaches_pm150_on_each_axis_then_returns_to_zero():
+    tr = program("large_field", 300.0, sessions=1)
+    t = np.linspace(0, 300, 30001)
+    b = tr.field_series_uT(t)
+    for i in range(3):
+        assert b[:, i].max() == pytest.approx(150.0) and b[:, i].min() == pytest.approx(-150.0)
+    assert np.all(b[-10:] == 0)
+
+
+def test_heating_and_cycling_temperature_profiles():
+    tr = program("heating", 1800.0, sessions=1)
+    temp = tr.temp_series_c(np.linspace(0, 1800, 1801))
+    assert temp[0] == pytest.approx(25.0) and temp.max() == pytest.approx(65.0)
+    peak = int(np.argmax(temp))
+    assert np.all(np.diff(temp[:peak]) >= 0) and np.all(np.diff(temp[peak:]) <= 0)
+    c = cycling_temp(1000.0, mean_c=20.0, amplitude_c=40.0, cycles=2.0)(np.linspace(0, 1000, 4001))
+    assert c.max() == pytest.approx(60.0, abs=0.01) and c.min() == pytest.approx(-20.0, abs=0.01)
+    h = heating_profile(100.0, 20.0, 60.0)
+    assert h(np.array([-10.0]))[0] == 20.0  # holds outside the run
+
+
+def test_named_current_profiles():
+    tr = program("currents", 600.0, sessions=1)
+    cur = tr.currents_series_A(np.linspace(0, 600, 6001))
+    assert set(cur) == {"solar_A", "torquer_A"}
+    assert set(np.unique(cur["solar_A"])) == {0.0, 0.5}
+    assert cur["solar_A"].mean() == pytest.approx(0.25, abs=0.01)
+    assert set(np.unique(cur["torquer_A"])) == {0.0, 0.1}
+    assert cur["torquer_A"].mean() == pytest.approx(0.1 * 2 / 20, abs=0.003)
+    s = square_current(1.0, 10.0, duty=0.3)(np.array([0.0, 2.9, 3.1, 10.0]))
+    np.testing.assert_array_equal(s, [1.0, 1.0, 0.0, 1.0])
+    p = pulse_current(2.0, 5.0, 1.0, start_s=1.0)(np.array([0.5, 1.5, 2.5, 6.2]))
+    np.testing.assert_array_equal(p, [0.0, 2.0, 0.0, 2.0])
+    with pytest.raises(ConfigurationError):
+        square_current(1.0, 0.0)
+    with pytest.raises(ConfigurationError):
+        pulse_current(1.0, 1.0, 2.0)
+
+
+@pytest.mark.parametrize("sessions", [1, 3, 5])
+def test_power_cycles_split_run_into_equal_sessions(sessions):
+    tr = program("zero_field", 100.0, sessions=sessions)
+    t = np.linspace(0, 100, 1001)
+    s = tr.session_series(t)
+    assert list(np.unique(s)) == list(range(sessions))
+    assert np.all(np.diff(s) >= 0)
+    np.testing.assert_allclose(tr.session_starts_s(), np.arange(sessions) * 100.0 / sessions)
+    assert tr.session(1e9) == sessions - 1 and tr.session(-1.0) == 0
+    with pytest.raises(ConfigurationError):
+        program("zero_field", 100.0, sessions=0)
+
+
+def test_full_program_combines_all_patterns():
+    tr = program("full", 400.0, sessions=4)
+    t = np.linspace(0, 400, 40001)
+    b = tr.field_series_uT(t)
+    assert np.abs(b).max() == pytest.approx(150.0)  # excursions in the last quarter
+    assert np.ptp(tr.temp_series_c(t)) > 40
+    assert set(tr.currents_series_A(t)) == {"solar_A", "torquer_A"}
+    assert list(np.unique(tr.session_series(t))) == [0, 1, 2, 3]
+
+
+def test_building_blocks_validate_input():
+    with pytest.raises(ConfigurationError):
+        piecewise_linear([0, 2, 1], [0, 1, 2])
+    with pytest.raises(ConfigurationError):
+        piecewise_linear([0, 1], [0, 1, 2])
+    with pytest.raises(ConfigurationError):
+        steps_profile("w", 10.0)
+    with pytest.raises(ConfigurationError):
+        ProgramTruth("p", 0.0, constant_field())
+    with pytest.raises(ConfigurationError):
+        constant_field()(np.array([np.nan]))
+
+
+def test_register_program_plugs_in_another_generator():
+    name = "test_plugin_const"
+    if name not in PROGRAMS:
+        register_program(name, lambda d, s: ProgramTruth(name, d, constant_field((1, 2, 3)), sessions=s), 10.0,
+                         "constant test field")
+    tr = program(name, 5.0, sessions=2)
+    np.testing.assert_array_equal(tr.field_uT(1.0), [1, 2, 3])
+    with pytest.raises(ValueError, match="already registered"):
+        register_program(name, lambda d, s: None, 1.0, "dup")

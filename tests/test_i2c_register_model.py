@@ -1,0 +1,151 @@
+"""Generic register model: access modes, power-on values, pointer rules, faults, loud failures."""
+from __future__ import annotations
+
+import pytest
+
+from drivers.bus.i2c import I2CDevice, I2CRead, I2CWrite
+from drivers.errors import BusError
+from sim.hmc5983_model import HMC5983Model
+from sim.i2c_bus import SimI2CBus
+from sim.i2c_register_model import RO, RW, WO, IdealSensor, Reg, RegisterFileModel
+from sim.lis3mdl_model import LIS3MDLModel
+from sim.lsm303dlhc_model import LSM303DLHCModel
+from sim.truth_source import StaticTruth
+
+
+def _dev(model, address=0x40):
+    bus = SimI2CBus()
+    bus.attach(address, model)
+    return bus, I2CDevice(bus, address)
+
+
+def _model():
+    return RegisterFileModel([Reg(0x00, "CFG", RW, 0x12, fixed_mask=0x80), Reg(0x01, "ID", RO, 0x5A),
+                              Reg(0x02, "CMD", WO, 0x00)], name="toy", address=0x40)
+
+
+def test_power_on_values_and_modes():
+    bus, dev = _dev(_model())
+    assert dev.read_registers(0x00, 2) == b"\x12\x5a"
+    dev.write_register(0x02, 0x33)
+    with pytest.raises(BusError, match="read-only"):
+        dev.write_register(0x01, 0x00)
+    with pytest.raises(BusError, match="write-only"):
+        dev.read_register(0x02)
+    with pytest.raises(BusError, match="unmapped"):
+        dev.read_register(0x07)
+    with pytest.raises(BusError, match="unmapped"):
+        dev.write_register(0x07, 1)
+    with pytest.raises(BusError, match="fixed bits"):
+        dev.write_register(0x00, 0x80)
+    assert dev.read_register(0x00) == 0x12
+
+
+def test_bus_error_carries_address():
+    bus, dev = _dev(_model())
+    with pytest.raises(BusError) as e:
+        dev.read_register(0x09)
+    assert e.value.address == 0x40
+    assert "0x40" in str(e.value)
+
+
+def test_quick_write_is_acknowledged_without_effect():
+    model = _model()
+    bus, dev = _dev(model)
+    bus.transfer(0x40, [I2CWrite(b"")])
+    assert model.values[0x00] == 0x12
+
+
+def test_stuck_and_bit_flip_faults():
+    model = _model()
+    bus, dev = _dev(model)
+    model.inject_bit_flip(0x01, 0x01, count=2)
+    assert [dev.read_register(0x01) for _ in range(3)] == [0x5B, 0x5B, 0x5A]
+    model.inject_stuck([0x01])
+    assert model.core_set(0x01, 0x00) is False
+    assert dev.read_register(0x01) == 0x5A
+    model.clear_faults()
+    assert model.core_set(0x01, 0x00) is True
+    with pytest.raises(ValueError):
+        model.inject_stuck([0x55])
+
+
+def test_nack_injection_and_absent_device():
+    model = _model()
+    bus, dev = _dev(model)
+    bus.inject_nack(0x40)
+    with pytest.raises(BusError, match="NACK"):
+        dev.read_register(0x00)
+    assert dev.read_register(0x00) == 0x12
+    with pytest.raises(BusError, match="no ACK"):
+        I2CDevice(bus, 0x41).read_register(0x00)
+
+
+def test_lis3mdl_auto_increment_rules(clock):
+    truth = StaticTruth()
+    m = LIS3MDLModel(clock, truth, IdealSensor())
+    bus = SimI2CBus()
+    bus.attach(0x1C, m)
+    # multi-byte read without the 0x80 flag fails loudly in strict mode
+    with pytest.raises(BusError, match="auto-increment"):
+        bus.transfer(0x1C, [I2CWrite(b"\x28"), I2CRead(6)])
+    # with the flag, the output block wraps 0x2D -> 0x28 (8 bytes = X, Y, Z, X again)
+    m.values[0x28:0x2E] = bytes([1, 2, 3, 4, 5, 6])
+    (data,) = bus.transfer(0x1C, [I2CWrite(b"\xa8"), I2CRead(8)])
+    assert data == bytes([1, 2, 3, 4, 5, 6, 1, 2])
+    lax = LIS3MDLModel(clock, truth, IdealSensor(), strict_auto_increment=False)
+    bus.attach(0x1E, lax)
+    lax.values[0x28:0x2E] = bytes([1, 2, 3, 4, 5, 6])
+    (data,) = bus.transfer(0x1E, [I2CWrite(b"\x28"), I2CRead(6)])
+    assert data == bytes([1, 2, 3, 4, 5, 6])
+
+
+@pytest.mark.parametrize("cls", [HMC5983Model, LSM303DLHCModel])
+def test_honeywell_pointer_rules(clock, cls):
+    m = cls(clock, StaticTruth(), IdealSensor())
+    bus = SimI2CBus()
+    bus.attach(0x1E, m)
+    # after 0x08 the pointer returns to 0x03 (data block re-read)
+    m.values[0x03:0x09] = bytes([1, 2, 3, 4, 5, 6])
+    (data,) = bus.transfer(0x1E, [I2CWrite(b"\x03"), I2CRead(8)])
+    assert data == bytes([1, 2, 3, 4, 5, 6, 1, 2])
+    # at 0x0C the next address is 0x00 (CRA)
+    (data,) = bus.transfer(0x1E, [I2CWrite(b"\x0a"), I2CRead(4)])
+    assert data[:3] == b"H43" and data[3] == m.values[0x00]
+
+
+def test_model_power_on_values(clock):
+    lis = LIS3MDLModel(clock, StaticTruth(), IdealSensor())
+    assert (lis.values[0x20], lis.values[0x22], lis.values[0x30], lis.values[0x0F]) == (0x10, 0x03, 0xE8, 0x3D)
+    hmc = HMC5983Model(clock, StaticTruth(), IdealSensor())
+    assert (hmc.values[0], hmc.values[1], hmc.values[2]) == (0x10, 0x20, 0x01)
+    dl = LSM303DLHCModel(clock, StaticTruth(), IdealSensor())
+    assert (dl.values[0], dl.values[1], dl.values[2], dl.values[0x0F]) == (0x10, 0x20, 0x03, 0x3C)
+
+
+def test_conversions_only_at_output_rate(clock):
+    """Lazy conversion: many register reads within one period cost one sense() call."""
+    calls = []
+
+    class Counting(IdealSensor):
+        def sense(self, t_s, truth):
+            calls.append(t_s)
+            return super().sense(t_s, truth)
+
+    m = LIS3MDLModel(clock, StaticTruth(), Counting())
+    bus = SimI2CBus()
+    bus.attach(0x1C, m)
+    dev = I2CDevice(bus, 0x1C, auto_increment_flag=0x80)
+    dev.write_register(0x20, 0x1C)   # 80 Hz (DO=111)
+    dev.write_register(0x22, 0x00)   # continuous
+    for _ in range(50):
+        dev.read_registers(0x28, 6)
+    assert calls == []
+    clock.advance_s(0.0126)
+    for _ in range(50):
+        dev.read_registers(0x28, 6)
+    assert len(calls) == 1 and calls[0] == pytest.approx(0.0125)
+    clock.advance_s(1.0)       # 80 conversions' worth: only the latest is evaluated
+    dev.read_register(0x27)
+    assert len(calls) == 2
+    assert dev.read_register(0x27) & 0x80   # ZYXOR: unread data overwritten
