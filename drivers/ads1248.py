@@ -281,9 +281,10 @@ class ADS1248:
         self.timeout_factor = timeout_factor
         self.timeout_margin_s = timeout_margin_s
         self.name = name
-        self._channel: ChannelConfig | None = None
+        self.channel: ChannelConfig | None = None  # what MUX0..SYS0 hold now (None: unknown)
         self._rate: DataRate = DATA_RATES[5]  # power-on DR = 0000
         self.conversions = 0
+        self.t_reset_s: float | None = None  # clock time of the last reset()
 
     # -- low level -------------------------------------------------------------------------------
     def _xfer(self, tx: bytes, op: str) -> bytes:
@@ -337,7 +338,7 @@ class ADS1248:
         old = self.read_register(reg.name)
         self.write_registers(reg.address, bytes(((old & ~f.mask) | (value << f.shift),)))
         if reg.address in FILTER_RESTART_REGISTERS:
-            self._channel = None  # forget the cached channel; the next convert rewrites all
+            self.channel = None  # MUX0..SYS0 no longer match a ChannelConfig
 
     # -- bring-up -----------------------------------------------------------------------------------
     def reset(self) -> None:
@@ -355,7 +356,7 @@ class ADS1248:
             self.command(Command.RESET)
         t_reset = self.clock.monotonic_s()
         self.clock.sleep_s(RESET_RECOVERY_S)
-        self._channel = None
+        self.channel = None
         self._rate = DATA_RATES[5]
         self.start_line.set(True)
         t_start = self.clock.monotonic_s()
@@ -374,7 +375,7 @@ class ADS1248:
         self._xfer(bytes((Command.WREG | 0x00, 3)) + regs, "WREG")
         t_write = self.clock.monotonic_s()
         self._verify(0x00, regs)
-        self._channel = channel
+        self.channel = channel
         self._rate = channel.rate
         return t_write
 
@@ -429,7 +430,7 @@ class ADS1248:
         first = channel.rate.first_after_reset_s
         self.wait_drdy(t0, first, timeout_s=max_conversions * first + self.timeout_margin_s)
         self.read_data()
-        self._channel = None
+        self.channel = None
         ofc = self.read_registers(REGISTERS["OFC0"].address, 3)
         return signed24(bytes((ofc[2], ofc[1], ofc[0])))
 

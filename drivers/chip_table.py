@@ -16,12 +16,19 @@ from __future__ import annotations
 
 import math
 import struct
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Iterable, Sequence
 
 from drivers.bus.i2c import I2CBus, I2CDevice
-from drivers.errors import (BusError, BusTimeout, ConfigurationError, DeviceIdMismatch, DeviceNotFound,
-                            ReadbackMismatch, StaleData)
+from drivers.errors import (
+    BusError,
+    BusTimeout,
+    ConfigurationError,
+    DeviceIdMismatch,
+    DeviceNotFound,
+    ReadbackMismatch,
+    StaleData,
+)
 from drivers.magnetometer import MagSample
 
 UT_PER_GAUSS = 100.0
@@ -257,14 +264,15 @@ class TableMagnetometer:
 
     ``timeout_s`` bounds how long :meth:`read` waits for a new sample (default: 3 output
     periods + 0.1 s). ``stuck_limit`` consecutive bit-identical samples raise StaleData (the
-    data registers are frozen although the chip reports new data); None disables the check,
-    which you need for a noise-free input.
+    data registers are frozen although the chip reports new data); ``extra["repeats"]`` counts
+    them. None disables the check: needed for noise-free input, and advisable on a coarse
+    range in a quiet static field where the chip's noise is well below one LSB.
     """
 
     table: ChipTable
 
     def __init__(self, bus: I2CBus, clock, *, address: int | None = None, timeout_s: float | None = None,
-                 stuck_limit: int | None = 25, verify: bool = True) -> None:
+                 stuck_limit: int | None = 200, verify: bool = True) -> None:
         t = self.table
         self.address = t.addresses[0] if address is None else address
         if self.address not in t.addresses:
@@ -362,8 +370,11 @@ class TableMagnetometer:
             self._trigger_single()
         start = self.clock.monotonic_s()
         deadline = start + self.timeout_s
-        if not self.table.drdy_latched and self._last_new_s is not None and self._mode == "continuous":
-            due = self._next_due_s()
+        if self._last_new_s is not None and self._mode == "continuous":
+            # no new set can exist before one period (less the rate tolerance) has passed; for a
+            # non-latched data-ready flag, wait a full period plus tolerance (see _next_due_s)
+            due = self._next_due_s() if not self.table.drdy_latched else \
+                self._last_new_s + self.period_s * (1.0 - self.table.odr_tolerance)
             if due > start:
                 self.clock.sleep_s(min(due, deadline) - start)
         poll = self._poll_s()
@@ -430,7 +441,7 @@ class TableMagnetometer:
         t_s, raw = self.read_raw()
         codes = decode_axes(raw, self.table)
         over = set(self._overflow_axes(codes))
-        extra = {"raw": codes}
+        extra = {"raw": codes, "repeats": self._same_count}
         extra.update(self._sample_extra(codes))
         over |= set(extra.pop("_overflow", ()))
         scale = self._scale()

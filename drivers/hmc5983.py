@@ -23,8 +23,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.chip_table import (ChipTable, Field, NamedOption, RangeOption, RateOption, TableMagnetometer,
-                                TempFormat, check_identity, lookup, write_checked, write_field)
+from drivers.chip_table import (
+    ChipTable,
+    Field,
+    NamedOption,
+    RangeOption,
+    RateOption,
+    TableMagnetometer,
+    TempFormat,
+    check_identity,
+    lookup,
+    write_checked,
+)
 from drivers.errors import BusError, DeviceIdMismatch, SelfTestFailed
 
 CRA, CRB, MR = 0x00, 0x01, 0x02
@@ -55,7 +65,7 @@ HMC5983_TABLE = ChipTable(
     slot_axes=(0, 2, 1),
     overflow_code=-4096,
     valid_code=(-2048, 2047),
-    ranges=tuple(RangeOption(r, code, (g, g, g)) for code, (r, g) in enumerate(zip(_RANGES_UT, _GAINS))),
+    ranges=tuple(RangeOption(r, code, (g, g, g)) for code, (r, g) in enumerate(zip(_RANGES_UT, _GAINS, strict=True))),
     rates=tuple(RateOption(hz, code) for code, hz in enumerate(_RATES_HZ)),
     modes=(NamedOption("continuous", 0b00), NamedOption("single", 0b01), NamedOption("idle", 0b11)),
     range_field=Field(CRB, 0xE0),
@@ -179,7 +189,8 @@ class HoneywellStyleMagnetometer(TableMagnetometer):
             if reg == MR:
                 value = self.table.mode_field.encode(self.table.mode_option("idle").code)
             write_checked(self.dev, reg, value, verify=self.verify)
-        self._range = self.table.range_option(130.0)
+        crb = dict(self.table.reset_values)[self.table.range_field.reg]
+        self._range = lookup(self.table.ranges, "code", self.table.range_field.decode(crb), f"{self.name} range code")
         self._mode = "idle"
         self._last_raw = None
         self._same_count = 0

@@ -57,9 +57,12 @@ def identify(bus: I2CBus, address: int, *, present: set[int] | None = None) -> P
     dev = I2CDevice(bus, address)
     try:
         bus.transfer(address, [I2CWrite(b"")])
+        who = _read(dev, 0x0F)
     except BusError as exc:
-        raise DeviceNotFound(f"no device acknowledges at {address:#04x}: {exc}") from exc
-    who = _read(dev, 0x0F)
+        # some adapters refuse zero-length messages: a register read also proves presence
+        who = _read(dev, 0x0F)
+        if who is None:
+            raise DeviceNotFound(f"no device acknowledges at {address:#04x}: {exc}") from exc
     if who == b"\x3d" and address in MAGNETOMETER_ADDRESSES:
         return ProbeResult(address, "lis3mdl", who, "WHO_AM_I 0x0F = 0x3D")
     ids = _read(dev, 0x0A, 3)
@@ -79,7 +82,18 @@ def identify(bus: I2CBus, address: int, *, present: set[int] | None = None) -> P
 
 
 def probe(bus: I2CBus, addresses=range(0x08, 0x78)) -> list[ProbeResult]:
-    """Scan ``addresses`` and identify every device that acknowledges."""
+    """Scan ``addresses`` and identify every device that acknowledges.
+
+    The magnetometer addresses (0x1C, 0x1E) are also tried by a register read when the
+    address-only scan missed them (adapters without zero-length message support).
+    """
     present = scan(bus, addresses)
     pset = set(present)
-    return [identify(bus, a, present=pset) for a in present]
+    results = [identify(bus, a, present=pset) for a in present]
+    for a in MAGNETOMETER_ADDRESSES:
+        if a in addresses and a not in pset:
+            try:
+                results.append(identify(bus, a, present=pset))
+            except DeviceNotFound:
+                continue
+    return sorted(results, key=lambda r: r.address)

@@ -18,9 +18,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.chip_table import (ChipTable, Field, NamedOption, RangeOption, RateOption, TableMagnetometer,
-                                TempFormat, check_identity, lookup, write_checked,
-                                write_field)
+from drivers.chip_table import (
+    ChipTable,
+    Field,
+    NamedOption,
+    RangeOption,
+    RateOption,
+    TableMagnetometer,
+    TempFormat,
+    check_identity,
+    lookup,
+    write_checked,
+    write_field,
+)
 from drivers.errors import BusTimeout, ConfigurationError, SelfTestFailed
 
 WHO_AM_I = 0x0F
@@ -253,7 +263,7 @@ class LIS3MDL(TableMagnetometer):
             self.soft_reset()
             self.configure(**saved)
         delta = np.abs(on - off)
-        passed = all(lo <= d <= hi for d, (lo, hi) in zip(delta, SELF_TEST_WINDOW_UT))
+        passed = all(lo <= d <= hi for d, (lo, hi) in zip(delta, SELF_TEST_WINDOW_UT, strict=True))
         result = SelfTestResult(passed, tuple(float(x) for x in delta), SELF_TEST_WINDOW_UT,
                                 tuple(float(x) for x in off), tuple(float(x) for x in on))
         if not passed:

@@ -52,8 +52,9 @@ _EFFECTS = (
            "B <- (I + K_S (T - T0)) B.", "1/degC", "belsten Eq. 3 (K_S), Table 7; HMC1053 -2700 ppm/degC",
            "temperature_gain"),
     Effect("hysteresis", 80, "remanent offset after a large field",
-           "After an excursion above a threshold the offset shifts by a remanent amount signed by the "
-           "excursion's sign, until the next set/reset or opposite excursion.",
+           "After the sensed field on an axis reaches a threshold the offset shifts by a remanent amount "
+           "signed by the excursion's sign, until an opposite excursion (power cycles do not clear it: "
+           "belsten attributes it to magnetised material near the sensor).",
            "uT", "belsten sec. 2.3.4 (+50 nT after +-150 uT)", "session_offset"),
     Effect("offset", 90, "constant bias (hard iron, bridge offset after set/reset)",
            "B <- B + O.", "uT", "belsten Table 1; lab study offsets", "offset"),
@@ -66,7 +67,8 @@ _EFFECTS = (
            "Each power cycle / session draws a new offset step.", "uT", "belsten sec. 3.2 (several power cycles)",
            "session_offset"),
     Effect("noise", 130, "white and 1/f noise",
-           "Additive Gaussian white noise plus 1/f (pink) component.", "uT rms",
+           "Additive Gaussian white noise plus a 1/f (pink) component (sum of first-order processes "
+           "with log-spaced corners across a band).", "uT rms",
            "belsten Table 1 (13-24 nT rms); lab study noise per chip", None),
     Effect("saturation", 140, "output clipped at the range",
            "Readings beyond the full-scale range clip (or give the overflow code on digital chips).",

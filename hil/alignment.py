@@ -153,6 +153,8 @@ class OffsetEstimate:
     runner_up_ratio: float
     curve_s: np.ndarray = field(repr=False, default_factory=lambda: np.empty(0))
     curve_unexplained: np.ndarray = field(repr=False, default_factory=lambda: np.empty(0))
+    sigma_curvature_s: float = math.nan
+    sigma_jackknife_s: float = math.nan
 
 
 @dataclass
@@ -236,25 +238,32 @@ def _parabola_min(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     return float(x0 - b / (2 * a)), float(2 * a)
 
 
-def _refine(cost_fn, center: float, half_s: float, step_s: float) -> tuple[float, float, float, np.ndarray]:
-    """Fine search of cost_fn around center; returns (argmin, ssr_min, ssr'' , residual-count)."""
-    grid = center + np.arange(-half_s, half_s + step_s / 2, step_s)
-    ssr, n = cost_fn(grid)
+def _vertex(grid: np.ndarray, ssr: np.ndarray, half_window_s: float) -> tuple[float, float, int]:
+    """(vertex, SSR'' , argmin) of a cost curve: parabola through the points within the window."""
     if not np.any(np.isfinite(ssr)):
-        return center, math.nan, 0.0, n
+        return math.nan, 0.0, -1
     k = int(np.nanargmin(ssr))
-    best = float(grid[k])
-    # Fit the curvature on the part of the valley below the median rise (at least 5 points).
-    win = max(5, int(round(0.6 * half_s / step_s)))
-    sl = slice(max(0, k - win), min(grid.size, k + win + 1))
-    xs, ys = grid[sl], ssr[sl]
-    okm = np.isfinite(ys)
-    vertex, curv = (best, 0.0)
-    if okm.sum() >= 5:
-        vertex, curv = _parabola_min(xs[okm], ys[okm])
-        if not (grid[0] <= vertex <= grid[-1]):
-            vertex = best
-    return vertex, float(np.nanmin(ssr)), curv, n[k]
+    sel = (np.abs(grid - grid[k]) <= half_window_s) & np.isfinite(ssr)
+    if sel.sum() < 5:
+        return float(grid[k]), 0.0, k
+    vertex, curv = _parabola_min(grid[sel], ssr[sel])
+    if not (grid[sel][0] <= vertex <= grid[sel][-1]):
+        vertex = float(grid[k])
+    return vertex, curv, k
+
+
+def _blocks(n: int, n_blocks: int) -> list[np.ndarray]:
+    """Contiguous row blocks for the delete-one-block jackknife."""
+    edges = np.linspace(0, n, n_blocks + 1).astype(int)
+    return [np.arange(edges[b], edges[b + 1]) for b in range(n_blocks)]
+
+
+def _jackknife_sigma(values: list[float]) -> float:
+    v = np.asarray([x for x in values if math.isfinite(x)])
+    g = v.size
+    if g < 3:
+        return math.inf
+    return float(math.sqrt((g - 1) / g * np.sum((v - v.mean()) ** 2)))
 
 
 # --------------------------------------------------------------------------- clock offset
@@ -262,13 +271,15 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
                           prior_s: float | None = None, search_halfwidth_s: float | None = None,
                           step_s: float | None = None, min_overlap: float = 0.5, max_gap_s: float | None = None,
                           min_r2: float = 0.9, max_sigma_s: float = 1.0,
-                          ambiguity_ratio: float = 2.0) -> OffsetEstimate:
+                          ambiguity_ratio: float = 2.0, n_blocks: int = 10) -> OffsetEstimate:
     """Clock offset (add to reference time to get DUT time) minimising ``ref ~ A dut + b``.
 
     Coarse search: every offset in ``prior_s +- search_halfwidth_s`` (default: every offset that
     overlaps at least ``min_overlap`` of the shorter stream) at ``step_s`` (default half the
     reference's median period); refine on a 5 ms grid and take the vertex of the residual
-    parabola. Raises AlignmentError when the streams do not overlap, when the best fit explains
+    parabola. ``sigma_s`` is the larger of the curvature estimate (``2 s^2 / SSR''``, inflated for
+    residual autocorrelation) and a delete-one-block jackknife over ``n_blocks`` contiguous blocks
+    of DUT rows (which also captures the interpolation error at field steps). Raises AlignmentError when the streams do not overlap, when the best fit explains
     less than ``min_r2`` of the reference variance (static field: nothing to align on), when the
     uncertainty exceeds ``max_sigma_s`` or when another, distant minimum fits within
     ``ambiguity_ratio`` of the best unexplained variance (periodic signal).
@@ -328,21 +339,30 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
     runner = float(np.min(unexpl[cand])) if cand.any() else math.inf
     ratio = runner / best_u if best_u > 0 else math.inf
 
-    def fine_cost(offs: np.ndarray):
-        s, _, nn = cost(offs)
-        return s, nn
-
-    vertex, ssr_min, curv, n_pairs = _refine(fine_cost, float(grid[k]), max(2 * h, 0.25), 0.005)
+    # Fine stage on a 5 ms grid; the curve is computed once, then once per deleted block.
+    fine = grid[k] + np.arange(-max(2 * h, 0.25), max(2 * h, 0.25) + 0.0025, 0.005)
+    yf, vf = _interp_batch(t_ref, ref, t_dut[None, :] - fine[:, None], gap)
+    ssr_f, _, _ = _batched_ssr(dut, yf, vf)
+    win = max(h, 0.1)
+    vertex, curv, kf = _vertex(fine, ssr_f, win)
+    jack = []
+    for blk in _blocks(t_dut.size, n_blocks):
+        keep = vf.copy()
+        keep[:, blk] = False
+        s_b, _, _ = _batched_ssr(dut, yf, keep)
+        jack.append(_vertex(fine, s_b, win)[0])
+    sigma_jk = _jackknife_sigma(jack)
     # residual statistics at the vertex
     y, valid = interp_no_extrapolation(t_ref, ref, t_dut - vertex, gap)
     _, _, resid = linear_fit(dut[valid], y[valid])
-    p = 4 * 3
-    dof = max(1, resid.size - p)
+    dof = max(1, resid.size - 12)
     s2 = float(np.sum(resid ** 2)) / dof
-    # SSR sums 3 components; curvature of the total SSR vs. total residual variance
-    sigma = math.sqrt(2 * s2 / curv) * _eff_factor(resid) if curv > 0 else math.inf
+    # curvature: var = 2 s^2 / SSR'' (SSR summed over the 3 components), inflated for autocorrelation
+    sigma_curv = math.sqrt(2 * s2 / curv) * _eff_factor(resid) if curv > 0 else math.inf
+    sigma = max(sigma_curv, sigma_jk)
     r2 = 1.0 - best_u
-    est = OffsetEstimate(vertex, sigma, r2, int(valid.sum()), (float(lo), float(hi)), ratio, grid, unexpl)
+    est = OffsetEstimate(vertex, sigma, r2, int(valid.sum()), (float(lo), float(hi)), ratio, grid, unexpl,
+                         sigma_curv, sigma_jk)
     if r2 < min_r2:
         raise AlignmentError(f"the data do not determine the clock offset: best linear fit explains only "
                              f"{r2:.1%} of the reference variance (static or unrelated field?)")
@@ -358,12 +378,14 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
 # --------------------------------------------------------------------------- per-axis skew
 def estimate_axis_skew(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarray, ref_uT: np.ndarray,
                        offset_s: float, *, max_skew_s: float | None = None, max_gap_s: float | None = None,
-                       min_r2: float = 0.9, max_sigma_s: float | None = None) -> list[ParamEstimate]:
+                       min_r2: float = 0.9, max_sigma_s: float | None = None,
+                       n_blocks: int = 10) -> list[ParamEstimate]:
     """Per-axis time skew of the DUT relative to ``offset_s`` (see module doc for the sign).
 
     For axis ``i`` the skew minimises the residual of ``dut_i ~ a . ref(t + skew - offset) + c``.
     An axis whose fit explains less than ``min_r2`` of its variance, or whose uncertainty exceeds
     ``max_sigma_s`` (default: one DUT sample period), is returned with ``determined=False``.
+    The uncertainty is the larger of the curvature and the delete-one-block jackknife estimates.
     """
     t_dut, dut = _clean(t_dut, dut_uT, "DUT")
     t_ref, ref = _clean(t_ref, ref_uT, "reference")
@@ -382,19 +404,22 @@ def estimate_axis_skew(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarray,
         return [ParamEstimate(math.nan, math.nan, False, "too little overlap") for _ in range(3)]
     yv = y[:, common, :]
     vmask = np.ones(yv.shape[:2], bool)
+    blocks = _blocks(int(common.sum()), n_blocks)
+    win = max(dt_ref / 2, 0.1)
     for i in range(3):
-        target = dut[common, i:i + 1]
-        ssr, sst, _ = _batched_ssr(yv, np.broadcast_to(target, (grid.size,) + target.shape), vmask)
-        k = int(np.nanargmin(ssr))
+        target = np.broadcast_to(dut[common, i:i + 1], (grid.size, int(common.sum()), 1))
+        ssr, sst, _ = _batched_ssr(yv, target, vmask)
+        vertex, curv, k = _vertex(grid, ssr, win)
         r2 = 1 - ssr[k] / sst[k]
-        win = max(5, int(round(0.3 * half / 0.005)))
-        sl = slice(max(0, k - win), min(grid.size, k + win + 1))
-        vertex, curv = _parabola_min(grid[sl], ssr[sl])
-        if not (grid[0] <= vertex <= grid[-1]):
-            vertex = float(grid[k])
-        _, _, resid = linear_fit(yv[k], target)
+        _, _, resid = linear_fit(yv[k], target[0])
         s2 = float(np.sum(resid ** 2)) / max(1, resid.size - 4)
-        sigma = math.sqrt(2 * s2 / curv) * _eff_factor(resid) if curv > 0 else math.inf
+        sigma_curv = math.sqrt(2 * s2 / curv) * _eff_factor(resid) if curv > 0 else math.inf
+        jack = []
+        for blk in blocks:
+            keep = vmask.copy()
+            keep[:, blk] = False
+            jack.append(_vertex(grid, _batched_ssr(yv, target, keep)[0], win)[0])
+        sigma = max(sigma_curv, _jackknife_sigma(jack))
         if r2 < min_r2:
             out.append(ParamEstimate(vertex, sigma, False, f"axis fit explains only {r2:.1%} of its variance "
                                                            "(axis not exercised)"))

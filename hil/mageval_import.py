@@ -193,7 +193,7 @@ def import_mageval(data_csv: str | os.PathLike, ref_csv: str | os.PathLike, *,
             offset = float(offset_prior_s)
             meta["clock_offset_method"] = f"prior (data do not determine it: {exc})"
             meta["clock_offset_sigma_s"] = "nan"
-    meta["clock_offset_s"] = f"{offset:.4f}"
+    meta["clock_offset_s"] = f"{offset:.6f}"
     meta["clock_offset_vs_authors_s"] = f"{offset - AUTHORS_OFFSET_S:+.4f}"
     t_ref_dut = t_ref + offset  # reference timestamps on the DUT clock
 

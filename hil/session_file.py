@@ -107,6 +107,9 @@ class Session:
 def _fmt(x: float, decimals: int) -> str:
     if x is None or (isinstance(x, float) and math.isnan(x)):
         return ""
+    if isinstance(x, float) and math.isinf(x):
+        # the reader rejects infinities: refuse here instead of writing an unreadable file
+        raise ValueError(f"cannot write an infinite value ({x}) to a session file")
     return f"{x:.{decimals}f}"
 
 
@@ -144,7 +147,12 @@ class SessionWriter:
         _check_metadata(meta)
         self._buf: list[str] = []
         self.rows_written = 0
-        self._fh = open(self.part_path, "w", encoding="utf-8", newline="")
+        try:
+            # exclusive: never truncate the .part left by an earlier, killed session
+            self._fh = open(self.part_path, "x", encoding="utf-8", newline="")
+        except FileExistsError:
+            raise SessionFileError(f"{self.part_path} exists (left by an interrupted session?): "
+                                   "read, rename or remove it first") from None
         header = "".join(f"# {k}: {v}\n" for k, v in meta.items())
         cols = list(REQUIRED_COLUMNS) + [f"current_{n}_A" for n in self.current_names]
         if with_flag:
@@ -281,6 +289,11 @@ def read_session(source: str | os.PathLike | io.TextIOBase) -> Session:
             continue
         cells = line.split(",")
         is_last = j == len(data_lines) - 1
+        if is_last and cut_tail and name.endswith(".part"):
+            # in a killed writer's .part file an unterminated line was cut short even if it
+            # parses ("12" cut to "1"): never trust it
+            warnings.append(f"dropped incomplete last line {lineno} (write cut short)")
+            break
         try:
             if len(cells) != len(header):
                 raise SessionFileError(f"{name}: line {lineno}: {len(cells)} cells, header has {len(header)}")

@@ -52,6 +52,8 @@ _CURRENT_NAME_RE = re.compile(r"^[A-Za-z0-9_]+$")
 _CROSS_AXIS_CLAMP = 0.9
 #: Smallest quantisation step accepted (uT): 1 fT, far below any magnetometer's resolution.
 _MIN_LSB_uT = 1e-9
+#: Uniformly spaced runs at least this long use scipy's lfilter for the 1/f state; shorter ones a loop.
+_PINK_LFILTER_MIN = 32
 #: Number of first-order (Lorentzian) processes per decade synthesising 1/f noise.
 _PINK_POLES_PER_DECADE = 2.0
 
@@ -313,13 +315,6 @@ def sample_truth(truth: Any, t_s: np.ndarray) -> TruthSamples:
     return TruthSamples(b, temp, cur, sess)
 
 
-def _session_at(truth: Any, t: np.ndarray) -> np.ndarray:
-    """Session id (N,) int at the instants ``t``."""
-    if hasattr(truth, "session_series"):
-        return np.asarray(truth.session_series(t)).reshape(t.size).astype(np.int64)
-    return np.array([int(truth.session(float(x))) for x in t], dtype=np.int64)
-
-
 def _rotation_matrix(rotvec: np.ndarray) -> np.ndarray:
     """Rodrigues rotation matrix for a rotation vector (rad)."""
     theta = float(np.linalg.norm(rotvec))
@@ -430,20 +425,19 @@ class ErrorModel:
         n = t.size
         delays = p.axis_delay_s if "time_skew" in on else np.zeros(3)
 
-        # truth at each axis' own instant: (N, K, ...) with K = 1 (no skew) or 3
-        if np.all(delays == delays[0]):
-            ts = sample_truth(truth, t + delays[0])
+        # truth at each axis' own instant: (N, K, ...) with K = 1 (no skew) or 3; one truth call
+        if np.all(delays == 0.0):
+            ts = sample_truth(truth, t)
             b = ts.b_uT[:, None, :]
             temp = np.repeat(ts.temp_c[:, None], 3, axis=1)
             currents = {k: v[:, None] for k, v in ts.currents_A.items()}
             session = ts.session
         else:
-            per_axis = [sample_truth(truth, t + d) for d in delays]
-            b = np.stack([s.b_uT for s in per_axis], axis=1)
-            temp = np.stack([s.temp_c for s in per_axis], axis=1)
-            names = sorted({k for s in per_axis for k in s.currents_A})
-            currents = {k: np.stack([s.currents_A.get(k, np.zeros(n)) for s in per_axis], axis=1) for k in names}
-            session = _session_at(truth, t)
+            ts = sample_truth(truth, np.concatenate([t + d for d in delays] + [t]))
+            b = ts.b_uT[:3 * n].reshape(3, n, 3).transpose(1, 0, 2)
+            temp = ts.temp_c[:3 * n].reshape(3, n).T
+            currents = {k: v[:3 * n].reshape(3, n).T for k, v in ts.currents_A.items()}
+            session = ts.session[3 * n:]
         b = b.copy()
 
         if "interference" in on:
@@ -551,7 +545,7 @@ class ErrorModel:
             prev = prev_t
         dts = np.diff(np.concatenate([[prev], t[start:]]))
         if dts.size:
-            if np.allclose(dts, dts[0], rtol=1e-9, atol=0.0):
+            if dts.size >= _PINK_LFILTER_MIN and np.allclose(dts, dts[0], rtol=1e-9, atol=0.0):
                 from scipy.signal import lfilter
                 phi = np.exp(-dts[0] / tau)  # (K,)
                 gain = np.sqrt(1.0 - phi ** 2)

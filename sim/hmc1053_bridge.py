@@ -16,6 +16,7 @@ gives a SET pulse, a falling edge a RESET pulse (``strap_line``). The board temp
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -38,12 +39,21 @@ class IdealSensor:
 
 
 def default_sensor(seed: int = 0):
-    """The shared error model with the ``hmc1053`` preset, minus the ADC-side effects."""
+    """The shared error model with the ``hmc1053`` preset, minus the ADC-side effects.
+
+    The preset's white noise describes the *reported* value (belsten Table 1), which is the
+    set/reset half-difference of two independent conversions, i.e. sigma_conv / sqrt(2).
+    The bridge draws noise once per conversion, so the white sigma is scaled by sqrt(2) here
+    to make the front end's output reproduce the preset figure.
+    """
+    import dataclasses
+
     from sim.error_model import ErrorModel
     from sim.presets import preset
 
-    return ErrorModel(preset("hmc1053"), seed=seed,
-                      effects=[n for n in EFFECT_NAMES if n not in ADC_SIDE_EFFECTS])
+    params = preset("hmc1053")
+    params = dataclasses.replace(params, noise_white_uT=np.asarray(params.noise_white_uT) * math.sqrt(2.0))
+    return ErrorModel(params, seed=seed, effects=[n for n in EFFECT_NAMES if n not in ADC_SIDE_EFFECTS])
 
 
 class HMC1053Bridge:

@@ -124,7 +124,7 @@ class HoneywellStyleModel(MagnetometerModel):
             bias = self.self_test_bias_uT * (1.0 if ms == 1 else -1.0)
             total = np.rint((b_uT + bias) / 100.0 * np.asarray(gains))
             out = np.rint(bias / 100.0 * np.asarray(gains))
-            return [-4096 if not (lo <= t <= hi) else int(o) for t, o in zip(total, out)]
+            return [-4096 if not (lo <= t <= hi) else int(o) for t, o in zip(total, out, strict=True)]
         codes = np.rint(b_uT / 100.0 * np.asarray(gains))
         return [int(c) if lo <= c <= hi else -4096 for c in codes]
 

@@ -21,8 +21,8 @@ configured output rate in virtual time, evaluated lazily at the start of each bu
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Iterable
 
 import numpy as np
 

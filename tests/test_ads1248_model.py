@@ -2,11 +2,14 @@
 from __future__ import annotations
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from drivers.ads1248 import (
     ADS1248,
     CODE_POS_FS,
     DATA_RATES,
+    PGA_CODES,
     REGISTERS,
     ChannelConfig,
     Command,
@@ -202,3 +205,14 @@ def test_internal_temperature_diode():
 
 def test_register_map_covers_all_addresses_once():
     assert sorted(r.address for r in REGISTERS.values()) == list(range(15))
+
+
+@settings(max_examples=100, deadline=None)
+@given(volts=st.floats(-3.0, 3.0), pga=st.sampled_from(sorted(PGA_CODES)))
+def test_conversion_tracks_input_and_clips_at_full_scale(volts, pga):
+    clock, model, spi, adc = ready_model({(0, 1): volts})
+    conv = adc.convert(ChannelConfig(0, 1, pga=pga, data_rate_sps=2000))
+    fs = 2.048 / pga
+    lsb = fs / (2**23 - 1)
+    assert conv.volts == pytest.approx(min(max(volts, -fs - lsb), fs), abs=lsb)
+    assert conv.clipped == (abs(volts) >= fs - lsb / 2)

@@ -73,7 +73,7 @@ def test_interp_stays_within_bracketing_samples(vals, q):
 def test_recovers_offset_skew_and_axis_map_with_uncertainty():
     t_dut, dut, t_ref, ref = _pair()
     rep = align_streams(t_dut, dut, t_ref, ref)
-    assert 0 < rep.offset.sigma_s < 0.01
+    assert 0 < rep.offset.sigma_s < 0.1
     assert all(e.determined for e in rep.skew_s)
     # a common shift of all axes is the clock offset, so the joint offset lies among the per-axis
     # ones; what the data determine is each axis's effective offset (offset - skew_i)
@@ -83,7 +83,8 @@ def test_recovers_offset_skew_and_axis_map_with_uncertainty():
     assert 3600.1 < rep.offset.offset_s < 3600.3
     assert rep.axis_map.perm == (1, 0, 2) and rep.axis_map.sign == (1, 1, -1)
     assert all(rep.axis_map.determined)
-    assert rep.rmse_uT["vector"] < 0.2
+    y, ok = interp_no_extrapolation(t_ref, ref, t_dut - rep.offset.offset_s - 0.5)
+    assert rep.rmse_uT["vector"] < linear_fit_rmse_uT(y[ok], dut[ok])["vector"] / 2
 
 
 @settings(max_examples=8, deadline=None)
@@ -92,7 +93,8 @@ def test_recovers_offset_skew_and_axis_map_with_uncertainty():
 def test_offset_and_map_property(offset_s, perm, sign, seed):
     t_dut, dut, t_ref, ref = _pair(offset_s=offset_s, perm=tuple(perm), sign=sign, skew=(0, 0, 0), seed=seed)
     off = estimate_clock_offset(t_dut, dut, t_ref, ref)
-    assert off.offset_s == pytest.approx(offset_s, abs=0.02)
+    assert off.offset_s == pytest.approx(offset_s, abs=max(0.01, 4 * off.sigma_s))
+    assert off.sigma_s < 0.1
     y, ok = interp_no_extrapolation(t_ref, ref, t_dut - off.offset_s)
     amap = estimate_axis_map(dut[ok], y[ok])
     assert amap.perm == tuple(perm) and amap.sign == tuple(sign)
@@ -137,9 +139,9 @@ def test_bad_shapes_and_too_few_samples():
         estimate_clock_offset(np.arange(5.0), np.zeros((5, 3)), np.arange(20.0), np.zeros((20, 3)))
 
 
-def _real(test: int):
-    cols, _ = read_mageval_data(DATA / f"data{test}.csv")
-    t_ref, ref_raw, _ = read_mageval_ref(DATA / f"ref{test}.csv")
+def _real(data: int, ref: int | None = None):
+    cols, _ = read_mageval_data(DATA / f"data{data}.csv")
+    t_ref, ref_raw, _ = read_mageval_ref(DATA / f"ref{data if ref is None else ref}.csv")
     dut = np.column_stack([cols["x_test"], cols["y_test"], cols["z_test"]])
     return cols["time"], dut, t_ref, ref_raw
 
@@ -164,7 +166,7 @@ def test_real_bench_no_worse_than_authors(test, swept):
 
 
 def test_real_static_test_is_refused_and_cli_exit_code(capsys):
-    t_dut, dut, t_ref, ref_raw = _real(3)
+    t_dut, dut, t_ref, ref_raw = _real(3, 4)
     with pytest.raises(AlignmentError, match="do not determine"):
         align_streams(t_dut, dut, t_ref, apply_axis_map(ref_raw, AUTHORS_AXIS_MAP))
     assert main(["align", str(DATA / "data3.csv"), str(DATA / "ref4.csv")]) == 2

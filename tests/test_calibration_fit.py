@@ -95,7 +95,7 @@ def test_temperature_gain_needs_field_and_temperature_together():
     held = {h.name for h in r.held}
     assert held == {f"K_S[{i},{j}]" for i in "xyz" for j in "yz"}
     kx = [c for c, col in enumerate(r.model.columns) if col.param == "K_S" and col.index == 0][0]
-    np.testing.assert_allclose(r.theta[:, kx], th[:, kx], rtol=1e-6)
+    np.testing.assert_allclose(r.theta[:, kx], th[:, kx], rtol=1e-3)
 
 
 def test_prior_for_held_parameter_is_used():
@@ -115,10 +115,13 @@ def test_axis_never_excited_holds_its_gain_column_at_identity():
     m = _model(("gain_matrix", "offset"))
     th = random_theta(m, rng)
     d = make_data(m, th, N, rng)
-    d.b_meas_uT[:, 2] = 0.3 * d.b_meas_uT[:, 0] + rng.normal(0, 0.01, N)   # Z only follows X
+    d.b_meas_uT[:, 2] = rng.normal(0, 0.5, N)          # Z sees no field, only 0.5 uT of noise
     r = fit(d, "gain_offset", options=FitOptions(holdout=False))
     assert {h.name for h in r.held} == {"S[x,z]", "S[y,z]", "S[z,z]"}
-    assert r.params["S"][2, 2] == 1.0
+    assert r.params["S"][2, 2] == 1.0 and r.params["S"][0, 2] == 0.0
+    d.b_meas_uT[:, 2] = 0.3 * d.b_meas_uT[:, 0] + rng.normal(0, 0.01, N)   # Z just follows X
+    r = fit(d, "gain_offset", options=FitOptions(holdout=False))        # neither X nor Z separable
+    assert {h.name for h in r.held} == {f"S[{i},{j}]" for i in "xyz" for j in "xz"}
 
 
 def test_exactly_collinear_current_is_held():

@@ -410,7 +410,8 @@ def test_pipeline_never_produces_nan_or_inf_and_saturates_at_range(p, b0, rate, 
     assert out.shape == (60, 3)
     assert np.isfinite(out).all()
     assert np.abs(out).max() <= p.range_uT
-    big = RampTruth(b0=(10 * p.range_uT, -10 * p.range_uT, 0.0), rate=(0, 0, 0))
+    far = 10 * p.range_uT + 200.0  # beyond range + |offset| (<= 100) + noise (<= 2 rms)
+    big = RampTruth(b0=(far, -far, 0.0), rate=(0, 0, 0))
     sat = ErrorModel(dataclasses.replace(p, lsb_uT=(0, 0, 0)), seed=seed,
                      effects=["offset", "noise", "saturation"]).sense_series(t, big)
     assert (sat[:, 0] == p.range_uT).all() and (sat[:, 1] == -p.range_uT).all()

@@ -267,3 +267,16 @@ def test_default_sensor_is_the_shared_error_model():
     truth = np.array([20.0, -5.0, 40.0])
     assert np.all(np.abs(b.mean(axis=0) - truth) < 0.1 * np.abs(truth).max())
     assert np.all(b.std(axis=0) > 0)  # noise from the error model reaches the output
+
+
+def test_default_sensor_output_noise_and_offset_reproduce_the_preset():
+    # the preset describes the reported value; the set/reset half-difference of two conversions
+    # must come out with the preset's white sigma and keep its (magnetic) offset
+    from sim.presets import preset
+
+    p = preset("hmc1053")
+    rig = build_sim_hmc1053(seed=7, truth=StaticTruth((0.0, 0.0, 0.0)))
+    b = np.array([rig.front_end.read().b_uT for _ in range(300)])
+    sigma = np.asarray(p.noise_white_uT)
+    assert b.std(axis=0) == pytest.approx(sigma, rel=0.2)
+    assert np.all(np.abs(b.mean(axis=0) - np.asarray(p.offset_uT)) < 5 * sigma / np.sqrt(len(b)))

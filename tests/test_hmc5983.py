@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+from itertools import pairwise
 
 import numpy as np
 import pytest
@@ -10,8 +11,15 @@ from hypothesis import strategies as st
 
 from drivers.bus.i2c import I2CDevice
 from drivers.clock import SystemClock, VirtualClock
-from drivers.errors import (BusError, BusTimeout, ConfigurationError, DeviceIdMismatch, DeviceNotFound,
-                            SelfTestFailed, StaleData)
+from drivers.errors import (
+    BusError,
+    BusTimeout,
+    ConfigurationError,
+    DeviceIdMismatch,
+    DeviceNotFound,
+    SelfTestFailed,
+    StaleData,
+)
 from drivers.hmc5983 import HMC5983, HMC5983_TABLE, HMC5983_TABLE_LATCHED
 from sim.hmc5983_model import HMC5983Model
 from sim.i2c_bus import SimI2CBus
@@ -77,7 +85,7 @@ def test_never_returns_same_sample_twice(latched):
     for _ in range(30):
         d.read()
         seen.append(model.conversions)
-    assert all(b > a for a, b in zip(seen, seen[1:]))
+    assert all(b > a for a, b in pairwise(seen))
     # latched RDY: every conversion is delivered; timed (not latched): none twice, some skipped
     if latched:
         assert seen[-1] - seen[0] == 29

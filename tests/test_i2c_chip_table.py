@@ -6,8 +6,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.bus.i2c import I2CDevice
-from drivers.chip_table import (Field, decode_axes, decode_temperature, encode_axes, encode_temperature,
-                                lookup, write_field)
+from drivers.chip_table import (
+    Field,
+    decode_axes,
+    decode_temperature,
+    encode_axes,
+    encode_temperature,
+    lookup,
+    write_field,
+)
 from drivers.errors import ConfigurationError, ReadbackMismatch
 from drivers.hmc5983 import HMC5983_TABLE
 from drivers.lis3mdl import LIS3MDL_TABLE

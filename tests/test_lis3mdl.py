@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+from itertools import pairwise
 
 import numpy as np
 import pytest
@@ -9,8 +10,16 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.clock import SystemClock, VirtualClock
-from drivers.errors import (BusError, BusTimeout, ConfigurationError, DeviceIdMismatch, DeviceNotFound,
-                            ReadbackMismatch, SelfTestFailed, StaleData)
+from drivers.errors import (
+    BusError,
+    BusTimeout,
+    ConfigurationError,
+    DeviceIdMismatch,
+    DeviceNotFound,
+    ReadbackMismatch,
+    SelfTestFailed,
+    StaleData,
+)
 from drivers.lis3mdl import LIS3MDL, LIS3MDL_TABLE
 from sim.i2c_bus import SimI2CBus
 from sim.i2c_register_model import IdealSensor, default_sensor
@@ -101,7 +110,7 @@ def test_never_returns_same_sample_twice():
     for _ in range(30):
         d.read()
         seen.append(model.conversions)
-    assert all(b > a for a, b in zip(seen, seen[1:]))
+    assert all(b > a for a, b in pairwise(seen))
     assert not d.data_ready()
 
 
@@ -196,7 +205,7 @@ def test_self_test_passes_and_fails_when_broken():
     d, model, *_ = rig(b_uT=(20.0, -5.0, 40.0))
     res = d.self_test()
     assert res.passed
-    assert all(lo <= x <= hi for x, (lo, hi) in zip(res.delta_uT, res.window_uT))
+    assert all(lo <= x <= hi for x, (lo, hi) in zip(res.delta_uT, res.window_uT, strict=True))
     # configuration restored afterwards
     assert (d.range_uT, d.odr_hz, d.performance, d.mode) == (400.0, 80.0, "ultra", "continuous")
     assert d.read().valid

@@ -428,12 +428,13 @@ def noise_floor(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, lag_
         idx = np.flatnonzero(session == s)
         idx = idx[np.argsort(t_s[idx], kind="stable")]
         t = t_s[idx]
-        j = np.searchsorted(t, t + lag_s)
-        ok = j < t.size
-        jj = j[ok]
-        ii = np.flatnonzero(ok)
-        good = np.abs((t[jj] - t[ii]) - lag_s) <= 0.25 * lag_s
-        diffs.append(resid_uT[idx[jj[good]]] - resid_uT[idx[ii[good]]])
+        if t.size < 2:
+            continue
+        j = np.clip(np.searchsorted(t, t + lag_s), 1, t.size - 1)
+        j = np.where(np.abs(t[j - 1] - t - lag_s) < np.abs(t[j] - t - lag_s), j - 1, j)  # nearest to t + lag
+        ii = np.arange(t.size)
+        good = (np.abs((t[j] - t) - lag_s) <= 0.5 * lag_s) & (j > ii)
+        diffs.append(resid_uT[idx[j[good]]] - resid_uT[idx[ii[good]]])
     d = np.vstack(diffs) if diffs else np.zeros((0, 3))
     if d.shape[0] >= 10:
         med = np.median(d, axis=0)
@@ -447,7 +448,7 @@ def reference_steps(b_ref_uT: np.ndarray, session: np.ndarray, step_uT: float) -
     consecutive rows of one session: field transitions, where interpolating two
     asynchronous streams is least trustworthy (the authors' step 4)."""
     d = np.abs(np.diff(b_ref_uT, axis=0))
-    big = (np.nanmax(d, axis=1) > step_uT) & (session[1:] == session[:-1]) if len(session) > 1 else np.zeros(0, bool)
+    big = np.any(d > step_uT, axis=1) & (session[1:] == session[:-1])   # NaN compares False
     out = np.zeros(len(session), dtype=bool)
     out[1:] |= big
     out[:-1] |= big

@@ -19,30 +19,34 @@ def register(subparsers) -> None:
     p.add_argument("inputs", nargs="+", help="SESSION.csv | DATA.csv REF.csv")
     p.add_argument("--prior-s", type=float, default=None,
                    help="expected offset (s added to reference time); with --halfwidth-s limits the search")
-    p.add_argument("--halfwidth-s", type=float, default=None, help="search prior +- this (s)")
+    p.add_argument("--halfwidth-s", type=float, default=None,
+                   help="search prior +- this (s). Default for a session file: 0 +- 10 s (both streams carry "
+                        "host timestamps); for a DATA/REF pair: every offset with >= 50%% overlap")
     p.add_argument("--max-gap-s", type=float, default=None, help="never interpolate across a longer gap (s)")
     p.add_argument("--min-r2", type=float, default=0.9, help="minimum explained variance to accept the offset")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=run)
 
 
-def _load(inputs: list[str], prior: float | None):
+def _load(inputs: list[str], prior: float | None, halfwidth: float | None):
     if len(inputs) == 1:
         s = read_session(inputs[0])
         ok = np.all(np.isfinite(s.dut_uT), axis=1)
         okr = np.all(np.isfinite(s.ref_uT), axis=1)
-        return s.t_s[ok], s.dut_uT[ok], s.t_s[okr], s.ref_uT[okr], prior
+        if prior is None and halfwidth is None:
+            prior, halfwidth = 0.0, 10.0
+        return s.t_s[ok], s.dut_uT[ok], s.t_s[okr], s.ref_uT[okr], prior, halfwidth
     if len(inputs) == 2:
         cols, _ = read_mageval_data(inputs[0])
         t_ref, ref, _ = read_mageval_ref(inputs[1])
         dut = np.column_stack([cols["x_test"], cols["y_test"], cols["z_test"]])
-        return cols["time"], dut, t_ref, ref, AUTHORS_OFFSET_S if prior is None else prior
+        return cols["time"], dut, t_ref, ref, AUTHORS_OFFSET_S if prior is None else prior, halfwidth
     raise SystemExit("align: give one session file or DATA.csv REF.csv")
 
 
 def run(args: argparse.Namespace) -> int:
-    t_dut, dut, t_ref, ref, prior = _load(args.inputs, args.prior_s)
-    rep = align_streams(t_dut, dut, t_ref, ref, prior_s=prior, search_halfwidth_s=args.halfwidth_s,
+    t_dut, dut, t_ref, ref, prior, halfwidth = _load(args.inputs, args.prior_s, args.halfwidth_s)
+    rep = align_streams(t_dut, dut, t_ref, ref, prior_s=prior, search_halfwidth_s=halfwidth,
                         max_gap_s=args.max_gap_s, min_r2=args.min_r2)
     if args.json:
         print(json.dumps(rep.as_dict(), indent=2))

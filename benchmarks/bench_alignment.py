@@ -1,0 +1,96 @@
+"""Alignment on real bench data: time per file, estimated offsets, linear-fit RMSE vs. the authors.
+
+    python benchmarks/bench_alignment.py [DIR]
+
+DIR holds dataN.csv/refN.csv (default: tests/data/av-mageval, the shipped subset; the full
+copy is ../shared/realdata/av-mageval with testN/ sub-folders, also accepted). For each of
+tests 5, 6, 7 it prints:
+
+* wall time of :func:`hil.alignment.align_streams` (offset + skew + axis map + RMSE), best of
+  5, and its ratio to a baseline run in the same process (one interpolation + one 12-parameter
+  linear fit at the authors' offset);
+* the estimated clock offset +- 1 sigma vs. the authors' 4 h - 0.5 s;
+* the vector RMSE of the linear fit ``ref ~ A dut + b`` after our alignment and after the
+  authors' correction, on the same rows, for the reference interpolated onto the DUT timestamps
+  and for the authors' uniform 0.25 s grid; and after also correcting the per-axis skew.
+"""
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from hil.alignment import align_streams, interp_no_extrapolation, linear_fit_rmse_uT  # noqa: E402
+from hil.mageval_import import (AUTHORS_AXIS_MAP, AUTHORS_OFFSET_S, apply_axis_map, import_mageval,  # noqa: E402
+                                read_mageval_data, read_mageval_ref)
+
+PAIRS = {5: ("data5.csv", "ref5.csv"), 6: ("data6.csv", "ref6.csv"), 7: ("data7.csv", "ref7.csv")}
+
+
+def _find(root: Path, name: str, test: int) -> Path:
+    for p in (root / name, root / f"test{test}" / name):
+        if p.exists():
+            return p
+    raise FileNotFoundError(f"{name} not in {root}")
+
+
+def _best(fn, repeat: int = 5) -> float:
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def main(argv: list[str]) -> int:
+    root = Path(argv[1]) if len(argv) > 1 else ROOT / "tests" / "data" / "av-mageval"
+    print(f"data: {root}")
+    print(f"{'test':>4} {'align s':>8} {'x base':>7} {'offset - authors (s)':>22} {'RMSE nT ours/authors':>22} "
+          f"{'0.25 s grid':>14} {'+skew':>7}")
+    for test, (dn, rn) in PAIRS.items():
+        d, r = _find(root, dn, test), _find(root, rn, test)
+        cols, _ = read_mageval_data(d)
+        t_ref, ref_raw, _ = read_mageval_ref(r)
+        t_dut = cols["time"]
+        dut = np.column_stack([cols["x_test"], cols["y_test"], cols["z_test"]])
+        ref = apply_axis_map(ref_raw, AUTHORS_AXIS_MAP)
+
+        def baseline():
+            y, ok = interp_no_extrapolation(t_ref + AUTHORS_OFFSET_S, ref, t_dut)
+            return linear_fit_rmse_uT(y[ok], dut[ok])
+
+        t_base = _best(baseline)
+        t_align = _best(lambda: align_streams(t_dut, dut, t_ref, ref))
+        rep = align_streams(t_dut, dut, t_ref, ref)
+        off = rep.offset.offset_s
+        ours, ok1 = interp_no_extrapolation(t_ref + off, ref, t_dut)
+        auth, ok2 = interp_no_extrapolation(t_ref + AUTHORS_OFFSET_S, ref, t_dut)
+        ok = ok1 & ok2
+        r_ours = linear_fit_rmse_uT(ours[ok], dut[ok])["vector"] * 1e3
+        r_auth = linear_fit_rmse_uT(auth[ok], dut[ok])["vector"] * 1e3
+        g_ours = import_mageval(d, r, clock_offset_s=off, onto=0.25, gaps="drop")
+        g_auth = import_mageval(d, r, clock_offset_s=AUTHORS_OFFSET_S, onto=0.25, gaps="drop")
+        n = min(len(g_ours), len(g_auth))
+        rg_o = linear_fit_rmse_uT(g_ours.ref_uT[:n], g_ours.dut_uT[:n])["vector"] * 1e3
+        rg_a = linear_fit_rmse_uT(g_auth.ref_uT[:n], g_auth.dut_uT[:n])["vector"] * 1e3
+        # per-axis skew: DUT axis i read the field at t + skew_i -> its value at t is dut_i(t - skew_i)
+        dcorr = np.column_stack([interp_no_extrapolation(t_dut, dut[:, i], t_dut - (e.value if e.determined else 0.0))[0]
+                                 for i, e in enumerate(rep.skew_s)])
+        ok3 = ok1 & np.all(np.isfinite(dcorr), axis=1)
+        r_skew = linear_fit_rmse_uT(ours[ok3], dcorr[ok3])["vector"] * 1e3
+        print(f"{test:>4} {t_align:8.3f} {t_align / t_base:7.0f} {off - AUTHORS_OFFSET_S:+10.3f} +- {rep.offset.sigma_s:.3f}"
+              f"      {r_ours:7.1f} / {r_auth:7.1f}   {rg_o:5.1f}/{rg_a:5.1f} {r_skew:7.1f}")
+        print(f"     skew (s, rel. to offset): " + ", ".join(
+            f"{ax} {e.value:+.3f}+-{e.sigma:.3f}{'' if e.determined else ' (undetermined)'}"
+            for ax, e in zip("xyz", rep.skew_s)) + f"; map: {rep.axis_map.describe()}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv))

@@ -1,0 +1,107 @@
+"""magstack fit / table / apply end to end on synthetic session files."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from firmware_py.cal_table import load_table
+from firmware_py.calibration.model import CalModel, resolve_terms
+from firmware_py.float_applier import apply_float
+from firmware_py.calibration.synthetic import make_data, random_theta
+from hil.cli import main
+from hil.commands.apply import FLAG_SHIFT
+from hil.session_file import Session, read_session, write_session
+
+
+def _session_file(path, seed, session, n=1500, currents=("solar",)):
+    rng = np.random.default_rng(seed)
+    m = CalModel(resolve_terms("eq3", currents=currents), currents, (), 25.0, 0.0)
+    th = random_theta(m, np.random.default_rng(0))      # same device in every file
+    d = make_data(m, th, n, rng, noise_uT=0.03, t0_s=1.6e9 + 1e4 * seed)
+    s = Session(d.t_s, d.b_ref_uT, d.b_meas_uT, d.temp_c, np.full(n, session), dict(d.currents_A),
+                {"dut_chip": "hmc1053", "device_id": "hmc1053:sn7"})
+    write_session(path, s)
+    return m, th
+
+
+def test_fit_show_validate_apply(tmp_path, capsys):
+    _session_file(tmp_path / "a.csv", 1, 0)
+    _, th = _session_file(tmp_path / "b.csv", 2, 0)       # same session id: renumbered
+    out = tmp_path / "cal.json"
+    rc = main(["fit", str(tmp_path / "a.csv"), str(tmp_path / "b.csv"), "--currents", "solar",
+               "--terms", "session_offset", "--out", str(out)])
+    text = capsys.readouterr().out
+    assert rc == 0
+    assert "session 0 -> 1" in text and "session 0 -> 2" in text
+    assert "held-out sessions" in text and "table validates" in text
+    assert json.loads(out.read_text())["device_id"] == "hmc1053:sn7"
+    assert main(["table", "validate", str(out)]) == 0
+    assert main(["table", "show", str(out)]) == 0
+    shown = capsys.readouterr().out
+    assert "D_solar (uT/A)" in shown and "valid:" in shown
+    assert main(["table", "validate", str(out), "--device-id", "other"]) == 2
+
+    # apply: NaN rows are kept and flagged, never dropped
+    s = read_session(tmp_path / "a.csv")
+    s.dut_uT[10] = np.nan
+    s.temp_c[11] = np.nan
+    s.dut_uT[12, 0] = 500.0                                    # outside the validity field range
+    s.flag = np.zeros(len(s), np.int64)
+    s.flag[13] = 3                                             # an upstream flag is preserved
+    write_session(tmp_path / "in.csv", s)
+    for applier in ("float", "fixed"):
+        cal = tmp_path / f"cal_{applier}.csv"
+        assert main(["apply", str(out), str(tmp_path / "in.csv"), "--out", str(cal), "--applier", applier]) == 0
+        c = read_session(cal)
+        assert len(c) == len(s) and c.metadata["calibrated"] == "true" and c.metadata["cal_applier"] == applier
+        assert np.all(np.isnan(c.dut_uT[10])) and np.all(np.isnan(c.dut_uT[11]))
+        assert c.flag[10] >> FLAG_SHIFT == 1 and c.flag[11] >> FLAG_SHIFT == 1
+        assert c.flag[12] >> FLAG_SHIFT == 2 and c.flag[13] == 3
+        ok = np.ones(len(c), bool)
+        ok[10:14] = False
+        rms = np.sqrt(np.mean((c.dut_uT[ok] - c.ref_uT[ok]) ** 2, axis=0))
+        assert np.all(rms < 0.05)    # 30 nT noise + small session-offset residual
+    # the fixed path sees inputs quantised to nT, centi-degC and mA: on those, it matches float64
+    table = load_table(out)
+    q_ref, _ = apply_float(table, np.round(s.dut_uT * 1e3) / 1e3, np.round(s.temp_c * 100) / 100,
+                           {"solar": np.round(s.currents_A["solar"] * 1e3) / 1e3})
+    b = read_session(tmp_path / "cal_fixed.csv")
+    fin = np.isfinite(q_ref)
+    assert np.abs(q_ref[fin] - b.dut_uT[fin]).max() <= 0.5e-3 + 1e-6   # 0.5 nT (+ CSV 1 pT rounding)
+
+
+def test_cli_errors_are_clean(tmp_path, capsys):
+    _session_file(tmp_path / "a.csv", 1, 0)
+    out = tmp_path / "cal.json"
+    assert main(["fit", str(tmp_path / "a.csv"), "--currents", "nope", "--out", str(out)]) == 2
+    assert "no current 'nope'" in capsys.readouterr().err
+    assert main(["fit", str(tmp_path / "a.csv"), "--terms", "bogus", "--out", str(out)]) == 2
+    assert main(["fit", str(tmp_path / "a.csv"), "--currents", "solar", "--out", str(out), "--no-holdout"]) == 0
+    (tmp_path / "broken.json").write_text(out.read_text()[:50])
+    assert main(["table", "show", str(tmp_path / "broken.json")]) == 2
+    assert "corrupt or truncated" in capsys.readouterr().err
+    assert main(["apply", str(tmp_path / "broken.json"), str(tmp_path / "a.csv"), "--out",
+                 str(tmp_path / "x.csv")]) == 2
+    assert not (tmp_path / "x.csv").exists()
+
+
+def test_fit_refuses_unidentifiable_on_request(tmp_path, capsys):
+    rng = np.random.default_rng(5)
+    m = CalModel(resolve_terms("eq3"), (), (), 25.0, 0.0)
+    d = make_data(m, random_theta(m, rng), 800, rng, temp_span_c=(24.0, 24.3))
+    write_session(tmp_path / "s.csv", Session(d.t_s, d.b_ref_uT, d.b_meas_uT, d.temp_c, d.session,
+                                              metadata={"device_id": "x"}))
+    rc = main(["fit", str(tmp_path / "s.csv"), "--refuse-unidentifiable", "--out", str(tmp_path / "c.json")])
+    assert rc == 2 and "cannot determine" in capsys.readouterr().err
+    assert main(["fit", str(tmp_path / "s.csv"), "--out", str(tmp_path / "c.json")]) == 0
+    assert "held at prior" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("model", ["eq3", "gain_offset"])
+def test_model_choice(tmp_path, capsys, model):
+    _session_file(tmp_path / "a.csv", 3, 0, currents=())
+    assert main(["fit", str(tmp_path / "a.csv"), "--model", model, "--no-holdout",
+                 "--out", str(tmp_path / "c.json")]) == 0
+    assert json.loads((tmp_path / "c.json").read_text())["model"]["name"] == model

@@ -1,0 +1,95 @@
+"""Real bench data (AV-MagEval tests 3-7, MIT-STARLab, release 1.0): the issue's anchors.
+
+Reads the pairs from tests/data/av-mageval (shipped subset) or, where a file is not
+shipped, from /work/shared/realdata/av-mageval; skipped when neither has them.
+Anchors from the issue: raw ~2.6 uT, gain matrix + offset ~85 nT, noise floor ~40 nT.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from firmware_py.cal_table import table_from_fit, validate
+from firmware_py.calibration import FitData, FitOptions, fit
+from firmware_py.fixed_point import FixedPointTable, output_to_uT, to_fixed_inputs
+from firmware_py.float_applier import apply_float
+
+PAIRS = {3: ("test3/data2.csv", "test3/ref3.csv"), 4: ("test4/data3.csv", "test4/ref4.csv"),
+         5: ("test5/data5.csv", "test5/ref5.csv"), 6: ("test6/data6.csv", "test6/ref6.csv"),
+         7: ("test7/data7.csv", "test7/ref7.csv")}
+ROOTS = (Path(__file__).parent / "data" / "av-mageval", Path("/work/shared/realdata/av-mageval"))
+
+
+def _find(rel: str) -> Path | None:
+    for root in ROOTS:
+        for cand in (root / rel, root / Path(rel).name):
+            if cand.is_file():
+                return cand
+    return None
+
+
+@pytest.fixture(scope="module")
+def bench():
+    mi = pytest.importorskip("hil.mageval_import")
+    from hil.session_file import Session
+    parts = []
+    for n, (d, r) in PAIRS.items():
+        dp, rp = _find(d), _find(r)
+        if dp is None or rp is None:
+            pytest.skip(f"real data for test {n} not available")
+        # the authors' pairing: fixed 4 h - 0.5 s clock correction, both onto a 0.25 s grid
+        parts.append(mi.import_mageval(dp, rp, session_id=n, onto=0.25, clock_offset_s=mi.AUTHORS_OFFSET_S))
+    return FitData.from_session(Session.concatenate(parts))
+
+
+@pytest.fixture(scope="module")
+def fits(bench):
+    o = FitOptions(exclude_ref_steps_uT=0.1)
+    return {"gain_offset": fit(bench, "gain_offset", options=o), "eq3": fit(bench, "eq3", options=o),
+            "eq3+session_offset": fit(bench, "eq3", ["session_offset"], options=o)}
+
+
+def test_raw_gain_offset_and_noise_floor_match_the_anchors(fits):
+    r = fits["gain_offset"]
+    raw = float(np.linalg.norm(r.raw_rmse_uT))
+    assert 2.0 < raw < 3.5                        # anchor ~2.6 uT
+    assert r.rmse_norm_uT < 0.100                 # anchor ~85 nT
+    nf = float(np.linalg.norm(r.noise_floor_uT))
+    assert 0.020 < nf < 0.080                     # anchor ~40 nT
+    assert nf < r.rmse_norm_uT                    # a fit cannot beat the noise
+    assert np.linalg.norm(r.holdout_blocks_uT) >= 0.9 * r.rmse_norm_uT
+
+
+def test_temperature_terms_are_held_not_overfitted(fits):
+    r = fits["eq3"]
+    held = {h.name for h in r.held}
+    assert {f"K_S[{i},{j}]" for i in "xyz" for j in "xyz"} <= held
+    assert {f"K_O[{i}]" for i in "xyz"} <= held
+    # holding them costs nothing in sample: they were not determined
+    assert r.rmse_norm_uT == pytest.approx(fits["gain_offset"].rmse_norm_uT, rel=1e-6)
+
+
+def test_session_offsets_help_in_and_out_of_sample(fits):
+    a, b = fits["eq3"], fits["eq3+session_offset"]
+    assert b.rmse_norm_uT < a.rmse_norm_uT
+    assert np.linalg.norm(b.holdout_blocks_uT) < np.linalg.norm(a.holdout_blocks_uT)
+
+
+def test_leaving_out_the_only_sweep_of_an_axis_is_reported_not_hidden(fits):
+    r = fits["eq3"]
+    per = r.holdout_per_session_uT
+    assert set(per) == {3, 4, 5, 6, 7}
+    # near-zero-field sessions predict well from the others; a left-out sweep cannot
+    assert np.linalg.norm(per[3]) < 0.2 and np.linalg.norm(per[4]) < 0.2
+    assert np.linalg.norm(per[5]) > 1.0
+
+
+def test_real_table_validates_and_fixed_point_matches_float(fits, bench):
+    t = table_from_fit(fits["eq3"], "hmc1053:av-mageval-edu")
+    assert validate(t).ok
+    bi, ti, _, bad = to_fixed_inputs(bench.b_meas_uT, bench.temp_c)
+    q, status = FixedPointTable.from_table(t).apply_block(bi, ti)
+    ref, _ = apply_float(t, bi / 1e3, ti / 100)
+    assert np.abs(output_to_uT(q)[~bad] - ref[~bad]).max() * 1e3 <= 0.5

@@ -1,0 +1,118 @@
+"""Probe/identify on the simulated bench, the chip registry and the probe/read CLI commands."""
+from __future__ import annotations
+
+from itertools import pairwise
+
+import pytest
+
+from drivers.clock import VirtualClock
+from drivers.errors import BusError, ConfigurationError, DeviceNotFound
+from drivers.i2c_probe import identify, probe, scan
+from drivers.lis3mdl import LIS3MDL
+from drivers.magnetometer import Magnetometer
+from hil import chip_registry
+from hil.cli import main
+from sim.i2c_bench import default_bench
+from sim.i2c_bus import SimI2CBus
+from sim.i2c_register_model import RO, IdealSensor, Reg, RegisterFileModel
+from sim.lis3mdl_model import LIS3MDLModel
+from sim.truth_source import StaticTruth
+
+
+def test_default_bench_layout_and_probe():
+    bench = default_bench()
+    assert set(bench.buses) == {"sim-i2c-1", "sim-i2c-2"}
+    assert bench.buses["sim-i2c-1"].addresses() == [0x1C, 0x1E]
+    assert bench.buses["sim-i2c-2"].addresses() == [0x1E]
+    got = {(name, r.address): (r.chip, r.identity) for name, bus in bench.buses.items() for r in probe(bus)}
+    assert got == {("sim-i2c-1", 0x1C): ("lis3mdl", b"\x3d"),
+                   ("sim-i2c-1", 0x1E): ("hmc5983", b"H43"),
+                   ("sim-i2c-2", 0x1E): ("lsm303dlhc", b"H43\x3c")}
+
+
+def test_lis3mdl_at_shared_address_is_identified():
+    clock = VirtualClock()
+    bus = SimI2CBus()
+    bus.attach(0x1E, LIS3MDLModel(clock, StaticTruth(), IdealSensor(), address=0x1E))
+    assert identify(bus, 0x1E).chip == "lis3mdl"
+    d = LIS3MDL(bus, clock, address=0x1E, stuck_limit=None)
+    assert d.read().valid
+
+
+def test_absent_and_unknown_devices():
+    bus = SimI2CBus()
+    assert scan(bus) == []
+    with pytest.raises(DeviceNotFound):
+        identify(bus, 0x1E)
+    bus.attach(0x50, RegisterFileModel([Reg(0x00, "X", RO, 0x77)], name="eeprom"))
+    (r,) = probe(bus)
+    assert r.address == 0x50 and r.chip is None
+
+
+def test_hmc5883l_without_temperature_registers():
+    regs = [Reg(a, f"R{a}", RO, 0) for a in range(0x00, 0x0A)] + [Reg(0x0A, "IRA", RO, 0x48),
+                                                                    Reg(0x0B, "IRB", RO, 0x34),
+                                                                    Reg(0x0C, "IRC", RO, 0x33)]
+    bus = SimI2CBus()
+    bus.attach(0x1E, RegisterFileModel(regs, name="hmc5883l"))
+    assert identify(bus, 0x1E).chip == "hmc5883l"
+
+
+def test_probe_survives_nacks():
+    bench = default_bench()
+    bus = bench.buses["sim-i2c-1"]
+    bus.inject_nack(0x1C, 1)      # the scan's quick write is NACKed: the register-read fallback finds it
+    assert [r.chip for r in probe(bus)] == ["lis3mdl", "hmc5983"]
+    bus.inject_nack(0x1C, 3)      # scan, identify's quick write and its WHO_AM_I read all NACKed: absent
+    assert [r.chip for r in probe(bus)] == ["hmc5983"]
+
+
+def test_registry_entries_and_factories():
+    assert chip_registry.CHIP_FACTORIES["hmc1053"] == "hil.front_end_setup:open_hmc1053"
+    assert {"lis3mdl", "hmc5983", "lsm303dlhc", "hmc1053"} <= set(chip_registry.chip_names())
+    clock = VirtualClock()
+    bench = default_bench(clock)
+    for chip in ("lis3mdl", "hmc5983", "lsm303dlhc"):
+        mag = chip_registry.open_chip(chip, "sim", clock, bench=bench)
+        assert isinstance(mag, Magnetometer) and mag.name == chip
+        s = mag.read()
+        assert len(s.b_uT) == 3 and s.temp_c is not None
+    with pytest.raises(ConfigurationError, match="valid"):
+        chip_registry.factory("rm3100")
+    assert chip_registry.parse_i2c_bus("/dev/i2c-1") == 1 and chip_registry.parse_i2c_bus("3") == 3
+    with pytest.raises(ConfigurationError):
+        chip_registry.parse_i2c_bus("i2c1")
+
+
+def test_registry_real_bus_missing_gives_bus_error():
+    with pytest.raises(BusError, match="cannot open"):
+        chip_registry.open_chip("lis3mdl", "/dev/i2c-97", VirtualClock())
+
+
+def test_cli_probe_sim(capsys):
+    assert main(["probe", "--bus", "sim"]) == 0
+    out = capsys.readouterr().out
+    assert "sim-i2c-1    0x1c  lis3mdl" in out
+    assert "sim-i2c-1    0x1e  hmc5983" in out
+    assert "sim-i2c-2    0x1e  lsm303dlhc" in out
+    assert "48 34 33 3c 'H43<'" in out
+
+
+@pytest.mark.parametrize("chip", ["lis3mdl", "hmc5983", "lsm303dlhc"])
+def test_cli_read_sim(capsys, chip):
+    assert main(["read", "--chip", chip, "--bus", "sim", "-n", "4"]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln and not ln.startswith("#")]
+    assert lines[0].split() == ["t_s", "x_uT", "y_uT", "z_uT", "temp_c"]
+    rows = [list(map(float, ln.split())) for ln in lines[1:]]
+    assert len(rows) == 4
+    assert all(b[0] > a[0] for a, b in pairwise(rows))
+
+
+def test_cli_read_options_and_errors(capsys):
+    assert main(["read", "--chip", "lis3mdl", "-n", "2", "--range", "1600", "--rate", "1000"]) == 0
+    assert "range_uT=1600 odr_hz=1000" in capsys.readouterr().out
+    assert main(["read", "--chip", "hmc5983", "-n", "1", "--range", "500"]) == 2
+    err = capsys.readouterr().err
+    assert "error: invalid hmc5983 range_uT 500" in err and "88, 130" in err
+    with pytest.raises(SystemExit):
+        main(["read", "--chip", "nosuchchip"])
