@@ -26,8 +26,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from hil.alignment import align_streams, interp_no_extrapolation, linear_fit_rmse_uT  # noqa: E402
-from hil.mageval_import import (AUTHORS_AXIS_MAP, AUTHORS_OFFSET_S, apply_axis_map, import_mageval,  # noqa: E402
-                                read_mageval_data, read_mageval_ref)
+from hil.mageval_import import (  # noqa: E402
+    AUTHORS_AXIS_MAP,
+    AUTHORS_OFFSET_S,
+    apply_axis_map,
+    import_mageval,
+    read_mageval_data,
+    read_mageval_ref,
+)
 
 PAIRS = {5: ("data5.csv", "ref5.csv"), 6: ("data6.csv", "ref6.csv"), 7: ("data7.csv", "ref7.csv")}
 
@@ -61,12 +67,15 @@ def main(argv: list[str]) -> int:
         dut = np.column_stack([cols["x_test"], cols["y_test"], cols["z_test"]])
         ref = apply_axis_map(ref_raw, AUTHORS_AXIS_MAP)
 
-        def baseline():
+        def baseline(t_dut=t_dut, dut=dut, t_ref=t_ref, ref=ref):
             y, ok = interp_no_extrapolation(t_ref + AUTHORS_OFFSET_S, ref, t_dut)
             return linear_fit_rmse_uT(y[ok], dut[ok])
 
+        def ours_full(t_dut=t_dut, dut=dut, t_ref=t_ref, ref=ref):
+            return align_streams(t_dut, dut, t_ref, ref)
+
         t_base = _best(baseline)
-        t_align = _best(lambda: align_streams(t_dut, dut, t_ref, ref))
+        t_align = _best(ours_full)
         rep = align_streams(t_dut, dut, t_ref, ref)
         off = rep.offset.offset_s
         ours, ok1 = interp_no_extrapolation(t_ref + off, ref, t_dut)
@@ -80,15 +89,15 @@ def main(argv: list[str]) -> int:
         rg_o = linear_fit_rmse_uT(g_ours.ref_uT[:n], g_ours.dut_uT[:n])["vector"] * 1e3
         rg_a = linear_fit_rmse_uT(g_auth.ref_uT[:n], g_auth.dut_uT[:n])["vector"] * 1e3
         # per-axis skew: DUT axis i read the field at t + skew_i -> its value at t is dut_i(t - skew_i)
-        dcorr = np.column_stack([interp_no_extrapolation(t_dut, dut[:, i], t_dut - (e.value if e.determined else 0.0))[0]
-                                 for i, e in enumerate(rep.skew_s)])
+        shift = [e.value if e.determined else 0.0 for e in rep.skew_s]
+        dcorr = np.column_stack([interp_no_extrapolation(t_dut, dut[:, i], t_dut - shift[i])[0] for i in range(3)])
         ok3 = ok1 & np.all(np.isfinite(dcorr), axis=1)
         r_skew = linear_fit_rmse_uT(ours[ok3], dcorr[ok3])["vector"] * 1e3
-        print(f"{test:>4} {t_align:8.3f} {t_align / t_base:7.0f} {off - AUTHORS_OFFSET_S:+10.3f} +- {rep.offset.sigma_s:.3f}"
-              f"      {r_ours:7.1f} / {r_auth:7.1f}   {rg_o:5.1f}/{rg_a:5.1f} {r_skew:7.1f}")
-        print(f"     skew (s, rel. to offset): " + ", ".join(
+        print(f"{test:>4} {t_align:8.3f} {t_align / t_base:7.0f} {off - AUTHORS_OFFSET_S:+10.3f} "
+              f"+- {rep.offset.sigma_s:.3f}      {r_ours:7.1f} / {r_auth:7.1f}   {rg_o:5.1f}/{rg_a:5.1f} {r_skew:7.1f}")
+        print("     skew (s, rel. to offset): " + ", ".join(
             f"{ax} {e.value:+.3f}+-{e.sigma:.3f}{'' if e.determined else ' (undetermined)'}"
-            for ax, e in zip("xyz", rep.skew_s)) + f"; map: {rep.axis_map.describe()}")
+            for ax, e in zip("xyz", rep.skew_s, strict=True)) + f"; map: {rep.axis_map.describe()}")
     return 0
 
 

@@ -58,7 +58,7 @@ def main() -> None:
 
     print(f"== streaming fit, blocks of {args.block} rows generated on the fly (memory flat in N?)")
     for n_s in (n // 10, n // 2, n):
-        def run():
+        def run(n_s=n_s):
             sf = StreamingFit(model)
             r = np.random.default_rng(1)
             for k in range(0, n_s, args.block):

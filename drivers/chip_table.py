@@ -274,6 +274,10 @@ class TableMagnetometer:
     def __init__(self, bus: I2CBus, clock, *, address: int | None = None, timeout_s: float | None = None,
                  stuck_limit: int | None = 200, verify: bool = True) -> None:
         t = self.table
+        if timeout_s is not None and not (math.isfinite(timeout_s) and timeout_s > 0):
+            raise ConfigurationError(f"{t.name} timeout_s must be a finite number > 0, got {timeout_s!r}")
+        if stuck_limit is not None and (not isinstance(stuck_limit, int) or stuck_limit < 1):
+            raise ConfigurationError(f"{t.name} stuck_limit must be an int >= 1 or None, got {stuck_limit!r}")
         self.address = t.addresses[0] if address is None else address
         if self.address not in t.addresses:
             raise ConfigurationError(f"{t.name} cannot sit at address {self.address:#04x}; valid: "

@@ -131,7 +131,7 @@ class FVM400:
 
     @classmethod
     def open(cls, url: str = "/dev/ttyUSB0", clock: Clock | None = None, *,
-             timeout_s: float = SERIAL_SETTINGS["timeout_s"], **kwargs) -> "FVM400":
+             timeout_s: float = SERIAL_SETTINGS["timeout_s"], **kwargs) -> FVM400:
         """Open ``url`` (device path or ``fvm400sim://...``) with the table's line settings."""
         port = open_serial(url, baudrate=SERIAL_SETTINGS["baudrate"], timeout_s=timeout_s)
         try:
@@ -258,7 +258,7 @@ class FVM400:
         except (OSError, ValueError):
             pass
 
-    def __enter__(self) -> "FVM400":
+    def __enter__(self) -> FVM400:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -22,9 +22,10 @@ import json
 import math
 import os
 import zlib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -155,7 +156,7 @@ def _jsonable(x):
 
 
 def _now_utc() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat().replace("+00:00", "Z")
+    return _dt.datetime.now(_dt.UTC).replace(microsecond=0).isoformat().replace("+00:00", "Z")
 
 
 def _canonical(doc: Mapping) -> bytes:
@@ -370,7 +371,7 @@ def worst_case_output_uT(table: CalTable) -> float:
             g = np.abs(table.S[i] + table.K_S[i] * dT).sum() * table.validity_field_uT
             o = abs(table.O[i] + table.K_O[i] * dT)
             m = max(m, g + o)
-        for (name, d), (_, (a, b)) in zip(table.D, table.validity_currents_A):
+        for (_name, d), (_, (a, b)) in zip(table.D, table.validity_currents_A, strict=True):
             m += abs(d[i]) * max(abs(a), abs(b))
         worst = max(worst, m)
     return float(worst)

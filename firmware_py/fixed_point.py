@@ -99,7 +99,7 @@ class FixedPointTable:
     current_ranges_mA: tuple[tuple[int, int], ...]
 
     @classmethod
-    def from_table(cls, table) -> "FixedPointTable":
+    def from_table(cls, table) -> FixedPointTable:
         """Quantise a :class:`firmware_py.cal_table.CalTable`; CalTableInvalid if a term is
         not supported or a coefficient does not fit its Q format."""
         extra = [t for t in table.terms if t not in FIXED_POINT_TERMS and t not in

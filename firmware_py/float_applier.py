@@ -8,8 +8,8 @@ fixed-point applier is tested against and what ground tools use.
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from enum import IntFlag
-from typing import Mapping
 
 import numpy as np
 

@@ -113,16 +113,17 @@ def _batched_ssr(X: np.ndarray, Y: np.ndarray, valid: np.ndarray) -> tuple[np.nd
     Yw = np.where(valid[..., None], Y, 0.0)
     n = w.sum(axis=1)
     Xa = np.concatenate([Xw, w[..., None]], axis=2)
-    xtx = np.einsum("cmi,cmj->cij", Xa, Xa)
-    xty = np.einsum("cmi,cmk->cik", Xa, Yw)
-    yty = np.einsum("cmk,cmk->c", Yw, Yw)
+    xa_t = Xa.transpose(0, 2, 1)
+    xtx = np.matmul(xa_t, Xa)
+    xty = np.matmul(xa_t, Yw)
+    yty = np.sum(Yw * Yw, axis=(1, 2))
     p = Xa.shape[2]
     ridge = 1e-12 * np.trace(xtx, axis1=1, axis2=2)[:, None, None] * np.eye(p)
     ok = n > p + 2
     beta = np.zeros_like(xty)
     if ok.any():
         beta[ok] = np.linalg.solve(xtx[ok] + ridge[ok], xty[ok])
-    ssr = yty - np.einsum("cik,cik->c", beta, xty)
+    ssr = yty - np.sum(beta * xty, axis=(1, 2))
     ysum = Yw.sum(axis=1)
     sst = yty - np.sum(ysum ** 2, axis=1) / np.maximum(n, 1)
     ssr = np.where(ok, np.maximum(ssr, 0.0), np.nan)
@@ -271,7 +272,7 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
                           prior_s: float | None = None, search_halfwidth_s: float | None = None,
                           step_s: float | None = None, min_overlap: float = 0.5, max_gap_s: float | None = None,
                           min_r2: float = 0.9, max_sigma_s: float = 1.0,
-                          ambiguity_ratio: float = 2.0, n_blocks: int = 10) -> OffsetEstimate:
+                          ambiguity_ratio: float = 2.0, n_blocks: int = 20) -> OffsetEstimate:
     """Clock offset (add to reference time to get DUT time) minimising ``ref ~ A dut + b``.
 
     Coarse search: every offset in ``prior_s +- search_halfwidth_s`` (default: every offset that
@@ -279,8 +280,9 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
     reference's median period); refine on a 5 ms grid and take the vertex of the residual
     parabola. ``sigma_s`` is the larger of the curvature estimate (``2 s^2 / SSR''``, inflated for
     residual autocorrelation) and a delete-one-block jackknife over ``n_blocks`` contiguous blocks
-    of DUT rows (which also captures the interpolation error at field steps). Raises AlignmentError when the streams do not overlap, when the best fit explains
-    less than ``min_r2`` of the reference variance (static field: nothing to align on), when the
+    of DUT rows (which also captures the interpolation error at field steps). Raises
+    AlignmentError when the streams do not overlap, when the best fit explains less than
+    ``min_r2`` of the reference variance (static field: nothing to align on), when the
     uncertainty exceeds ``max_sigma_s`` or when another, distant minimum fits within
     ``ambiguity_ratio`` of the best unexplained variance (periodic signal).
     """
@@ -295,10 +297,8 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
     if prior_s is not None and search_halfwidth_s is not None:
         lo, hi = prior_s - search_halfwidth_s, prior_s + search_halfwidth_s
     else:
-        lo = t_dut[0] - t_ref[-1] + need
+        lo = t_dut[0] - t_ref[-1] + need  # a prior without halfwidth is only reported, not imposed
         hi = t_dut[-1] - t_ref[0] - need
-        if prior_s is not None and search_halfwidth_s is None:
-            pass  # prior only used for reporting; full overlap range searched
     if not hi > lo:
         raise AlignmentError(f"streams cannot overlap by {min_overlap:.0%}: DUT {dur_dut:.1f} s, "
                              f"reference {dur_ref:.1f} s")
@@ -370,8 +370,9 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
         raise AlignmentError(f"the data do not determine the clock offset: uncertainty {sigma:.3g} s "
                              f"> {max_sigma_s} s")
     if ratio < ambiguity_ratio:
-        raise AlignmentError(f"clock offset ambiguous: a minimum {abs(grid[np.nanargmin(np.where(cand, unexpl, np.nan))] - vertex):.1f} s "
-                             f"away fits almost as well (ratio {ratio:.2f} < {ambiguity_ratio})")
+        other = float(grid[np.nanargmin(np.where(cand, unexpl, np.nan))])
+        raise AlignmentError(f"clock offset ambiguous: a minimum {abs(other - vertex):.1f} s away fits almost as "
+                             f"well (ratio {ratio:.2f} < {ambiguity_ratio}); give a prior and halfwidth")
     return est
 
 
@@ -379,7 +380,7 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
 def estimate_axis_skew(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarray, ref_uT: np.ndarray,
                        offset_s: float, *, max_skew_s: float | None = None, max_gap_s: float | None = None,
                        min_r2: float = 0.9, max_sigma_s: float | None = None,
-                       n_blocks: int = 10) -> list[ParamEstimate]:
+                       n_blocks: int = 20) -> list[ParamEstimate]:
     """Per-axis time skew of the DUT relative to ``offset_s`` (see module doc for the sign).
 
     For axis ``i`` the skew minimises the residual of ``dut_i ~ a . ref(t + skew - offset) + c``.

@@ -26,8 +26,8 @@ import os
 import select
 import threading
 import tty
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -243,7 +243,7 @@ class PtyInstrument:
                 except OSError:
                     return
 
-    def __enter__(self) -> "PtyInstrument":
+    def __enter__(self) -> PtyInstrument:
         self._thread.start()
         return self
 

@@ -76,6 +76,7 @@ class RegisterFileModel:
             self.regs[r.addr] = r
         self.values = bytearray(256)
         self.pointer = 0
+        self._autoinc = True
         self._stuck: set[int] = set()
         self._flips: dict[int, list] = {}
         self.reset_registers()
@@ -101,9 +102,6 @@ class RegisterFileModel:
 
     def on_write(self, reg: int, value: int, old: int) -> None:
         """Side effects of the controller writing ``value`` to ``reg`` (already stored)."""
-
-    def on_transaction_end(self) -> None:
-        """Unused by the bus protocol (no stop callback); kept for symmetry."""
 
     # -- register file -----------------------------------------------------------------
     def reset_registers(self) -> None:
@@ -170,8 +168,6 @@ class RegisterFileModel:
             self.on_write(reg, value, old)
             reg = self.next_pointer(reg)
             self.pointer = reg
-
-    _autoinc = True
 
     def i2c_read(self, length: int) -> bytes:
         if length > 1 and not self._autoinc:

@@ -9,8 +9,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.errors import AlignmentError
-from hil.alignment import (align_streams, estimate_axis_map, estimate_clock_offset, interp_no_extrapolation,
-                           linear_fit_rmse_uT)
+from hil.alignment import (
+    align_streams,
+    estimate_axis_map,
+    estimate_clock_offset,
+    interp_no_extrapolation,
+    linear_fit_rmse_uT,
+)
 from hil.cli import main
 from hil.mageval_import import AUTHORS_AXIS_MAP, AUTHORS_OFFSET_S, apply_axis_map, read_mageval_data, read_mageval_ref
 
@@ -94,7 +99,7 @@ def test_offset_and_map_property(offset_s, perm, sign, seed):
     t_dut, dut, t_ref, ref = _pair(offset_s=offset_s, perm=tuple(perm), sign=sign, skew=(0, 0, 0), seed=seed)
     off = estimate_clock_offset(t_dut, dut, t_ref, ref)
     assert off.offset_s == pytest.approx(offset_s, abs=max(0.01, 4 * off.sigma_s))
-    assert off.sigma_s < 0.1
+    assert off.sigma_s < 0.2  # jackknife: ~0.03 s typical for 12 steps per axis sampled at 4 Hz
     y, ok = interp_no_extrapolation(t_ref, ref, t_dut - off.offset_s)
     amap = estimate_axis_map(dut[ok], y[ok])
     assert amap.perm == tuple(perm) and amap.sign == tuple(sign)

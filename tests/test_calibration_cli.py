@@ -8,8 +8,8 @@ import pytest
 
 from firmware_py.cal_table import load_table
 from firmware_py.calibration.model import CalModel, resolve_terms
-from firmware_py.float_applier import apply_float
 from firmware_py.calibration.synthetic import make_data, random_theta
+from firmware_py.float_applier import apply_float
 from hil.cli import main
 from hil.commands.apply import FLAG_SHIFT
 from hil.session_file import Session, read_session, write_session

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from drivers.errors import FitError
 from firmware_py.calibration import CAL_TERMS, FitData, FitOptions, fit
@@ -303,3 +304,11 @@ def test_bad_options_raise():
         CalModel(("gain_matrix",), t0_c=25.001)
     with pytest.raises(FitError, match="gain_matrix"):
         CalModel(("offset",))
+
+
+def test_parameter_names_are_unique_per_used_coefficient():
+    m = CalModel(ALL, ("a",), (1, 2))
+    mask = m.axis_mask()
+    names = [m.param_name(i, c) for i in range(3) for c in range(m.n_columns) if mask[i, c]]
+    assert len(names) == len(set(names))
+    assert {"c3[x]", "c3[y]", "c3[z]", "P[y,xz]", "tau[z,x]", "D_a[y]", "dO_s2[x]", "r[z]"} <= set(names)

@@ -7,7 +7,8 @@ import textwrap
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from drivers.errors import CalTableInvalid
 from firmware_py import fixed_point as fp

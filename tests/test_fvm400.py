@@ -10,8 +10,7 @@ from drivers.bus.serial_port import open_serial
 from drivers.clock import SystemClock, VirtualClock
 from drivers.errors import BusError, BusTimeout, ProtocolError, ReadbackMismatch
 from drivers.fvm400 import COMMANDS, DEFAULT_MAX_ABS_NT, EOT, FVM400, SERIAL_SETTINGS, RecordError, parse_record
-from sim.fvm400_model import (FVM400Faults, FVM400Model, PtyInstrument, register_instrument,
-                              unregister_instrument)
+from sim.fvm400_model import FVM400Faults, FVM400Model, PtyInstrument, register_instrument, unregister_instrument
 from sim.truth_source import StaticTruth
 
 
@@ -223,7 +222,7 @@ def test_through_a_real_pseudo_terminal():
             drv.close()
     assert all(s.b_uT == (1.234, -56.789, 100.5) for s in samples)
     assert drv.skipped.get("garbled", 0) == model.injected["garble"]
-    assert all(b.t_s > a.t_s for a, b in zip(samples, samples[1:]))
+    assert all(b.t_s > a.t_s for a, b in zip(samples, samples[1:], strict=False))
 
 
 def test_pty_timeout_is_bus_timeout():
@@ -233,3 +232,19 @@ def test_pty_timeout_is_bus_timeout():
         with pytest.raises(BusTimeout):
             drv.read()
         drv.close()
+
+
+@pytest.mark.hil
+def test_real_fvm400_on_serial_port(request):
+    """Bench: a powered FVM400 on --fvm-port (default /dev/ttyUSB0), probe in the lab field."""
+    drv = FVM400.open(request.config.getoption("--fvm-port"), SystemClock())
+    try:
+        samples = [drv.read() for _ in range(20)]
+    finally:
+        drv.close()
+    b = np.array([s.b_uT for s in samples])
+    # Earth's field plus lab disturbances: well inside the accepted range, and not all identical
+    assert np.all(np.abs(b) < DEFAULT_MAX_ABS_NT / 1000.0)
+    assert 1.0 < np.median(np.linalg.norm(b, axis=1)) < 150.0
+    assert np.all(np.diff([s.t_s for s in samples]) > 0)
+    assert sum(drv.skipped.values()) <= 2

@@ -20,7 +20,7 @@ from drivers.errors import (
     SelfTestFailed,
     StaleData,
 )
-from drivers.hmc5983 import HMC5983, HMC5983_TABLE, HMC5983_TABLE_LATCHED
+from drivers.hmc5983 import HMC5983, HMC5983_TABLE, HMC5983_TABLE_LATCHED, expected_self_test_counts
 from sim.hmc5983_model import HMC5983Model
 from sim.i2c_bus import SimI2CBus
 from sim.i2c_register_model import IdealSensor, default_sensor
@@ -206,6 +206,7 @@ def test_self_test_passes_and_fails_when_broken():
     d, model, *_ = rig()
     res = d.self_test()
     assert res.passed and res.counts == (452, 452, 421)     # 1.16/1.16/1.08 G x 390 LSB/G
+    assert tuple(expected_self_test_counts()) == res.counts
     assert (d.range_uT, d.odr_hz, d.mode) == (130.0, 75.0, "continuous")
     assert model.values[0x00] & 0x03 == 0
     model.break_self_test()

@@ -77,6 +77,10 @@ def test_wrong_identity_and_absent_chip():
         LIS3MDL(bus, clock, address=0x1E)
     with pytest.raises(ConfigurationError, match="0x1c, 0x1e"):
         LIS3MDL(bus, clock, address=0x1D)
+    with pytest.raises(ConfigurationError, match="timeout_s"):
+        LIS3MDL(bus, clock, timeout_s=float("nan"))
+    with pytest.raises(ConfigurationError, match="stuck_limit"):
+        LIS3MDL(bus, clock, stuck_limit=0)
 
 
 def test_configure_rejects_invalid_values_naming_valid_ones():

@@ -8,8 +8,7 @@ import pytest
 
 from drivers.errors import AlignmentError, SessionFileError
 from hil.cli import main
-from hil.mageval_import import (AUTHORS_OFFSET_S, FLAG_NO_REF, import_mageval, read_mageval_data,
-                                read_mageval_ref)
+from hil.mageval_import import AUTHORS_OFFSET_S, FLAG_NO_REF, import_mageval, read_mageval_data, read_mageval_ref
 from hil.session_file import read_session, write_session
 
 DATA = Path(__file__).parent / "data" / "av-mageval"

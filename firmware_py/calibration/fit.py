@@ -12,14 +12,14 @@ scalar figure is the vector norm of the three per-axis values.
 """
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
 
 import numpy as np
 import scipy.linalg
 
 from drivers.errors import FitError
-from firmware_py.calibration.model import AXES, CalModel, MODELS, resolve_terms
+from firmware_py.calibration.model import AXES, MODELS, CalModel, resolve_terms
 
 #: Rank tolerance: a column whose part orthogonal to the columns accepted before it is
 #: below this fraction of its own norm is numerically undetermined.
@@ -60,12 +60,12 @@ class FitData:
         return self.t_s.size
 
     @classmethod
-    def from_session(cls, s, weights=None) -> "FitData":
+    def from_session(cls, s, weights=None) -> FitData:
         """From any object with Session's attributes (hil.session_file.Session)."""
         return cls(s.dut_uT, s.ref_uT, s.temp_c, s.t_s, s.session, dict(s.currents_A), weights,
                    getattr(s, "flag", None))
 
-    def select(self, mask: np.ndarray) -> "FitData":
+    def select(self, mask: np.ndarray) -> FitData:
         return FitData(self.b_meas_uT[mask], self.b_ref_uT[mask], self.temp_c[mask], self.t_s[mask],
                        self.session[mask], {k: v[mask] for k, v in self.currents_A.items()},
                        None if self.weights is None else self.weights[mask],
@@ -266,7 +266,7 @@ class FitResult:
             L.append(row(f"  session {s} left out", v))
         L += [row("noise floor (residual)", self.noise_floor_uT), "",
               "condition number (equilibrated / raw): " + ", ".join(
-                  f"{a} {c:.3g} / {r:.3g}" for a, c, r in zip(AXES, self.cond_scaled, self.cond_raw)), "",
+                  f"{a} {c:.3g} / {r:.3g}" for a, c, r in zip(AXES, self.cond_scaled, self.cond_raw, strict=True)), "",
               f"{'parameter':18s}{'value':>14s}{'std err':>12s}  unit"]
         mask = m.axis_mask()
         held = {(h.axis, h.column) for h in self.held}
@@ -295,7 +295,7 @@ def qr_r(A: np.ndarray) -> np.ndarray:
     return R
 
 
-def independent_field_rms(model: CalModel, R: np.ndarray, cov: "Coverage") -> np.ndarray:
+def independent_field_rms(model: CalModel, R: np.ndarray, cov: Coverage) -> np.ndarray:
     """(3,) uT: RMS of each input axis's field component not explained (least squares) by
     the other two axes and a constant, i.e. how much the data excites that axis on its own."""
     cols = {c.index: k for k, c in enumerate(model.columns) if c.term == "gain_matrix"}
@@ -321,7 +321,7 @@ def identify(model: CalModel, R: np.ndarray, cov: Coverage, options: FitOptions)
     p = model.n_columns
     mask = model.axis_mask()
     prior = model.prior()
-    names = {f"{model.param_name(i, c)}": (i, c) for i in range(3) for c in range(p)}
+    names = {model.param_name(i, c): (i, c) for i in range(3) for c in range(p) if mask[i, c]}
     for k, v in options.priors.items():
         if k not in names:
             raise FitError(f"prior for unknown parameter {k!r}")
@@ -512,7 +512,15 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
     d = data.select(ok)
     cm = build_model(d, all_terms, currents, t0_c, name)
     if len(d) <= cm.n_columns:
-        raise FitError(f"{len(d)} usable rows for {cm.n_columns} columns: not enough data")
+        why = []
+        for label, bad in (("DUT field", ~np.all(np.isfinite(data.b_meas_uT), axis=1)),
+                           ("reference field", ~np.all(np.isfinite(data.b_ref_uT), axis=1)),
+                           ("temperature", ~np.isfinite(data.temp_c)),
+                           ("flag != 0", (data.flag != 0) if data.flag is not None else np.zeros(len(data), bool))):
+            if bad.any():
+                why.append(f"{label} missing/flagged on {int(bad.sum())} rows")
+        raise FitError(f"{len(d)} usable rows of {len(data)} for {cm.n_columns} columns: not enough data"
+                       + (f" ({'; '.join(why)})" if why else ""))
     X, theta, se, held, conds, cov = _fit_core(d, cm, options)
     resid = d.b_ref_uT - cm.predict(theta, X)
     p_i = cm.axis_mask().sum(axis=1) - np.array([sum(1 for h in held if h.axis == i) for i in range(3)])

@@ -14,8 +14,8 @@ catalogue); this module defines only how each term enters the equation.
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Mapping
 
 import numpy as np
 
@@ -153,8 +153,12 @@ class CalModel:
 
     def param_name(self, i: int, c: int) -> str:
         col = self.columns[c]
-        idx = "" if col.index is None else (f",{AXES[col.index]}" if col.param in ("S", "K_S", "tau")
-                                             else ("" if col.param == "c3" else f",{col.feature[2:]}"))
+        if col.param in ("S", "K_S", "tau"):
+            idx = f",{AXES[col.index]}"
+        elif col.param == "P":
+            idx = "," + ("xy", "xz", "yz")[col.index]
+        else:
+            idx = ""
         return f"{col.param}[{AXES[i]}{idx}]"
 
     def prior(self) -> np.ndarray:

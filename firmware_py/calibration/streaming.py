@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from drivers.errors import FitError
-from firmware_py.calibration.fit import (Coverage, FitOptions, FitResult, identify, qr_r, solve_axis)
+from firmware_py.calibration.fit import Coverage, FitOptions, FitResult, identify, qr_r, solve_axis
 from firmware_py.calibration.model import CalModel
 
 

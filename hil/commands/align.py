@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     o = rep.offset
     print(f"clock offset: {o.offset_s:.4f} s +- {o.sigma_s:.4f} s (add to reference time); "
           f"R2 {o.r2:.6f}; {o.n_pairs} pairs; next minimum {o.runner_up_ratio:.1f}x worse")
-    for ax, e in zip("xyz", rep.skew_s):
+    for ax, e in zip("xyz", rep.skew_s, strict=True):
         state = "" if e.determined else f"  UNDETERMINED: {e.reason}"
         print(f"skew {ax}: {e.value:+.4f} s +- {e.sigma:.4f} s{state}")
     print(f"axis map: {rep.axis_map.describe()}")

@@ -5,7 +5,7 @@ import argparse
 
 import numpy as np
 
-from drivers.errors import CalTableInvalid
+from drivers.errors import CalTableInvalid, SessionFileError
 from firmware_py.cal_table import load_table, validate
 from firmware_py.fixed_point import FixedPointTable, output_to_uT, to_fixed_inputs
 from firmware_py.float_applier import ApplyFlag, apply_float
@@ -31,7 +31,7 @@ def calibrate_session(table, s: Session, applier: str = "float") -> Session:
     """Calibrated copy of ``s`` (all rows kept) with flags and metadata."""
     missing = [k for k in table.currents if k not in s.currents_A]
     if missing:
-        raise CalTableInvalid(f"table needs current column(s) {missing}; session has {list(s.currents_A)}")
+        raise SessionFileError(f"table needs current column(s) {missing}; session has {list(s.currents_A)}")
     cur = {k: s.currents_A[k] for k in table.currents}
     if applier == "fixed":
         fx = FixedPointTable.from_table(table)

@@ -42,6 +42,10 @@ def register(subparsers) -> None:
     p.add_argument("--block-s", type=float, default=60.0, help="time-block length for held-out folds (s)")
     p.add_argument("--device-id", default=None, help="device id for the table (default: session metadata)")
     p.add_argument("--description", default="")
+    p.add_argument("--validity-temp", default=None, metavar="LO,HI",
+                   help="table validity temperature range, degC (default: the data's range)")
+    p.add_argument("--validity-field", type=float, default=None, metavar="UT",
+                   help="table validity |B| per axis, uT (default: the data's maximum)")
     p.add_argument("--out", required=True, metavar="cal.json")
     p.set_defaults(func=run)
 
@@ -51,12 +55,12 @@ def load_sessions(paths) -> tuple[Session, list[str]]:
     every (file, session) pair gets a new id 1..M (the mapping is returned as text lines)."""
     parts = [read_session(p) for p in paths]
     notes = []
-    for path, s in zip(paths, parts):
+    for path, s in zip(paths, parts, strict=True):
         notes += [f"{path}: {w}" for w in s.warnings]
     ids = [set(np.unique(s.session).tolist()) for s in parts]
     if sum(len(i) for i in ids) != len(set().union(*ids)):
         new = 0
-        for path, s in zip(paths, parts):
+        for path, s in zip(paths, parts, strict=True):
             remap = {}
             for old in sorted(set(np.unique(s.session).tolist())):
                 new += 1
@@ -85,8 +89,16 @@ def run(args: argparse.Namespace) -> int:
     for n in notes:
         print(f"note: {n}")
     print(result.report())
+    vt = None
+    if args.validity_temp:
+        try:
+            lo, hi = (float(x) for x in args.validity_temp.split(","))
+        except ValueError:
+            raise FitError(f"--validity-temp wants LO,HI in degC, got {args.validity_temp!r}") from None
+        vt = (lo, hi)
     table = table_from_fit(result, device_id, description=args.description or
-                           f"fit of {', '.join(str(p) for p in args.sessions)}")
+                           f"fit of {', '.join(str(p) for p in args.sessions)}",
+                           validity_temp_c=vt, validity_field_uT=args.validity_field)
     v = validate(table)
     save_table(table, args.out)
     print(f"\nwrote {args.out} (device {device_id}, crc32 {table.to_document()['crc32']})")
