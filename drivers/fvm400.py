@@ -24,7 +24,7 @@ from types import MappingProxyType
 
 from drivers.bus.serial_port import open_serial
 from drivers.clock import Clock, SystemClock
-from drivers.errors import BusError, BusTimeout, ProtocolError, ReadbackMismatch
+from drivers.errors import BusError, BusTimeout, ConfigurationError, ProtocolError, ReadbackMismatch
 from drivers.magnetometer import MagSample
 
 # ------------------------------------------------------------------------- framing table
@@ -114,9 +114,9 @@ class FVM400:
     def __init__(self, port, clock: Clock | None = None, *, max_abs_nT: float = DEFAULT_MAX_ABS_NT,
                  max_attempts: int = 3, configure: bool = True, verify_every: int = 50) -> None:
         if max_attempts < 1:
-            raise ValueError(f"max_attempts must be >= 1, got {max_attempts}")
+            raise ConfigurationError(f"max_attempts must be >= 1, got {max_attempts}")
         if not (max_abs_nT > 0):
-            raise ValueError(f"max_abs_nT must be > 0, got {max_abs_nT}")
+            raise ConfigurationError(f"max_abs_nT must be > 0, got {max_abs_nT}")
         self.port = port
         self.clock = clock if clock is not None else SystemClock()
         self.max_abs_nT = float(max_abs_nT)
@@ -167,9 +167,9 @@ class FVM400:
         try:
             cmd = COMMANDS[name]
         except KeyError:
-            raise ValueError(f"unknown FVM400 command {name!r}; valid: {', '.join(COMMANDS)}") from None
+            raise ConfigurationError(f"unknown FVM400 command {name!r}; valid: {', '.join(COMMANDS)}") from None
         if cmd.reply == "record":
-            raise ValueError("use read() for the query command")
+            raise ConfigurationError("use read() for the query command")
         self._discard_input()
         self._write(cmd.send)
         frame = self._read_frame(name)

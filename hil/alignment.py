@@ -33,6 +33,9 @@ import numpy as np
 from drivers.errors import AlignmentError
 
 AXES = "xyz"
+#: Coarse offset search limits (keep a long session's search to a few seconds).
+MAX_COARSE_CANDIDATES = 4000
+MAX_COARSE_ROWS = 1000
 
 
 # --------------------------------------------------------------------------- interpolation
@@ -302,28 +305,31 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
     if not hi > lo:
         raise AlignmentError(f"streams cannot overlap by {min_overlap:.0%}: DUT {dur_dut:.1f} s, "
                              f"reference {dur_ref:.1f} s")
-    n_cand = int(math.ceil((hi - lo) / h)) + 1
-    if n_cand > 200_000:
-        raise AlignmentError(f"offset search range {hi - lo:.0f} s too wide; give a prior and halfwidth")
-    grid = np.linspace(lo, hi, n_cand)
-    min_rows = max(10, int(0.2 * t_dut.size))
+    # Coarse stage: at most MAX_COARSE_CANDIDATES offsets on at most MAX_COARSE_ROWS evenly spaced
+    # DUT rows (long sessions), then a medium stage at step h on all rows around the best.
+    h_coarse = max(h, (hi - lo) / MAX_COARSE_CANDIDATES)
+    grid = np.linspace(lo, hi, int(math.ceil((hi - lo) / h_coarse)) + 1)
+    sub = np.unique(np.linspace(0, t_dut.size - 1, min(t_dut.size, MAX_COARSE_ROWS)).astype(int))
 
-    def cost(offsets: np.ndarray, rows: slice | None = None):
+    def cost(offsets: np.ndarray, rows: np.ndarray | None = None):
+        td = t_dut if rows is None else t_dut[rows]
+        dd = dut if rows is None else dut[rows]
+        min_rows = max(10, int(0.2 * td.size))
         out_ssr = np.full(offsets.size, np.nan)
         out_sst = np.full(offsets.size, np.nan)
         out_n = np.zeros(offsets.size)
-        chunk = max(1, 2_000_000 // max(1, t_dut.size * 3))
+        chunk = max(1, 2_000_000 // max(1, td.size * 3))
         for s in range(0, offsets.size, chunk):
             o = offsets[s:s + chunk]
-            tq = t_dut[None, :] - o[:, None]
+            tq = td[None, :] - o[:, None]
             y, valid = _interp_batch(t_ref, ref, tq, gap)
-            ssr, sst, n = _batched_ssr(dut, y, valid)
+            ssr, sst, n = _batched_ssr(dd, y, valid)
             out_ssr[s:s + chunk], out_sst[s:s + chunk], out_n[s:s + chunk] = ssr, sst, n
         bad = out_n < min_rows
         out_ssr[bad] = np.nan
         return out_ssr, out_sst, out_n
 
-    ssr, sst, n = cost(grid)
+    ssr, sst, n = cost(grid, sub)
     if not np.any(np.isfinite(ssr)):
         raise AlignmentError("no offset in the searched range gives enough overlapping samples "
                              f"(searched {lo:.1f}..{hi:.1f} s)")
@@ -331,16 +337,22 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
     k = int(np.nanargmin(unexpl))
     best_u = float(unexpl[k])
     # Runner-up: the best local minimum further than max(2 s, 4 DUT periods) away.
-    far = np.abs(grid - grid[k]) > max(2.0, 4 * dt_dut)
+    far = np.abs(grid - grid[k]) > max(2.0, 4 * dt_dut, 4 * h_coarse)
     u = np.where(np.isfinite(unexpl), unexpl, np.inf)
     locmin = np.zeros_like(far)
     locmin[1:-1] = (u[1:-1] <= u[:-2]) & (u[1:-1] <= u[2:])
     cand = far & locmin & np.isfinite(unexpl)
     runner = float(np.min(unexpl[cand])) if cand.any() else math.inf
     ratio = runner / best_u if best_u > 0 else math.inf
+    center = float(grid[k])
+    if h_coarse > h or sub.size < t_dut.size:
+        mid = center + np.arange(-2 * h_coarse, 2 * h_coarse + h / 2, h)
+        ssr_m, sst_m, _ = cost(mid)
+        if np.any(np.isfinite(ssr_m)):
+            center = float(mid[int(np.nanargmin(ssr_m / sst_m))])
 
     # Fine stage on a 5 ms grid; the curve is computed once, then once per deleted block.
-    fine = grid[k] + np.arange(-max(2 * h, 0.25), max(2 * h, 0.25) + 0.0025, 0.005)
+    fine = center + np.arange(-max(2 * h, 0.25), max(2 * h, 0.25) + 0.0025, 0.005)
     yf, vf = _interp_batch(t_ref, ref, t_dut[None, :] - fine[:, None], gap)
     ssr_f, _, _ = _batched_ssr(dut, yf, vf)
     win = max(h, 0.1)
@@ -508,3 +520,48 @@ def align_streams(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarray, ref_
     if prior_s is not None:
         notes.append(f"estimated offset differs from the prior {prior_s:.3f} s by {off.offset_s - prior_s:+.3f} s")
     return AlignmentReport(off, skew, amap, rmse, notes)
+
+
+# --------------------------------------------------------------------------- applying an alignment
+def aligned_session(session, report: AlignmentReport, *, correct_skew: bool = False,
+                    max_gap_s: float | None = None, gaps: str = "nan"):
+    """Pair a raw bench session (interleaved DUT and reference rows) using ``report``.
+
+    Output rows are the DUT rows; the reference is interpolated at ``t - offset_s`` (never
+    extrapolated, never across a gap longer than ``max_gap_s``; such rows get NaN and flag bit 1,
+    or are dropped with ``gaps="drop"``). With ``correct_skew`` each DUT axis whose skew is
+    determined is re-sampled at ``t - skew_i`` (interpolating the DUT stream itself). Temperature,
+    session id and currents come from the DUT rows. Metadata records what was applied.
+    """
+    from hil.session_file import Session
+
+    if gaps not in ("nan", "drop"):
+        raise AlignmentError(f"gaps must be 'nan' or 'drop', got {gaps!r}")
+    d = np.all(np.isfinite(session.dut_uT), axis=1)
+    r = np.all(np.isfinite(session.ref_uT), axis=1)
+    if d.sum() < 2 or r.sum() < 2:
+        raise AlignmentError(f"session has {int(d.sum())} DUT and {int(r.sum())} reference rows: nothing to pair")
+    t_dut, dut = session.t_s[d], session.dut_uT[d].copy()
+    t_ref, ref = session.t_s[r], session.ref_uT[r]
+    gap = max_gap_s if max_gap_s is not None else max(4 * float(np.median(np.diff(t_ref))), 1.0)
+    off = report.offset.offset_s
+    ref_on, ok = interp_no_extrapolation(t_ref + off, ref, t_dut, gap)
+    applied = [f"clock offset {off:+.4f} +- {report.offset.sigma_s:.4f} s added to reference time",
+               "reference linearly interpolated onto DUT timestamps"]
+    if correct_skew:
+        dut_gap = max(4 * float(np.median(np.diff(t_dut))), 1.0)
+        for i, e in enumerate(report.skew_s):
+            if e.determined:
+                col, ok_i = interp_no_extrapolation(t_dut, dut[:, i], t_dut - e.value, dut_gap)
+                dut[:, i] = col
+                ok &= ok_i
+                applied.append(f"dut_{AXES[i]} re-sampled for skew {e.value:+.4f} s")
+    flag = np.where(ok, 0, 1).astype(np.int64)
+    meta = dict(session.metadata)
+    meta["alignment_applied"] = "; ".join(applied)
+    meta["axis_map_estimated"] = report.axis_map.describe()
+    meta["gap_rows"] = str(int((flag != 0).sum()))
+    meta["gap_policy"] = gaps
+    out = Session(t_dut, ref_on, dut, session.temp_c[d], session.session[d],
+                  {k: v[d] for k, v in session.currents_A.items()}, meta, flag)
+    return out.select(flag == 0) if gaps == "drop" else out

@@ -7,11 +7,12 @@ opposite. Nothing is resampled here; ``magstack align SESSION`` and ``import``-s
 work on the raw interleaved streams.
 
 Scheduling: with a real clock each instrument is read by its own thread (the HMC1053 front end
-blocks for a whole conversion cycle, which must not hold up the 4 Hz reference); with a
-:class:`~drivers.clock.VirtualClock` (simulation) one thread interleaves them deterministically:
-a reference query is made whenever it is due, between DUT samples, so with a DUT whose
-``read()`` blocks longer than the reference period the simulated reference is late by up to
-one DUT cycle (its timestamps stay exact).
+blocks for a whole conversion cycle, which must not hold up the 4 Hz reference). In simulation a
+single-thread discrete-event loop serves whichever instrument's next action comes first; with one
+:class:`~drivers.clock.VirtualClock` per instrument (``ref_clock``, as :func:`build_sim_bench`
+sets up) the lagging one catches up while the other blocks, so both keep their rates, and rows
+pass through a time-ordered buffer. With one shared virtual clock a blocking DUT read delays the
+reference (its timestamps stay exact).
 
 Fault responses: a reference reply that is garbled, partial, out of range or in the wrong units
 is skipped by the driver and counted; a reference timeout or DUT bus error is counted and the
@@ -20,6 +21,7 @@ session, leaving the crash-safe ``.part`` file with every row so far.
 """
 from __future__ import annotations
 
+import heapq
 import math
 import queue
 import sys
@@ -98,12 +100,15 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
               metadata: Mapping[str, str] | None = None,
               currents: Callable[[float], Mapping[str, float]] | None = None, current_names: tuple[str, ...] = (),
               progress: Callable[..., None] | None = None, max_consecutive_errors: int = 10,
-              threaded: bool | None = None, block_rows: int = 20) -> BenchResult:
+              threaded: bool | None = None, block_rows: int = 20, ref_clock: Clock | None = None) -> BenchResult:
     """Record ``seconds`` of DUT and reference samples into the session file ``out``.
 
-    ``ref_rate_hz``: reference query rate; ``dut_rate_hz``: None = every new DUT sample, else
-    one read per period. ``currents(t_monotonic_s)`` (optional) gives the named currents
-    recorded on every row (a current monitor; the simulated bench uses the coil program).
+    ``clock`` times the DUT, ``ref_clock`` (default: the same) the reference; in simulation two
+    virtual clocks let each instrument keep its own rate while the other blocks (both start at
+    the same epoch; the scheduler always serves the instrument that is behind and writes rows in
+    time order). ``ref_rate_hz``: reference query rate; ``dut_rate_hz``: None = every new DUT
+    sample, else one read per period. ``currents(t_monotonic_s)`` (optional) gives the named
+    currents recorded on every row (a current monitor; the simulated bench uses the coil program).
     """
     if not (seconds > 0 and math.isfinite(seconds)):
         raise ConfigurationError(f"seconds must be > 0, got {seconds}")
@@ -113,19 +118,28 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
         raise ConfigurationError(f"dut_rate_hz must be > 0, got {dut_rate_hz}")
     if max_consecutive_errors < 1:
         raise ConfigurationError("max_consecutive_errors must be >= 1")
+    rclock = ref_clock if ref_clock is not None else clock
     if threaded is None:
-        threaded = not isinstance(clock, VirtualClock)
+        threaded = not (isinstance(clock, VirtualClock) or isinstance(rclock, VirtualClock))
+    if rclock is not clock:
+        if abs((clock.epoch_s() - clock.monotonic_s()) - (rclock.epoch_s() - rclock.monotonic_s())) > 1e-6:
+            raise ConfigurationError("DUT and reference clocks must share one epoch anchor")
+        lag = clock.monotonic_s() - rclock.monotonic_s()  # opening/configuring used different times
+        (rclock if lag > 0 else clock).sleep_s(abs(lag))
+    scheduler = "threads" if threaded else ("discrete-event, one clock per instrument" if rclock is not clock
+                                            else "single-thread interleave")
     meta = {"dut_chip": getattr(dut, "name", "unknown"), "dut_serial": str(getattr(dut, "serial", "unknown")),
             "reference": getattr(ref, "name", "unknown"), "ref_rate_hz": f"{ref_rate_hz:g}",
             "dut_rate_hz": "every new sample" if dut_rate_hz is None else f"{dut_rate_hz:g}",
             "alignment_applied": "none (raw host timestamps; one row per sample of either instrument)",
             "start_utc_epoch_s": f"{clock.epoch_s():.3f}", "requested_s": f"{seconds:g}",
-            "scheduler": "threads" if threaded else "single-thread interleave",
-            "software_version": _software_version(), **dict(metadata or {})}
+            "scheduler": scheduler, "software_version": _software_version(), **dict(metadata or {})}
     res = BenchResult(Path(out))
     writer = SessionWriter(out, meta, current_names=current_names, block_rows=block_rows)
     t0 = clock.monotonic_s()
     consecutive = {"dut": 0, "ref": 0}
+    pending: list[tuple[float, int, tuple]] = []  # rows not yet written: (t_epoch, seq, row)
+    seq = [0]
 
     def record(kind: str, sample: MagSample | None, err: Exception | None) -> None:
         if err is not None:
@@ -137,30 +151,45 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
             return
         assert sample is not None
         consecutive[kind] = 0
-        t_epoch = _epoch_of(clock, sample)
+        t_epoch = _epoch_of(clock if kind == "dut" else rclock, sample)
         cur = dict(currents(sample.t_s)) if currents is not None else {}
         if kind == "dut":
             res.dut_samples += 1
             res.dut_overflows += bool(sample.overflow)
             temp = math.nan if sample.temp_c is None else float(sample.temp_c)
-            writer.write_row(t_epoch, NAN3, sample.b_uT, temp, session_id, cur)
+            row = (t_epoch, NAN3, sample.b_uT, temp, session_id, cur)
         else:
             res.ref_samples += 1
-            writer.write_row(t_epoch, sample.b_uT, NAN3, math.nan, session_id, cur)
+            row = (t_epoch, sample.b_uT, NAN3, math.nan, session_id, cur)
+        heapq.heappush(pending, (t_epoch, seq[0], row))
+        seq[0] += 1
         res.rows += 1
+
+    def drain(watermark_epoch: float) -> None:
+        """Write buffered rows stamped at or before the watermark, in time order."""
+        while pending and pending[0][0] <= watermark_epoch:
+            writer.write_row(*heapq.heappop(pending)[2])
+
+    def finish_durations() -> None:
+        res.duration_s = max(clock.monotonic_s(), rclock.monotonic_s()) - t0
+        res.ref_skipped = Counter({k: v for k, v in getattr(ref, "skipped", {}).items() if k != "timeout"})
 
     try:
         if threaded:
-            _run_threaded(dut, ref, clock, t0, seconds, ref_rate_hz, dut_rate_hz, record, res, progress)
+            _run_threaded(dut, ref, clock, rclock, t0, seconds, ref_rate_hz, dut_rate_hz, record, drain, res,
+                          progress)
         else:
-            _run_interleaved(dut, ref, clock, t0, seconds, ref_rate_hz, dut_rate_hz, record, res, progress)
+            _run_event_loop(dut, ref, clock, rclock, t0, seconds, ref_rate_hz, dut_rate_hz, record, drain, res,
+                            progress)
+        drain(math.inf)
     except BaseException:
-        res.duration_s = clock.monotonic_s() - t0
-        res.ref_skipped = Counter(getattr(ref, "skipped", {}))
-        writer.abort()
+        finish_durations()
+        try:
+            drain(math.inf)
+        finally:
+            writer.abort()
         raise
-    res.duration_s = clock.monotonic_s() - t0
-    res.ref_skipped = Counter({k: v for k, v in getattr(ref, "skipped", {}).items() if k != "timeout"})
+    finish_durations()
     writer.close()
     res.completed = True
     if progress is not None:
@@ -175,39 +204,53 @@ def _read(dev: Magnetometer) -> tuple[MagSample | None, Exception | None]:
         return None, exc
 
 
-def _run_interleaved(dut, ref, clock, t0, seconds, ref_rate_hz, dut_rate_hz, record, res, progress) -> None:
+def _run_event_loop(dut, ref, dclock, rclock, t0, seconds, ref_rate_hz, dut_rate_hz, record, drain, res,
+                    progress) -> None:
+    """Single-thread scheduler: serve whichever instrument's next action comes first.
+
+    With one clock this interleaves (a blocking DUT read delays the reference); with one clock
+    per instrument the lagging instrument is served until it catches up, so both keep their rates.
+    """
+    end = t0 + seconds
     ref_period = 1.0 / ref_rate_hz
     next_ref = t0
     next_dut = t0
+    same = rclock is dclock
     while True:
-        now = clock.monotonic_s()
-        if now - t0 >= seconds:
+        td, tr = dclock.monotonic_s(), rclock.monotonic_s()
+        ref_at = max(tr, next_ref)
+        dut_at = max(td, next_dut) if dut_rate_hz is not None else td
+        if ref_at >= end and dut_at >= end:
             return
-        if now >= next_ref:
+        if ref_at < end and ref_at <= dut_at:
+            if tr < ref_at:
+                rclock.sleep_s(ref_at - tr)
             record("ref", *_read(ref))
-            next_ref = max(next_ref + ref_period, clock.monotonic_s() - ref_period)
-            # never queue a burst: after a long blocking DUT read skip missed slots
-            if next_ref < clock.monotonic_s():
-                next_ref = clock.monotonic_s() + ref_period
+            next_ref = ref_at + ref_period
         elif dut_rate_hz is not None:
-            if now >= next_dut:
-                record("dut", *_read(dut))
-                next_dut += 1.0 / dut_rate_hz
-            else:
-                clock.sleep_s(min(next_ref, next_dut) - now)
+            if td < dut_at:
+                dclock.sleep_s(dut_at - td)
+            record("dut", *_read(dut))
+            next_dut = dut_at + 1.0 / dut_rate_hz
         elif dut.data_ready():
             record("dut", *_read(dut))
         else:
-            clock.sleep_s(min(next_ref - now, 0.001))
+            wait = 0.001 if not same or ref_at >= end else min(0.001, ref_at - td)
+            dclock.sleep_s(max(wait, 1e-6))
+        # nothing earlier than either clock's present can still arrive
+        watermark = min(dclock.epoch_s() if dclock.monotonic_s() < end else math.inf,
+                        rclock.epoch_s() if max(rclock.monotonic_s(), next_ref) < end else math.inf)
+        drain(watermark)
         if progress is not None:
-            progress(clock.monotonic_s() - t0, res)
+            progress(min(dclock.monotonic_s(), rclock.monotonic_s()) - t0, res)
 
 
-def _run_threaded(dut, ref, clock, t0, seconds, ref_rate_hz, dut_rate_hz, record, res, progress) -> None:
+def _run_threaded(dut, ref, dclock, rclock, t0, seconds, ref_rate_hz, dut_rate_hz, record, drain, res,
+                  progress) -> None:
     events: queue.Queue = queue.Queue()
     stop = threading.Event()
 
-    def worker(kind: str, dev, period: float | None) -> None:
+    def worker(kind: str, dev, clock, period: float | None) -> None:
         nxt = clock.monotonic_s()
         while not stop.is_set() and clock.monotonic_s() - t0 < seconds:
             if period is not None:
@@ -219,8 +262,9 @@ def _run_threaded(dut, ref, clock, t0, seconds, ref_rate_hz, dut_rate_hz, record
             events.put((kind, sample, err))
         events.put((kind, None, None))  # done marker
 
-    threads = [threading.Thread(target=worker, args=("ref", ref, 1.0 / ref_rate_hz), daemon=True),
-               threading.Thread(target=worker, args=("dut", dut, None if dut_rate_hz is None else 1.0 / dut_rate_hz),
+    threads = [threading.Thread(target=worker, args=("ref", ref, rclock, 1.0 / ref_rate_hz), daemon=True),
+               threading.Thread(target=worker, args=("dut", dut, dclock,
+                                                     None if dut_rate_hz is None else 1.0 / dut_rate_hz),
                                 daemon=True)]
     for th in threads:
         th.start()
@@ -231,14 +275,15 @@ def _run_threaded(dut, ref, clock, t0, seconds, ref_rate_hz, dut_rate_hz, record
                 kind, sample, err = events.get(timeout=0.2)
             except queue.Empty:
                 if progress is not None:
-                    progress(clock.monotonic_s() - t0, res)
+                    progress(dclock.monotonic_s() - t0, res)
                 continue
             if sample is None and err is None:
                 done += 1
                 continue
             record(kind, sample, err)
+            drain(math.inf)  # rows in arrival order
             if progress is not None:
-                progress(clock.monotonic_s() - t0, res)
+                progress(dclock.monotonic_s() - t0, res)
     finally:
         stop.set()
         for th in threads:
@@ -269,6 +314,7 @@ class SimBench:
     """The simulated bench: one clock, one coil program, the DUT and a registered FVM400 model."""
 
     clock: VirtualClock
+    ref_clock: VirtualClock
     truth: object
     dut: Magnetometer
     ref: Magnetometer
@@ -286,17 +332,18 @@ def build_sim_bench(chip: str, *, program: str = "steps_x", seconds: float = 60.
     from sim.fvm400_model import FVM400Faults, FVM400Model, register_instrument
 
     clock = VirtualClock()
+    ref_clock = VirtualClock()  # same epoch anchor; lets the reference keep 4 Hz while the DUT blocks
     try:
         truth = build_program(program, seconds, sessions=1)
     except ValueError as exc:
         raise ConfigurationError(str(exc)) from None
-    model = FVM400Model(truth, clock, probe_from_truth=ref_probe_from_truth, noise_uT=ref_noise_uT, seed=seed,
+    model = FVM400Model(truth, ref_clock, probe_from_truth=ref_probe_from_truth, noise_uT=ref_noise_uT, seed=seed,
                         faults=FVM400Faults(**dict(ref_faults or {})))
     register_instrument(instrument_name, model)
     url = f"fvm400sim://{instrument_name}"
-    ref = FVM400.open(url, clock)
+    ref = FVM400.open(url, ref_clock)
     dut = open_chip(chip, "sim", clock, **_sim_dut_kwargs(chip, clock, truth, seed))
-    return SimBench(clock, truth, dut, ref, model, url)
+    return SimBench(clock, ref_clock, truth, dut, ref, model, url)
 
 
 def truth_currents(truth) -> tuple[tuple[str, ...], Callable[[float], Mapping[str, float]] | None]:

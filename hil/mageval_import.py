@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.errors import AlignmentError, SessionFileError
+from drivers.errors import AlignmentError, ConfigurationError, SessionFileError
 from hil.alignment import estimate_clock_offset, interp_no_extrapolation
 from hil.session_file import Session
 
@@ -106,7 +106,7 @@ def apply_axis_map(ref_uT: np.ndarray, axis_map: Sequence[tuple[int, int]]) -> n
     """Reference vectors in DUT axes: ``out[:, i] = sign_i * ref[:, perm_i]``."""
     amap = [(int(p), int(s)) for p, s in axis_map]
     if len(amap) != 3 or sorted(p for p, _ in amap) != [0, 1, 2] or any(s not in (1, -1) for _, s in amap):
-        raise ValueError(f"axis_map must be a signed permutation ((perm, +-1) x3), got {axis_map!r}")
+        raise ConfigurationError(f"axis_map must be a signed permutation ((perm, +-1) x3), got {axis_map!r}")
     return np.column_stack([s * ref_uT[:, p] for p, s in amap])
 
 
@@ -142,22 +142,22 @@ def import_mageval(data_csv: str | os.PathLike, ref_csv: str | os.PathLike, *,
     bad_lines: ``"raise"`` (SessionFileError naming the line) or ``"skip"`` (counted in metadata).
     """
     if temp_column not in ("temp_pi", "temp_mag"):
-        raise ValueError(f"temp_column must be 'temp_pi' or 'temp_mag', got {temp_column!r}")
+        raise ConfigurationError(f"temp_column must be 'temp_pi' or 'temp_mag', got {temp_column!r}")
     if on_undetermined not in ("prior", "raise"):
-        raise ValueError(f"on_undetermined must be 'prior' or 'raise', got {on_undetermined!r}")
+        raise ConfigurationError(f"on_undetermined must be 'prior' or 'raise', got {on_undetermined!r}")
     if gaps not in ("nan", "drop"):
-        raise ValueError(f"gaps must be 'nan' or 'drop', got {gaps!r}")
+        raise ConfigurationError(f"gaps must be 'nan' or 'drop', got {gaps!r}")
     if bad_lines not in ("raise", "skip"):
-        raise ValueError(f"bad_lines must be 'raise' or 'skip', got {bad_lines!r}")
+        raise ConfigurationError(f"bad_lines must be 'raise' or 'skip', got {bad_lines!r}")
     if not (isinstance(onto, str) and onto in ("dut", "ref")):
         try:
             step = float(onto)
         except (TypeError, ValueError):
-            raise ValueError(f"onto must be 'dut', 'ref' or a grid step in s, got {onto!r}") from None
+            raise ConfigurationError(f"onto must be 'dut', 'ref' or a grid step in s, got {onto!r}") from None
         if not (math.isfinite(step) and step > 0):
-            raise ValueError(f"grid step must be > 0 s, got {onto!r}")
+            raise ConfigurationError(f"grid step must be > 0 s, got {onto!r}")
     if not (max_gap_s > 0):
-        raise ValueError(f"max_gap_s must be > 0, got {max_gap_s}")
+        raise ConfigurationError(f"max_gap_s must be > 0, got {max_gap_s}")
 
     cols, skipped_dut = read_mageval_data(data_csv, bad_lines=bad_lines)
     t_ref_raw, ref_raw, skipped_ref = read_mageval_ref(ref_csv, bad_lines=bad_lines)

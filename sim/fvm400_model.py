@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.clock import Clock, SystemClock
+from drivers.errors import ConfigurationError
 from drivers.fvm400 import ACK, COMMANDS, DATA_TRAILER, EOT, NAK, RECORD_END, SERIAL_SETTINGS
 from sim.truth_source import StaticTruth, TruthSource
 
@@ -49,7 +50,7 @@ class FVM400Faults:
     def __post_init__(self) -> None:
         for k, v in self.__dict__.items():
             if not (0.0 <= float(v) <= 1.0):
-                raise ValueError(f"fault probability {k} must be in [0, 1], got {v}")
+                raise ConfigurationError(f"fault probability {k} must be in [0, 1], got {v}")
 
 
 class FVM400Model:
@@ -68,9 +69,9 @@ class FVM400Model:
         self.clock = clock if clock is not None else SystemClock()
         self.probe_from_truth = np.eye(3) if probe_from_truth is None else np.asarray(probe_from_truth, float)
         if self.probe_from_truth.shape != (3, 3):
-            raise ValueError("probe_from_truth must be 3x3")
+            raise ConfigurationError("probe_from_truth must be 3x3")
         if not (noise_uT >= 0 and math.isfinite(noise_uT)):
-            raise ValueError(f"noise_uT must be >= 0, got {noise_uT}")
+            raise ConfigurationError(f"noise_uT must be >= 0, got {noise_uT}")
         self.noise_uT = float(noise_uT)
         self.faults = faults or FVM400Faults()
         self.rng = np.random.default_rng(seed)
@@ -197,7 +198,7 @@ _REGISTRY: dict[str, FVM400Model] = {}
 def register_instrument(name: str, model: FVM400Model) -> None:
     """Make ``fvm400sim://<name>`` open ``model`` (replaces an earlier one of that name)."""
     if not name or not name.replace("_", "").replace("-", "").isalnum():
-        raise ValueError(f"instrument name must be alphanumeric/_/-: {name!r}")
+        raise ConfigurationError(f"instrument name must be alphanumeric/_/-: {name!r}")
     _REGISTRY[name] = model
 
 

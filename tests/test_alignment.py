@@ -193,3 +193,44 @@ def test_cli_align_reports_all_estimates(capsys, tmp_path):
     capsys.readouterr()
     assert main(["align", "--json", str(out_csv)]) == 0
     assert abs(json.loads(capsys.readouterr().out)["offset_s"]) < 0.05
+
+
+def test_aligned_session_pairs_raw_bench_rows_and_corrects_skew(tmp_path, capsys):
+    from hil.alignment import aligned_session
+    from hil.bench import build_sim_bench, run_bench
+    from hil.session_file import read_session
+
+    sb = build_sim_bench("hmc1053", program="sweep_y", seconds=60.0, instrument_name="t_al")
+    raw_path = tmp_path / "raw.csv"
+    run_bench(sb.dut, sb.ref, sb.clock, raw_path, seconds=60.0, ref_clock=sb.ref_clock)
+    raw = read_session(raw_path)
+    t_dut, dut, t_ref, ref = (raw.t_s[np.isfinite(raw.dut_uT[:, 0])], raw.dut_uT[np.isfinite(raw.dut_uT[:, 0])],
+                              raw.t_s[np.isfinite(raw.ref_uT[:, 0])], raw.ref_uT[np.isfinite(raw.ref_uT[:, 0])])
+    rep = align_streams(t_dut, dut, t_ref, ref, prior_s=0.0, search_halfwidth_s=5.0)
+    paired = aligned_session(raw, rep, correct_skew=True, gaps="drop")
+    assert np.all(np.isfinite(paired.ref_uT)) and np.all(np.isfinite(paired.dut_uT))
+    assert len(paired) >= len(t_dut) - 4 and "clock offset" in paired.metadata["alignment_applied"]
+    # after applying offset and skews the data show none left
+    again = align_streams(paired.t_s, paired.dut_uT, paired.t_s, paired.ref_uT, prior_s=0.0, search_halfwidth_s=2.0)
+    assert abs(again.offset.offset_s) < max(0.005, 4 * again.offset.sigma_s)
+    assert all(abs(e.value) < max(0.01, 4 * e.sigma) for e in again.skew_s if e.determined)
+    # the CLI does the same
+    out = tmp_path / "paired.csv"
+    assert main(["align", str(raw_path), "--out", str(out), "--drop-gaps"]) == 0
+    assert "paired rows" in capsys.readouterr().out and len(read_session(out)) >= len(t_dut) - 4
+    with pytest.raises(AlignmentError, match="nothing to pair"):
+        aligned_session(paired.select(np.zeros(len(paired), bool)), rep)
+
+
+def test_pooled_sweeps_determine_the_full_authors_axis_map():
+    """Each single-axis sweep determines one axis; pooled after alignment, all three are."""
+    duts, refs = [], []
+    for test in (5, 6, 7):
+        t_dut, dut, t_ref, ref_raw = _real(test)
+        off = estimate_clock_offset(t_dut, dut, t_ref, ref_raw)
+        y, ok = interp_no_extrapolation(t_ref + off.offset_s, ref_raw, t_dut)
+        duts.append(dut[ok])
+        refs.append(y[ok])
+    amap = estimate_axis_map(np.vstack(duts), np.vstack(refs))
+    assert all(amap.determined)
+    assert tuple(zip(amap.perm, amap.sign, strict=True)) == AUTHORS_AXIS_MAP

@@ -6,9 +6,10 @@ import json
 
 import numpy as np
 
-from hil.alignment import align_streams
+from drivers.errors import ConfigurationError
+from hil.alignment import align_streams, aligned_session
 from hil.mageval_import import AUTHORS_OFFSET_S, read_mageval_data, read_mageval_ref
-from hil.session_file import read_session
+from hil.session_file import read_session, write_session
 
 
 def register(subparsers) -> None:
@@ -25,6 +26,11 @@ def register(subparsers) -> None:
     p.add_argument("--max-gap-s", type=float, default=None, help="never interpolate across a longer gap (s)")
     p.add_argument("--min-r2", type=float, default=0.9, help="minimum explained variance to accept the offset")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.add_argument("--out", default=None,
+                   help="write the paired session: reference interpolated onto the DUT timestamps at the "
+                        "estimated offset (session input only; for DATA/REF use import-mageval)")
+    p.add_argument("--correct-skew", action="store_true", help="with --out: also re-sample determined DUT axes")
+    p.add_argument("--drop-gaps", action="store_true", help="with --out: drop rows without a reference")
     p.set_defaults(func=run)
 
 
@@ -41,10 +47,12 @@ def _load(inputs: list[str], prior: float | None, halfwidth: float | None):
         t_ref, ref, _ = read_mageval_ref(inputs[1])
         dut = np.column_stack([cols["x_test"], cols["y_test"], cols["z_test"]])
         return cols["time"], dut, t_ref, ref, AUTHORS_OFFSET_S if prior is None else prior, halfwidth
-    raise SystemExit("align: give one session file or DATA.csv REF.csv")
+    raise ConfigurationError(f"give one session file or DATA.csv REF.csv, got {len(inputs)} paths")
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.out and len(args.inputs) != 1:
+        raise ConfigurationError("--out needs a session file input; for DATA.csv REF.csv use import-mageval")
     t_dut, dut, t_ref, ref, prior, halfwidth = _load(args.inputs, args.prior_s, args.halfwidth_s)
     rep = align_streams(t_dut, dut, t_ref, ref, prior_s=prior, search_halfwidth_s=halfwidth,
                         max_gap_s=args.max_gap_s, min_r2=args.min_r2)
@@ -63,4 +71,10 @@ def run(args: argparse.Namespace) -> int:
           f"z {r['z'] * 1e3:.1f} nT, vector {r['vector'] * 1e3:.1f} nT (n={r['n']})")
     for n in rep.notes:
         print(f"note: {n}")
+    if args.out:
+        paired = aligned_session(read_session(args.inputs[0]), rep, correct_skew=args.correct_skew,
+                                 max_gap_s=args.max_gap_s, gaps="drop" if args.drop_gaps else "nan")
+        write_session(args.out, paired)
+        print(f"wrote {args.out}: {len(paired)} paired rows ({paired.metadata['gap_rows']} without reference, "
+              f"{paired.metadata['gap_policy']})")
     return 0

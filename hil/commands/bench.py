@@ -50,6 +50,7 @@ def run(args: argparse.Namespace) -> int:
         meta = {"bus": "sim", "program": args.program, "seed": str(args.seed), "ref_port": sb.ref_url,
                 "clock": "virtual"}
         res = run_bench(sb.dut, sb.ref, sb.clock, args.out, seconds=args.seconds, ref_rate_hz=args.ref_rate_hz,
+                        ref_clock=sb.ref_clock,
                         dut_rate_hz=args.dut_rate_hz, session_id=args.session_id, metadata=meta,
                         currents=cur, current_names=names, progress=progress)
     else:

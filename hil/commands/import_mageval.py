@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 
+from drivers.errors import ConfigurationError
 from hil.mageval_import import AUTHORS_OFFSET_S, import_mageval
 from hil.session_file import write_session
 
@@ -33,7 +34,10 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    onto: str | float = args.onto if args.onto in ("dut", "ref") else float(args.onto)
+    try:
+        onto: str | float = args.onto if args.onto in ("dut", "ref") else float(args.onto)
+    except ValueError:
+        raise ConfigurationError(f"--onto must be 'dut', 'ref' or a grid step in s, got {args.onto!r}") from None
     offset = AUTHORS_OFFSET_S if args.authors_offset else args.clock_offset_s
     s = import_mageval(args.data_csv, args.ref_csv, temp_column=args.temp_column, clock_offset_s=offset,
                        on_undetermined="raise" if args.strict_offset else "prior", onto=onto,
