@@ -1,7 +1,6 @@
 """Real bench data (AV-MagEval tests 3-7, MIT-STARLab, release 1.0): the issue's anchors.
 
-Reads the pairs from tests/data/av-mageval (shipped subset) or, where a file is not
-shipped, from /work/shared/realdata/av-mageval; skipped when neither has them.
+Reads the pairs from tests/data/av-mageval (the shipped subset, with attribution).
 Anchors from the issue: raw ~2.6 uT, gain matrix + offset ~85 nT, noise floor ~40 nT.
 """
 from __future__ import annotations
@@ -16,29 +15,18 @@ from firmware_py.calibration import FitData, FitOptions, fit
 from firmware_py.fixed_point import FixedPointTable, output_to_uT, to_fixed_inputs
 from firmware_py.float_applier import apply_float
 
-PAIRS = {3: ("test3/data2.csv", "test3/ref3.csv"), 4: ("test4/data3.csv", "test4/ref4.csv"),
-         5: ("test5/data5.csv", "test5/ref5.csv"), 6: ("test6/data6.csv", "test6/ref6.csv"),
-         7: ("test7/data7.csv", "test7/ref7.csv")}
-ROOTS = (Path(__file__).parent / "data" / "av-mageval", Path("/work/shared/realdata/av-mageval"))
-
-
-def _find(rel: str) -> Path | None:
-    for root in ROOTS:
-        for cand in (root / rel, root / Path(rel).name):
-            if cand.is_file():
-                return cand
-    return None
+PAIRS = {3: ("data2.csv", "ref3.csv"), 4: ("data3.csv", "ref4.csv"), 5: ("data5.csv", "ref5.csv"),
+         6: ("data6.csv", "ref6.csv"), 7: ("data7.csv", "ref7.csv")}
+DATA = Path(__file__).parent / "data" / "av-mageval"
 
 
 @pytest.fixture(scope="module")
 def bench():
-    mi = pytest.importorskip("hil.mageval_import")
+    from hil import mageval_import as mi
     from hil.session_file import Session
     parts = []
     for n, (d, r) in PAIRS.items():
-        dp, rp = _find(d), _find(r)
-        if dp is None or rp is None:
-            pytest.skip(f"real data for test {n} not available")
+        dp, rp = DATA / d, DATA / r
         # the authors' pairing: fixed 4 h - 0.5 s clock correction, both onto a 0.25 s grid
         parts.append(mi.import_mageval(dp, rp, session_id=n, onto=0.25, clock_offset_s=mi.AUTHORS_OFFSET_S))
     return FitData.from_session(Session.concatenate(parts))

@@ -60,8 +60,10 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(rep.as_dict(), indent=2))
         return 0
     o = rep.offset
+    runner_up = ("no other minimum in the search window" if not np.isfinite(o.runner_up_ratio)
+                 else f"next minimum {o.runner_up_ratio:.1f}x worse")
     print(f"clock offset: {o.offset_s:.4f} s +- {o.sigma_s:.4f} s (add to reference time); "
-          f"R2 {o.r2:.6f}; {o.n_pairs} pairs; next minimum {o.runner_up_ratio:.1f}x worse")
+          f"R2 {o.r2:.6f}; {o.n_pairs} pairs; {runner_up}")
     for ax, e in zip("xyz", rep.skew_s, strict=True):
         state = "" if e.determined else f"  UNDETERMINED: {e.reason}"
         print(f"skew {ax}: {e.value:+.4f} s +- {e.sigma:.4f} s{state}")
