@@ -105,3 +105,18 @@ def test_model_choice(tmp_path, capsys, model):
     assert main(["fit", str(tmp_path / "a.csv"), "--model", model, "--no-holdout",
                  "--out", str(tmp_path / "c.json")]) == 0
     assert json.loads((tmp_path / "c.json").read_text())["model"]["name"] == model
+
+
+def test_calibrate_session_accepts_a_table_that_was_never_saved(tmp_path):
+    """A table straight from the fit (crc32 not yet computed) still labels its output."""
+    from firmware_py.cal_table import table_from_fit
+    from firmware_py.calibration import FitData, fit
+    from hil.commands.apply import calibrate_session
+
+    _session_file(tmp_path / "a.csv", 1, 0, currents=())
+    s = read_session(tmp_path / "a.csv")
+    table = table_from_fit(fit(FitData.from_session(s), "eq3"), "hmc1053:sn7")
+    assert table.crc32 is None
+    out = calibrate_session(table, s, "fixed")
+    assert out.metadata["cal_table_crc32"] == table.to_document()["crc32"]
+    assert np.isfinite(out.dut_uT).all()

@@ -47,7 +47,8 @@ def calibrate_session(table, s: Session, applier: str = "float") -> Session:
     old = s.flag if s.flag is not None else np.zeros(len(s), np.int64)
     meta = dict(s.metadata)
     meta.update({"calibrated": "true", "dut_field": "calibrated", "cal_device_id": table.device_id,
-                 "cal_model": table.model_name, "cal_table_crc32": f"0x{table.crc32:08x}",
+                 "cal_model": table.model_name, "cal_table_crc32": (f"0x{table.crc32:08x}" if table.crc32 is not None
+                                     else table.to_document()["crc32"]),
                  "cal_applier": applier,
                  "cal_flag_bits": f"{int(ApplyFlag.MISSING_INPUT) << FLAG_SHIFT}=missing_input "
                                   f"{int(ApplyFlag.OUT_OF_VALIDITY) << FLAG_SHIFT}=out_of_validity "
