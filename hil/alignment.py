@@ -13,12 +13,18 @@ Conventions (all times in seconds, fields in uT):
   ``perm[i]`` (up to gain and offset).
 
 Every estimate is the minimiser of the residual of a linear least-squares fit (3x3 gain
-matrix + offset vector), so it is invariant to the axis map and to gains and offsets. The
-uncertainty comes from the curvature of that residual, ``var = 2 s^2 / SSR''``, with the
-residual variance ``s^2`` inflated for the residuals' lag-1 autocorrelation (effective sample
-size). When the data cannot determine a parameter (static field, no overlap, periodic
-ambiguity) :class:`drivers.errors.AlignmentError` is raised (offset) or the per-axis result
-is flagged ``determined=False`` with a reason (skew, axis map).
+matrix + offset vector), so it is invariant to the axis map and to gains and offsets. When
+the DUT rows carry a temperature whose span is material (``temp_c``; default span >= 1 degC)
+the fits also get the temperature terms of the calibration model (belsten Eq. 3): the
+products ``x * dT`` of every field column ``x`` and a ``dT`` column, ``dT = T - mean(T)``, and by
+default the second-order ``x * dT^2``, ``dT^2``, so a thermally varying gain or offset is not
+mistaken for a time shift. Which model was used is recorded (``model``); without a usable
+temperature the plain model is used. The uncertainty is the larger of the curvature of that
+residual, ``var = 2 s^2 / SSR''`` (residual variance ``s^2`` inflated for the residuals' lag-1
+autocorrelation), and a delete-one-block jackknife. When the data cannot determine a
+parameter (static field, no overlap, periodic ambiguity) :class:`drivers.errors.AlignmentError`
+is raised (offset) or the per-axis result is flagged ``determined=False`` with a reason (skew,
+axis map).
 
 Only numpy is needed; reference streams are interpolated linearly, never extrapolated.
 """
@@ -36,6 +42,15 @@ AXES = "xyz"
 #: Coarse offset search limits (keep a long session's search to a few seconds).
 MAX_COARSE_CANDIDATES = 4000
 MAX_COARSE_ROWS = 1000
+#: Temperature model (``temp_model="auto"``): used when the temperature is finite on at least
+#: MIN_TEMP_FRACTION of the DUT rows and its 2..98 % percentile span is at least MIN_TEMP_SPAN_C.
+#: (HMC1053 sensitivity tempco ~ -2700 ppm/degC: 1 degC ~ 135 nT at 50 uT.)
+MIN_TEMP_SPAN_C = 1.0
+MIN_TEMP_FRACTION = 0.8
+#: Temperature terms: 1 = belsten Eq. 3 (x*dT, dT); 2 = also x*dT^2, dT^2 (the inverse of a gain
+#: 1 + k dT is not linear in dT: over -20..60 degC at -2700 ppm/degC the quadratic part is ~0.6 uT).
+TEMP_ORDER = 2
+TEMP_MODELS = ("auto", "on", "off")
 
 
 # --------------------------------------------------------------------------- interpolation
@@ -79,13 +94,29 @@ def _interp_batch(t_src: np.ndarray, y_src: np.ndarray, tq: np.ndarray, max_gap_
 
 
 # --------------------------------------------------------------------------- linear fits
+def _lstsq(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """Least-squares solution of ``X @ B ~ Y`` (as ``np.linalg.lstsq`` for a full-rank ``X``; for a
+    rank-deficient one, minimum norm in column-scaled coordinates: the residual is the same).
+
+    Tall problems are solved through the normal equations of the column-scaled design (the same
+    sums the batched offset search uses), so LAPACK only sees a p x p system: the SVD or QR of
+    the full rows took 20-90 ms per call on the 2-core machine under load, this ~0.1 ms.
+    """
+    if X.shape[0] > 4 * X.shape[1]:
+        scale = np.sqrt(np.sum(X * X, axis=0))
+        scale[scale == 0] = 1.0
+        xs = X / scale
+        return np.linalg.lstsq(xs.T @ xs, xs.T @ Y, rcond=None)[0] / scale[:, None]
+    return np.linalg.lstsq(X, Y, rcond=None)[0]
+
+
 def linear_fit(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Least-squares ``y ~ x @ M.T + c`` on finite rows; returns ``(M (k,3), c (k,), residual (n,k))``."""
+    """Least-squares ``y ~ x @ M.T + c`` on finite rows; returns ``(M (k,p), c (k,), residual (n,k))``."""
     x = np.asarray(x, float)
     y = np.asarray(y, float)
     ok = np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(y), axis=1)
     X = np.column_stack([x[ok], np.ones(ok.sum())])
-    coef, *_ = np.linalg.lstsq(X, y[ok], rcond=None)
+    coef = _lstsq(X, y[ok])
     resid = y[ok] - X @ coef
     return coef[:-1].T, coef[-1], resid
 
@@ -98,39 +129,76 @@ def linear_fit_rmse_uT(ref_uT: np.ndarray, dut_uT: np.ndarray) -> dict[str, floa
     _, _, r = linear_fit(dut_uT, ref_uT)
     if r.shape[0] < 5:
         raise AlignmentError(f"only {r.shape[0]} paired rows: too few for a linear fit")
+    return _rmse_dict(r)
+
+
+def _rmse_dict(r: np.ndarray) -> dict[str, float]:
+    """Per-axis and vector RMSE (uT) and row count of residuals (n,3)."""
     rms = np.sqrt(np.mean(r ** 2, axis=0))
     return {"x": float(rms[0]), "y": float(rms[1]), "z": float(rms[2]),
             "vector": float(np.sqrt(np.mean(np.sum(r ** 2, axis=1)))), "n": int(r.shape[0])}
 
 
-def _batched_ssr(X: np.ndarray, Y: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For each candidate c: SSR of ``Y[c] ~ [X[c], 1]`` on rows valid[c].
+def _normal_eqs(X: np.ndarray, Y: np.ndarray, valid: np.ndarray):
+    """Per candidate c, the normal equations of ``Y[c] ~ [X[c], 1]`` on rows valid[c].
 
-    X (C,M,p) or (M,p); Y (C,M,k) or (M,k); returns (ssr (C,), sst (C,), n (C,)).
+    X (C,M,p) or (M,p); Y (C,M,k) or (M,k); valid (C,M). Returns the additive sums
+    ``(xtx (C,p+1,p+1), xty (C,p+1,k), yty (C,k), ysum (C,k), n (C,))``: sums over row blocks
+    add up, so a delete-one-block fit is ``total - block`` (no refit over the rows).
     """
-    C = valid.shape[0]
+    C, M = valid.shape
     X = np.broadcast_to(X, (C,) + X.shape[-2:]) if X.ndim == 2 else X
     Y = np.broadcast_to(Y, (C,) + Y.shape[-2:]) if Y.ndim == 2 else Y
     w = valid.astype(float)
-    Xw = np.where(valid[..., None], X, 0.0)
+    Xa = np.concatenate([np.where(valid[..., None], X, 0.0), w[..., None]], axis=2)
     Yw = np.where(valid[..., None], Y, 0.0)
-    n = w.sum(axis=1)
-    Xa = np.concatenate([Xw, w[..., None]], axis=2)
     xa_t = Xa.transpose(0, 2, 1)
-    xtx = np.matmul(xa_t, Xa)
-    xty = np.matmul(xa_t, Yw)
-    yty = np.sum(Yw * Yw, axis=(1, 2))
-    p = Xa.shape[2]
+    return np.matmul(xa_t, Xa), np.matmul(xa_t, Yw), np.sum(Yw * Yw, axis=1), Yw.sum(axis=1), w.sum(axis=1)
+
+
+def _solve_ssr(xtx, xty, yty, ysum, n) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """SSR and SST per candidate and target column, (C,k) each, from :func:`_normal_eqs` sums.
+
+    Candidates with too few rows (n <= p + 2) get NaN.
+    """
+    p = xtx.shape[-1]
     ridge = 1e-12 * np.trace(xtx, axis1=1, axis2=2)[:, None, None] * np.eye(p)
     ok = n > p + 2
     beta = np.zeros_like(xty)
     if ok.any():
         beta[ok] = np.linalg.solve(xtx[ok] + ridge[ok], xty[ok])
-    ssr = yty - np.sum(beta * xty, axis=(1, 2))
-    ysum = Yw.sum(axis=1)
-    sst = yty - np.sum(ysum ** 2, axis=1) / np.maximum(n, 1)
-    ssr = np.where(ok, np.maximum(ssr, 0.0), np.nan)
-    return ssr, np.where(ok, sst, np.nan), n
+    ssr = yty - np.sum(beta * xty, axis=1)
+    sst = yty - ysum ** 2 / np.maximum(n, 1)[:, None]
+    ssr = np.where(ok[:, None], np.maximum(ssr, 0.0), np.nan)
+    return ssr, np.where(ok[:, None], sst, np.nan), n
+
+
+def _batched_ssr(X: np.ndarray, Y: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each candidate c: SSR of ``Y[c] ~ [X[c], 1]`` on rows valid[c].
+
+    X (C,M,p) or (M,p); Y (C,M,k) or (M,k); returns (ssr (C,), sst (C,), n (C,)), summed over
+    the k target columns.
+    """
+    ssr, sst, n = _solve_ssr(*_normal_eqs(X, Y, valid))
+    return ssr.sum(axis=1), sst.sum(axis=1), n
+
+
+def _block_ssr(X: np.ndarray, Y: np.ndarray, valid: np.ndarray, n_blocks: int):
+    """SSR (C,k) on all rows and with each of ``n_blocks`` contiguous row blocks deleted.
+
+    Returns ``(ssr_all, sst_all, [ssr_without_block_b])``; one pass over the rows (the normal
+    equations of each block are subtracted from the total).
+    """
+    M = valid.shape[1]
+    edges = np.linspace(0, M, n_blocks + 1).astype(int)
+    parts = []
+    for b in range(n_blocks):
+        sl = slice(edges[b], edges[b + 1])
+        parts.append(_normal_eqs(X[..., sl, :], Y[..., sl, :], valid[:, sl]))
+    total = tuple(sum(pt[i] for pt in parts) for i in range(5))
+    ssr, sst, _ = _solve_ssr(*total)
+    loo = [_solve_ssr(*(t - q for t, q in zip(total, pt, strict=True)))[0] for pt in parts]
+    return ssr, sst, loo
 
 
 # --------------------------------------------------------------------------- results
@@ -159,6 +227,7 @@ class OffsetEstimate:
     curve_unexplained: np.ndarray = field(repr=False, default_factory=lambda: np.empty(0))
     sigma_curvature_s: float = math.nan
     sigma_jackknife_s: float = math.nan
+    model: str = "linear"
 
 
 @dataclass
@@ -193,11 +262,16 @@ class AlignmentReport:
     axis_map: AxisMap
     rmse_uT: dict[str, float]
     notes: list[str] = field(default_factory=list)
+    #: regression model used for offset, skew and axis map (``"linear"`` or ``"linear+temperature ..."``)
+    model: str = "linear"
+    #: RMSE of ``ref ~ A dut + K (dut dT) + k dT + b`` when the temperature model was used, else None
+    rmse_model_uT: dict[str, float] | None = None
 
     def as_dict(self) -> dict:
         return {
             "offset_s": self.offset.offset_s, "offset_sigma_s": self.offset.sigma_s, "r2": self.offset.r2,
             "n_pairs": self.offset.n_pairs, "runner_up_ratio": self.offset.runner_up_ratio,
+            "model": self.model, "rmse_model_uT": self.rmse_model_uT,
             "skew_s": {AXES[i]: e.as_dict() for i, e in enumerate(self.skew_s)},
             "axis_map": {"perm": list(self.axis_map.perm), "sign": list(self.axis_map.sign),
                          "determined": list(self.axis_map.determined), "reasons": list(self.axis_map.reasons),
@@ -208,11 +282,18 @@ class AlignmentReport:
 
 
 # --------------------------------------------------------------------------- helpers
-def _clean(t: np.ndarray, v: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
+def _clean(t: np.ndarray, v: np.ndarray, what: str, temp_c: np.ndarray | None = None):
+    """Finite rows sorted by time, duplicate timestamps removed: ``(t, v)``, or ``(t, v, temp)``
+    when ``temp_c`` (one value per row, may be NaN) is given."""
     t = np.asarray(t, float).reshape(-1)
     v = np.asarray(v, float)
     if v.ndim != 2 or v.shape != (t.size, 3):
         raise AlignmentError(f"{what}: expected (N,3) field array matching {t.size} timestamps, got {v.shape}")
+    temp = None
+    if temp_c is not None:
+        temp = np.asarray(temp_c, float).reshape(-1)
+        if temp.size != t.size:
+            raise AlignmentError(f"{what}: temp_c has {temp.size} values for {t.size} timestamps")
     ok = np.isfinite(t) & np.all(np.isfinite(v), axis=1)
     t, v = t[ok], v[ok]
     order = np.argsort(t, kind="stable")
@@ -220,7 +301,78 @@ def _clean(t: np.ndarray, v: np.ndarray, what: str) -> tuple[np.ndarray, np.ndar
     keep = np.concatenate([[True], np.diff(t) > 0])
     if t.size < 10:
         raise AlignmentError(f"{what}: only {t.size} finite samples; need at least 10")
-    return t[keep], v[keep]
+    if temp_c is None:
+        return t[keep], v[keep]
+    return t[keep], v[keep], temp[ok][order][keep]
+
+
+def _temperature_terms(t_s: np.ndarray, temp_c: np.ndarray | None, mode: str, min_span_c: float,
+                       order: int) -> tuple[np.ndarray | None, np.ndarray | None, str]:
+    """Decide the regression model; returns ``(tcols (N,order) or None, temp_c filled, description)``.
+
+    ``tcols[:, 0] = u = (T - mean T) / std T`` and, for ``order`` 2, ``tcols[:, 1] = u^2 - 1``
+    (scaled only for conditioning: the residuals do not depend on the scale). Missing
+    temperatures between finite ones are interpolated in time (the temperature is slow); rows
+    before the first or after the last finite value get NaN and are left out of the fits.
+    """
+    if mode not in TEMP_MODELS:
+        raise AlignmentError(f"temp_model must be one of {TEMP_MODELS}, got {mode!r}")
+    if order not in (1, 2):
+        raise AlignmentError(f"temp_order must be 1 (Eq. 3) or 2 (Eq. 3 + dT^2 terms), got {order!r}")
+    if mode == "off":
+        return None, None, "linear (temperature model switched off)"
+    if temp_c is None:
+        return None, None, "linear (no temperature column)"
+    fin = np.isfinite(temp_c)
+    frac = float(fin.mean()) if temp_c.size else 0.0
+    if frac < MIN_TEMP_FRACTION or fin.sum() < 10:
+        return None, None, (f"linear (temperature finite on only {frac:.0%} of the DUT rows, "
+                            f"< {MIN_TEMP_FRACTION:.0%})")
+    lo_c, hi_c = np.percentile(temp_c[fin], [2.0, 98.0])
+    span = float(hi_c - lo_c)
+    need = min_span_c if mode == "auto" else 0.0
+    if not span > need or not span > 0:
+        return None, None, f"linear (temperature span {span:.2f} degC < {min_span_c:g} degC)"
+    temp = temp_c.copy()
+    if not fin.all():
+        inside = (t_s >= t_s[fin][0]) & (t_s <= t_s[fin][-1])
+        temp[~fin & inside] = np.interp(t_s[~fin & inside], t_s[fin], temp_c[fin])
+    mean_c = float(np.nanmean(temp))
+    u = (temp - mean_c) / float(np.nanstd(temp))
+    cols = [u] if order == 1 else [u, u * u - 1.0]
+    terms = "x*dT, dT" if order == 1 else "x*dT, dT and second-order x*dT^2, dT^2"
+    desc = (f"linear+temperature (belsten Eq. 3 terms {terms}; dT = T - {mean_c:.2f} degC; "
+            f"temperature span {span:.1f} degC on {int(np.isfinite(temp).sum())} rows)")
+    return np.column_stack(cols), temp, desc
+
+
+def _with_temp(x: np.ndarray, tcols: np.ndarray | None) -> np.ndarray:
+    """Design columns ``[x, x * t_1, .., t_1, ..]`` for field columns ``x`` (..., M, 3) and
+    temperature columns ``tcols`` (M, q)."""
+    if tcols is None:
+        return x
+    parts = [x] + [x * tcols[:, j:j + 1] for j in range(tcols.shape[1])]
+    parts.append(np.broadcast_to(tcols, x.shape[:-1] + (tcols.shape[1],)))
+    return np.concatenate(parts, axis=-1)
+
+
+def _prepare_dut(t_dut, dut_uT, temp_c, temp_model: str, min_temp_span_c: float, temp_order: int):
+    """Clean the DUT stream; returns ``(t, dut, temp_c or None, tcols or None, model description)``.
+
+    With the temperature model, DUT rows without a temperature are dropped.
+    """
+    if temp_c is None:
+        t, v = _clean(t_dut, dut_uT, "DUT")
+        temp = None
+    else:
+        t, v, temp = _clean(t_dut, dut_uT, "DUT", temp_c)
+    tcols, temp, model = _temperature_terms(t, temp, temp_model, min_temp_span_c, temp_order)
+    if tcols is not None:
+        ok = np.isfinite(temp)
+        if ok.sum() < 10:
+            raise AlignmentError(f"DUT: only {int(ok.sum())} rows with a temperature; need at least 10")
+        t, v, temp, tcols = t[ok], v[ok], temp[ok], tcols[ok]
+    return t, v, temp, tcols, model
 
 
 def _eff_factor(resid: np.ndarray) -> float:
@@ -256,12 +408,6 @@ def _vertex(grid: np.ndarray, ssr: np.ndarray, half_window_s: float) -> tuple[fl
     return vertex, curv, k
 
 
-def _blocks(n: int, n_blocks: int) -> list[np.ndarray]:
-    """Contiguous row blocks for the delete-one-block jackknife."""
-    edges = np.linspace(0, n, n_blocks + 1).astype(int)
-    return [np.arange(edges[b], edges[b + 1]) for b in range(n_blocks)]
-
-
 def _jackknife_sigma(values: list[float]) -> float:
     v = np.asarray([x for x in values if math.isfinite(x)])
     g = v.size
@@ -275,8 +421,14 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
                           prior_s: float | None = None, search_halfwidth_s: float | None = None,
                           step_s: float | None = None, min_overlap: float = 0.5, max_gap_s: float | None = None,
                           min_r2: float = 0.9, max_sigma_s: float = 1.0,
-                          ambiguity_ratio: float = 2.0, n_blocks: int = 20) -> OffsetEstimate:
+                          ambiguity_ratio: float = 2.0, n_blocks: int = 20, temp_c: np.ndarray | None = None,
+                          temp_model: str = "auto", min_temp_span_c: float = MIN_TEMP_SPAN_C,
+                          temp_order: int = TEMP_ORDER) -> OffsetEstimate:
     """Clock offset (add to reference time to get DUT time) minimising ``ref ~ A dut + b``.
+
+    ``temp_c`` (degC, one per DUT row, NaN allowed) adds the Eq. 3 temperature columns
+    (``ref ~ A dut + K (dut dT) + k dT + b``) when ``temp_model`` is ``"on"``, or ``"auto"``
+    and the temperature span is at least ``min_temp_span_c``; ``model`` records the choice.
 
     Coarse search: every offset in ``prior_s +- search_halfwidth_s`` (default: every offset that
     overlaps at least ``min_overlap`` of the shorter stream) at ``step_s`` (default half the
@@ -289,7 +441,8 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
     uncertainty exceeds ``max_sigma_s`` or when another, distant minimum fits within
     ``ambiguity_ratio`` of the best unexplained variance (periodic signal).
     """
-    t_dut, dut = _clean(t_dut, dut_uT, "DUT")
+    t_dut, dut, _, tcols, model = _prepare_dut(t_dut, dut_uT, temp_c, temp_model, min_temp_span_c, temp_order)
+    xd = _with_temp(dut, tcols)  # regressors on the DUT rows (fixed for every candidate offset)
     t_ref, ref = _clean(t_ref, ref_uT, "reference")
     dt_ref = float(np.median(np.diff(t_ref)))
     dt_dut = float(np.median(np.diff(t_dut)))
@@ -313,12 +466,12 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
 
     def cost(offsets: np.ndarray, rows: np.ndarray | None = None):
         td = t_dut if rows is None else t_dut[rows]
-        dd = dut if rows is None else dut[rows]
+        dd = xd if rows is None else xd[rows]
         min_rows = max(10, int(0.2 * td.size))
         out_ssr = np.full(offsets.size, np.nan)
         out_sst = np.full(offsets.size, np.nan)
         out_n = np.zeros(offsets.size)
-        chunk = max(1, 2_000_000 // max(1, td.size * 3))
+        chunk = max(1, 2_000_000 // max(1, td.size * dd.shape[1]))
         for s in range(0, offsets.size, chunk):
             o = offsets[s:s + chunk]
             tq = td[None, :] - o[:, None]
@@ -354,27 +507,22 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
     # Fine stage on a 5 ms grid; the curve is computed once, then once per deleted block.
     fine = center + np.arange(-max(2 * h, 0.25), max(2 * h, 0.25) + 0.0025, 0.005)
     yf, vf = _interp_batch(t_ref, ref, t_dut[None, :] - fine[:, None], gap)
-    ssr_f, _, _ = _batched_ssr(dut, yf, vf)
+    ssr_f, _, loo = _block_ssr(xd, yf, vf, n_blocks)
     win = max(h, 0.1)
-    vertex, curv, kf = _vertex(fine, ssr_f, win)
-    jack = []
-    for blk in _blocks(t_dut.size, n_blocks):
-        keep = vf.copy()
-        keep[:, blk] = False
-        s_b, _, _ = _batched_ssr(dut, yf, keep)
-        jack.append(_vertex(fine, s_b, win)[0])
+    vertex, curv, kf = _vertex(fine, ssr_f.sum(axis=1), win)
+    jack = [_vertex(fine, s_b.sum(axis=1), win)[0] for s_b in loo]
     sigma_jk = _jackknife_sigma(jack)
     # residual statistics at the vertex
     y, valid = interp_no_extrapolation(t_ref, ref, t_dut - vertex, gap)
-    _, _, resid = linear_fit(dut[valid], y[valid])
-    dof = max(1, resid.size - 12)
+    _, _, resid = linear_fit(xd[valid], y[valid])
+    dof = max(1, resid.size - 3 * (xd.shape[1] + 1))
     s2 = float(np.sum(resid ** 2)) / dof
     # curvature: var = 2 s^2 / SSR'' (SSR summed over the 3 components), inflated for autocorrelation
     sigma_curv = math.sqrt(2 * s2 / curv) * _eff_factor(resid) if curv > 0 else math.inf
     sigma = max(sigma_curv, sigma_jk)
     r2 = 1.0 - best_u
     est = OffsetEstimate(vertex, sigma, r2, int(valid.sum()), (float(lo), float(hi)), ratio, grid, unexpl,
-                         sigma_curv, sigma_jk)
+                         sigma_curv, sigma_jk, model)
     if r2 < min_r2:
         raise AlignmentError(f"the data do not determine the clock offset: best linear fit explains only "
                              f"{r2:.1%} of the reference variance (static or unrelated field?)")
@@ -392,15 +540,18 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
 def estimate_axis_skew(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarray, ref_uT: np.ndarray,
                        offset_s: float, *, max_skew_s: float | None = None, max_gap_s: float | None = None,
                        min_r2: float = 0.9, max_sigma_s: float | None = None,
-                       n_blocks: int = 20) -> list[ParamEstimate]:
+                       n_blocks: int = 20, temp_c: np.ndarray | None = None, temp_model: str = "auto",
+                       min_temp_span_c: float = MIN_TEMP_SPAN_C, temp_order: int = TEMP_ORDER) -> list[ParamEstimate]:
     """Per-axis time skew of the DUT relative to ``offset_s`` (see module doc for the sign).
 
     For axis ``i`` the skew minimises the residual of ``dut_i ~ a . ref(t + skew - offset) + c``.
     An axis whose fit explains less than ``min_r2`` of its variance, or whose uncertainty exceeds
     ``max_sigma_s`` (default: one DUT sample period), is returned with ``determined=False``.
     The uncertainty is the larger of the curvature and the delete-one-block jackknife estimates.
+    With a usable temperature (``temp_c``, as for :func:`estimate_clock_offset`) the fit is
+    ``dut_i ~ a . ref + a' . (ref dT) + k dT + c``.
     """
-    t_dut, dut = _clean(t_dut, dut_uT, "DUT")
+    t_dut, dut, _, tcols, _ = _prepare_dut(t_dut, dut_uT, temp_c, temp_model, min_temp_span_c, temp_order)
     t_ref, ref = _clean(t_ref, ref_uT, "reference")
     dt_ref = float(np.median(np.diff(t_ref)))
     dt_dut = float(np.median(np.diff(t_dut)))
@@ -415,23 +566,20 @@ def estimate_axis_skew(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarray,
     out: list[ParamEstimate] = []
     if common.sum() < 10:
         return [ParamEstimate(math.nan, math.nan, False, "too little overlap") for _ in range(3)]
-    yv = y[:, common, :]
+    yv = _with_temp(y[:, common, :], None if tcols is None else tcols[common])
     vmask = np.ones(yv.shape[:2], bool)
-    blocks = _blocks(int(common.sum()), n_blocks)
+    # the design (reference columns) is shared by the three DUT axes: one pass gives every axis's
+    # residual curve, all rows and each block deleted
+    ssr_all, sst_all, loo = _block_ssr(yv, dut[common], vmask, n_blocks)
     win = max(dt_ref / 2, 0.1)
     for i in range(3):
-        target = np.broadcast_to(dut[common, i:i + 1], (grid.size, int(common.sum()), 1))
-        ssr, sst, _ = _batched_ssr(yv, target, vmask)
+        ssr, sst = ssr_all[:, i], sst_all[:, i]
         vertex, curv, k = _vertex(grid, ssr, win)
         r2 = 1 - ssr[k] / sst[k]
-        _, _, resid = linear_fit(yv[k], target[0])
-        s2 = float(np.sum(resid ** 2)) / max(1, resid.size - 4)
+        _, _, resid = linear_fit(yv[k], dut[common, i:i + 1])
+        s2 = float(np.sum(resid ** 2)) / max(1, resid.size - yv.shape[2] - 1)
         sigma_curv = math.sqrt(2 * s2 / curv) * _eff_factor(resid) if curv > 0 else math.inf
-        jack = []
-        for blk in blocks:
-            keep = vmask.copy()
-            keep[:, blk] = False
-            jack.append(_vertex(grid, _batched_ssr(yv, target, keep)[0], win)[0])
+        jack = [_vertex(grid, s_b[:, i], win)[0] for s_b in loo]
         sigma = max(sigma_curv, _jackknife_sigma(jack))
         if r2 < min_r2:
             out.append(ParamEstimate(vertex, sigma, False, f"axis fit explains only {r2:.1%} of its variance "
@@ -447,25 +595,41 @@ def estimate_axis_skew(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarray,
 
 # --------------------------------------------------------------------------- axis map
 def estimate_axis_map(dut_uT: np.ndarray, ref_on_dut_uT: np.ndarray, *, min_t: float = 10.0,
-                      min_dominance: float = 3.0) -> AxisMap:
+                      min_dominance: float = 3.0, temp_c: np.ndarray | None = None, temp_model: str = "auto",
+                      min_temp_span_c: float = MIN_TEMP_SPAN_C, temp_order: int = TEMP_ORDER) -> AxisMap:
     """Signed permutation relating time-aligned DUT and reference samples.
 
-    Fits ``dut ~ G ref + c``; the permutation maximises ``sum_i |G[i, perm[i]]| * std(ref_perm[i])``
-    (the field each reference axis contributes), the sign is that of ``G[i, perm[i]]``. DUT axis
+    Fits ``dut ~ G ref + c`` (with a usable temperature ``temp_c`` (degC per row) also the
+    temperature terms ``ref dT``, ``dT`` (and ``dT^2`` ones for ``temp_order`` 2), so ``G`` is the
+    gain at the mean temperature); the permutation maximises
+    ``sum_i |G[i, perm[i]]| * std(ref_perm[i])`` (the field each reference axis contributes),
+    the sign is that of ``G[i, perm[i]]``. DUT axis
     ``i`` is determined when its coefficient's t statistic is at least ``min_t`` and its
     contribution dominates the other reference axes in that row by ``min_dominance``.
     """
     dut = np.asarray(dut_uT, float)
     ref = np.asarray(ref_on_dut_uT, float)
+    if dut.ndim != 2 or dut.shape[1:] != (3,) or ref.shape != dut.shape:
+        raise AlignmentError(f"axis map: expected two (N,3) arrays, got {dut.shape} and {ref.shape}")
     ok = np.all(np.isfinite(dut), axis=1) & np.all(np.isfinite(ref), axis=1)
+    temp = None
+    if temp_c is not None:
+        temp = np.asarray(temp_c, float).reshape(-1)
+        if temp.size != ok.size:
+            raise AlignmentError(f"axis map: temp_c has {temp.size} values for {ok.size} rows")
+    tcols, temp, _ = _temperature_terms(np.arange(ok.size, dtype=float), temp, temp_model, min_temp_span_c,
+                                        temp_order)
+    if tcols is not None:
+        ok &= np.isfinite(temp)
+        tcols = tcols[ok]
     dut, ref = dut[ok], ref[ok]
     if dut.shape[0] < 10:
         raise AlignmentError(f"only {dut.shape[0]} paired samples: cannot estimate the axis map")
-    X = np.column_stack([ref, np.ones(ref.shape[0])])
-    coef, *_ = np.linalg.lstsq(X, dut, rcond=None)
-    G = coef[:3].T  # (dut axis, ref axis)
+    X = np.column_stack([_with_temp(ref, tcols), np.ones(ref.shape[0])])
+    coef = _lstsq(X, dut)
+    G = coef[:3].T  # (dut axis, ref axis) at the mean temperature
     resid = dut - X @ coef
-    dof = max(1, ref.shape[0] - 4)
+    dof = max(1, ref.shape[0] - X.shape[1])
     xtx_inv = np.linalg.pinv(X.T @ X)
     se = np.sqrt(np.outer(np.sum(resid ** 2, axis=0) / dof, np.diag(xtx_inv)[:3]))  # (dut, ref)
     contrib = np.abs(G) * ref.std(axis=0)[None, :]
@@ -499,27 +663,39 @@ def estimate_axis_map(dut_uT: np.ndarray, ref_on_dut_uT: np.ndarray, *, min_t: f
 # --------------------------------------------------------------------------- all together
 def align_streams(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarray, ref_uT: np.ndarray, *,
                   prior_s: float | None = None, search_halfwidth_s: float | None = None,
-                  max_gap_s: float | None = None, min_r2: float = 0.9) -> AlignmentReport:
+                  max_gap_s: float | None = None, min_r2: float = 0.9, temp_c: np.ndarray | None = None,
+                  temp_model: str = "auto", min_temp_span_c: float = MIN_TEMP_SPAN_C,
+                  temp_order: int = TEMP_ORDER) -> AlignmentReport:
     """Clock offset, per-axis skew and axis map of a DUT/reference pair, with uncertainties.
 
     Raises AlignmentError when the clock offset cannot be determined; skew and axis-map entries
-    that the data do not determine are flagged in the report. ``rmse_uT`` is the residual of the
-    12-parameter linear fit ``ref ~ A dut + b`` with the reference interpolated onto the DUT
-    timestamps at the estimated offset.
+    that the data do not determine are flagged in the report. ``temp_c`` (degC, one value per DUT
+    row, NaN allowed) switches every regression to the temperature model when its span is
+    material (see :func:`estimate_clock_offset`); ``model`` records which model was used.
+    ``rmse_uT`` is the residual of the 12-parameter linear fit ``ref ~ A dut + b`` with the
+    reference interpolated onto the DUT timestamps at the estimated offset; ``rmse_model_uT``
+    that of the temperature model (None when it was not used).
     """
+    tkw = {"temp_c": temp_c, "temp_model": temp_model, "min_temp_span_c": min_temp_span_c, "temp_order": temp_order}
     off = estimate_clock_offset(t_dut, dut_uT, t_ref, ref_uT, prior_s=prior_s,
-                                search_halfwidth_s=search_halfwidth_s, max_gap_s=max_gap_s, min_r2=min_r2)
-    skew = estimate_axis_skew(t_dut, dut_uT, t_ref, ref_uT, off.offset_s, max_gap_s=max_gap_s, min_r2=min_r2)
-    td, dut = _clean(t_dut, dut_uT, "DUT")
+                                search_halfwidth_s=search_halfwidth_s, max_gap_s=max_gap_s, min_r2=min_r2, **tkw)
+    skew = estimate_axis_skew(t_dut, dut_uT, t_ref, ref_uT, off.offset_s, max_gap_s=max_gap_s, min_r2=min_r2,
+                              **tkw)
+    td, dut, temp, tcols, model = _prepare_dut(t_dut, dut_uT, temp_c, temp_model, min_temp_span_c, temp_order)
     tr, ref = _clean(t_ref, ref_uT, "reference")
     gap = max_gap_s if max_gap_s is not None else max(4 * float(np.median(np.diff(tr))), 1.0)
     y, valid = interp_no_extrapolation(tr, ref, td - off.offset_s, gap)
-    amap = estimate_axis_map(dut[valid], y[valid])
+    amap = estimate_axis_map(dut[valid], y[valid], temp_c=None if temp is None else temp[valid],
+                             temp_model="off" if tcols is None else "on", temp_order=temp_order)
     rmse = linear_fit_rmse_uT(y[valid], dut[valid])
+    rmse_model = None
+    if tcols is not None:
+        _, _, r = linear_fit(_with_temp(dut[valid], tcols[valid]), y[valid])
+        rmse_model = _rmse_dict(r)
     notes = []
     if prior_s is not None:
         notes.append(f"estimated offset differs from the prior {prior_s:.3f} s by {off.offset_s - prior_s:+.3f} s")
-    return AlignmentReport(off, skew, amap, rmse, notes)
+    return AlignmentReport(off, skew, amap, rmse, notes, model, rmse_model)
 
 
 # --------------------------------------------------------------------------- applying an alignment

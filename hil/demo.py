@@ -289,7 +289,8 @@ def align_session(raw_path: Path, paired_path: Path, *, say: Say = print, verbos
     raw = read_session(raw_path)
     t_dut, dut, t_ref, ref = paired_view(raw)
     # both streams carry the host clock: search 0 +- 10 s as `magstack align` does for a session file
-    rep = align_streams(t_dut, dut, t_ref, ref, prior_s=0.0, search_halfwidth_s=10.0)
+    temp_dut_c = raw.temp_c[np.all(np.isfinite(raw.dut_uT), axis=1)]   # same rows paired_view keeps
+    rep = align_streams(t_dut, dut, t_ref, ref, prior_s=0.0, search_halfwidth_s=10.0, temp_c=temp_dut_c)
     paired = aligned_session(raw, rep, correct_skew=True)
     write_session(paired_path, paired)
     am = rep.axis_map

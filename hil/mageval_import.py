@@ -6,7 +6,9 @@
 1. the reference axes are mapped onto the DUT axes (authors' map by default:
    ``dut_x = ref_y, dut_y = ref_x, dut_z = -ref_z``);
 2. the clock offset (added to reference time) is estimated from the data with
-   :func:`hil.alignment.estimate_clock_offset`; when the data do not determine it (static
+   :func:`hil.alignment.estimate_clock_offset` (with the chosen temperature: its Eq. 3
+   temperature terms are used when the temperature span is material; ``clock_offset_model``
+   records the model); when the data do not determine it (static
    field) the authors' ``4 h - 0.5 s`` prior is used and the fact is recorded (or, with
    ``on_undetermined="raise"``, AlignmentError is raised);
 3. one stream is linearly interpolated onto the other's timestamps (or both onto a uniform
@@ -182,9 +184,11 @@ def import_mageval(data_csv: str | os.PathLike, ref_csv: str | os.PathLike, *,
     else:
         try:
             est = estimate_clock_offset(t_dut, dut, t_ref, ref, prior_s=offset_prior_s,
-                                        search_halfwidth_s=offset_search_halfwidth_s, max_gap_s=max_gap_s)
+                                        search_halfwidth_s=offset_search_halfwidth_s, max_gap_s=max_gap_s,
+                                        temp_c=temp_c)
             offset = est.offset_s
             meta["clock_offset_method"] = "estimated (min residual of ref ~ A dut + b)"
+            meta["clock_offset_model"] = est.model
             meta["clock_offset_sigma_s"] = f"{est.sigma_s:.4f}"
             meta["clock_offset_r2"] = f"{est.r2:.6f}"
         except AlignmentError as exc:

@@ -8,7 +8,7 @@ import numpy as np
 
 from drivers.errors import ConfigurationError
 from hil.alignment import align_streams, aligned_session
-from hil.mageval_import import AUTHORS_OFFSET_S, read_mageval_data, read_mageval_ref
+from hil.mageval_import import AUTHORS_OFFSET_S, KELVIN_OFFSET, read_mageval_data, read_mageval_ref
 from hil.session_file import read_session, write_session
 
 
@@ -25,6 +25,13 @@ def register(subparsers) -> None:
                         "host timestamps); for a DATA/REF pair: every offset with >= 50%% overlap")
     p.add_argument("--max-gap-s", type=float, default=None, help="never interpolate across a longer gap (s)")
     p.add_argument("--min-r2", type=float, default=0.9, help="minimum explained variance to accept the offset")
+    p.add_argument("--temp-model", choices=("auto", "on", "off"), default="auto",
+                   help="add the Eq. 3 temperature columns (field*dT, dT) to the regressions: auto = when the "
+                        "DUT temperature spans at least --min-temp-span-c (default auto)")
+    p.add_argument("--min-temp-span-c", type=float, default=1.0,
+                   help="temperature span (degC, 2..98 %% percentiles) above which auto uses the temperature model")
+    p.add_argument("--temp-order", type=int, choices=(1, 2), default=2,
+                   help="temperature terms: 1 = belsten Eq. 3 (field*dT, dT); 2 = also field*dT^2, dT^2 (default)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.add_argument("--out", default=None,
                    help="write the paired session: reference interpolated onto the DUT timestamps at the "
@@ -41,27 +48,30 @@ def _load(inputs: list[str], prior: float | None, halfwidth: float | None):
         okr = np.all(np.isfinite(s.ref_uT), axis=1)
         if prior is None and halfwidth is None:
             prior, halfwidth = 0.0, 10.0
-        return s.t_s[ok], s.dut_uT[ok], s.t_s[okr], s.ref_uT[okr], prior, halfwidth
+        return s.t_s[ok], s.dut_uT[ok], s.t_s[okr], s.ref_uT[okr], prior, halfwidth, s.temp_c[ok]
     if len(inputs) == 2:
         cols, _ = read_mageval_data(inputs[0])
         t_ref, ref, _ = read_mageval_ref(inputs[1])
         dut = np.column_stack([cols["x_test"], cols["y_test"], cols["z_test"]])
-        return cols["time"], dut, t_ref, ref, AUTHORS_OFFSET_S if prior is None else prior, halfwidth
+        temp_c = cols["temp_pi"] - KELVIN_OFFSET  # the authors' calibration temperature
+        return cols["time"], dut, t_ref, ref, AUTHORS_OFFSET_S if prior is None else prior, halfwidth, temp_c
     raise ConfigurationError(f"give one session file or DATA.csv REF.csv, got {len(inputs)} paths")
 
 
 def run(args: argparse.Namespace) -> int:
     if args.out and len(args.inputs) != 1:
         raise ConfigurationError("--out needs a session file input; for DATA.csv REF.csv use import-mageval")
-    t_dut, dut, t_ref, ref, prior, halfwidth = _load(args.inputs, args.prior_s, args.halfwidth_s)
+    t_dut, dut, t_ref, ref, prior, halfwidth, temp_c = _load(args.inputs, args.prior_s, args.halfwidth_s)
     rep = align_streams(t_dut, dut, t_ref, ref, prior_s=prior, search_halfwidth_s=halfwidth,
-                        max_gap_s=args.max_gap_s, min_r2=args.min_r2)
+                        max_gap_s=args.max_gap_s, min_r2=args.min_r2, temp_c=temp_c, temp_model=args.temp_model,
+                        min_temp_span_c=args.min_temp_span_c, temp_order=args.temp_order)
     if args.json:
         print(json.dumps(rep.as_dict(), indent=2))
         return 0
     o = rep.offset
     runner_up = ("no other minimum in the search window" if not np.isfinite(o.runner_up_ratio)
                  else f"next minimum {o.runner_up_ratio:.1f}x worse")
+    print(f"model: {rep.model}")
     print(f"clock offset: {o.offset_s:.4f} s +- {o.sigma_s:.4f} s (add to reference time); "
           f"R2 {o.r2:.6f}; {o.n_pairs} pairs; {runner_up}")
     for ax, e in zip("xyz", rep.skew_s, strict=True):
@@ -71,6 +81,10 @@ def run(args: argparse.Namespace) -> int:
     r = rep.rmse_uT
     print(f"linear-fit RMSE after alignment: x {r['x'] * 1e3:.1f} nT, y {r['y'] * 1e3:.1f} nT, "
           f"z {r['z'] * 1e3:.1f} nT, vector {r['vector'] * 1e3:.1f} nT (n={r['n']})")
+    if rep.rmse_model_uT is not None:
+        r = rep.rmse_model_uT
+        print(f"temperature-model RMSE after alignment: x {r['x'] * 1e3:.1f} nT, y {r['y'] * 1e3:.1f} nT, "
+              f"z {r['z'] * 1e3:.1f} nT, vector {r['vector'] * 1e3:.1f} nT (n={r['n']})")
     for n in rep.notes:
         print(f"note: {n}")
     if args.out:
