@@ -56,6 +56,49 @@ _MIN_LSB_uT = 1e-9
 _PINK_LFILTER_MIN = 32
 #: Number of first-order (Lorentzian) processes per decade synthesising 1/f noise.
 _PINK_POLES_PER_DECADE = 2.0
+#: Normal deviates drawn per refill of a stream's buffer (the single-sample path takes them from it).
+_NORMAL_BLOCK = 4096
+
+
+class _NormalStream:
+    """Standard-normal deviates of one seeded stream, drawn from the generator in blocks.
+
+    Taking ``n`` values gives exactly the next ``n`` values of ``rng.standard_normal`` whatever
+    the chunking (numpy draws them one after another), so the per-sample and vectorised paths
+    consume one identical sequence; blocks only amortise the per-call numpy overhead.
+    """
+
+    __slots__ = ("_rng", "_buf", "_i")
+
+    def __init__(self, rng: np.random.Generator) -> None:
+        self._rng = rng
+        self._buf: list[float] = []
+        self._i = 0
+
+    def take(self, n: int) -> list[float]:
+        """The next ``n`` deviates as a list of floats."""
+        i = self._i
+        j = i + n
+        if j <= len(self._buf):
+            self._i = j
+            return self._buf[i:j]
+        head = self._buf[i:]
+        need = n - len(head)
+        if need > _NORMAL_BLOCK:
+            self._buf, self._i = [], 0
+            return head + self._rng.standard_normal(need).tolist()
+        self._buf = self._rng.standard_normal(_NORMAL_BLOCK).tolist()
+        self._i = need
+        return head + self._buf[:need]
+
+    def take_array(self, n: int) -> np.ndarray:
+        """The next ``n`` deviates as an array (n,)."""
+        rest = len(self._buf) - self._i
+        if n <= rest:
+            return np.array(self.take(n), dtype=float)
+        head = np.array(self._buf[self._i:], dtype=float)
+        self._buf, self._i = [], 0
+        return np.concatenate([head, self._rng.standard_normal(n - rest)])
 
 
 def _vec3(name: str, value: Any, *, allow_inf: bool = False, nonneg: bool = False) -> np.ndarray:
@@ -315,6 +358,16 @@ def sample_truth(truth: Any, t_s: np.ndarray) -> TruthSamples:
     return TruthSamples(b, temp, cur, sess)
 
 
+def _max_code(range_uT: float, lsb_uT: np.ndarray) -> np.ndarray:
+    """Largest code k per axis with ``k * lsb <= range`` in floating point (saturated output).
+
+    ``floor(range / lsb)`` alone can be one too many when ``range / lsb`` rounds up to an
+    integer (range 11 uT, lsb 1e-5 uT: 1100000 * 1e-5 = 11.000000000000002 > 11).
+    """
+    lim = np.floor(range_uT / lsb_uT)
+    return np.where(lim * lsb_uT > range_uT, lim - 1.0, lim)
+
+
 def _rotation_matrix(rotvec: np.ndarray) -> np.ndarray:
     """Rodrigues rotation matrix for a rotation vector (rad)."""
     theta = float(np.linalg.norm(rotvec))
@@ -374,6 +427,7 @@ class ErrorModel:
         k = max(1, int(math.ceil(math.log10(f_hi / f_lo) * _PINK_POLES_PER_DECADE)) + 1)
         self._pink_fc = np.geomspace(f_lo, f_hi, k)
         self._pink_sigma = params.noise_pink_uT[None, :] / math.sqrt(k)  # (1,3) per pole
+        self._fast: _FastPlan | None = None  # plain-float constants for sense(), built on first use
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -381,14 +435,16 @@ class ErrorModel:
         """Forget all state (random streams restart from the seed, hysteresis and 1/f state cleared)."""
         ss = np.random.SeedSequence(self.seed)
         white, pink, walk = ss.spawn(3)
-        self._rng_white = np.random.default_rng(white)
-        self._rng_pink = np.random.default_rng(pink)
-        self._rng_walk = np.random.default_rng(walk)
+        self._white = _NormalStream(np.random.default_rng(white))
+        self._pink_z = _NormalStream(np.random.default_rng(pink))
+        self._walk_z = _NormalStream(np.random.default_rng(walk))
         self._last_t: float | None = None
-        self._pink_state = np.zeros((self._pink_fc.size, 3))
-        self._walk_state = np.zeros(3)
-        self._hyst_state = np.zeros(3)  # -1, 0, +1 per axis
+        # state as plain floats (shared by the vectorised and the single-sample path)
+        self._pink_state: list[float] = [0.0] * (3 * self._pink_fc.size)  # (K,3) row-major
+        self._walk_state: list[float] = [0.0, 0.0, 0.0]
+        self._hyst_state: list[float] = [0.0, 0.0, 0.0]  # -1, 0, +1 per axis
         self._session_offsets: dict[int, np.ndarray] = {}
+        self._session_offsets_f: dict[int, list[float]] = {}
 
     def session_offset_uT(self, session: int) -> np.ndarray:
         """The offset (3,) uT drawn for ``session`` (deterministic in seed and session id)."""
@@ -402,8 +458,22 @@ class ErrorModel:
 
     # ------------------------------------------------------------------ public
     def sense(self, t_s: float, truth: Any) -> np.ndarray:
-        """One vector sample (3,) uT at ``t_s`` (s, non-decreasing between calls)."""
-        return self._run(np.array([float(t_s)]), truth)[0]
+        """One vector sample (3,) uT at ``t_s`` (s, non-decreasing between calls).
+
+        A plain-float implementation of the same pipeline as :meth:`sense_series` (same draws
+        from the same streams, same state), for register-level simulators that convert one
+        sample at a time; it agrees with the vectorised path to rounding (~1e-15 relative).
+        """
+        t = float(t_s)
+        if not math.isfinite(t) or (self._last_t is not None and t < self._last_t):
+            return self._run(np.array([t]), truth)[0]  # raises the typed error
+        plan = self._fast
+        if plan is None or plan.params is not self.params or plan.enabled is not self.enabled:
+            plan = self._fast = _FastPlan(self)
+        y = plan.sense(self, t, truth)
+        if y is None:  # non-finite truth: the vectorised path raises the typed error
+            return self._run(np.array([t]), truth)[0]
+        return y
 
     def sense_series(self, t_s: np.ndarray, truth: Any) -> np.ndarray:
         """Samples (N,3) uT at the non-decreasing instants ``t_s`` (N,); continues the model state."""
@@ -486,7 +556,7 @@ class ErrorModel:
             idx = np.searchsorted(np.unique(session), session)
             y = y + offs[idx]
         if "noise" in on:
-            y = y + self._rng_white.standard_normal((n, 3)) * p.noise_white_uT
+            y = y + self._white.take_array(3 * n).reshape(n, 3) * p.noise_white_uT
             y = y + self._pink(t, prev_t)
         if "saturation" in on and math.isfinite(p.range_uT):
             y = np.clip(y, -p.range_uT, p.range_uT)
@@ -496,7 +566,7 @@ class ErrorModel:
             if q.any():
                 codes = np.round(y[:, q] / lsb[q])
                 if "saturation" in on and math.isfinite(p.range_uT):
-                    lim = np.floor(p.range_uT / lsb[q])
+                    lim = _max_code(p.range_uT, lsb[q])
                     codes = np.clip(codes, -lim, lim)
                 y[:, q] = codes * lsb[q] + 0.0  # + 0.0: no negative zeros
         self._last_t = float(t[-1])
@@ -513,27 +583,29 @@ class ErrorModel:
             e = events[:, i]
             last = np.maximum.accumulate(np.where(e != 0, ar, -1))
             out[:, i] = np.where(last >= 0, e[np.maximum(last, 0)], self._hyst_state[i])
-        self._hyst_state = out[-1].copy()
+        self._hyst_state = out[-1].tolist()
         return out
 
     def _walk(self, t: np.ndarray, prev_t: float | None) -> np.ndarray:
         sig = self.params.drift_walk_uT_per_sqrt_s
-        z = self._rng_walk.standard_normal((t.size, 3))
+        if not (sig > 0).any():  # no walk: no draws (the stream is this effect's own)
+            return np.zeros((t.size, 3))
+        z = self._walk_z.take_array(3 * t.size).reshape(t.size, 3)
         dt = np.diff(t, prepend=t[0] if prev_t is None else prev_t)
         steps = z * np.sqrt(dt)[:, None] * sig
-        w = self._walk_state + np.cumsum(steps, axis=0)
-        self._walk_state = w[-1].copy()
+        w = np.array(self._walk_state) + np.cumsum(steps, axis=0)
+        self._walk_state = w[-1].tolist()
         return w
 
     def _pink(self, t: np.ndarray, prev_t: float | None) -> np.ndarray:
         """Sum of K Ornstein-Uhlenbeck processes (exact discretisation for any dt): ~1/f in band."""
         sig = self._pink_sigma  # (1,3)
         k = self._pink_fc.size
-        z = self._rng_pink.standard_normal((t.size, k, 3))
-        if not (self.params.noise_pink_uT > 0).any():
+        if not (self.params.noise_pink_uT > 0).any():  # no 1/f noise: no draws (own stream)
             return np.zeros((t.size, 3))
+        z = self._pink_z.take_array(3 * k * t.size).reshape(t.size, k, 3)
         tau = 1.0 / (2.0 * math.pi * self._pink_fc)  # (K,)
-        x = self._pink_state
+        x = np.array(self._pink_state, dtype=float).reshape(k, 3)
         out = np.empty((t.size, 3))
         start = 0
         if prev_t is None:  # stationary start
@@ -563,5 +635,223 @@ class ErrorModel:
                     phi = np.exp(-dt / tau)[:, None]
                     x = phi * x + np.sqrt(1.0 - phi ** 2) * sig * z[start + i]
                     out[start + i] = x.sum(axis=0)
-        self._pink_state = np.array(x, dtype=float)
+        self._pink_state = np.asarray(x, dtype=float).ravel().tolist()
         return out
+
+
+def _sample_truth_floats(truth: Any, ts: list[float]):
+    """:func:`sample_truth` at a few instants as plain floats: (b rows, temps, currents, sessions).
+
+    Calls the truth source exactly as :func:`sample_truth` does (series methods when present, in
+    the same order); returns None when any value is non-finite (the caller then raises).
+    """
+    if (hasattr(truth, "field_series_uT") or hasattr(truth, "temp_series_c")
+            or hasattr(truth, "currents_series_A") or hasattr(truth, "session_series")):
+        try:
+            s = sample_truth(truth, np.array(ts))
+        except ConfigurationError:
+            return None
+        return (s.b_uT.tolist(), s.temp_c.tolist(), {k: v.tolist() for k, v in s.currents_A.items()},
+                s.session.tolist())
+    isfinite = math.isfinite
+    bs = []
+    for x in ts:
+        b = np.asarray(truth.field_uT(x), dtype=float).reshape(3).tolist()
+        if not (isfinite(b[0]) and isfinite(b[1]) and isfinite(b[2])):
+            return None
+        bs.append(b)
+    temps = [float(truth.temp_c(x)) for x in ts]
+    per = [truth.currents_A(x) for x in ts]
+    if len(per) == 1:
+        cur = {k: [float(v)] for k, v in per[0].items()}
+    else:
+        cur = {k: [float(q.get(k, 0.0)) for q in per] for k in sorted({k for q in per for k in q})}
+    sessions = [int(truth.session(x)) for x in ts]
+    for v in temps:
+        if not isfinite(v):
+            return None
+    for vs in cur.values():
+        for v in vs:
+            if not isfinite(v):
+                return None
+    return bs, temps, cur, sessions
+
+
+class _FastPlan:
+    """One model's pipeline constants as plain floats, for the single-sample :meth:`ErrorModel.sense`.
+
+    Follows :meth:`ErrorModel._run` stage by stage with the same operation order, the same
+    random draws (from the same buffered streams) and the same state, so one ``sense()`` per
+    instant reproduces ``sense_series`` over those instants (to rounding of the 3x3 products).
+    """
+
+    def __init__(self, m: ErrorModel) -> None:
+        p, on = m.params, m.enabled
+        self.params, self.enabled = p, on
+        delays = [float(d) for d in p.axis_delay_s] if "time_skew" in on else [0.0, 0.0, 0.0]
+        self.delays = None if all(d == 0.0 for d in delays) else delays
+        self.interf = ([(name, d.tolist()) for name, d in p.interference_uT_per_A.items()]
+                       if "interference" in on else [])
+        self.misalign = m._misalign.tolist() if "misalignment" in on else None
+        self.gain = p.gain_matrix.tolist() if "gain" in on else None
+        self.cross = None
+        if "cross_axis" in on and math.isfinite(p.cross_axis_h0_uT):
+            h0 = p.cross_axis_h0_uT
+            self.cross = (h0, -_CROSS_AXIS_CLAMP * h0, _CROSS_AXIS_CLAMP * h0, p.cross_axis_easy_axis,
+                          p.cross_axis_mode)
+        self.cubic = p.cubic_per_uT2.tolist() if "nonlinearity" in on else None
+        self.temp_gain = (p.k_s_per_c.tolist(), p.k_s2_per_c2.tolist()) if "temperature_gain" in on else None
+        self.temp_ref = p.temp_ref_c
+        self.hyst = (p.hysteresis_threshold_uT, p.hysteresis_uT.tolist()) if "hysteresis" in on else None
+        self.offset = p.offset_uT.tolist() if "offset" in on else None
+        self.temp_off = p.k_o_uT_per_c.tolist() if "temperature_offset" in on else None
+        self.drift = None
+        if "drift" in on:
+            walk = p.drift_walk_uT_per_sqrt_s
+            self.drift = (p.drift_uT_per_s.tolist(), p.drift_t0_s, walk.tolist(), bool((walk > 0).any()))
+        self.session = "session_offset" in on
+        self.noise = None
+        if "noise" in on:
+            k = m._pink_fc.size
+            pink_on = bool((p.noise_pink_uT > 0).any())
+            self.noise = (p.noise_white_uT.tolist(), pink_on, k, (m._pink_sigma[0].tolist()) * k)
+        self.tau = 1.0 / (2.0 * math.pi * m._pink_fc)  # (K,), exactly as in ErrorModel._pink
+        self.sigma = m._pink_sigma
+        self.pink_coef: dict[float, tuple[list[float], list[float]]] = {}  # dt -> (phi, gain*sigma) (K*3,)
+        sat = "saturation" in on and math.isfinite(p.range_uT)
+        self.sat = p.range_uT if sat else None
+        self.quant = []
+        if "quantization" in on:
+            for i, lsb in enumerate(p.lsb_uT.tolist()):
+                if lsb > 0:
+                    lim = float(_max_code(p.range_uT, np.array([lsb]))[0]) if sat else None
+                    self.quant.append((i, lsb, lim))
+
+    def _pink_step(self, dt: float) -> tuple[list[float], list[float]]:
+        coef = self.pink_coef.get(dt)
+        if coef is None:
+            if len(self.pink_coef) >= 256:  # uniform sampling gives a handful of distinct dt values
+                self.pink_coef.clear()
+            phi = np.exp(-dt / self.tau)[:, None]  # as ErrorModel._pink's general loop
+            g = np.sqrt(1.0 - phi ** 2) * self.sigma
+            coef = self.pink_coef[dt] = (np.repeat(phi, 3, axis=1).ravel().tolist(), g.ravel().tolist())
+        return coef
+
+    def _front(self, b: list[float], d_t: float, cur: dict[str, float]) -> list[float]:
+        """interference .. temperature_gain on one instant's body-frame field (3 floats)."""
+        x, y, z = b
+        for name, d in self.interf:
+            c = cur.get(name)
+            if c is not None:
+                x, y, z = x + c * d[0], y + c * d[1], z + c * d[2]
+        for mat in (self.misalign, self.gain):
+            if mat is not None:
+                r0, r1, r2 = mat
+                x, y, z = (x * r0[0] + y * r0[1] + z * r0[2], x * r1[0] + y * r1[1] + z * r1[2],
+                           x * r2[0] + y * r2[1] + z * r2[2])
+        if self.cross is not None:
+            h0, lo, hi, (e0, e1, e2), mode = self.cross
+            v = (x, y, z)
+            c0, c1, c2 = v[e0], v[e1], v[e2]
+            c0 = lo if c0 < lo else (hi if c0 > hi else c0)
+            c1 = lo if c1 < lo else (hi if c1 > hi else c1)
+            c2 = lo if c2 < lo else (hi if c2 > hi else c2)
+            if mode == "set":
+                x, y, z = x * (h0 / (h0 + c0)), y * (h0 / (h0 + c1)), z * (h0 / (h0 + c2))
+            elif mode == "reset":
+                x, y, z = x * (h0 / (h0 - c0)), y * (h0 / (h0 - c1)), z * (h0 / (h0 - c2))
+            else:
+                hh = h0 * h0
+                x, y, z = x * (hh / (hh - c0 * c0)), y * (hh / (hh - c1 * c1)), z * (hh / (hh - c2 * c2))
+        if self.cubic is not None:
+            c = self.cubic
+            x, y, z = x + c[0] * x ** 3, y + c[1] * y ** 3, z + c[2] * z ** 3
+        if self.temp_gain is not None:
+            (k0, k1, k2), s2 = self.temp_gain
+            d2 = d_t * d_t
+            x, y, z = (x + d_t * (x * k0[0] + y * k0[1] + z * k0[2]) + s2[0] * d2 * x,
+                       y + d_t * (x * k1[0] + y * k1[1] + z * k1[2]) + s2[1] * d2 * y,
+                       z + d_t * (x * k2[0] + y * k2[1] + z * k2[2]) + s2[2] * d2 * z)
+        return [x, y, z]
+
+    def sense(self, m: ErrorModel, t: float, truth: Any) -> np.ndarray | None:
+        """One sample (3,) uT at ``t`` (already checked finite and not before the last sample)."""
+        tr = self.temp_ref
+        if self.delays is None:
+            got = _sample_truth_floats(truth, [t])
+            if got is None:
+                return None
+            bs, temps, cur, sessions = got
+            d_t = temps[0] - tr
+            y = self._front(bs[0], d_t, {k: v[0] for k, v in cur.items()})
+            dts = (d_t, d_t, d_t)
+        else:
+            got = _sample_truth_floats(truth, [t + d for d in self.delays] + [t])
+            if got is None:
+                return None
+            bs, temps, cur, sessions = got
+            dts = tuple(temps[i] - tr for i in range(3))
+            y = [self._front(bs[i], dts[i], {k: v[i] for k, v in cur.items()})[i] for i in range(3)]
+        session = sessions[-1]
+        if self.hyst is not None:
+            thr, h = self.hyst
+            st = m._hyst_state
+            for i in range(3):
+                v = y[i]
+                if abs(v) >= thr and v != 0.0:
+                    st[i] = 1.0 if v > 0 else -1.0
+                y[i] = v + st[i] * h[i]
+        if self.offset is not None:
+            o = self.offset
+            y = [y[0] + o[0], y[1] + o[1], y[2] + o[2]]
+        if self.temp_off is not None:
+            k = self.temp_off
+            y = [y[0] + k[0] * dts[0], y[1] + k[1] * dts[1], y[2] + k[2] * dts[2]]
+        prev_t = m._last_t
+        if self.drift is not None:
+            rate, t0, sig, walk_on = self.drift
+            w = m._walk_state
+            if walk_on:
+                z = m._walk_z.take(3)
+                sq = math.sqrt(0.0 if prev_t is None else t - prev_t)
+                w = [w[0] + z[0] * sq * sig[0], w[1] + z[1] * sq * sig[1], w[2] + z[2] * sq * sig[2]]
+                m._walk_state = w
+            else:
+                w = [0.0, 0.0, 0.0]
+            dt0 = t - t0
+            y = [y[0] + rate[0] * dt0 + w[0], y[1] + rate[1] * dt0 + w[1], y[2] + rate[2] * dt0 + w[2]]
+        if self.session:
+            off = m._session_offsets_f.get(session)
+            if off is None:
+                off = m._session_offsets_f[session] = m.session_offset_uT(session).tolist()
+            y = [y[0] + off[0], y[1] + off[1], y[2] + off[2]]
+        if self.noise is not None:
+            white, pink_on, k, sig3 = self.noise
+            z = m._white.take(3)
+            y = [y[0] + z[0] * white[0], y[1] + z[1] * white[1], y[2] + z[2] * white[2]]
+            if pink_on:
+                zs = m._pink_z.take(3 * k)
+                if prev_t is None:  # stationary start
+                    x = [a * b for a, b in zip(zs, sig3, strict=True)]
+                else:
+                    phi, g = self._pink_step(t - prev_t)
+                    x = [ph * xv + gv * zv for ph, xv, gv, zv in zip(phi, m._pink_state, g, zs, strict=True)]
+                m._pink_state = x
+                s0, s1, s2 = x[0], x[1], x[2]
+                for j in range(3, 3 * k, 3):
+                    s0 += x[j]
+                    s1 += x[j + 1]
+                    s2 += x[j + 2]
+                y = [y[0] + s0, y[1] + s1, y[2] + s2]
+            else:
+                y = [y[0] + 0.0, y[1] + 0.0, y[2] + 0.0]
+        if self.sat is not None:
+            r = self.sat
+            y = [-r if v < -r else (r if v > r else v) for v in y]
+        for i, lsb, lim in self.quant:
+            c = float(round(y[i] / lsb))
+            if lim is not None:
+                c = -lim if c < -lim else (lim if c > lim else c)
+            y[i] = c * lsb + 0.0
+        m._last_t = t
+        return np.array(y)

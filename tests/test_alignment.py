@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from drivers.errors import AlignmentError
@@ -95,6 +95,14 @@ def test_recovers_offset_skew_and_axis_map_with_uncertainty():
 @settings(max_examples=8, deadline=None)
 @given(st.floats(-300.0, 300.0), st.permutations([0, 1, 2]), st.tuples(*[st.sampled_from([1, -1])] * 3),
        st.integers(0, 10_000))
+# hypothesis-found: steps faster than the 0.245 s / 0.46 s sampling give offset errors of ~0.01-0.07 s,
+# which the curvature-only uncertainty (~0.003 s) did not cover (seed 6) and, where a few rows at
+# the steps carry the offset, neither did the block jackknife (seeds 1057, 4096: 7x and 5x);
+# seed 9734 has a jackknife sigma of ~0.1 s
+@example(offset_s=0.0, perm=[0, 1, 2], sign=(1, 1, 1), seed=6)
+@example(offset_s=0.0, perm=[0, 1, 2], sign=(1, 1, 1), seed=9734)
+@example(offset_s=0.0, perm=[0, 1, 2], sign=(1, 1, 1), seed=1057)
+@example(offset_s=0.0, perm=[0, 1, 2], sign=(1, 1, 1), seed=4096)
 def test_offset_and_map_property(offset_s, perm, sign, seed):
     t_dut, dut, t_ref, ref = _pair(offset_s=offset_s, perm=tuple(perm), sign=sign, skew=(0, 0, 0), seed=seed)
     off = estimate_clock_offset(t_dut, dut, t_ref, ref)

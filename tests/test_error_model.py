@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from drivers.errors import ConfigurationError
@@ -401,8 +401,22 @@ def random_params(draw):
     )
 
 
+def _near_neutral_params(**kw):
+    """Hypothesis-found cases: everything neutral except ``kw``."""
+    return ErrorParams(interference_uT_per_A={"solar_A": (0.0, 0.0, 0.0)}, cross_axis_mode="set",
+                       hysteresis_threshold_uT=1.0, **kw)
+
+
 @settings(max_examples=80, deadline=None)
 @given(p=random_params(), b0=_v3(-3000, 3000), rate=_v3(-500, 500), seed=st.integers(0, 2 ** 32))
+# found by hypothesis when the far field was 10 * range: 100 - 91 uT offset = 9 uT, inside the range
+@example(p=_near_neutral_params(offset_uT=(-91.0, 0.0, 0.0), range_uT=10.0), b0=(0.0, 0.0, 0.0),
+         rate=(0.0, 0.0, 0.0), seed=0)
+@example(p=_near_neutral_params(offset_uT=(0.0, 91.0, 0.0), range_uT=10.0), b0=(0.0, 0.0, 0.0),
+         rate=(0.0, 0.0, 0.0), seed=0)
+# found by hypothesis: floor(11 / 1e-5) = 1100000 codes, but 1100000 * 1e-5 = 11.000000000000002 > 11
+@example(p=_near_neutral_params(range_uT=11.0, lsb_uT=(1.0, 1e-5, 1.0)), b0=(0.0, 0.0, 0.0),
+         rate=(0.0, 1.0, 0.0), seed=0)
 def test_pipeline_never_produces_nan_or_inf_and_saturates_at_range(p, b0, rate, seed):
     truth = RampTruth(b0=b0, rate=rate, temp_rate=3.0, currents={"solar_A": lambda t: math.sin(t)}, session_s=3.0)
     t = np.linspace(0.0, 20.0, 60)
