@@ -8,8 +8,15 @@ from __future__ import annotations
 import os
 
 import pytest
+from hypothesis import settings
 
 from drivers.clock import VirtualClock
+
+# CI replays a fixed set of examples (no database, derandomised) so a run is reproducible;
+# developers' runs keep exploring new examples. Property tests set their own example counts.
+settings.register_profile("ci", derandomize=True, database=None, deadline=None, print_blob=True)
+if os.environ.get("CI"):
+    settings.load_profile("ci")
 
 
 def pytest_addoption(parser):
