@@ -14,6 +14,7 @@ DRDY; it never reads a result before DRDY is low.
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
@@ -166,6 +167,14 @@ def lookup(table: Mapping, key, what: str):
         raise ConfigurationError(f"invalid {what} {key!r}; valid: {valid}") from None
 
 
+def _finite(v) -> bool:
+    """True for a real number that is neither NaN nor infinite."""
+    try:
+        return math.isfinite(v)
+    except TypeError:
+        return False
+
+
 def code_to_volts(code: int, vref_V: float, pga: int) -> float:
     """24-bit signed code -> differential input volts: code * (Vref/PGA) / (2**23 - 1)."""
     return code * (vref_V / pga) / FS_DIVISOR
@@ -179,9 +188,11 @@ def signed24(raw: bytes) -> int:
     return value - (1 << 24) if value & 0x800000 else value
 
 
-def diode_temp_c(volts: float) -> float:
-    """Internal temperature diode volts -> degC (forum coefficients, validate on hardware)."""
-    return 25.0 + (volts - TEMP_DIODE_V_AT_25C) / TEMP_DIODE_V_PER_C
+def diode_temp_c(volts: float, v_at_25c_V: float = TEMP_DIODE_V_AT_25C,
+                 V_per_c: float = TEMP_DIODE_V_PER_C) -> float:
+    """Internal temperature diode volts -> degC. Defaults: the forum coefficients [F2]; pass a
+    per-board calibration once measured."""
+    return 25.0 + (volts - v_at_25c_V) / V_per_c
 
 
 @dataclass(frozen=True)
@@ -269,8 +280,14 @@ class ADS1248:
                  name: str = "ads1248") -> None:
         if spi.mode != SPI_MODE:
             raise ConfigurationError(f"ADS1248 needs SPI mode {SPI_MODE}, bus is in mode {spi.mode}")
-        if drdy_poll_s <= 0 or timeout_factor < 1 or timeout_margin_s < 0:
-            raise ConfigurationError("drdy_poll_s must be > 0, timeout_factor >= 1, timeout_margin_s >= 0")
+        if not (_finite(drdy_poll_s) and drdy_poll_s > 0 and _finite(timeout_factor) and timeout_factor >= 1
+                and _finite(timeout_margin_s) and timeout_margin_s >= 0):
+            raise ConfigurationError("drdy_poll_s must be finite and > 0, timeout_factor finite and >= 1, "
+                                     f"timeout_margin_s finite and >= 0; got {drdy_poll_s!r}, {timeout_factor!r}, "
+                                     f"{timeout_margin_s!r}")
+        for label, v in (("ref0_V", ref0_V), ("ref1_V", ref1_V)):
+            if v is not None and not (_finite(v) and v > 0):
+                raise ConfigurationError(f"{label} must be None (not wired) or a finite voltage > 0, got {v!r}")
         self.spi = spi
         self.clock = clock
         self.start_line = start

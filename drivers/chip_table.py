@@ -263,10 +263,12 @@ class TableMagnetometer:
     """Generic table-driven I2C magnetometer; chip modules subclass it for chip-specific fields.
 
     ``timeout_s`` bounds how long :meth:`read` waits for a new sample (default: 3 output
-    periods + 0.1 s). ``stuck_limit`` consecutive bit-identical samples raise StaleData (the
+    periods + the first-sample delay + 0.1 s). ``stuck_limit`` consecutive bit-identical samples raise StaleData (the
     data registers are frozen although the chip reports new data); ``extra["repeats"]`` counts
     them. None disables the check: needed for noise-free input, and advisable on a coarse
     range in a quiet static field where the chip's noise is well below one LSB.
+    ``extra["overrun"]`` (chips with an overrun flag: LIS3MDL ZYXOR, HMC5983 DOW) is True when the
+    chip overwrote a set that was never read, i.e. samples were lost before this one.
     """
 
     table: ChipTable
@@ -295,6 +297,7 @@ class TableMagnetometer:
         self._last_raw: bytes | None = None
         self._same_count = 0
         self._discard_next = 0
+        self._last_status = 0                   # status register seen with data-ready set
         self.identity = check_identity(self.dev, t)
         self._check_not_other_chip()
 
@@ -384,7 +387,9 @@ class TableMagnetometer:
         poll = self._poll_s()
         while True:
             now = self.clock.monotonic_s()
-            if self._status() & self.table.drdy_mask:
+            status = self._status()
+            if status & self.table.drdy_mask:
+                self._last_status = status
                 return self.clock.monotonic_s()
             if now >= deadline:
                 raise BusTimeout(f"{self.name}: no new sample within {self.timeout_s:.3g} s (data-ready "
@@ -446,6 +451,9 @@ class TableMagnetometer:
         codes = decode_axes(raw, self.table)
         over = set(self._overflow_axes(codes))
         extra = {"raw": codes, "repeats": self._same_count}
+        if self.table.overrun_mask:
+            # the chip overwrote a set nobody read (ZYXOR / DOW): samples were lost before this one
+            extra["overrun"] = bool(self._last_status & self.table.overrun_mask)
         extra.update(self._sample_extra(codes))
         over |= set(extra.pop("_overflow", ()))
         scale = self._scale()

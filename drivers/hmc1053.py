@@ -36,7 +36,9 @@ TEMP_KINDS = ("adc_diode", "linear")
 
 @dataclass(frozen=True)
 class TempChannel:
-    """``linear``: T = 25 + (V - v_at_25c_V) / V_per_c on AIN ``pos``/``neg``; ``adc_diode``: ADS1248 diode."""
+    """``linear``: T = 25 + (V - v_at_25c_V) / V_per_c on AIN ``pos``/``neg``; ``adc_diode``: the ADS1248
+    diode, by the same formula with the forum coefficients (118 mV, 405 uV/degC [F2]) while both constants
+    are 0.0 (default), or with a per-board calibration when both are given."""
 
     kind: str = "adc_diode"
     pos: int = 6
@@ -75,10 +77,18 @@ class FrontEndTable:
         if self.temperature.kind not in TEMP_KINDS:
             raise ConfigurationError(f"{self.name}: temperature kind {self.temperature.kind!r}; "
                                      f"valid: {', '.join(TEMP_KINDS)}")
+        tv, ts = self.temperature.v_at_25c_V, self.temperature.V_per_c
+        if self.temperature.kind == "adc_diode" and (tv, ts) != (0.0, 0.0) and not (
+                math.isfinite(tv) and tv != 0.0 and math.isfinite(ts) and ts != 0.0):
+            raise ConfigurationError(f"{self.name}: a diode calibration needs both v_at_25c_V and V_per_c "
+                                     f"(finite, nonzero), got {tv!r}, {ts!r}; 0.0 and 0.0 = forum values")
         if self.temperature.kind == "linear":
             pins += [self.temperature.pos, self.temperature.neg]
             if not self.temperature.V_per_c or not math.isfinite(self.temperature.V_per_c):
                 raise ConfigurationError(f"{self.name}: linear temperature sensor needs a nonzero V_per_c")
+            if not math.isfinite(self.temperature.v_at_25c_V):
+                raise ConfigurationError(f"{self.name}: linear temperature sensor needs a finite v_at_25c_V, "
+                                         f"got {self.temperature.v_at_25c_V!r}")
         if len(set(pins)) != len(pins) or not all(isinstance(p, int) and 0 <= p <= 7 for p in pins):
             raise ConfigurationError(f"{self.name}: AIN pins must be distinct integers 0..7, got {pins}")
         sens = self.sensitivity_mV_per_V_per_G
@@ -185,7 +195,9 @@ class HMC1053:
             return math.nan
         t = self.table.temperature
         if t.kind == "adc_diode":
-            return diode_temp_c(conv.volts)
+            if (t.v_at_25c_V, t.V_per_c) == (0.0, 0.0):
+                return diode_temp_c(conv.volts)
+            return diode_temp_c(conv.volts, t.v_at_25c_V, t.V_per_c)
         return 25.0 + (conv.volts - t.v_at_25c_V) / t.V_per_c
 
     def acquire(self) -> tuple[list[Conversion], list[Conversion], list[Conversion]]:

@@ -94,7 +94,9 @@ TS_FIELD = Field(CRA, 0x80)
 SELF_TEST_RANGE_UT = 470.0
 SELF_TEST_ODR_HZ = 15.0
 SELF_TEST_WINDOW_COUNTS = (243, 575)
-#: time from the self-test mode write to the first valid set (>= 6 ms; two periods at 15 Hz are safe)
+#: wait after a single-measurement trigger before polling RDY, s. [I] from the ">= 6 ms" wait of the
+#: reference self-test sequence (hardware-facts 3.4); also used for the LSM303DLHC, whose single
+#: conversion time no source gives [U]. RDY is polled afterwards, so a longer conversion still works.
 SINGLE_CONVERSION_S = 0.006
 
 

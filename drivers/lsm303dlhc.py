@@ -16,6 +16,8 @@ Register semantics only; the bus is injected. Field in uT, temperature in degC.
 """
 from __future__ import annotations
 
+import math
+
 from drivers.chip_table import ChipTable, Field, NamedOption, RangeOption, RateOption, TempFormat
 from drivers.errors import ConfigurationError
 from drivers.hmc5983 import HoneywellStyleMagnetometer
@@ -78,6 +80,8 @@ class LSM303DLHC(HoneywellStyleMagnetometer):
 
     def __init__(self, bus, clock, *, temp_offset_c: float = DEFAULT_TEMP_OFFSET_C, **kw) -> None:
         self.temp_offset_c = float(temp_offset_c)
+        if not math.isfinite(self.temp_offset_c):
+            raise ConfigurationError(f"lsm303dlhc temp_offset_c must be finite (degC), got {temp_offset_c!r}")
         super().__init__(bus, clock, **kw)
 
     def _temp_offset_c(self) -> float:

@@ -190,7 +190,18 @@ def table_from_document(doc: Any, source: str = "<table>") -> CalTable:
     if want != got:
         raise bad(f"CRC-32 mismatch: file says {crc}, content gives 0x{got:08x} (corrupt or edited)")
     try:
+        for key in ("model", "parameters", "validity"):
+            if not isinstance(doc.get(key), dict):
+                raise bad(f"{key!r} must be a JSON object")
+        if not isinstance(doc.get("fit", {}), (dict, type(None))):
+            raise bad("'fit' must be a JSON object")
+        if not isinstance(doc["parameters"].get("ground_only", {}), (dict, type(None))):
+            raise bad("parameters.ground_only must be a JSON object")
+        if not isinstance(doc.get("device_id"), str) or not doc["device_id"]:
+            raise bad(f"device_id must be a non-empty string, got {doc.get('device_id')!r}")
         model = doc["model"]
+        if not isinstance(model.get("terms"), list) or not all(isinstance(t, str) for t in model["terms"]):
+            raise bad("model.terms must be a list of term names")
         terms = tuple(model["terms"])
         unknown = [t for t in terms if t not in CAL_TERMS]
         if unknown:
@@ -203,11 +214,13 @@ def table_from_document(doc: Any, source: str = "<table>") -> CalTable:
                 continue
             if p not in params:
                 raise bad(f"term {term!r} present but parameter {p!r} missing")
+            if not isinstance(params[p], dict):
+                raise bad(f"parameter {p} must be an object {{unit, value}}")
             if params[p].get("unit") != _UNITS[p]:
                 raise bad(f"parameter {p}: unit {params[p].get('unit')!r}, expected {_UNITS[p]!r}")
             val = params[p]["value"]
             if p == "D":
-                if list(val) != list(model["currents"]):
+                if not isinstance(val, dict) or list(val) != list(model["currents"]):
                     raise bad(f"D currents {list(val)} differ from model currents {model['currents']}")
                 kw["D"] = tuple((k, np.asarray(v, dtype=float)) for k, v in val.items())
             else:
@@ -216,6 +229,8 @@ def table_from_document(doc: Any, source: str = "<table>") -> CalTable:
             raise bad("table has no gain_matrix")
         v = doc["validity"]
         vt = v["temp_c"]
+        if not isinstance(v.get("currents_A", {}), dict):
+            raise bad("validity.currents_A must be an object {name: [lo, hi]}")
         table = CalTable(
             device_id=str(doc["device_id"]), terms=terms, t0_c=float(model["t0_c"]),
             validity_temp_c=None if vt is None else (float(vt[0]), float(vt[1])),
@@ -227,7 +242,7 @@ def table_from_document(doc: Any, source: str = "<table>") -> CalTable:
             crc32=got, **kw)
     except CalTableInvalid:
         raise
-    except (KeyError, TypeError, ValueError, IndexError) as exc:
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
         raise bad(f"malformed table ({type(exc).__name__}: {exc})") from None
     if set(table.currents) != {k for k, _ in table.validity_currents_A}:
         raise bad("validity.currents_A must name exactly the model currents")
@@ -252,7 +267,10 @@ def load_table(path: str | os.PathLike) -> CalTable:
 def save_table(table: CalTable, path: str | os.PathLike) -> Path:
     """Atomic write: temp file in the same directory, fsync, rename, fsync the directory."""
     p = Path(path)
-    text = table.to_json()
+    try:
+        text = table.to_json()
+    except ValueError as exc:   # json refuses NaN/inf (allow_nan=False)
+        raise CalTableInvalid(f"{p}: table not written: {exc} (non-finite parameter or validity value)") from None
     tmp = p.with_name(f".{p.name}.tmp-{os.getpid()}")
     try:
         with open(tmp, "w", encoding="utf-8") as fh:
@@ -298,6 +316,9 @@ def validate(table: CalTable) -> ValidationResult:
     for k, x in scalars.items():
         if not math.isfinite(x):
             pr.append(f"{k} is not finite")
+    tlo, thi = BOUNDS["temp_c"]
+    if not tlo <= table.t0_c <= thi:
+        pr.append(f"t0_c {table.t0_c} degC outside [{tlo}, {thi}]")
     if pr:
         return ValidationResult(False, tuple(pr))
     if not table.device_id:
@@ -319,7 +340,6 @@ def validate(table: CalTable) -> ValidationResult:
             pr.append(f"D_{k} beyond physical bound {BOUNDS['D_uT_per_A']:g} uT/A")
     if abs(round(table.t0_c * 100) - table.t0_c * 100) > 1e-6:
         pr.append(f"t0_c {table.t0_c} is not a multiple of 0.01 degC")
-    tlo, thi = BOUNDS["temp_c"]
     temps = [table.t0_c]
     if table.validity_temp_c is not None:
         a, b = table.validity_temp_c
@@ -351,6 +371,8 @@ def validate(table: CalTable) -> ValidationResult:
             fixed_point.FixedPointTable.from_table(table)
         except CalTableInvalid as exc:
             pr.append(f"fixed point: {exc}")
+        except (OverflowError, ValueError) as exc:   # a validity bound too large for any integer form
+            pr.append(f"fixed point: cannot quantise the validity range ({exc})")
         worst = worst_case_output_uT(table)
         if worst > fixed_point.OUT_LIMIT_uT:
             pr.append(f"fixed point: output up to {worst:.1f} uT over the validity range exceeds the "

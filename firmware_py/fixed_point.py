@@ -128,8 +128,14 @@ class FixedPointTable:
                          in table.validity_currents_A))
 
     # ----------------------------------------------------------- per sample (flight path)
-    def apply_sample(self, b_nT, temp_cdeg: int = 0, currents_mA=()) -> tuple[tuple[int, int, int], int]:
-        """One sample, integers only. Returns ((Bx, By, Bz) in nT * 2**8, ApplyFlag bits)."""
+    @property
+    def uses_temperature(self) -> bool:
+        """True if any temperature coefficient is non-zero (the temperature input matters)."""
+        return any(any(r) for r in self.K_S) or any(self.K_O)
+
+    def apply_sample(self, b_nT, temp_cdeg: int, currents_mA=()) -> tuple[tuple[int, int, int], int]:
+        """One sample, integers only. Returns ((Bx, By, Bz) in nT * 2**8, ApplyFlag bits).
+        ``temp_cdeg`` is required (no default: a silent 0 degC would bias every temperature term)."""
         status = 0
         b = []
         for v in b_nT:
@@ -180,6 +186,8 @@ class FixedPointTable:
             raise TypeError("b_nT must be an integer array")
         b = b.astype(np.int64).reshape(-1, 3)
         n = b.shape[0]
+        if temp_cdeg is None and self.uses_temperature:
+            raise ValueError("table has temperature terms: temp_cdeg is required")
         t = np.zeros(n, np.int64) + self.t0_cdeg if temp_cdeg is None else np.asarray(temp_cdeg)
         if not np.issubdtype(t.dtype, np.integer):
             raise TypeError("temp_cdeg must be an integer array")

@@ -45,6 +45,8 @@ class SamplingLoop:
                  sink: Callable[[PublishedSample], None] | None = None) -> None:
         if not (period_s > 0 and math.isfinite(period_s)):
             raise ValueError(f"period_s must be a positive finite number, got {period_s}")
+        if int(reinit_after) < 1:
+            raise ValueError(f"reinit_after must be >= 1 consecutive faults, got {reinit_after}")
         self.mag = mag
         self.clock = clock
         self.period_s = float(period_s)

@@ -250,11 +250,6 @@ class AxisMap:
             parts.append(f"dut_{AXES[i]} = {s}ref_{AXES[self.perm[i]]}{tag}")
         return "; ".join(parts)
 
-    def apply_to_ref(self, ref_uT: np.ndarray) -> np.ndarray:
-        """Reference vectors expressed in DUT axes: out[:, i] = sign[i] * ref[:, perm[i]]."""
-        ref = np.asarray(ref_uT, float)
-        return np.column_stack([self.sign[i] * ref[:, self.perm[i]] for i in range(3)])
-
 
 @dataclass
 class AlignmentReport:
@@ -449,6 +444,21 @@ def _jackknife_sigma(values: list[float]) -> float:
 
 
 # --------------------------------------------------------------------------- clock offset
+def _check_search(prior_s, halfwidth_s, step_s, min_overlap, max_gap_s, min_r2, max_sigma_s) -> None:
+    """AlignmentError for a search parameter that is not finite or out of its range."""
+    def need(ok: bool, what: str, value) -> None:
+        if not ok:
+            raise AlignmentError(f"{what}, got {value!r}")
+    if prior_s is not None:
+        need(math.isfinite(prior_s), "prior_s must be finite (s)", prior_s)
+    for name, v in (("search_halfwidth_s", halfwidth_s), ("step_s", step_s), ("max_gap_s", max_gap_s)):
+        if v is not None:
+            need(math.isfinite(v) and v > 0, f"{name} must be finite and > 0 (s)", v)
+    need(0 < min_overlap <= 1, "min_overlap must be in (0, 1]", min_overlap)
+    need(0 < min_r2 <= 1, "min_r2 must be in (0, 1]", min_r2)
+    need(max_sigma_s > 0, "max_sigma_s must be > 0 (s)", max_sigma_s)
+
+
 def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarray, ref_uT: np.ndarray, *,
                           prior_s: float | None = None, search_halfwidth_s: float | None = None,
                           step_s: float | None = None, min_overlap: float = 0.5, max_gap_s: float | None = None,
@@ -474,6 +484,7 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
     uncertainty exceeds ``max_sigma_s`` or when another, distant minimum fits within
     ``ambiguity_ratio`` of the best unexplained variance (periodic signal).
     """
+    _check_search(prior_s, search_halfwidth_s, step_s, min_overlap, max_gap_s, min_r2, max_sigma_s)
     t_dut, dut, _, tcols, model = _prepare_dut(t_dut, dut_uT, temp_c, temp_model, min_temp_span_c, temp_order)
     xd = _with_temp(dut, tcols)  # regressors on the DUT rows (fixed for every candidate offset)
     t_ref, ref = _clean(t_ref, ref_uT, "reference")

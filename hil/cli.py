@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import pkgutil
 import sys
 
@@ -47,6 +48,16 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except MagError as exc:
         print(f"magstack {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except BrokenPipeError:
+        # output piped into a reader that stopped (``| head``): files are already written
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 141
+    except OSError as exc:
+        # a file-system problem outside the typed tree (missing output directory, permissions)
+        where = f" ({exc.filename})" if exc.filename else ""
+        print(f"magstack {args.command}: error: {exc.strerror or exc}{where}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"magstack {args.command}: interrupted", file=sys.stderr)

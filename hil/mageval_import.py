@@ -53,6 +53,8 @@ def _parse_rows(path: Path, ncols: int, header: Sequence[str] | None, bad_lines:
         raise SessionFileError(f"{path}: no such file") from None
     except UnicodeDecodeError as exc:
         raise SessionFileError(f"{path}: not a text CSV file ({exc})") from None
+    except OSError as exc:
+        raise SessionFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
     lines = text.splitlines()
     start = 0
     if header is not None:
@@ -160,6 +162,8 @@ def import_mageval(data_csv: str | os.PathLike, ref_csv: str | os.PathLike, *,
             raise ConfigurationError(f"grid step must be > 0 s, got {onto!r}")
     if not (max_gap_s > 0):
         raise ConfigurationError(f"max_gap_s must be > 0, got {max_gap_s}")
+    if clock_offset_s is not None and not math.isfinite(clock_offset_s):
+        raise ConfigurationError(f"clock_offset_s must be finite, got {clock_offset_s}")
 
     cols, skipped_dut = read_mageval_data(data_csv, bad_lines=bad_lines)
     t_ref_raw, ref_raw, skipped_ref = read_mageval_ref(ref_csv, bad_lines=bad_lines)
@@ -216,6 +220,11 @@ def import_mageval(data_csv: str | os.PathLike, ref_csv: str | os.PathLike, *,
             lo, hi = max(t_dut[0], t_ref_dut[0]), min(t_dut[-1], t_ref_dut[-1])
             if hi <= lo:
                 raise AlignmentError("DUT and reference do not overlap at the chosen clock offset")
+            n_grid = (hi - lo) / float(onto) + 1
+            limit = 10 * (t_dut.size + t_ref.size)
+            if n_grid > limit:
+                raise ConfigurationError(f"grid step {float(onto):g} s gives {n_grid:.3g} rows over {hi - lo:.1f} s, "
+                                         f"more than 10x the {t_dut.size + t_ref.size} input samples")
             t_out = lo + np.arange(0, (hi - lo) + 1e-9, float(onto))
             meta["resampling"] = (f"both linearly interpolated onto a uniform {float(onto)} s grid over the "
                                   f"overlap (max gap {max_gap_s} s)")
@@ -233,6 +242,6 @@ def import_mageval(data_csv: str | os.PathLike, ref_csv: str | os.PathLike, *,
                    flag.astype(np.int64))
     if gaps == "drop":
         sess = sess.select(flag == 0)
-    if len(sess) == 0:
+    if len(sess) == 0 or n_gap == flag.size:
         raise AlignmentError("no paired rows: DUT and reference do not overlap at the chosen clock offset")
     return sess

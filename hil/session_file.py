@@ -139,6 +139,10 @@ class SessionWriter:
     def __init__(self, path: str | os.PathLike, metadata: Mapping[str, str] | None = None, *,
                  current_names: Sequence[str] = (), with_flag: bool = False, block_rows: int = 50) -> None:
         self.path = Path(path)
+        if not self.path.name or self.path.is_dir():
+            raise SessionFileError(f"{path}: is a directory, not a session file name")
+        if not self.path.parent.is_dir():
+            raise SessionFileError(f"{path}: directory {self.path.parent} does not exist")
         self.part_path = self.path.with_name(self.path.name + ".part")
         self.current_names = list(current_names)
         self.with_flag = with_flag
@@ -212,6 +216,14 @@ class SessionWriter:
             self.abort()
 
 
+def refuse_overwriting_inputs(out: str | os.PathLike, inputs: Iterable[str | os.PathLike]) -> None:
+    """SessionFileError when the output path names one of the input files (which it would replace)."""
+    o = Path(out).resolve()
+    for p in inputs:
+        if Path(p).resolve() == o:
+            raise SessionFileError(f"--out {out} is the input file {p}: write the result elsewhere")
+
+
 def write_session(path: str | os.PathLike, s: Session, *, block_rows: int = 5000) -> Path:
     """Write a whole :class:`Session` crash-safely."""
     names = list(s.currents_A)
@@ -236,6 +248,18 @@ def _parse_float(cell: str, lineno: int, col: str, path: object) -> float:
     return v
 
 
+def _check_integer_column(v: np.ndarray, col: str, name: object, *, header_line: int, allow_empty: bool) -> None:
+    """SessionFileError naming the first row whose cell is not an integer within +-2**53."""
+    with np.errstate(invalid="ignore"):
+        bad = ~((v == np.round(v)) & (np.abs(v) <= 2.0 ** 53))
+    if allow_empty:
+        bad &= np.isfinite(v)
+    if np.any(bad):
+        k = int(np.flatnonzero(bad)[0])
+        raise SessionFileError(f"{name}: {col!r} column must hold integers on every row "
+                               f"(data row {k + 1} after the header on line {header_line} has {float(v[k])!r})")
+
+
 def read_session(source: str | os.PathLike | io.TextIOBase) -> Session:
     """Read a v1 session file (or a ``.part`` file left by a killed session).
 
@@ -253,6 +277,8 @@ def read_session(source: str | os.PathLike | io.TextIOBase) -> Session:
             raise SessionFileError(f"{name}: no such session file") from None
         except UnicodeDecodeError as exc:
             raise SessionFileError(f"{name}: not a text session file ({exc})") from None
+        except OSError as exc:
+            raise SessionFileError(f"{name}: cannot read ({exc.strerror or exc})") from None
     lines = text.split("\n")
     cut_tail = not text.endswith("\n")
     if not cut_tail:
@@ -309,12 +335,12 @@ def read_session(source: str | os.PathLike | io.TextIOBase) -> Session:
         return arr[:, idx[c]]
 
     sess = col("session")
-    if np.any(~np.isfinite(sess)) or np.any(sess != np.round(sess)):
-        raise SessionFileError(f"{name}: 'session' column must hold integers on every row")
+    _check_integer_column(sess, "session", name, header_line=i + 1, allow_empty=False)
     flag = None
     if "flag" in idx:
         fl = col("flag")
-        flag = np.where(np.isfinite(fl), fl, 0).astype(np.int64)
+        _check_integer_column(fl, "flag", name, header_line=i + 1, allow_empty=True)
+        flag = np.where(np.isfinite(fl), fl, 0).astype(np.int64)   # an empty flag cell means 0 (ok)
     s = Session(col("t_s"), np.column_stack([col(f"ref_{a}_uT") for a in "xyz"]),
                 np.column_stack([col(f"dut_{a}_uT") for a in "xyz"]), col("temp_c"), sess.astype(np.int64),
                 {_CURRENT_RE.match(c).group(1): col(c) for c in current_cols}, metadata, flag)

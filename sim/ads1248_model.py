@@ -40,9 +40,10 @@ from drivers.ads1248 import (
     TEMP_DIODE_V_AT_25C,
     TEMP_DIODE_V_PER_C,
     Command,
+    _finite,
 )
 from drivers.clock import Clock
-from drivers.errors import BusError
+from drivers.errors import BusError, ConfigurationError
 from sim.gpio import SimInputLine, SimOutputLine
 
 _POR = bytes(r.reset for r in REGISTERS.values())
@@ -79,6 +80,22 @@ class ADS1248Model:
                  ref1_V: float | None = None, adc_offset_V: float = 0.0, noise_V_rms: float = 0.0,
                  fsc: int = _FSC_UNITY, device_id: int = 0x9, calibration_conversions: float = 4.0,
                  max_clock_hz: int = 2_000_000, power_up_s: float = 0.0, seed: int = 0) -> None:
+        for label, v in (("ref0_V", ref0_V), ("ref1_V", ref1_V)):
+            if v is not None and not (_finite(v) and v > 0):
+                raise ConfigurationError(f"ADS1248Model {label} must be None (not wired) or finite > 0, got {v!r}")
+        if not _finite(adc_offset_V):
+            raise ConfigurationError(f"ADS1248Model adc_offset_V must be finite, got {adc_offset_V!r}")
+        if not (_finite(noise_V_rms) and noise_V_rms >= 0):
+            raise ConfigurationError(f"ADS1248Model noise_V_rms must be finite and >= 0, got {noise_V_rms!r}")
+        if not (_finite(calibration_conversions) and calibration_conversions > 0):
+            raise ConfigurationError("ADS1248Model calibration_conversions must be finite and > 0, "
+                                     f"got {calibration_conversions!r}")
+        if not (_finite(power_up_s) and power_up_s >= 0):
+            raise ConfigurationError(f"ADS1248Model power_up_s must be finite and >= 0, got {power_up_s!r}")
+        for label, v, lo, hi in (("fsc", fsc, 0, 0xFFFFFF), ("device_id", device_id, 0, 0xF),
+                                 ("max_clock_hz", max_clock_hz, 1, math.inf)):
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
+                raise ConfigurationError(f"ADS1248Model {label} must be an int in {lo}..{hi}, got {v!r}")
         self.clock = clock
         self.inputs = inputs
         self.ref_V = {0b00: ref0_V, 0b01: ref1_V, 0b10: INTERNAL_REF_V, 0b11: INTERNAL_REF_V}
@@ -88,7 +105,7 @@ class ADS1248Model:
         self.calibration_conversions = float(calibration_conversions)
         self._rng = np.random.default_rng(seed)
         self._fsc_trim = int(fsc)
-        self._device_id = device_id & 0xF
+        self._device_id = int(device_id)
         self.start_line = SimOutputLine("START", self._on_start, initial=False)
         self.reset_line = SimOutputLine("RESET", self._on_reset, initial=True)
         self.drdy_line = SimInputLine("DRDY", self._drdy_level)

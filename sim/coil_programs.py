@@ -52,6 +52,31 @@ def _t(t_s) -> np.ndarray:
     return t
 
 
+def _num(name: str, value, *, positive: bool = False, nonneg: bool = False) -> float:
+    """``value`` as a finite float (optionally > 0 / >= 0); ConfigurationError naming ``name`` otherwise."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ConfigurationError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(v) or (positive and not v > 0) or (nonneg and v < 0):
+        need = " and > 0" if positive else (" and >= 0" if nonneg else "")
+        raise ConfigurationError(f"{name} must be finite{need}, got {value!r}")
+    return v
+
+
+def _vec3(name: str, value) -> np.ndarray:
+    v = np.asarray(value, dtype=float)
+    if v.shape != (3,) or not np.isfinite(v).all():
+        raise ConfigurationError(f"{name} must be 3 finite values (uT), got {value!r}")
+    return v
+
+
+def _axes(axes: str) -> list[int]:
+    if not isinstance(axes, str) or not axes:
+        raise ConfigurationError(f"axes must be a non-empty string of x, y, z; got {axes!r}")
+    return [_axis_index(a) for a in axes]
+
+
 def piecewise_linear(t_knots, values) -> Profile:
     """Linear interpolation through knots (held constant outside). ``values`` (M,) or (M,k)."""
     tk = np.asarray(t_knots, dtype=float)
@@ -92,7 +117,7 @@ def _axis_index(axis: str) -> int:
 
 def constant_field(b_uT=(0.0, 0.0, 0.0)) -> Profile:
     """A constant field vector (uT)."""
-    b = np.asarray(b_uT, dtype=float).reshape(3)
+    b = _vec3("b_uT", b_uT)
 
     def f(t_s):
         t = _t(t_s)
@@ -104,12 +129,17 @@ def constant_field(b_uT=(0.0, 0.0, 0.0)) -> Profile:
 def steps_profile(axes: str, duration_s: float, levels_uT=STEP_LEVELS_uT, slew_s: float = STEP_SLEW_S,
                   background_uT=(0.0, 0.0, 0.0)) -> Profile:
     """Plateaus along each axis in ``axes`` in turn (each axis gets an equal share of the time)."""
-    lv = np.asarray(levels_uT, dtype=float)
+    idx = _axes(axes)
+    _num("duration_s", duration_s, positive=True)
+    _num("slew_s", slew_s, nonneg=True)
+    bg = _vec3("background_uT", background_uT)
+    lv = np.asarray(levels_uT, dtype=float).reshape(-1)
+    if lv.size == 0 or not np.isfinite(lv).all():
+        raise ConfigurationError(f"levels_uT must be one or more finite values, got {levels_uT!r}")
     rows = []
-    for a in axes:
-        i = _axis_index(a)
+    for i in idx:
         for v in lv:
-            r = np.array(background_uT, dtype=float)
+            r = bg.copy()
             r[i] += v
             rows.append(r)
     return _plateaus(np.array(rows), duration_s, slew_s)
@@ -118,12 +148,13 @@ def steps_profile(axes: str, duration_s: float, levels_uT=STEP_LEVELS_uT, slew_s
 def sweep_profile(axes: str, duration_s: float, amplitude_uT: float = 50.0,
                   background_uT=(0.0, 0.0, 0.0)) -> Profile:
     """Triangle sweeps 0 -> +A -> -A -> 0 along each axis in ``axes`` in turn (constant |dB/dt|)."""
-    n = len(axes)
-    seg = duration_s / n
+    idx = _axes(axes)
+    seg = _num("duration_s", duration_s, positive=True) / len(idx)
+    _num("amplitude_uT", amplitude_uT)
+    bg = _vec3("background_uT", background_uT)
     tk, vk = [], []
-    for k, a in enumerate(axes):
-        i = _axis_index(a)
-        base = np.array(background_uT, dtype=float)
+    for k, i in enumerate(idx):
+        base = bg.copy()
         for frac, lvl in ((0.0, 0.0), (0.25, amplitude_uT), (0.75, -amplitude_uT), (1.0, 0.0)):
             r = base.copy()
             r[i] += lvl
@@ -138,6 +169,10 @@ def rotation_profile(duration_s: float, magnitude_uT: float = 50.0, turns: float
     Polar angle goes 0 -> pi over the run while the azimuth makes ``turns`` turns, like rotating
     a sensor in a constant field (or a 3-axis coil tracing the sphere).
     """
+    _num("duration_s", duration_s, positive=True)
+    _num("magnitude_uT", magnitude_uT)
+    _num("turns", turns)
+
     def f(t_s):
         t = np.clip(_t(t_s), 0.0, duration_s)
         u = t / duration_s
@@ -155,9 +190,13 @@ def excursion_profile(axes: str, duration_s: float, peak_uT: float = 150.0, prob
 
     The zero plateaus after each excursion show the remanent (hysteresis) offset.
     """
+    idx = _axes(axes)
+    _num("duration_s", duration_s, positive=True)
+    _num("peak_uT", peak_uT)
+    _num("probe_uT", probe_uT)
+    _num("slew_s", slew_s, nonneg=True)
     rows = []
-    for a in axes:
-        i = _axis_index(a)
+    for i in idx:
         for lvl in (probe_uT, peak_uT, probe_uT, -peak_uT, probe_uT):
             r = np.zeros(3)
             r[i] = lvl
@@ -167,6 +206,8 @@ def excursion_profile(axes: str, duration_s: float, peak_uT: float = 150.0, prob
 
 def constant_temp(temp_c: float = 25.0) -> Profile:
     """Constant temperature (degC)."""
+    _num("temp_c", temp_c)
+
     def f(t_s):
         return np.full(np.shape(_t(t_s)), float(temp_c))
 
@@ -179,6 +220,12 @@ def heating_profile(duration_s: float, start_c: float = 25.0, peak_c: float = 65
 
     Belsten sec. 2.3.3: board heated to about 65 degC and left to cool (about 30 degC range).
     """
+    for name, v in (("start_c", start_c), ("peak_c", peak_c)):
+        _num(name, v)
+    _num("duration_s", duration_s, positive=True)
+    if not 0.0 <= _num("heat_fraction", heat_fraction) <= 1.0:
+        raise ConfigurationError(f"heat_fraction must be in [0, 1], got {heat_fraction!r}")
+    _num("cool_tau_fraction", cool_tau_fraction, positive=True)
     t_heat = heat_fraction * duration_s
     tau = cool_tau_fraction * duration_s
 
@@ -193,6 +240,10 @@ def heating_profile(duration_s: float, start_c: float = 25.0, peak_c: float = 65
 
 def cycling_temp(duration_s: float, mean_c: float = 20.0, amplitude_c: float = 40.0, cycles: float = 2.0) -> Profile:
     """Sinusoidal thermal cycling (degC), e.g. orbit-like -20..60 degC."""
+    _num("duration_s", duration_s, positive=True)
+    for name, v in (("mean_c", mean_c), ("amplitude_c", amplitude_c), ("cycles", cycles)):
+        _num(name, v)
+
     def f(t_s):
         t = np.clip(_t(t_s), 0.0, duration_s)
         return mean_c + amplitude_c * np.sin(2.0 * math.pi * cycles * t / duration_s)
@@ -202,7 +253,9 @@ def cycling_temp(duration_s: float, mean_c: float = 20.0, amplitude_c: float = 4
 
 def square_current(amplitude_A: float, period_s: float, duty: float = 0.5, offset_A: float = 0.0) -> Profile:
     """A square wave: ``offset_A + amplitude_A`` during the first ``duty`` of each period (A)."""
-    if not period_s > 0 or not 0.0 <= duty <= 1.0:
+    _num("amplitude_A", amplitude_A)
+    _num("offset_A", offset_A)
+    if not (math.isfinite(period_s) and period_s > 0) or not 0.0 <= duty <= 1.0:
         raise ConfigurationError(f"square_current needs period_s > 0 and 0 <= duty <= 1, got {period_s}, {duty}")
 
     def f(t_s):
@@ -215,7 +268,9 @@ def square_current(amplitude_A: float, period_s: float, duty: float = 0.5, offse
 
 def pulse_current(amplitude_A: float, period_s: float, width_s: float, start_s: float = 0.0) -> Profile:
     """Short pulses of ``amplitude_A`` lasting ``width_s`` every ``period_s`` from ``start_s`` (A)."""
-    if not period_s > 0 or not 0 < width_s <= period_s:
+    _num("amplitude_A", amplitude_A)
+    _num("start_s", start_s)
+    if not (math.isfinite(period_s) and period_s > 0) or not 0 < width_s <= period_s:
         raise ConfigurationError(f"pulse_current needs 0 < width_s <= period_s, got {width_s}, {period_s}")
 
     def f(t_s):

@@ -68,8 +68,8 @@ class FVM400Model:
         self.truth = truth if truth is not None else StaticTruth()
         self.clock = clock if clock is not None else SystemClock()
         self.probe_from_truth = np.eye(3) if probe_from_truth is None else np.asarray(probe_from_truth, float)
-        if self.probe_from_truth.shape != (3, 3):
-            raise ConfigurationError("probe_from_truth must be 3x3")
+        if self.probe_from_truth.shape != (3, 3) or not np.isfinite(self.probe_from_truth).all():
+            raise ConfigurationError(f"probe_from_truth must be a finite 3x3 matrix, got {probe_from_truth!r}")
         if not (noise_uT >= 0 and math.isfinite(noise_uT)):
             raise ConfigurationError(f"noise_uT must be >= 0, got {noise_uT}")
         self.noise_uT = float(noise_uT)

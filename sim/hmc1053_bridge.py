@@ -11,7 +11,8 @@ cross-axis, temperature, offsets that are real field...), ``V_exc`` the bridge e
 and ``G_ext`` an optional amplifier gain in front of the ADC.
 
 The set/reset strap is driven by one GPIO line through a pulse circuit: a rising edge
-gives a SET pulse, a falling edge a RESET pulse (``strap_line``). The board temperature is
+gives a SET pulse, a falling edge a RESET pulse (``strap_line``; ``set_on_rising_edge=False``
+models the inverted circuit, as the front-end table's switch of the same name). The board temperature is
 ``truth.temp_c`` (read by the ADC's internal diode, or by an optional linear sensor on an AIN pair).
 """
 from __future__ import annotations
@@ -26,16 +27,10 @@ import numpy as np
 from drivers.errors import BusError, ConfigurationError
 from firmware_py.effects import EFFECT_NAMES
 from sim.gpio import SimOutputLine
+from sim.i2c_register_model import IdealSensor  # noqa: F401  (re-exported: the noise-free bridge)
 
 #: Effects the ADC model does itself (sequential skew, quantisation, clipping): off in the default sensor.
 ADC_SIDE_EFFECTS = ("time_skew", "quantization", "saturation")
-
-
-class IdealSensor:
-    """``sense`` = the true field (for tests that need a noise-free bridge)."""
-
-    def sense(self, t_s: float, truth: Any) -> np.ndarray:
-        return np.asarray(truth.field_uT(t_s), dtype=float)
 
 
 def default_sensor(seed: int = 0):
@@ -63,7 +58,8 @@ class HMC1053Bridge:
     ``offset_tempco_per_c``: relative offset change per degC (does not flip, removed by set/reset);
     ``axis_pins``: (pos, neg) AIN pair per axis; ``temp_pins`` + ``temp_v_at_25c_V`` /
     ``temp_V_per_c``: an optional linear temperature sensor on an AIN pair;
-    ``initial_polarity``: magnetisation state at power-on (+1 set, -1 reset).
+    ``initial_polarity``: magnetisation state at power-on (+1 set, -1 reset);
+    ``set_on_rising_edge``: pulse-circuit polarity (False: a falling edge fires SET).
     """
 
     def __init__(self, truth: Any, *, sensor: Any = None, seed: int = 0, excitation_V: float = 3.3,
@@ -72,7 +68,7 @@ class HMC1053Bridge:
                  external_gain: float = 1.0,
                  axis_pins: Sequence[tuple[int, int]] = ((0, 1), (2, 3), (4, 5)),
                  temp_pins: tuple[int, int] | None = None, temp_v_at_25c_V: float = 0.0,
-                 temp_V_per_c: float = 0.0, initial_polarity: int = 1) -> None:
+                 temp_V_per_c: float = 0.0, initial_polarity: int = 1, set_on_rising_edge: bool = True) -> None:
         self.truth = truth
         self.sensor = sensor if sensor is not None else default_sensor(seed)
         if not callable(getattr(self.sensor, "sense", None)):
@@ -85,8 +81,15 @@ class HMC1053Bridge:
         off = np.asarray(offset_mV_per_V, dtype=float)
         if off.shape != (3,) or not np.all(np.isfinite(off)):
             raise ConfigurationError(f"offset_mV_per_V must be 3 finite values, got {off}")
-        if not excitation_V > 0 or not external_gain > 0:
-            raise ConfigurationError("excitation_V and external_gain must be > 0")
+        for label, v in (("excitation_V", excitation_V), ("external_gain", external_gain)):
+            if not (math.isfinite(v) and v > 0):
+                raise ConfigurationError(f"{label} must be finite and > 0, got {v!r}")
+        for label, v in (("offset_tempco_per_c", offset_tempco_per_c), ("temp_v_at_25c_V", temp_v_at_25c_V),
+                         ("temp_V_per_c", temp_V_per_c)):
+            if not math.isfinite(v):
+                raise ConfigurationError(f"{label} must be finite, got {v!r}")
+        if temp_pins is not None and temp_V_per_c == 0:
+            raise ConfigurationError("a temperature sensor on temp_pins needs a nonzero temp_V_per_c")
         if initial_polarity not in (1, -1):
             raise ConfigurationError("initial_polarity must be +1 (set) or -1 (reset)")
         pins = [tuple(p) for p in axis_pins] + ([tuple(temp_pins)] if temp_pins is not None else [])
@@ -105,14 +108,16 @@ class HMC1053Bridge:
         self._temp_v25 = float(temp_v_at_25c_V)
         self._temp_slope = float(temp_V_per_c)
         self.polarity = initial_polarity
+        self.set_on_rising_edge = bool(set_on_rising_edge)
         self.set_pulses = 0
         self.reset_pulses = 0
-        self.strap_line = SimOutputLine("SR", self._on_strap, initial=False)
+        # the line idles at the level from which the SET edge starts
+        self.strap_line = SimOutputLine("SR", self._on_strap, initial=not self.set_on_rising_edge)
         self._last_t: float | None = None
         self.sense_calls = 0
 
     def _on_strap(self, level: bool) -> None:
-        if level:
+        if level == self.set_on_rising_edge:
             self.polarity = 1
             self.set_pulses += 1
         else:
@@ -187,7 +192,7 @@ def build_sim_hmc1053(clock: Any = None, *, truth: Any = None, sensor: Any = Non
     tab = lookup(FRONT_ENDS, table, "front-end table") if isinstance(table, str) else table
     tab.validate()
     kw = dict(sensitivity_mV_per_V_per_G=tab.sensitivity_mV_per_V_per_G, excitation_V=tab.excitation_V,
-              external_gain=tab.external_gain, axis_pins=tab.axis_pins)
+              external_gain=tab.external_gain, axis_pins=tab.axis_pins, set_on_rising_edge=tab.set_on_rising_edge)
     if tab.temperature.kind == "linear":
         kw.update(temp_pins=(tab.temperature.pos, tab.temperature.neg),
                   temp_v_at_25c_V=tab.temperature.v_at_25c_V, temp_V_per_c=tab.temperature.V_per_c)

@@ -21,7 +21,7 @@ import numpy as np
 
 from drivers import hmc5983 as H
 from drivers.chip_table import ChipTable, encode_axes, encode_temperature
-from sim.i2c_register_model import RO, RW, MagnetometerModel, Reg, default_sensor
+from sim.i2c_register_model import RO, RW, MagnetometerModel, Reg, default_sensor, finite_vec3
 
 RDY_LOW_S = 250e-6
 
@@ -64,7 +64,7 @@ class HoneywellStyleModel(MagnetometerModel):
 
     def break_self_test(self, bias_uT=(0.0, 0.0, 0.0)) -> None:
         """Make the bias strap produce ``bias_uT`` (default none: the self-test must fail)."""
-        self.self_test_bias_uT = np.asarray(bias_uT, dtype=float)
+        self.self_test_bias_uT = finite_vec3("self-test bias_uT", bias_uT)
 
     # -- pointer -----------------------------------------------------------------------
     def next_pointer(self, reg: int) -> int:

@@ -8,11 +8,14 @@ truth source:
 - ``sim-i2c-2``: LSM303DLHC magnetometer at 0x1E.
 
 Each chip senses the truth through its own ``sensor`` (default
-``ErrorModel(preset(chip), seed=...)`` without its quantization/saturation); ``sensors`` overrides it per chip name.
+``ErrorModel(preset(chip), seed=chip_seed(seed, i))`` without its quantization/saturation, an
+independent random stream per chip); ``sensors`` overrides it per chip name.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+
+import numpy as np
 
 from drivers.clock import VirtualClock
 from sim.hmc5983_model import HMC5983Model
@@ -57,14 +60,25 @@ class I2CBench:
         return self._entry(chip)[2]
 
 
+def chip_seed(seed: int, index: int) -> int:
+    """Error-model seed of the ``index``-th chip of a bench seeded ``seed`` (independent streams)."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        from drivers.errors import ConfigurationError
+
+        raise ConfigurationError(f"bench seed must be an int >= 0, got {seed!r}")
+    return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1)[0])
+
+
 def default_bench(clock=None, truth=None, *, seed: int = 0, sensors: dict | None = None) -> I2CBench:
     """The three chips on two buses, one clock (default VirtualClock), one truth (default StaticTruth)."""
     clock = clock if clock is not None else VirtualClock()
     truth = truth if truth is not None else StaticTruth()
     sensors = dict(sensors or {})
-    for chip in CHIPS:
+    for i, chip in enumerate(CHIPS):
         if chip not in sensors:
-            sensors[chip] = default_sensor(chip, seed)
+            # one independent noise stream per chip: the same seed for all three would give the
+            # chips identical standard-normal draws (perfectly correlated noise)
+            sensors[chip] = default_sensor(chip, chip_seed(seed, i))
     bench = I2CBench(clock, truth)
     bench.add("lis3mdl", "sim-i2c-1", 0x1C, LIS3MDLModel(clock, truth, sensors["lis3mdl"], address=0x1C))
     bench.add("hmc5983", "sim-i2c-1", 0x1E, HMC5983Model(clock, truth, sensors["hmc5983"], address=0x1E))

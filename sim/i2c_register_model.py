@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.errors import BusError
+from drivers.errors import BusError, ConfigurationError
 
 RO, RW, WO = "RO", "RW", "WO"
 
@@ -267,12 +267,20 @@ class MagnetometerModel(RegisterFileModel):
     def _convert(self, t_c: float, skipped: int = 0) -> None:
         b = np.asarray(self.sensor.sense(t_c, self.truth), dtype=float)
         if b.shape != (3,) or not np.all(np.isfinite(b)):
-            raise ValueError(f"{self.name}: sensor returned {b!r}, expected 3 finite values in uT")
+            raise ConfigurationError(f"{self.name}: sensor returned {b!r} at t_s={t_c!r}, expected 3 finite "
+                                     "values in uT")
+        temp_c = float(self.truth.temp_c(t_c))
+        if not math.isfinite(temp_c):
+            raise ConfigurationError(f"{self.name}: truth temperature {temp_c!r} degC at t_s={t_c!r} is not finite")
         overwrote = self.unread or skipped > 0
         self.conversions += 1
-        self.store_sample(t_c, b, float(self.truth.temp_c(t_c)), overwrote)
+        self.store_sample(t_c, b, temp_c, overwrote)
 
 
-def codes_from_field(b_uT: np.ndarray, uT_per_lsb) -> list[int]:
-    """Round the field to integer codes (no saturation applied)."""
-    return [int(round(float(b_uT[i]) / uT_per_lsb[i])) for i in range(3)]
+def finite_vec3(name: str, value) -> np.ndarray:
+    """``value`` as a finite (3,) float array; ConfigurationError naming ``name`` otherwise."""
+    arr = np.asarray(value, dtype=float)
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise ConfigurationError(f"{name} must be 3 finite values, got {value!r}")
+    return arr
+

@@ -20,7 +20,7 @@ import numpy as np
 
 from drivers import lis3mdl as L
 from drivers.chip_table import encode_temperature
-from sim.i2c_register_model import RO, RW, MagnetometerModel, Reg, default_sensor
+from sim.i2c_register_model import RO, RW, MagnetometerModel, Reg, default_sensor, finite_vec3
 
 _DO_HZ = (0.625, 1.25, 2.5, 5.0, 10.0, 20.0, 40.0, 80.0)
 _FAST_HZ = {0: 1000.0, 1: 560.0, 2: 300.0, 3: 155.0}   # by OM
@@ -64,7 +64,7 @@ class LIS3MDLModel(MagnetometerModel):
 
     def break_self_test(self, delta_uT=(0.0, 0.0, 0.0)) -> None:
         """Make the self-test response ``delta_uT`` (default none: the self-test must fail)."""
-        self.self_test_delta_uT = np.asarray(delta_uT, dtype=float)
+        self.self_test_delta_uT = finite_vec3("self-test delta_uT", delta_uT)
 
     # -- pointer rules -----------------------------------------------------------------
     def decode_subaddress(self, byte: int) -> tuple[int, bool]:

@@ -12,8 +12,11 @@ Same HMC5883L-style core as :mod:`sim.hmc5983_model` (pointer rule 0x08 -> 0x03,
 """
 from __future__ import annotations
 
+import math
+
 from drivers import lsm303dlhc as D
 from drivers.chip_table import TempFormat
+from drivers.errors import ConfigurationError
 from sim.hmc5983_model import HoneywellStyleModel
 from sim.i2c_register_model import RO, RW, Reg, default_sensor
 
@@ -46,6 +49,8 @@ class LSM303DLHCModel(HoneywellStyleModel):
         super().__init__(lsm303dlhc_registers(), name="lsm303dlhc-sim", clock=clock, truth=truth,
                          sensor=sensor if sensor is not None else default_sensor("lsm303dlhc"), address=address,
                          drdy_latched=drdy_latched)
+        if not math.isfinite(temp_offset_c):
+            raise ConfigurationError(f"lsm303dlhc-sim temp_offset_c must be finite, got {temp_offset_c!r}")
         fmt = D.LSM303DLHC_TABLE.temperature
         self.temp_format = TempFormat(fmt.regs, fmt.big_endian, fmt.shift, fmt.lsb_per_c, float(temp_offset_c),
                                       fmt.separate_reads, fmt.absolute, fmt.enable)
@@ -53,6 +58,11 @@ class LSM303DLHCModel(HoneywellStyleModel):
     def _gain_code(self) -> int:
         code = self.values[D.CRB_REG_M] >> 5
         return code
+
+    def after_single(self) -> None:
+        """Back to sleep (MD = 11) after a single conversion; unlike the HMC5983 no MR7 flag (MR_REG_M
+        bits 7:2 are 0 on this part)."""
+        self.values[D.MR_REG_M] = (self.values[D.MR_REG_M] & ~0x03) | 0x03
 
     def on_write(self, reg: int, value: int, old: int) -> None:
         if reg == D.CRB_REG_M and value >> 5 == 0:

@@ -53,6 +53,10 @@ def simulate_measurement(params: ErrorParams, truth, *, duration_s: float, rate_
         raise ConfigurationError(f"rate_hz must be > 0, got {rate_hz}")
     if not (duration_s > 0 and math.isfinite(duration_s)):
         raise ConfigurationError(f"duration_s must be > 0, got {duration_s}")
+    if not (math.isfinite(ref_lsb_uT) and ref_lsb_uT >= 0):
+        raise ConfigurationError(f"ref_lsb_uT must be finite and >= 0 (0 = no rounding), got {ref_lsb_uT}")
+    if not math.isfinite(t_start_s):
+        raise ConfigurationError(f"t_start_s must be finite, got {t_start_s}")
     n = int(math.floor(duration_s * rate_hz + 1e-9)) + 1
     t = t_start_s + np.arange(n) / rate_hz
     model = ErrorModel(params, seed=seed, effects=effects)

@@ -155,8 +155,9 @@ _HMC1053_HYST_FIELD_uT = 150.0                       # [B s.2.3.4] excursion amp
 
 def _hmc1053() -> ErrorParams:
     return ErrorParams(
-        # [B s.2.1] one 20 SPS ADC converts X, Y, Z, T sequentially: 50 ms apart ([HF 8.3] 50.8 ms/channel)
-        axis_delay_s=(0.0, 0.05, 0.10),
+        # [B s.2.1] one 20 SPS ADC converts X, Y, Z, T sequentially; [HF 4.2/8.3] 50.822 ms per channel
+        # after each MUX0 write at DR=0010 (the register-level front end measures the same spacing)
+        axis_delay_s=(0.0, 0.050822, 0.101644),
         gain_matrix=_B_TABLE3.T,                     # [B T3] (coil-common misalignment is inside it)
         # [HF 5.4] AMR model H0 from the datasheet cross-axis figure; set/reset used [B s.2.1];
         # easy axes: X bridge <- Y, Y bridge <- X (2-axis die), Z bridge <- X (assumed, 1-axis die)

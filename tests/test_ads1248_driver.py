@@ -213,3 +213,22 @@ def test_missing_external_reference_voltage_is_a_config_error():
     clock, model, spi, adc = make()
     with pytest.raises(ConfigurationError, match="REF0"):
         adc.convert(ChannelConfig(0, 1, reference="REF0"))
+
+
+@pytest.mark.parametrize("kw, word", [
+    ({"drdy_poll_s": float("nan")}, "drdy_poll_s"),     # a NaN poll step would stall virtual time
+    ({"drdy_poll_s": 0.0}, "drdy_poll_s"),
+    ({"timeout_factor": float("inf")}, "timeout_factor"),
+    ({"timeout_margin_s": float("nan")}, "timeout_margin_s"),
+    ({"ref0_V": float("nan")}, "ref0_V"),
+    ({"ref1_V": -2.5}, "ref1_V"),
+    ({"ref0_V": float("inf")}, "ref0_V"),
+])
+def test_driver_refuses_non_finite_or_out_of_range_parameters(kw, word):
+    clock = VirtualClock()
+    model = ADS1248Model(clock, Inputs())
+    spi = SimSpiBus(model, mode=1, max_speed_hz=1_000_000)
+    with pytest.raises(ConfigurationError, match=word):
+        ADS1248(spi, clock, start=model.start_line, drdy=model.drdy_line, **kw)
+    # the same call with valid values works
+    ADS1248(spi, clock, start=model.start_line, drdy=model.drdy_line, ref0_V=2.5, ref1_V=3.3)

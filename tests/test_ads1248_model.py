@@ -216,3 +216,24 @@ def test_conversion_tracks_input_and_clips_at_full_scale(volts, pga):
     lsb = fs / (2**23 - 1)
     assert conv.volts == pytest.approx(min(max(volts, -fs - lsb), fs), abs=lsb)
     assert conv.clipped == (abs(volts) >= fs - lsb / 2)
+
+
+@pytest.mark.parametrize("kw, word", [
+    ({"noise_V_rms": float("nan")}, "noise_V_rms"),
+    ({"noise_V_rms": -1e-6}, "noise_V_rms"),
+    ({"adc_offset_V": float("inf")}, "adc_offset_V"),
+    ({"ref0_V": float("nan")}, "ref0_V"),
+    ({"ref1_V": 0.0}, "ref1_V"),
+    ({"calibration_conversions": 0.0}, "calibration_conversions"),
+    ({"power_up_s": float("nan")}, "power_up_s"),
+    ({"device_id": 0x1F}, "device_id"),          # would have been silently truncated to 0xF
+    ({"fsc": 1 << 24}, "fsc"),                    # does not fit the 24-bit FSC registers
+    ({"fsc": 1.5}, "fsc"),
+    ({"max_clock_hz": 0}, "max_clock_hz"),
+])
+def test_model_refuses_bad_parameters_with_a_typed_error(kw, word):
+    from drivers.errors import ConfigurationError
+
+    with pytest.raises(ConfigurationError, match=word):
+        ADS1248Model(VirtualClock(), Inputs(), **kw)
+    assert ADS1248Model(VirtualClock(), Inputs(), device_id=0xF, fsc=0xFFFFFF).regs[0x0A] >> 4 == 0xF

@@ -129,6 +129,16 @@ def test_no_overlap_is_refused():
         estimate_clock_offset(t_dut, dut, t_ref, ref, prior_s=1e6, search_halfwidth_s=10.0)
 
 
+@pytest.mark.parametrize("kw, match", [
+    ({"min_r2": float("nan")}, "min_r2"), ({"prior_s": float("nan"), "search_halfwidth_s": 10.0}, "prior_s"),
+    ({"prior_s": 0.0, "search_halfwidth_s": -1.0}, "search_halfwidth_s"), ({"max_gap_s": float("nan")}, "max_gap_s"),
+])
+def test_bad_search_parameters_are_named(kw, match):
+    t_dut, dut, t_ref, ref = _pair()
+    with pytest.raises(AlignmentError, match=match):
+        estimate_clock_offset(t_dut, dut, t_ref, ref, **kw)
+
+
 def test_periodic_field_is_ambiguous():
     t_ref = np.arange(0, 300, 0.245)
     t_dut = np.arange(0, 300, 0.46) + 0.3

@@ -102,6 +102,35 @@ def test_structurally_bad_but_correctly_signed_documents(tmp_path):
         ct.table_from_document(_resigned(d4))
 
 
+@pytest.mark.parametrize("edit, match", [
+    (lambda d: d["parameters"].update(S=[1, 2, 3]), "parameter S must be an object"),
+    (lambda d: d["parameters"]["D"].update(value=[[1, 2, 3]]), "D currents"),
+    (lambda d: d["validity"].update(currents_A=[1]), "currents_A must be an object"),
+    (lambda d: d.update(fit=[1]), "'fit' must be a JSON object"),
+    (lambda d: d.update(device_id=None), "device_id must be a non-empty string"),
+    (lambda d: d.update(model=["eq3"]), "'model' must be a JSON object"),
+    (lambda d: d["model"].update(terms="gain_matrix"), "model.terms must be a list"),
+])
+def test_wrongly_typed_but_correctly_signed_documents(edit, match):
+    """Wrong JSON types anywhere give CalTableInvalid, never AttributeError/TypeError."""
+    doc = json.loads(json.dumps(_good().to_document()))
+    edit(doc)
+    with pytest.raises(CalTableInvalid, match=match):
+        ct.table_from_document(_resigned(doc))
+
+
+def test_absurd_scalars_fail_validation_without_crashing():
+    for kw, match in ((dict(t0_c=1e308), "t0_c"), (dict(validity_field_uT=1e308), "validity field_uT")):
+        res = ct.validate(_good(**kw))
+        assert not res.ok and any(match in p for p in res.problems), res.problems
+
+
+def test_non_finite_table_is_not_written(tmp_path):
+    with pytest.raises(CalTableInvalid, match="not written"):
+        ct.save_table(_good(validity_field_uT=float("nan")), tmp_path / "cal.json")
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.parametrize("kw, match", [
     (dict(S=np.eye(3) * 20), "S diagonal"),
     (dict(S=[[1, 6, 0], [0, 1, 0], [0, 0, 1]]), "off-diagonal"),

@@ -120,3 +120,61 @@ def test_calibrate_session_accepts_a_table_that_was_never_saved(tmp_path):
     out = calibrate_session(table, s, "fixed")
     assert out.metadata["cal_table_crc32"] == table.to_document()["crc32"]
     assert np.isfinite(out.dut_uT).all()
+
+
+def test_cli_refuses_bad_arguments_and_never_overwrites_good_files(tmp_path, capsys):
+    _session_file(tmp_path / "a.csv", 1, 0, currents=())
+    out = tmp_path / "cal.json"
+    assert main(["fit", str(tmp_path / "a.csv"), "--no-holdout", "--out", str(out)]) == 0
+    good = out.read_bytes()
+    # wrong arguments: exit 2, typed message, the existing table untouched
+    for extra, msg in ((["--validity-temp", "30,20"], "finite LO < HI"), (["--validity-field", "nan"], "finite field"),
+                       (["--validity-temp=-100,20"], "fails validation")):
+        capsys.readouterr()
+        assert main(["fit", str(tmp_path / "a.csv"), "--no-holdout", "--out", str(out), *extra]) == 2
+        assert msg in capsys.readouterr().err
+        assert out.read_bytes() == good
+    assert main(["fit", str(tmp_path / "a.csv"), "--no-holdout", "--out", str(tmp_path / "no" / "c.json")]) == 2
+    assert "No such file or directory" in capsys.readouterr().err
+    # an invalid (but correctly signed) table: `table validate` and `table show` give exit 2
+    doc = json.loads(good)
+    doc["parameters"]["S"]["value"][1][1] = None
+    from firmware_py.cal_table import _crc
+    doc["crc32"] = f"0x{_crc(doc):08x}"
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(doc))
+    for action in ("validate", "show"):
+        assert main(["table", action, str(bad)]) == 2
+        assert "S has non-finite values" in capsys.readouterr().err
+    # apply: never onto its own input, never twice
+    assert main(["apply", str(out), str(tmp_path / "a.csv"), "--out", str(tmp_path / "a.csv")]) == 2
+    assert "is the input file" in capsys.readouterr().err
+    assert main(["fit", str(tmp_path / "a.csv"), "--out", str(tmp_path / "a.csv")]) == 2   # a table over the data
+    assert "is the input file" in capsys.readouterr().err and read_session(tmp_path / "a.csv")
+    assert main(["apply", str(out), str(tmp_path / "a.csv"), "--out", str(tmp_path / "c.csv")]) == 0
+    assert main(["apply", str(out), str(tmp_path / "c.csv"), "--out", str(tmp_path / "cc.csv")]) == 2
+    assert "already calibrated" in capsys.readouterr().err
+    assert not (tmp_path / "cc.csv").exists()
+
+
+def test_fit_report_diagnoses_step_rows_on_the_real_data(tmp_path, capsys):
+    """AV-MagEval tests 3, 5, 6, 7 as imported: rows at coil steps dominate the residual; the
+    report says so and names the --exclude-steps threshold, which removes most of the misfit."""
+    from pathlib import Path
+    data = Path(__file__).parent / "data" / "av-mageval"
+    files = []
+    for n, (d, r) in {3: ("data2.csv", "ref3.csv"), 5: ("data5.csv", "ref5.csv"),
+                      6: ("data6.csv", "ref6.csv"), 7: ("data7.csv", "ref7.csv")}.items():
+        files.append(str(tmp_path / f"s{n}.csv"))
+        assert main(["import-mageval", str(data / d), str(data / r), "--out", files[-1], "--session-id", str(n)]) == 0
+    assert main(["fit", *files, "--out", str(tmp_path / "c.json")]) == 0
+    text = capsys.readouterr().out
+    assert "rows at steps" in text and "other rows" in text
+    thr = text.split("--exclude-steps ")[1].split()[0]
+    assert 0.05 < float(thr) < 0.3
+    assert "session 5 left out: the other sessions cannot determine S[x,x]" in text
+    assert main(["fit", *files, "--out", str(tmp_path / "c.json"), "--exclude-steps", thr]) == 0
+    text2 = capsys.readouterr().out
+    assert "at reference steps" in text2 and "Consider --exclude-steps" not in text2
+    rmse = lambda t: float(t.split("in-sample RMSE")[1].split()[3])  # noqa: E731
+    assert rmse(text2) < 0.5 * rmse(text)

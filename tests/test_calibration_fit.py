@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 
 from drivers.errors import FitError
 from firmware_py.calibration import CAL_TERMS, FitData, FitOptions, fit
-from firmware_py.calibration.fit import noise_floor, reference_steps
+from firmware_py.calibration.fit import diagnose_steps, noise_floor, reference_steps
 from firmware_py.calibration.model import CalModel, resolve_terms, time_derivative
 from firmware_py.calibration.streaming import StreamingFit
 from firmware_py.calibration.synthetic import make_data, random_theta
@@ -121,8 +121,28 @@ def test_axis_never_excited_holds_its_gain_column_at_identity():
     assert {h.name for h in r.held} == {"S[x,z]", "S[y,z]", "S[z,z]"}
     assert r.params["S"][2, 2] == 1.0 and r.params["S"][0, 2] == 0.0
     d.b_meas_uT[:, 2] = 0.3 * d.b_meas_uT[:, 0] + rng.normal(0, 0.01, N)   # Z just follows X
-    r = fit(d, "gain_offset", options=FitOptions(holdout=False))        # neither X nor Z separable
-    assert {h.name for h in r.held} == {f"S[{i},{j}]" for i in "xyz" for j in "xz"}
+    r = fit(d, "gain_offset", options=FitOptions(holdout=False))
+    # X and Z cannot be separated: the weaker (Z) is held, the X column carries the combination
+    assert {h.name for h in r.held} == {"S[x,z]", "S[y,z]", "S[z,z]"}
+    assert all("more excited axes" in h.reason for h in r.held)
+
+
+def test_single_axis_sweep_calibrates_its_axis_despite_cross_coupling():
+    """A sweep of X only: the DUT's Y and Z channels read scaled copies of X (cross-axis
+    coupling). X's column is determined (its own field), Y's and Z's are held, and the fit
+    removes the coupling instead of falling back to the identity."""
+    rng = np.random.default_rng(16)
+    n = 2000
+    x = 50.0 * np.sin(np.linspace(0, 6 * np.pi, n))
+    truth = np.column_stack([x, np.zeros(n), np.zeros(n)])
+    S_dut = np.array([[1.1, 0.0, 0.0], [0.09, 1.0, 0.0], [-0.04, 0.0, 1.0]])   # DUT = S_dut truth + offset
+    meas = truth @ S_dut.T + np.array([0.3, -0.2, 0.5]) + rng.normal(0, 0.02, (n, 3))
+    d = FitData(meas, truth + rng.normal(0, 0.02, (n, 3)), np.full(n, 25.0), np.arange(n) * 0.25,
+                np.zeros(n, np.int64))
+    r = fit(d, "gain_offset", options=FitOptions(holdout=False))
+    assert {h.name for h in r.held} == {f"S[{i},{j}]" for i in "xyz" for j in "yz"}
+    np.testing.assert_allclose(r.params["S"][:, 0], [1 / 1.1, -0.09 / 1.1, 0.04 / 1.1], atol=2e-3)
+    assert r.rmse_norm_uT < 0.1 < float(np.linalg.norm(r.raw_rmse_uT))
 
 
 def test_exactly_collinear_current_is_held():
@@ -312,3 +332,40 @@ def test_parameter_names_are_unique_per_used_coefficient():
     names = [m.param_name(i, c) for i in range(3) for c in range(m.n_columns) if mask[i, c]]
     assert len(names) == len(set(names))
     assert {"c3[x]", "c3[y]", "c3[z]", "P[y,xz]", "tau[z,x]", "D_a[y]", "dO_s2[x]", "r[z]"} <= set(names)
+
+
+def _staircase(rng, n=1200, plateau=8, miss=True):
+    """Reference staircase on all axes (+-5 uT steps every ``plateau`` rows, 10 nT noise); the DUT
+    reads the reference through a gain and, when ``miss``, still the old plateau on the first row of
+    half the new plateaus (two clocks that cannot be paired sample-exactly across a step)."""
+    k = np.arange(n)
+    levels = rng.uniform(-40, 40, size=(n // plateau + 1, 3))
+    ref = levels[k // plateau] + rng.normal(0, 0.01, (n, 3))
+    dut = ref.copy()
+    if miss:
+        first = (k % plateau == 0) & (k > 0) & (rng.random(n) < 0.5)
+        dut[first] = ref[np.flatnonzero(first) - 1]
+    dut = dut @ np.diag([1.1, 0.9, 1.05]).T + 0.3
+    return FitData(dut, ref, np.full(n, 25.0), np.arange(n) * 0.5, np.zeros(n, np.int64))
+
+
+def test_step_diagnosis_names_transition_rows_and_suggests_excluding_them():
+    rng = np.random.default_rng(21)
+    d = _staircase(rng)
+    r = fit(d, "gain_offset")
+    st = r.steps
+    assert st is not None and st.dominant
+    assert st.n_step == pytest.approx(2 * 1200 / 8, rel=0.05)          # both sides of every step
+    assert np.linalg.norm(st.step_rms_uT) > 10 * np.linalg.norm(st.steady_rms_uT)
+    assert f"--exclude-steps {st.threshold_uT:.2g}" in r.report()
+    ex = fit(d, "gain_offset", options=FitOptions(exclude_ref_steps_uT=st.threshold_uT))
+    assert ex.steps is None and ex.n_excluded_steps == st.n_step
+    assert f"+ {st.n_step} at reference steps" in ex.report()
+    assert ex.rmse_norm_uT < 0.5 * r.rmse_norm_uT
+    # exactly paired steps: the split is reported but nothing is suggested
+    clean = fit(_staircase(rng, miss=False), "gain_offset")
+    assert clean.steps is not None and not clean.steps.dominant and "--exclude-steps" not in clean.report()
+    # a smooth field has no steps to diagnose
+    m = _model(("gain_matrix", "offset"))
+    smooth = make_data(m, random_theta(m, rng), 500, rng)
+    assert diagnose_steps(np.zeros((500, 3)), smooth.b_ref_uT, smooth.session) is None

@@ -10,7 +10,9 @@ from sim.coil_programs import (
     ProgramTruth,
     STEP_LEVELS_uT,
     constant_field,
+    constant_temp,
     cycling_temp,
+    excursion_profile,
     heating_profile,
     piecewise_linear,
     program,
@@ -19,6 +21,7 @@ from sim.coil_programs import (
     rotation_profile,
     square_current,
     steps_profile,
+    sweep_profile,
 )
 from sim.truth_source import TruthSource
 
@@ -155,6 +158,37 @@ def test_building_blocks_validate_input():
         ProgramTruth("p", 0.0, constant_field())
     with pytest.raises(ConfigurationError):
         constant_field()(np.array([np.nan]))
+
+
+NAN, INF = float("nan"), float("inf")
+
+
+@pytest.mark.parametrize("build, word", [
+    (lambda: constant_field((NAN, 0.0, 0.0)), "b_uT"),
+    (lambda: constant_field((1.0, 2.0)), "b_uT"),
+    (lambda: steps_profile("", 10.0), "axes"),
+    (lambda: steps_profile("x", NAN), "duration_s"),
+    (lambda: steps_profile("x", 10.0, levels_uT=[0.0, NAN]), "levels_uT"),
+    (lambda: steps_profile("x", 10.0, slew_s=-1.0), "slew_s"),
+    (lambda: steps_profile("x", 10.0, background_uT=(0.0, INF, 0.0)), "background_uT"),
+    (lambda: sweep_profile("", 10.0), "axes"),
+    (lambda: sweep_profile("y", 10.0, amplitude_uT=NAN), "amplitude_uT"),
+    (lambda: rotation_profile(0.0), "duration_s"),
+    (lambda: rotation_profile(10.0, magnitude_uT=INF), "magnitude_uT"),
+    (lambda: excursion_profile("z", 10.0, peak_uT=NAN), "peak_uT"),
+    (lambda: constant_temp(NAN), "temp_c"),
+    (lambda: heating_profile(10.0, cool_tau_fraction=0.0), "cool_tau_fraction"),
+    (lambda: heating_profile(10.0, heat_fraction=1.5), "heat_fraction"),
+    (lambda: heating_profile(10.0, peak_c=NAN), "peak_c"),
+    (lambda: cycling_temp(10.0, amplitude_c=NAN), "amplitude_c"),
+    (lambda: square_current(NAN, 1.0), "amplitude_A"),
+    (lambda: square_current(1.0, INF), "period_s"),
+    (lambda: pulse_current(1.0, 10.0, 1.0, start_s=NAN), "start_s"),
+])
+def test_profile_parameters_are_validated_when_built(build, word):
+    """A bad parameter fails when the profile is built, not as NaN truth (or a ZeroDivisionError) later."""
+    with pytest.raises(ConfigurationError, match=word):
+        build()
 
 
 def test_register_program_plugs_in_another_generator():

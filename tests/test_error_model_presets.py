@@ -165,7 +165,7 @@ def test_hmc1053_heating_slope_consistent_with_belsten_minus_140_nT_per_degC():
 
 def test_hmc1053_time_skew_is_one_20sps_conversion_per_axis():
     p = preset("hmc1053")
-    np.testing.assert_allclose(p.axis_delay_s, [0.0, 0.05, 0.10])
+    np.testing.assert_allclose(p.axis_delay_s, [0.0, 0.050822, 0.101644])  # hardware-facts 4.2: 50.822 ms/channel
     # switching it off (as the register-level ADC simulator does) leaves every other effect unchanged
     truth = program("sweeps", 60.0, sessions=1)
     t = np.arange(0, 60, 0.4)

@@ -155,5 +155,9 @@ def test_unsupported_terms_and_bad_inputs():
         f.apply_block(np.zeros((2, 3)))
     with pytest.raises(ValueError):
         f.apply_sample((0, 0, 0), 0, (5,))
+    assert not f.uses_temperature and f.apply_block(np.zeros((1, 3), np.int64))[1].tolist() == [0]
+    ft = fp.FixedPointTable.from_table(_table(np.eye(3), np.full((3, 3), 1e-3), np.zeros(3), np.zeros(3)))
+    with pytest.raises(ValueError, match="temp_cdeg is required"):   # never a silent t0 for a thermal table
+        ft.apply_block(np.zeros((1, 3), np.int64))
     bi, ti, ci, bad = fp.to_fixed_inputs([[1.0, np.nan, 0], [0.0015, 0, 0]], [20.0, 21.005])
     assert bad.tolist() == [True, False] and bi[1, 0] == 2 and ti[1] == 2100

@@ -214,6 +214,18 @@ def test_temperature_follows_truth_with_internal_diode():
     assert rig.front_end.read().temp_c == pytest.approx(-20.0, abs=0.01)
 
 
+def test_internal_diode_takes_a_per_board_calibration():
+    """The diode coefficients are forum values [F2]; a table can carry the board's own calibration."""
+    truth = StaticTruth((1.0, 2.0, 3.0), temp_c=40.0)
+    # the simulated diode follows the forum values: a calibration 4 mV higher at 25 degC reads
+    # 4 mV / 405 uV/degC lower
+    cal = FrontEndTable("diode-cal", temperature=TempChannel("adc_diode", v_at_25c_V=0.122, V_per_c=405e-6))
+    assert ideal_rig(truth=truth, table=cal).front_end.read().temp_c == pytest.approx(40.0 - 4e-3 / 405e-6,
+                                                                                       abs=0.01)
+    with pytest.raises(ConfigurationError, match="both v_at_25c_V and V_per_c"):
+        FrontEndTable("half", temperature=TempChannel("adc_diode", v_at_25c_V=0.12)).validate()
+
+
 def test_linear_temperature_sensor_table_and_ratiometric_reference():
     table = FrontEndTable("lin", reference="REF0", temperature=TempChannel("linear", 6, 7, 1, 0.75, 0.01),
                           temp_in_both_states=True)
@@ -236,6 +248,7 @@ def test_sensitivity_mismatch_shows_as_gain():
     (dict(sensitivity_mV_per_V_per_G=(1.0, 0.0, 1.0)), "sensitivity"),
     (dict(excitation_V=float("nan")), "excitation_V"),
     (dict(temperature=TempChannel("thermocouple")), "temperature kind"),
+    (dict(temperature=TempChannel("linear", v_at_25c_V=float("nan"), V_per_c=0.01)), "v_at_25c_V"),
 ])
 def test_bad_table_entries_raise_configuration_error(changes, word):
     with pytest.raises(ConfigurationError, match=word):
@@ -251,6 +264,13 @@ def test_bridge_rejects_unwired_pins_and_bad_parameters():
     truth = StaticTruth()
     with pytest.raises(ConfigurationError):
         HMC1053Bridge(truth, sensor=IdealSensor(), offset_mV_per_V=(0.0, float("nan"), 0.0))
+    for kw, word in ((dict(excitation_V=float("inf")), "excitation_V"),
+                     (dict(external_gain=float("nan")), "external_gain"),
+                     (dict(offset_tempco_per_c=float("nan")), "offset_tempco_per_c"),
+                     (dict(temp_pins=(6, 7), temp_v_at_25c_V=float("nan"), temp_V_per_c=0.01), "temp_v_at_25c_V"),
+                     (dict(temp_pins=(6, 7), temp_V_per_c=0.0), "temp_V_per_c")):
+        with pytest.raises(ConfigurationError, match=word):
+            HMC1053Bridge(truth, sensor=IdealSensor(), **kw)
     br = HMC1053Bridge(truth, sensor=IdealSensor())
     with pytest.raises(BusError, match="not a wired pair"):
         br.differential_V(6, 7, 0.0)
@@ -280,3 +300,16 @@ def test_default_sensor_output_noise_and_offset_reproduce_the_preset():
     sigma = np.asarray(p.noise_white_uT)
     assert b.std(axis=0) == pytest.approx(sigma, rel=0.2)
     assert np.all(np.abs(b.mean(axis=0) - np.asarray(p.offset_uT)) < 5 * sigma / np.sqrt(len(b)))
+
+
+def test_falling_edge_strap_circuit_recovers_the_field_with_its_sign():
+    """A table with ``set_on_rising_edge=False`` drives an inverted pulse circuit; the simulated rig
+    follows the table, so the field keeps its sign (it was silently negated before)."""
+    import dataclasses
+
+    tab = dataclasses.replace(FRONT_ENDS["hf8.2"], name="falling-edge", set_on_rising_edge=False)
+    rig = ideal_rig(b_uT=(10.0, -20.0, 30.0), table=tab)
+    s = rig.front_end.read()
+    assert s.b_uT == pytest.approx((10.0, -20.0, 30.0), abs=3 * LSB_UT)
+    assert rig.bridge.set_pulses == rig.bridge.reset_pulses == 1
+    assert rig.bridge.strap_line.level is True          # idles high: SET is the falling edge

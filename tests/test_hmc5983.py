@@ -248,3 +248,13 @@ def test_hil_hmc5983(request):
     assert np.all(np.diff([s.t_s for s in samples]) > 0)
     assert 5.0 < np.linalg.norm(np.mean([s.b_uT for s in samples], axis=0)) < 200.0
     assert d.self_test().passed
+
+
+@pytest.mark.parametrize("latched", [False, True])
+def test_dow_flag_reports_lost_samples(latched):
+    d, model, *_ = rig(drdy_latched=latched)
+    d.read()
+    assert d.read().extra["overrun"] is False
+    d.clock.sleep_s(4 * d.period_s)          # sets overwritten unread: DOW
+    assert d.read().extra["overrun"] is True
+    assert d.read().extra["overrun"] is False

@@ -149,3 +149,31 @@ def test_conversions_only_at_output_rate(clock):
     dev.read_register(0x27)
     assert len(calls) == 2
     assert dev.read_register(0x27) & 0x80   # ZYXOR: unread data overwritten
+
+
+@pytest.mark.parametrize("chip", ["lis3mdl", "hmc5983", "lsm303dlhc"])
+def test_non_finite_truth_fails_loudly_with_a_typed_error(clock, chip):
+    """NaN from the truth (field or temperature) is never encoded as a register value."""
+    from drivers.errors import ConfigurationError
+    from drivers.hmc5983 import HMC5983
+    from drivers.lis3mdl import LIS3MDL
+    from drivers.lsm303dlhc import LSM303DLHC
+
+    cls, drv, addr = {"lis3mdl": (LIS3MDLModel, LIS3MDL, 0x1C), "hmc5983": (HMC5983Model, HMC5983, 0x1E),
+                      "lsm303dlhc": (LSM303DLHCModel, LSM303DLHC, 0x1E)}[chip]
+    for truth, word in ((StaticTruth((1.0, float("nan"), 2.0)), "sensor returned"),
+                        (StaticTruth(temp_c=float("nan")), "temperature")):
+        m = cls(clock, truth, IdealSensor())
+        bus, _ = _dev(m, addr)
+        d = drv(bus, clock, stuck_limit=None)
+        with pytest.raises(ConfigurationError, match=word):
+            d.read()
+
+
+def test_self_test_fault_knobs_refuse_non_finite_values(clock):
+    from drivers.errors import ConfigurationError
+
+    with pytest.raises(ConfigurationError, match="delta_uT"):
+        LIS3MDLModel(clock, StaticTruth(), IdealSensor()).break_self_test((float("nan"), 0.0, 0.0))
+    with pytest.raises(ConfigurationError, match="bias_uT"):
+        HMC5983Model(clock, StaticTruth(), IdealSensor()).break_self_test((1.0, 2.0))

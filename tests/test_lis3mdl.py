@@ -263,3 +263,13 @@ def test_hil_lis3mdl_reads_earth_field(request):
     assert 5.0 < norm < 200.0              # Earth field plus bench offsets, far below full scale
     assert -20.0 < samples[-1].temp_c < 70.0
     assert d.self_test().passed
+
+
+def test_overrun_flag_reports_lost_samples():
+    d, model, *_ = rig()
+    assert d.read().extra["overrun"] is False
+    s = d.read()
+    assert s.extra["overrun"] is False
+    d.clock.sleep_s(5 * d.period_s)          # the chip converts 5 sets nobody reads
+    assert d.read().extra["overrun"] is True
+    assert d.read().extra["overrun"] is False

@@ -157,3 +157,21 @@ def test_hil_lsm303dlhc(request):
     assert all(s.valid for s in samples)
     assert np.all(np.diff([s.t_s for s in samples]) > 0)
     assert 5.0 < np.linalg.norm(np.mean([s.b_uT for s in samples], axis=0)) < 200.0
+
+
+def test_single_conversion_mode_returns_to_sleep_without_mr7():
+    d, model, *_ = rig(b_uT=(30.0, -20.0, 10.0))
+    d.configure(mode="single")
+    n0 = model.conversions
+    s1, s2 = d.read(), d.read()
+    assert model.conversions == n0 + 2 and s2.t_s > s1.t_s
+    assert s2.b_uT == pytest.approx((30.0, -20.0, 10.0), abs=100 / 980)
+    # back to sleep (MD = 11); MR_REG_M bits 7:2 stay 0 (the HMC5983's MR7 flag is not this part's)
+    assert model.values[0x02] == 0x03
+
+
+def test_non_finite_temperature_offset_is_refused():
+    with pytest.raises(ConfigurationError, match="temp_offset_c"):
+        rig(temp_offset_c=float("nan"))
+    with pytest.raises(ConfigurationError, match="temp_offset_c"):
+        rig(model_temp_offset_c=float("inf"))

@@ -107,8 +107,18 @@ def test_bad_input_typed_errors_and_skip_counts(tmp_path):
 
 
 def test_no_overlap_at_given_offset_raises():
-    with pytest.raises(AlignmentError, match="no paired rows"):
-        import_mageval(D5, R5, clock_offset_s=0.0, gaps="drop")
+    for gaps in ("drop", "nan"):   # a file of nothing but gap rows is not written either
+        with pytest.raises(AlignmentError, match="no paired rows"):
+            import_mageval(D5, R5, clock_offset_s=0.0, gaps=gaps)
+
+
+def test_non_finite_offset_and_absurd_grid_are_refused(tmp_path):
+    with pytest.raises(ValueError, match="clock_offset_s must be finite"):
+        import_mageval(D5, R5, clock_offset_s=float("nan"))
+    with pytest.raises(ValueError, match="more than 10x"):
+        import_mageval(D5, R5, clock_offset_s=AUTHORS_OFFSET_S, onto=1e-9)
+    with pytest.raises(SessionFileError, match="cannot read"):
+        import_mageval(D5, tmp_path)                       # a directory
 
 
 def test_roundtrip_through_session_file_and_cli(tmp_path, capsys):

@@ -83,3 +83,9 @@ def test_corrector_applied_and_missing_table_counted():
 def test_bad_period_rejected(bad):
     with pytest.raises(ValueError):
         SamplingLoop(ScriptedMag(VirtualClock(), []), VirtualClock(), period_s=bad)
+
+
+@pytest.mark.parametrize("bad", [0, -3])
+def test_reinit_after_must_be_at_least_one(bad):
+    with pytest.raises(ValueError, match="reinit_after"):
+        SamplingLoop(ScriptedMag(VirtualClock(), []), VirtualClock(), period_s=0.1, reinit_after=bad)

@@ -71,6 +71,9 @@ def test_reader_accepts_files_without_optional_columns():
     (",".join(REQUIRED_COLUMNS) + "\n1,1,2,3,4,5,6,25\n2,1,2,3,4,5,6,25,0\n", "8 cells"),
     (",".join(REQUIRED_COLUMNS) + "\n1,1,2,3,4,5,6,25,0.5\n", "integers"),
     (",".join(REQUIRED_COLUMNS) + "\n1,inf,2,3,4,5,6,25,0\n", "infinite"),
+    (",".join(REQUIRED_COLUMNS) + "\n1,1,2,3,4,5,6,25,1e30\n", "'session' column must hold integers"),
+    (",".join(REQUIRED_COLUMNS) + ",flag\n1,1,2,3,4,5,6,25,0,0\n2,1,2,3,4,5,6,25,0,1.5\n",
+     "'flag' column must hold integers .*data row 2"),
 ])
 def test_corrupt_files_raise_typed_errors_naming_the_line(text, match):
     with pytest.raises(SessionFileError, match=match):
@@ -80,6 +83,16 @@ def test_corrupt_files_raise_typed_errors_naming_the_line(text, match):
 def test_missing_and_binary_files(tmp_path):
     with pytest.raises(SessionFileError, match="no such session file"):
         read_session(tmp_path / "nope.csv")
+    with pytest.raises(SessionFileError, match="cannot read"):
+        read_session(tmp_path)                                   # a directory
+    s = Session([1.0], [[1, 2, 3]], [[4, 5, 6]], [25.0], [0])
+    with pytest.raises(SessionFileError, match="does not exist"):
+        write_session(tmp_path / "no_dir" / "s.csv", s)
+    with pytest.raises(SessionFileError, match="is a directory"):
+        write_session(tmp_path, s)
+    # an empty flag cell means "no flag" (0)
+    text = ",".join(REQUIRED_COLUMNS) + ",flag\n1,1,2,3,4,5,6,25,0,\n"
+    assert read_session(io.StringIO(text)).flag.tolist() == [0]
     (tmp_path / "bin.csv").write_bytes(b"\xff\xfe\x00garbage")
     with pytest.raises(SessionFileError, match="not a text session file"):
         read_session(tmp_path / "bin.csv")

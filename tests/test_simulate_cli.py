@@ -101,3 +101,16 @@ def test_measurement_sim_reference_noise_and_dut_from_model():
     assert run.effects == ("gain",)
     again = simulate_measurement(p, truth, duration_s=60.0, rate_hz=10.0, seed=1, effects=["gain"])
     np.testing.assert_array_equal(again.ref_uT, run.ref_uT)
+
+
+@pytest.mark.parametrize("kw, word", [
+    ({"rate_hz": float("nan")}, "rate_hz"), ({"duration_s": 0.0}, "duration_s"),
+    ({"ref_lsb_uT": float("nan")}, "ref_lsb_uT"), ({"ref_lsb_uT": -0.001}, "ref_lsb_uT"),
+    ({"ref_noise_uT": (0.001, float("nan"), 0.001)}, "ref_noise_uT"), ({"t_start_s": float("inf")}, "t_start_s"),
+])
+def test_measurement_sim_refuses_bad_parameters(kw, word):
+    from drivers.errors import ConfigurationError
+
+    args = {"duration_s": 5.0, "rate_hz": 2.0, **kw}
+    with pytest.raises(ConfigurationError, match=word):
+        simulate_measurement(preset("hmc5983"), program("zero_field", 10.0, sessions=1), **args)

@@ -12,6 +12,7 @@ scalar figure is the vector norm of the three per-axis values.
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -194,6 +195,60 @@ class AxisSolution:
 
 
 @dataclass
+class StepDiagnosis:
+    """In-sample residual split between rows at reference steps and the rest (plain RMS, uT).
+
+    ``threshold_uT``: a row is "at a step" when the reference changes by more than this between it
+    and a neighbouring row of its session (:func:`reference_steps`)."""
+
+    threshold_uT: float
+    n_step: int
+    n_steady: int
+    step_rms_uT: np.ndarray     # (3,)
+    steady_rms_uT: np.ndarray   # (3,)
+    step_share: float           # fraction of the total squared residual on step rows
+
+    @property
+    def dominant(self) -> bool:
+        """Step rows carry a disproportionate share of the misfit (worth excluding or modelling)."""
+        ratio = np.linalg.norm(self.step_rms_uT) / max(float(np.linalg.norm(self.steady_rms_uT)), 1e-300)
+        return ratio >= STEP_RATIO and self.step_share >= STEP_SHARE
+
+
+#: The step diagnosis reports step rows as dominant when their residual RMS is at least STEP_RATIO
+#: times that of the other rows and they carry at least STEP_SHARE of the squared residual.
+STEP_RATIO = 2.0
+STEP_SHARE = 0.5
+#: Automatic step threshold: this many times the median non-zero row-to-row reference change
+#: (the reference's own sample-to-sample noise while the field is steady).
+STEP_NOISE_FACTOR = 10.0
+
+
+def step_threshold_uT(b_ref_uT: np.ndarray, session: np.ndarray) -> float:
+    """Reference change between consecutive rows (uT, max over axes) that counts as a step:
+    STEP_NOISE_FACTOR x the median non-zero change within sessions; NaN if there is none."""
+    d = np.abs(np.diff(b_ref_uT, axis=0)).max(axis=1)
+    d = d[(session[1:] == session[:-1]) & np.isfinite(d) & (d > 0)]
+    return float(STEP_NOISE_FACTOR * np.median(d)) if d.size else math.nan
+
+
+def diagnose_steps(resid_uT: np.ndarray, b_ref_uT: np.ndarray, session: np.ndarray,
+                   threshold_uT: float | None = None) -> StepDiagnosis | None:
+    """Split the residual between rows at reference steps and the rest; None when the data has
+    no steps (fewer than 10 step or 10 other rows, or no usable threshold)."""
+    thr = step_threshold_uT(b_ref_uT, session) if threshold_uT is None else float(threshold_uT)
+    if not (math.isfinite(thr) and thr > 0):
+        return None
+    at = reference_steps(b_ref_uT, session, thr)
+    if at.sum() < 10 or (~at).sum() < 10:
+        return None
+    sq = resid_uT ** 2
+    total = float(sq.sum())
+    return StepDiagnosis(thr, int(at.sum()), int((~at).sum()), np.sqrt(sq[at].mean(axis=0)),
+                         np.sqrt(sq[~at].mean(axis=0)), float(sq[at].sum()) / total if total > 0 else 0.0)
+
+
+@dataclass
 class FitResult:
     """Everything a fit produced; ``report()`` renders it as text."""
 
@@ -214,6 +269,8 @@ class FitResult:
     holdout_sessions_uT: np.ndarray | None = None        # (3,) pooled over left-out sessions
     holdout_per_session_uT: dict[int, np.ndarray] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    n_excluded_steps: int = 0                          # rows excluded by exclude_ref_steps_uT
+    steps: StepDiagnosis | None = None                 # residual at reference steps vs elsewhere
 
     @property
     def rmse_norm_uT(self) -> float:
@@ -241,13 +298,20 @@ class FitResult:
             "noise_floor_uT": lst(self.noise_floor_uT), "noise_floor_norm_uT": nrm(self.noise_floor_uT),
             "cond_scaled": lst(self.cond_scaled), "cond_raw": lst(self.cond_raw),
             "held": [{"param": h.name, "value": h.value, "reason": h.reason} for h in self.held],
+            "n_excluded_steps": self.n_excluded_steps,
+            **({} if self.steps is None else {
+                "step_threshold_uT": self.steps.threshold_uT, "step_rows": self.steps.n_step,
+                "step_rms_uT": lst(self.steps.step_rms_uT), "steady_rms_uT": lst(self.steps.steady_rms_uT),
+                "step_share_of_sse": self.steps.step_share}),
         }
 
     def report(self) -> str:
         m = self.model
         L = [f"model {m.name}: terms {', '.join(m.terms)}" + (f"; currents {', '.join(m.currents)}"
                                                              if m.currents else "") + f"; t0 = {m.t0_c:g} degC",
-             f"rows used {self.n_used}, excluded {self.n_excluded} (NaN / flagged / zero weight)"
+             f"rows used {self.n_used}, excluded {self.n_excluded - self.n_excluded_steps} "
+             "(NaN / flagged / zero weight)"
+             + (f" + {self.n_excluded_steps} at reference steps" if self.n_excluded_steps else "")
              + ("; robust Huber IRLS" if self.robust else ""),
              f"coverage: T {self.coverage.temp_min_c:.2f}..{self.coverage.temp_max_c:.2f} degC, "
              f"|B| max per axis {np.array2string(self.coverage.field_max_uT, precision=1)} uT, "
@@ -259,7 +323,12 @@ class FitResult:
                 return f"{label:24s}{'n/a':>10s}{'n/a':>10s}{'n/a':>10s}{'n/a':>10s}"
             v = np.asarray(v) * 1e3
             return f"{label:24s}" + "".join(f"{x:10.1f}" for x in v) + f"{np.linalg.norm(v):10.1f}"
-        L += [row("raw ref-dut RMS", self.raw_rmse_uT), row("in-sample RMSE", self.rmse_uT),
+        L += [row("raw ref-dut RMS", self.raw_rmse_uT), row("in-sample RMSE", self.rmse_uT)]
+        st = self.steps
+        if st is not None:
+            L += [row(f"  {st.n_step} rows at steps", st.step_rms_uT),
+                  row(f"  {st.n_steady} other rows", st.steady_rms_uT)]
+        L += [
               row("held-out time blocks", self.holdout_blocks_uT),
               row("held-out sessions", self.holdout_sessions_uT)]
         for s, v in sorted(self.holdout_per_session_uT.items()):
@@ -280,6 +349,12 @@ class FitResult:
             L += ["", "identifiability: parameters the data cannot determine (held at prior):"]
             L += [f"  {h.name} = {h.value:g}: {h.reason}" for h in self.held]
         L += [f"note: {n}" for n in self.notes]
+        if st is not None and st.dominant:
+            L += [f"note: rows at reference steps (change > {st.threshold_uT:.2g} uT to a neighbouring row) are "
+                  f"{st.n_step / (st.n_step + st.n_steady):.0%} of the rows but carry {st.step_share:.0%} of the "
+                  f"squared residual: two independently clocked streams cannot be paired sample-exactly across "
+                  f"a step. Consider --exclude-steps {st.threshold_uT:.2g} (FitOptions.exclude_ref_steps_uT); "
+                  f"if the DUT samples its axes one after another, also try --terms time_skew."]
         return "\n".join(L)
 
 
@@ -295,19 +370,33 @@ def qr_r(A: np.ndarray) -> np.ndarray:
     return R
 
 
-def independent_field_rms(model: CalModel, R: np.ndarray, cov: Coverage) -> np.ndarray:
-    """(3,) uT: RMS of each input axis's field component not explained (least squares) by
-    the other two axes and a constant, i.e. how much the data excites that axis on its own."""
+def independent_field_rms(model: CalModel, R: np.ndarray, cov: Coverage, min_rms_uT: float = 0.0) -> np.ndarray:
+    """(3,) uT: how much the data excites each input axis on its own.
+
+    Axes are taken in order of decreasing field RMS (about the offset); each gets the RMS of its
+    component not explained (least squares) by a constant and the axes accepted before it, and is
+    accepted when that is at least ``min_rms_uT``. A single-axis sweep thus determines its own axis
+    even though the DUT's cross-axis coupling makes the other channels scaled copies of it: only
+    those copies are reported as not excited on their own."""
     cols = {c.index: k for k, c in enumerate(model.columns) if c.term == "gain_matrix"}
     off = [k for k, c in enumerate(model.columns) if c.term == "offset"]
-    out = np.zeros(3)
     n = max(cov.sum_w, 1e-300)
-    for j in range(3):
-        others = [cols[k] for k in range(3) if k != j] + off
-        A = R[:, others]
+
+    def orth_rms(j: int, others: list[int]) -> float:
+        A = R[:, [cols[k] for k in others] + off]
         v = R[:, cols[j]]
+        if A.shape[1] == 0:
+            return float(np.linalg.norm(v) / np.sqrt(n))
         coef, *_ = np.linalg.lstsq(A, v, rcond=None)
-        out[j] = np.linalg.norm(v - A @ coef) / np.sqrt(n)
+        return float(np.linalg.norm(v - A @ coef) / np.sqrt(n))
+
+    own = [orth_rms(j, []) for j in range(3)]
+    out = np.zeros(3)
+    accepted: list[int] = []
+    for j in sorted(range(3), key=lambda k: -own[k]):
+        out[j] = orth_rms(j, accepted)
+        if out[j] >= min_rms_uT:
+            accepted.append(j)
     return out
 
 
@@ -327,7 +416,7 @@ def identify(model: CalModel, R: np.ndarray, cov: Coverage, options: FitOptions)
             raise FitError(f"prior for unknown parameter {k!r}")
         prior[names[k]] = float(v)
     held: dict[tuple[int, int], str] = {}
-    orth = independent_field_rms(model, R, cov)
+    orth = independent_field_rms(model, R, cov, options.min_field_rms_uT)
     for c, col in enumerate(model.columns):
         reason = None
         if col.term == "temperature_gain":
@@ -340,7 +429,7 @@ def identify(model: CalModel, R: np.ndarray, cov: Coverage, options: FitOptions)
                 reason = (f"temperature spans only {cov.temp_span_c:.2f} degC "
                           f"(need {options.min_temp_span_c:g} degC)")
         elif col.term in ("gain_matrix", "cubic") and orth[col.index] < options.min_field_rms_uT:
-            reason = (f"field on {AXES[col.index]} not explained by the other axes has RMS "
+            reason = (f"field on {AXES[col.index]} not explained by the more excited axes has RMS "
                       f"{orth[col.index]:.3g} uT (need {options.min_field_rms_uT:g} uT)")
         elif col.term == "cross_products":
             jj, kk = ((0, 1), (0, 2), (1, 2))[col.index]
@@ -507,8 +596,11 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
     name = model if all_terms == MODELS.get(model) else f"{model}+" + "+".join(
         t for t in all_terms if t not in MODELS[model])
     ok = data.usable(all_terms, currents)
+    n_steps = 0
     if options.exclude_ref_steps_uT is not None:
-        ok &= ~reference_steps(data.b_ref_uT, data.session, options.exclude_ref_steps_uT)
+        at_step = ok & reference_steps(data.b_ref_uT, data.session, options.exclude_ref_steps_uT)
+        n_steps = int(at_step.sum())
+        ok &= ~at_step
     d = data.select(ok)
     cm = build_model(d, all_terms, currents, t0_c, name)
     if len(d) <= cm.n_columns:
@@ -528,16 +620,24 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
     raw = np.sqrt(np.mean((d.b_ref_uT - d.b_meas_uT) ** 2, axis=0))
     res = FitResult(cm, theta, se, held, len(d), int((~ok).sum()), rmse, raw, conds[0], conds[1],
                     noise_floor(resid, d.t_s, d.session, options.noise_lag_s), cov, options.robust)
+    res.n_excluded_steps = n_steps
+    if options.exclude_ref_steps_uT is None:
+        res.steps = diagnose_steps(resid, d.b_ref_uT, d.session)
     if options.holdout:
         res.holdout_blocks_uT = _holdout_blocks(d, all_terms, currents, t0_c, name, options, res.notes)
         res.holdout_sessions_uT, res.holdout_per_session_uT = _holdout_sessions(
-            d, all_terms, currents, t0_c, name, options, res.notes)
+            d, all_terms, currents, t0_c, name, options, res.notes, [h.name for h in held])
     return res
 
 
-def _predict_out(train: FitData, test: FitData, terms, currents, t0_c, name, options) -> np.ndarray:
+def _predict_out(train: FitData, test: FitData, terms, currents, t0_c, name, options,
+                 held_names: list[str] | None = None) -> np.ndarray:
+    """Residual of ``test`` under a fit on ``train``; the names of the parameters that fit held
+    are appended to ``held_names`` when given."""
     cm = build_model(train, terms, currents, t0_c, name)
-    _, theta, *_ = _fit_core(train, cm, options)
+    _, theta, _, held, *_ = _fit_core(train, cm, options)
+    if held_names is not None:
+        held_names += [h.name for h in held]
     Xt = cm.design(test.b_meas_uT, test.temp_c, test.currents_A, test.session, test.t_s)
     return test.b_ref_uT - cm.predict(theta, Xt)
 
@@ -565,7 +665,7 @@ def _holdout_blocks(d: FitData, terms, currents, t0_c, name, options, notes) -> 
     return np.sqrt(sq / cnt)
 
 
-def _holdout_sessions(d: FitData, terms, currents, t0_c, name, options, notes):
+def _holdout_sessions(d: FitData, terms, currents, t0_c, name, options, notes, full_held=()):
     sessions = np.unique(d.session)
     if sessions.size < 2:
         notes.append("held-out by sessions: needs at least two sessions")
@@ -574,11 +674,16 @@ def _holdout_sessions(d: FitData, terms, currents, t0_c, name, options, notes):
     sq, cnt = np.zeros(3), 0
     for s in sessions:
         test = d.session == s
+        held: list[str] = []
         try:
-            r = _predict_out(d.select(~test), d.select(test), terms, currents, t0_c, name, options)
+            r = _predict_out(d.select(~test), d.select(test), terms, currents, t0_c, name, options, held)
         except FitError as exc:
             notes.append(f"session {int(s)} left out: skipped: {exc}")
             continue
+        lost = sorted(set(held) - set(full_held))
+        if lost:
+            notes.append(f"session {int(s)} left out: the other sessions cannot determine {', '.join(lost)} "
+                         "(held at prior), so its held-out error measures extrapolation, not calibration quality")
         per[int(s)] = np.sqrt(np.mean(r ** 2, axis=0))
         sq += np.sum(r ** 2, axis=0)
         cnt += r.shape[0]

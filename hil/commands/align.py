@@ -9,7 +9,7 @@ import numpy as np
 from drivers.errors import ConfigurationError
 from hil.alignment import align_streams, aligned_session
 from hil.mageval_import import AUTHORS_OFFSET_S, KELVIN_OFFSET, read_mageval_data, read_mageval_ref
-from hil.session_file import read_session, write_session
+from hil.session_file import read_session, refuse_overwriting_inputs, write_session
 
 
 def register(subparsers) -> None:
@@ -61,6 +61,8 @@ def _load(inputs: list[str], prior: float | None, halfwidth: float | None):
 def run(args: argparse.Namespace) -> int:
     if args.out and len(args.inputs) != 1:
         raise ConfigurationError("--out needs a session file input; for DATA.csv REF.csv use import-mageval")
+    if args.out:
+        refuse_overwriting_inputs(args.out, args.inputs)
     t_dut, dut, t_ref, ref, prior, halfwidth, temp_c = _load(args.inputs, args.prior_s, args.halfwidth_s)
     rep = align_streams(t_dut, dut, t_ref, ref, prior_s=prior, search_halfwidth_s=halfwidth,
                         max_gap_s=args.max_gap_s, min_r2=args.min_r2, temp_c=temp_c, temp_model=args.temp_model,

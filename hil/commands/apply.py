@@ -9,7 +9,7 @@ from drivers.errors import CalTableInvalid, SessionFileError
 from firmware_py.cal_table import load_table, validate
 from firmware_py.fixed_point import FixedPointTable, output_to_uT, to_fixed_inputs
 from firmware_py.float_applier import ApplyFlag, apply_float
-from hil.session_file import Session, read_session, write_session
+from hil.session_file import Session, read_session, refuse_overwriting_inputs, write_session
 
 #: apply's status bits sit above the first 8 bits so flags already in the file are kept.
 FLAG_SHIFT = 8
@@ -60,7 +60,11 @@ def calibrate_session(table, s: Session, applier: str = "float") -> Session:
 def run(args: argparse.Namespace) -> int:
     table = load_table(args.table)
     validate(table).raise_if_bad(str(args.table))
+    refuse_overwriting_inputs(args.out, [args.session, args.table])
     s = read_session(args.session)
+    if s.metadata.get("calibrated") == "true":
+        raise SessionFileError(f"{args.session} is already calibrated (table {s.metadata.get('cal_table_crc32')}); "
+                               "apply the table to the raw session")
     for w in s.warnings:
         print(f"note: {args.session}: {w}")
     dev = s.metadata.get("device_id")

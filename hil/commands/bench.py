@@ -9,11 +9,18 @@ from hil.chip_registry import chip_names, open_chip
 
 
 def _faults(text: str) -> dict[str, float]:
+    from dataclasses import fields
+
+    from sim.fvm400_model import FVM400Faults
+
+    valid = [f.name for f in fields(FVM400Faults)]
     out = {}
     for item in filter(None, text.split(",")):
         k, sep, v = item.partition("=")
         if not sep:
             raise argparse.ArgumentTypeError(f"expected name=probability, got {item!r}")
+        if k.strip() not in valid:
+            raise argparse.ArgumentTypeError(f"unknown fault {k.strip()!r}; valid: {', '.join(valid)}")
         out[k.strip()] = float(v)
     return out
 

@@ -2,14 +2,15 @@
 from __future__ import annotations
 
 import argparse
+import math
 
 import numpy as np
 
-from drivers.errors import FitError
+from drivers.errors import CalTableInvalid, ConfigurationError, FitError
 from firmware_py.cal_table import save_table, table_from_fit, validate
 from firmware_py.calibration import FitData, FitOptions, fit
 from firmware_py.calibration.model import CAL_TERMS, MODELS
-from hil.session_file import Session, read_session
+from hil.session_file import Session, read_session, refuse_overwriting_inputs
 
 
 def _split(values) -> list[str]:
@@ -43,7 +44,8 @@ def register(subparsers) -> None:
     p.add_argument("--device-id", default=None, help="device id for the table (default: session metadata)")
     p.add_argument("--description", default="")
     p.add_argument("--validity-temp", default=None, metavar="LO,HI",
-                   help="table validity temperature range, degC (default: the data's range)")
+                   help="table validity temperature range, degC (default: the data's range; write a negative LO as "
+                        "--validity-temp=-20,60)")
     p.add_argument("--validity-field", type=float, default=None, metavar="UT",
                    help="table validity |B| per axis, uT (default: the data's maximum)")
     p.add_argument("--out", required=True, metavar="cal.json")
@@ -76,7 +78,24 @@ def load_sessions(paths) -> tuple[Session, list[str]]:
     return Session.concatenate(parts), notes
 
 
+def _validity_args(args) -> tuple[float, float] | None:
+    """Check --validity-temp / --validity-field before any work (ConfigurationError)."""
+    if args.validity_field is not None and not (math.isfinite(args.validity_field) and args.validity_field > 0):
+        raise ConfigurationError(f"--validity-field must be a finite field > 0 uT, got {args.validity_field}")
+    if not args.validity_temp:
+        return None
+    try:
+        lo, hi = (float(x) for x in args.validity_temp.split(","))
+    except ValueError:
+        raise ConfigurationError(f"--validity-temp wants LO,HI in degC, got {args.validity_temp!r}") from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        raise ConfigurationError(f"--validity-temp wants finite LO < HI in degC, got {args.validity_temp!r}")
+    return lo, hi
+
+
 def run(args: argparse.Namespace) -> int:
+    vt = _validity_args(args)
+    refuse_overwriting_inputs(args.out, args.sessions)
     session, notes = load_sessions(args.sessions)
     device_id = args.device_id or session.metadata.get("device_id") or session.metadata.get("dut_chip")
     if not device_id:
@@ -89,21 +108,13 @@ def run(args: argparse.Namespace) -> int:
     for n in notes:
         print(f"note: {n}")
     print(result.report())
-    vt = None
-    if args.validity_temp:
-        try:
-            lo, hi = (float(x) for x in args.validity_temp.split(","))
-        except ValueError:
-            raise FitError(f"--validity-temp wants LO,HI in degC, got {args.validity_temp!r}") from None
-        vt = (lo, hi)
     table = table_from_fit(result, device_id, description=args.description or
                            f"fit of {', '.join(str(p) for p in args.sessions)}",
                            validity_temp_c=vt, validity_field_uT=args.validity_field)
     v = validate(table)
+    if not v.ok:   # never replace a file (perhaps a good table) with one the board would refuse
+        raise CalTableInvalid(f"fitted table fails validation, {args.out} not written: " + "; ".join(v.problems))
     save_table(table, args.out)
     print(f"\nwrote {args.out} (device {device_id}, crc32 {table.to_document()['crc32']})")
-    if not v.ok:
-        print("table VALIDATION FAILED (not loadable on board): " + "; ".join(v.problems))
-        return 1
     print(f"table validates: worst-case output {v.worst_output_uT:.1f} uT, max cond {v.max_cond:.3g}")
     return 0

@@ -5,7 +5,7 @@ import argparse
 
 from drivers.errors import ConfigurationError
 from hil.mageval_import import AUTHORS_OFFSET_S, import_mageval
-from hil.session_file import write_session
+from hil.session_file import refuse_overwriting_inputs, write_session
 
 
 def register(subparsers) -> None:
@@ -38,6 +38,7 @@ def run(args: argparse.Namespace) -> int:
         onto: str | float = args.onto if args.onto in ("dut", "ref") else float(args.onto)
     except ValueError:
         raise ConfigurationError(f"--onto must be 'dut', 'ref' or a grid step in s, got {args.onto!r}") from None
+    refuse_overwriting_inputs(args.out, [args.data_csv, args.ref_csv])
     offset = AUTHORS_OFFSET_S if args.authors_offset else args.clock_offset_s
     s = import_mageval(args.data_csv, args.ref_csv, temp_column=args.temp_column, clock_offset_s=offset,
                        on_undetermined="raise" if args.strict_offset else "prior", onto=onto,

@@ -70,6 +70,10 @@ def _interference(items: list[str]) -> dict[str, tuple[float, float, float]]:
     return out
 
 
+#: Largest simulated session (rows) one command writes (about 1 GB of CSV).
+MAX_ROWS = 10_000_000
+
+
 def run(args) -> int:
     if args.program not in PROGRAMS:
         raise ConfigurationError(f"unknown program {args.program!r}; valid: {', '.join(PROGRAMS)}")
@@ -95,6 +99,10 @@ def run(args) -> int:
     rate = info.rate_hz if args.rate_hz is None else args.rate_hz
     if not (rate > 0 and math.isfinite(rate)):
         raise ConfigurationError(f"--rate-hz must be > 0, got {rate}")
+    n_rows = truth.duration_s * rate
+    if n_rows > MAX_ROWS:
+        raise ConfigurationError(f"{truth.duration_s:g} s at {rate:g} Hz is {n_rows:.3g} rows, more than "
+                                 f"{MAX_ROWS:.0e}: shorten --seconds or lower --rate-hz")
     run_ = simulate_measurement(params, truth, duration_s=truth.duration_s, rate_hz=rate, seed=args.seed,
                                 effects=effects)
     from hil.cli import version

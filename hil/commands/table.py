@@ -46,10 +46,12 @@ def run(args: argparse.Namespace) -> int:
                     "holdout_sessions_rmse_norm_uT", "noise_floor_norm_uT"):
             if key in fs:
                 print(f"fit {key}: {fs[key]}")
-        for h in fs.get("held", []):
-            print(f"held {h['param']} = {h['value']}: {h['reason']}")
+        for h in fs.get("held", []) if isinstance(fs.get("held"), list) else ():
+            if isinstance(h, dict):
+                print(f"held {h.get('param')} = {h.get('value')}: {h.get('reason')}")
     if v.ok:
         print(f"valid: worst-case output {v.worst_output_uT:.1f} uT, max condition number {v.max_cond:.3g}")
         return 0
     print("INVALID: " + "; ".join(v.problems))
-    return 1
+    v.raise_if_bad(str(args.table))   # typed error, exit 2 (after ``show`` has printed the contents)
+    return 2
