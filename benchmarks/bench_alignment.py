@@ -25,13 +25,14 @@ of the belsten Eq. 3 temperature terms and of Eq. 3 + dT^2 terms (the default), 
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from _timing import best_wall_s  # noqa: E402  (sibling module; scripts run from benchmarks/)
 
 from hil.alignment import align_streams, interp_no_extrapolation, linear_fit_rmse_uT  # noqa: E402
 from hil.mageval_import import (  # noqa: E402
@@ -54,13 +55,6 @@ def _find(root: Path, name: str, test: int) -> Path:
     raise FileNotFoundError(f"{name} not in {root}")
 
 
-def _best(fn, repeat: int = 5) -> float:
-    best = float("inf")
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
 
 
 def main(argv: list[str]) -> int:
@@ -84,8 +78,8 @@ def main(argv: list[str]) -> int:
         def ours_full(t_dut=t_dut, dut=dut, t_ref=t_ref, ref=ref, temp_c=temp_c):
             return align_streams(t_dut, dut, t_ref, ref, temp_c=temp_c)
 
-        t_base = _best(baseline)
-        t_align = _best(ours_full)
+        t_base = best_wall_s(baseline, 5)
+        t_align = best_wall_s(ours_full, 5)
         rep = ours_full()
         off = rep.offset.offset_s
         ours, ok1 = interp_no_extrapolation(t_ref + off, ref, t_dut)
@@ -144,7 +138,7 @@ def thermal_cycling(seeds: int = 5, duration_s: float = 600.0) -> None:
                 except AlignmentError:
                     pass
 
-            times[name].append(_best(timed, 3))
+            times[name].append(best_wall_s(timed, 3))
             try:
                 o = run().offset
                 cells.append(f"{name}: {o.offset_s - true_off:+.4f} +- {o.sigma_s:.4f}")

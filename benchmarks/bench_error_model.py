@@ -10,24 +10,15 @@ register-level chip simulators use by default), i.e. the error model's own per-s
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
+from _timing import best_wall_s  # sibling module (scripts run from benchmarks/)
 
 from sim.coil_programs import program
 from sim.error_model import ErrorModel
 from sim.measurement_sim import simulate_measurement
 from sim.presets import PRESET_NAMES, preset, preset_info
 from sim.truth_source import StaticTruth
-
-
-def _time(fn, repeat: int = 3) -> float:
-    best = float("inf")
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
 
 
 def main() -> None:
@@ -58,15 +49,15 @@ def main() -> None:
             for x in t_loop:
                 m.sense(x, static)
 
-        per_loop = _time(loop, 1) / args.n_loop
-        per_vec = _time(vec) / args.n
-        per_static = _time(loop_static) / args.n_loop
+        per_loop = best_wall_s(loop, 1) / args.n_loop
+        per_vec = best_wall_s(vec) / args.n
+        per_static = best_wall_s(loop_static) / args.n_loop
         print(f"{name:<11} {1 / per_loop:>11.0f}/s {1 / per_vec:>11.0f}/s {per_loop / per_vec:>8.1f}x "
               f"{1 / per_static:>13.0f}/s {per_static * 1e6:>8.1f}")
     # whole measurement-level run (what `magstack simulate` does before writing)
     p = preset("lis3mdl")
     tr = program("full", 600.0)
-    dt = _time(lambda: simulate_measurement(p, tr, duration_s=600.0, rate_hz=80.0, seed=0), 1)
+    dt = best_wall_s(lambda: simulate_measurement(p, tr, duration_s=600.0, rate_hz=80.0, seed=0), 1)
     print(f"simulate_measurement lis3mdl 'full' 600 s at 80 Hz (48001 rows): {dt:.2f} s "
           f"({48001 / dt:.0f} rows/s)")
 
