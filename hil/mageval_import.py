@@ -31,7 +31,7 @@ import numpy as np
 
 from drivers.errors import AlignmentError, ConfigurationError, SessionFileError
 from hil.alignment import estimate_clock_offset, interp_no_extrapolation
-from hil.session_file import Session
+from hil.session_file import Session, read_text_file
 
 #: DUT logger header (dataN.csv).
 DATA_COLUMNS = ("time", "x_test", "y_test", "z_test", "x_U7", "y_U7", "z_U7", "x_U9", "y_U9", "z_U9",
@@ -47,14 +47,7 @@ FLAG_NO_DUT = 2
 
 
 def _parse_rows(path: Path, ncols: int, header: Sequence[str] | None, bad_lines: str) -> tuple[np.ndarray, int]:
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise SessionFileError(f"{path}: no such file") from None
-    except UnicodeDecodeError as exc:
-        raise SessionFileError(f"{path}: not a text CSV file ({exc})") from None
-    except OSError as exc:
-        raise SessionFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    text = read_text_file(path, "file")
     lines = text.splitlines()
     start = 0
     if header is not None:

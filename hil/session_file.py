@@ -260,6 +260,18 @@ def _check_integer_column(v: np.ndarray, col: str, name: object, *, header_line:
                                f"(data row {k + 1} after the header on line {header_line} has {float(v[k])!r})")
 
 
+def read_text_file(path: str | os.PathLike, kind: str) -> str:
+    """UTF-8 text of ``path``; a missing, unreadable or binary file raises SessionFileError naming it."""
+    try:
+        return Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise SessionFileError(f"{path}: no such {kind}") from None
+    except UnicodeDecodeError as exc:
+        raise SessionFileError(f"{path}: not a text {kind} ({exc})") from None
+    except OSError as exc:
+        raise SessionFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
+
+
 def read_session(source: str | os.PathLike | io.TextIOBase) -> Session:
     """Read a v1 session file (or a ``.part`` file left by a killed session).
 
@@ -271,14 +283,7 @@ def read_session(source: str | os.PathLike | io.TextIOBase) -> Session:
         text, name = source.read(), getattr(source, "name", "<stream>")
     else:
         name = str(source)
-        try:
-            text = Path(source).read_text(encoding="utf-8")
-        except FileNotFoundError:
-            raise SessionFileError(f"{name}: no such session file") from None
-        except UnicodeDecodeError as exc:
-            raise SessionFileError(f"{name}: not a text session file ({exc})") from None
-        except OSError as exc:
-            raise SessionFileError(f"{name}: cannot read ({exc.strerror or exc})") from None
+        text = read_text_file(source, "session file")
     lines = text.split("\n")
     cut_tail = not text.endswith("\n")
     if not cut_tail:
