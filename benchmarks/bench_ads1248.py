@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import time
 
-from drivers.ads1248 import ADS1248, ChannelConfig, Command
-from drivers.clock import VirtualClock
-from sim.ads1248_model import ADS1248Model
-from sim.hmc1053_bridge import IdealSensor, build_sim_hmc1053
-from sim.spi_bus import SimSpiBus
+from magstack.drivers.ads1248 import ADS1248, ChannelConfig, Command
+from magstack.drivers.clock import VirtualClock
+from magstack.sim.ads1248_model import ADS1248Model
+from magstack.sim.hmc1053_bridge import IdealSensor, build_sim_hmc1053
+from magstack.sim.spi_bus import SimSpiBus
 
 
 class _Inputs:

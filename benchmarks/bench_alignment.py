@@ -6,7 +6,7 @@ DIR holds dataN.csv/refN.csv (default: tests/data/av-mageval, the shipped subset
 copy is ../shared/realdata/av-mageval with testN/ sub-folders, also accepted). For each of
 tests 5, 6, 7 it prints:
 
-* wall time of :func:`hil.alignment.align_streams` (offset + skew + axis map + RMSE), best of
+* wall time of :func:`magstack.ground.alignment.align_streams` (offset + skew + axis map + RMSE), best of
   5, and its ratio to a baseline run in the same process (one interpolation + one 12-parameter
   linear fit at the authors' offset);
 * the estimated clock offset +- 1 sigma vs. the authors' 4 h - 0.5 s;
@@ -34,8 +34,8 @@ sys.path.insert(0, str(ROOT))
 
 from _timing import best_wall_s  # noqa: E402  (sibling module; scripts run from benchmarks/)
 
-from hil.alignment import align_streams, interp_no_extrapolation, linear_fit_rmse_uT  # noqa: E402
-from hil.mageval_import import (  # noqa: E402
+from magstack.ground.alignment import align_streams, interp_no_extrapolation, linear_fit_rmse_uT  # noqa: E402
+from magstack.ground.mageval_import import (  # noqa: E402
     AUTHORS_AXIS_MAP,
     AUTHORS_OFFSET_S,
     KELVIN_OFFSET,
@@ -109,11 +109,11 @@ def main(argv: list[str]) -> int:
 
 def thermal_cycling(seeds: int = 5, duration_s: float = 600.0) -> None:
     """Plain vs temperature model on simulated -20..60 degC cycling with a known clock offset."""
-    from drivers.errors import AlignmentError
-    from sim.coil_programs import program
-    from sim.error_model import without
-    from sim.measurement_sim import simulate_measurement
-    from sim.presets import preset
+    from magstack.ground.errors import AlignmentError
+    from magstack.sim.coil_programs import program
+    from magstack.sim.error_model import without
+    from magstack.sim.measurement_sim import simulate_measurement
+    from magstack.sim.presets import preset
 
     truth = program("temp_cycling", duration_s, sessions=1)
     variants = {"plain (old)": {"temp_model": "off"}, "Eq. 3": {"temp_order": 1}, "Eq. 3 + dT^2": {"temp_order": 2}}

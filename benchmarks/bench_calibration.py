@@ -13,13 +13,13 @@ import tracemalloc
 
 import numpy as np
 
-from firmware_py.cal_table import table_from_fit, validate
-from firmware_py.calibration import FitOptions, fit
-from firmware_py.calibration.model import CalModel, resolve_terms
-from firmware_py.calibration.streaming import StreamingFit
-from firmware_py.calibration.synthetic import make_data, random_theta
-from firmware_py.fixed_point import FixedPointTable, to_fixed_inputs
-from firmware_py.float_applier import apply_float
+from magstack.firmware.cal_table import table_from_fit, validate
+from magstack.firmware.calibration import FitOptions, fit
+from magstack.firmware.calibration.model import CalModel, resolve_terms
+from magstack.firmware.calibration.streaming import StreamingFit
+from magstack.firmware.fixed_point import FixedPointTable, to_fixed_inputs
+from magstack.firmware.float_applier import apply_float
+from magstack.sim.synthetic_calibration import make_data, random_theta
 
 CURRENTS = ("solar", "heater")
 TERMS = resolve_terms("eq3", currents=CURRENTS)

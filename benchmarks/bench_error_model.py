@@ -4,7 +4,7 @@ Run: ``python benchmarks/bench_error_model.py [--n 20000]``. Times with perf_cou
 is the per-sample ``sense()`` loop measured in the same process, so the printed ratios are
 machine-independent. Prints samples/s and the speed-up of ``sense_series``. The loops use the
 ``full`` coil program as truth (whose own sampling costs ~60-100 us per call); the ``static``
-column repeats the ``sense()`` loop with a :class:`~sim.truth_source.StaticTruth` (what the
+column repeats the ``sense()`` loop with a :class:`~magstack.sim.truth_source.StaticTruth` (what the
 register-level chip simulators use by default), i.e. the error model's own per-sample cost.
 """
 from __future__ import annotations
@@ -14,11 +14,11 @@ import argparse
 import numpy as np
 from _timing import best_wall_s  # sibling module (scripts run from benchmarks/)
 
-from sim.coil_programs import program
-from sim.error_model import ErrorModel
-from sim.measurement_sim import simulate_measurement
-from sim.presets import PRESET_NAMES, preset, preset_info
-from sim.truth_source import StaticTruth
+from magstack.sim.coil_programs import program
+from magstack.sim.error_model import ErrorModel
+from magstack.sim.measurement_sim import simulate_measurement
+from magstack.sim.presets import PRESET_NAMES, preset, preset_info
+from magstack.sim.truth_source import StaticTruth
 
 
 def main() -> None:

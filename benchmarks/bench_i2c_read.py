@@ -5,7 +5,7 @@ simulated bus (``SimI2CBus.transfer``). Each driver read is a full ``Magnetomete
 data-ready polling, data block, overflow check (LIS3MDL: INT_SRC), temperature, decoding,
 in virtual time. Two sensed-value sources: ``ideal`` (truth passed through: the cost of driver,
 bus and register model alone) and ``preset-model`` (``ErrorModel(preset(chip))`` from
-:mod:`sim.error_model`, one ``sense()`` per conversion).
+:mod:`magstack.sim.error_model`, one ``sense()`` per conversion).
 
 Run: ``python benchmarks/bench_i2c_read.py [--seconds S]``.
 """
@@ -14,10 +14,10 @@ from __future__ import annotations
 import argparse
 import time
 
-from drivers.bus.i2c import I2CRead, I2CWrite
-from hil.chip_registry import open_chip
-from sim.i2c_bench import CHIPS, default_bench
-from sim.i2c_register_model import IdealSensor
+from magstack.drivers.bus.i2c import I2CRead, I2CWrite
+from magstack.drivers.registry import open_chip
+from magstack.sim.i2c_bench import CHIPS, default_bench
+from magstack.sim.i2c_register_model import IdealSensor
 
 CASES = (("lis3mdl", {"odr_hz": 1000.0}), ("lis3mdl", {"odr_hz": 80.0}),
          ("hmc5983", {"odr_hz": 220.0}), ("lsm303dlhc", {"odr_hz": 220.0}))

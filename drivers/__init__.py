@@ -1,5 +1,6 @@
-"""Bus transports and chip drivers (register semantics only).
+"""Bus transports, chip tables and chip drivers (register semantics only), and the chip factory.
 
-Layering (one-way): ``drivers.bus`` -> ``drivers.<chip>`` -> ``firmware_py``.
-No module here opens a device node by itself: callers inject a bus.
+Layering (one-way): ``magstack.drivers.bus`` -> chip drivers -> ``magstack.drivers.registry``.
+No driver opens a device node by itself: callers inject a bus. Backends other than the real
+Linux buses (the simulator) register themselves through the ``magstack.plugins`` entry point.
 """

@@ -4,7 +4,7 @@ The chip is described as data (:data:`REGISTERS`, :data:`FIELDS`, :data:`DATA_RA
 :data:`PGA_CODES`, ...; hardware-facts section 4); the driver only looks values up and
 does masked read-modify-write. The SPI device and the START / RESET / DRDY lines are
 injected, every wait goes through the injected clock, and every configuration write is
-read back and compared (:class:`drivers.errors.ReadbackMismatch`).
+read back and compared (:class:`magstack.drivers.errors.ReadbackMismatch`).
 
 Conversion model used by :meth:`ADS1248.convert`: START is held high (continuous
 conversion); writing MUX0..SYS0 restarts the digital filter, so the next DRDY falls
@@ -19,10 +19,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
 
-from drivers.bus.gpio import InputLine, OutputLine
-from drivers.bus.spi import SpiBus
-from drivers.clock import Clock
-from drivers.errors import BusError, BusTimeout, ConfigurationError, ReadbackMismatch
+from magstack.drivers.bus.gpio import InputLine, OutputLine
+from magstack.drivers.bus.spi import SpiBus
+from magstack.drivers.clock import Clock
+from magstack.drivers.errors import BusError, BusTimeout, ConfigurationError, ReadbackMismatch
 
 # --------------------------------------------------------------------------- settings table
 

@@ -4,7 +4,7 @@ A :class:`ChipTable` holds everything register-level about one magnetometer: ide
 registers, data block layout (byte order, axis order, overflow code), the range / rate /
 mode option tables and the register fields they live in, the status flags and the
 temperature format. Generic helpers do the rest: :func:`lookup` (exact match, raising
-:class:`~drivers.errors.ConfigurationError` that names the valid values),
+:class:`~magstack.drivers.errors.ConfigurationError` that names the valid values),
 :func:`write_field` (masked read-modify-write with read-back check), :func:`decode_axes`
 and :class:`TableMagnetometer`, the shared read path (wait for a *new* sample through
 the injected clock, decode, flag overflow, detect stuck data).
@@ -19,8 +19,8 @@ import struct
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
-from drivers.bus.i2c import I2CBus, I2CDevice
-from drivers.errors import (
+from magstack.drivers.bus.i2c import I2CBus, I2CDevice
+from magstack.drivers.errors import (
     BusError,
     BusTimeout,
     ConfigurationError,
@@ -29,7 +29,7 @@ from drivers.errors import (
     ReadbackMismatch,
     StaleData,
 )
-from drivers.magnetometer import MagSample
+from magstack.drivers.magnetometer import MagSample
 
 UT_PER_GAUSS = 100.0
 

@@ -1,14 +1,14 @@
-"""One typed exception tree for the whole stack.
+"""Driver-layer branch of the exception tree (root: :class:`magstack.errors.MagError`).
 
-Every error raised on purpose by magstack derives from :class:`MagError`, so a flight
-loop can catch ``MagError``, count it and keep running, while programming errors
-(``TypeError``, ``AssertionError``) still propagate.
+Bus, device, configuration and protocol errors. Errors of the layers above live beside their
+code (``magstack.data.errors``, ``magstack.firmware.errors``, ``magstack.ground.errors``).
 """
 from __future__ import annotations
 
+from magstack.errors import EXIT_DEVICE, EXIT_NEGATIVE, EXIT_USAGE, InputDataError, MagError
 
-class MagError(Exception):
-    """Root of all magstack errors."""
+__all__ = ["MagError", "InputDataError", "BusError", "BusTimeout", "DeviceIdMismatch", "DeviceNotFound",
+           "ConfigurationError", "ReadbackMismatch", "DataOverflow", "StaleData", "SelfTestFailed", "ProtocolError"]
 
 
 class BusError(MagError, OSError):
@@ -17,6 +17,8 @@ class BusError(MagError, OSError):
     ``address`` is the 7-bit I2C address, SPI chip-select or port name;
     ``operation`` says what was attempted.
     """
+
+    exit_code = EXIT_DEVICE
 
     def __init__(self, message: str, *, address: object = None, operation: str = "") -> None:
         self.address = address
@@ -36,46 +38,46 @@ class BusTimeout(BusError, TimeoutError):
 class DeviceIdMismatch(MagError):
     """The identity registers do not match the expected chip."""
 
+    exit_code = EXIT_DEVICE
+
 
 class DeviceNotFound(MagError):
     """No known chip answered at the probed location."""
+
+    exit_code = EXIT_NEGATIVE
 
 
 class ConfigurationError(MagError, ValueError):
     """An invalid configuration value (range, rate, mode) was requested."""
 
+    exit_code = EXIT_USAGE
+
 
 class ReadbackMismatch(MagError):
     """A configuration register read back a value other than the one written."""
+
+    exit_code = EXIT_DEVICE
 
 
 class DataOverflow(MagError):
     """A sensor reported saturation / overflow for a sample."""
 
+    exit_code = EXIT_DEVICE
+
 
 class StaleData(MagError):
     """No new sample is available yet (data-ready not set)."""
+
+    exit_code = EXIT_DEVICE
 
 
 class SelfTestFailed(MagError):
     """Self-test response outside its acceptance window."""
 
+    exit_code = EXIT_DEVICE
+
 
 class ProtocolError(MagError, ValueError):
     """A garbled or unexpected reply on a serial / command protocol."""
 
-
-class SessionFileError(MagError, ValueError):
-    """A session file is corrupt, truncated or not in a supported format."""
-
-
-class CalTableInvalid(MagError, ValueError):
-    """A calibration table failed loading or validation; the active table stays in force."""
-
-
-class FitError(MagError, ValueError):
-    """A calibration fit cannot be done with the given data / model."""
-
-
-class AlignmentError(MagError, ValueError):
-    """Two streams cannot be aligned (no overlap, data does not determine the parameter)."""
+    exit_code = EXIT_DEVICE

@@ -1,7 +1,7 @@
 """MEDA FVM400 fluxgate (bench reference) over a serial line.
 
 The transport is any pyserial object: ``open_serial("/dev/ttyUSB0")`` on the bench,
-``open_serial("fvm400sim://bench")`` in simulation (see :mod:`sim.fvm400_model`). Protocol facts
+``open_serial("fvm400sim://bench")`` in simulation (see :mod:`magstack.sim.fvm400_model`). Protocol facts
 come from public driver code, not the (unread) manual; see hardware-facts section 6 and the
 framing table below. A polled query returns::
 
@@ -22,10 +22,10 @@ from collections import Counter
 from dataclasses import dataclass
 from types import MappingProxyType
 
-from drivers.bus.serial_port import open_serial
-from drivers.clock import Clock, SystemClock
-from drivers.errors import BusError, BusTimeout, ConfigurationError, ProtocolError, ReadbackMismatch
-from drivers.magnetometer import MagSample
+from magstack.drivers.bus.serial_port import open_serial
+from magstack.drivers.clock import Clock, SystemClock
+from magstack.drivers.errors import BusError, BusTimeout, ConfigurationError, ProtocolError, ReadbackMismatch
+from magstack.drivers.magnetometer import MagSample
 
 # ------------------------------------------------------------------------- framing table
 EOT = b"\x04"
@@ -101,7 +101,7 @@ def parse_record(text: str, *, max_abs_nT: float = DEFAULT_MAX_ABS_NT) -> tuple[
 
 
 class FVM400:
-    """Polled FVM400 reference magnetometer; implements :class:`drivers.magnetometer.Magnetometer`.
+    """Polled FVM400 reference magnetometer; implements :class:`magstack.drivers.magnetometer.Magnetometer`.
 
     ``port``: an open pyserial object (8N1, 9600 baud, read timeout set). ``b_uT`` is in the probe
     frame (+X cable-to-tip, +Z down through the base). ``configure=True`` selects rectangular,

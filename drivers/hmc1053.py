@@ -24,11 +24,11 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 
-from drivers.ads1248 import ADS1248, DATA_RATES, PGA_CODES, ChannelConfig, Conversion, diode_temp_c, lookup
-from drivers.bus.gpio import OutputLine
-from drivers.clock import Clock
-from drivers.errors import ConfigurationError
-from drivers.magnetometer import MagSample
+from magstack.drivers.ads1248 import ADS1248, DATA_RATES, PGA_CODES, ChannelConfig, Conversion, diode_temp_c, lookup
+from magstack.drivers.bus.gpio import OutputLine
+from magstack.drivers.clock import Clock
+from magstack.drivers.errors import ConfigurationError
+from magstack.drivers.magnetometer import MagSample
 
 #: Temperature channel kinds: the ADC's internal diode (MUXCAL=011) or a linear sensor on an AIN pair.
 TEMP_KINDS = ("adc_diode", "linear")

@@ -3,7 +3,7 @@
 Register semantics only; the bus is injected. Field in uT, temperature in degC.
 
 - identity: ID A/B/C (0x0A..0x0C) = 'H', '4', '3' at 0x1E (shared with the LSM303DLHC:
-  see :mod:`drivers.i2c_probe`).
+  see :mod:`magstack.drivers.i2c_probe`).
 - data: X, Z, Y big-endian int16 from 0x03; valid -2048..2047; -4096 = overflow (NaN + flag).
 - ranges 88 / 130 / 190 / 250 / 400 / 470 / 560 / 810 uT at 1370 ... 230 LSB/G.
 - rates 0.75 ... 220 Hz; averaging 1/2/4/8; modes continuous / single / idle.
@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.chip_table import (
+from magstack.drivers.chip_table import (
     ChipTable,
     Field,
     NamedOption,
@@ -35,7 +35,7 @@ from drivers.chip_table import (
     lookup,
     write_checked,
 )
-from drivers.errors import BusError, DeviceIdMismatch, SelfTestFailed
+from magstack.drivers.errors import BusError, DeviceIdMismatch, SelfTestFailed
 
 CRA, CRB, MR = 0x00, 0x01, 0x02
 DATA_X_MSB = 0x03

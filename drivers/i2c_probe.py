@@ -16,8 +16,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from drivers.bus.i2c import I2CBus, I2CDevice, I2CWrite
-from drivers.errors import BusError, DeviceNotFound
+from magstack.drivers.bus.i2c import I2CBus, I2CDevice, I2CWrite
+from magstack.drivers.errors import BusError, DeviceNotFound
 
 MAGNETOMETER_ADDRESSES = (0x1C, 0x1E)
 LSM303DLHC_ACCEL_ADDRESS = 0x19

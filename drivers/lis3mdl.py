@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.chip_table import (
+from magstack.drivers.chip_table import (
     ChipTable,
     Field,
     NamedOption,
@@ -31,7 +31,7 @@ from drivers.chip_table import (
     write_checked,
     write_field,
 )
-from drivers.errors import BusTimeout, ConfigurationError, SelfTestFailed
+from magstack.drivers.errors import BusTimeout, ConfigurationError, SelfTestFailed
 
 WHO_AM_I = 0x0F
 CTRL_REG1, CTRL_REG2, CTRL_REG3, CTRL_REG4, CTRL_REG5 = 0x20, 0x21, 0x22, 0x23, 0x24

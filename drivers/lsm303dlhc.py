@@ -18,9 +18,9 @@ from __future__ import annotations
 
 import math
 
-from drivers.chip_table import ChipTable, Field, NamedOption, RangeOption, RateOption, TempFormat
-from drivers.errors import ConfigurationError
-from drivers.hmc5983 import HoneywellStyleMagnetometer
+from magstack.drivers.chip_table import ChipTable, Field, NamedOption, RangeOption, RateOption, TempFormat
+from magstack.drivers.errors import ConfigurationError
+from magstack.drivers.hmc5983 import HoneywellStyleMagnetometer
 
 CRA_REG_M, CRB_REG_M, MR_REG_M = 0x00, 0x01, 0x02
 OUT_X_H_M = 0x03

@@ -42,8 +42,8 @@ class Magnetometer(Protocol):
     def read(self) -> MagSample:
         """Wait for the next new sample (through the injected clock) and return it.
 
-        Raises :class:`drivers.errors.BusError`, :class:`drivers.errors.BusTimeout`
-        or :class:`drivers.errors.DataOverflow`-flagged samples never silently.
+        Raises :class:`magstack.drivers.errors.BusError`, :class:`magstack.drivers.errors.BusTimeout`
+        or :class:`magstack.drivers.errors.DataOverflow`-flagged samples never silently.
         """
 
     def data_ready(self) -> bool:

@@ -1,4 +1,5 @@
-"""On-board side: sampling loop, calibration tables and applier, batch refitter, health counters.
+"""On-board side (``magstack.firmware``): calibration model and fit, calibration tables, fixed-point
+applier, sampling loop, health counters, effect catalogue.
 
-Uses chips only through :class:`drivers.magnetometer.Magnetometer`; never an address.
+Uses chips only through :class:`magstack.drivers.magnetometer.Magnetometer`; never an address.
 """

@@ -29,9 +29,9 @@ from typing import Any
 
 import numpy as np
 
-from drivers.errors import CalTableInvalid
-from firmware_py import fixed_point
-from firmware_py.calibration.model import CAL_TERMS, GROUND_ONLY_TERMS
+from magstack.firmware import fixed_point
+from magstack.firmware.calibration.model import CAL_TERMS, GROUND_ONLY_TERMS
+from magstack.firmware.errors import CalTableInvalid
 
 SCHEMA = "magstack-cal-table"
 SCHEMA_VERSION = 1
@@ -403,7 +403,7 @@ def worst_case_output_uT(table: CalTable) -> float:
 def table_from_fit(result, device_id: str, *, description: str = "", created_utc: str = "",
                    validity_temp_c: tuple[float, float] | None = None, validity_field_uT: float | None = None,
                    validity_currents_A: Mapping[str, tuple[float, float]] | None = None) -> CalTable:
-    """A table from a :class:`firmware_py.calibration.FitResult`. Validity defaults to what
+    """A table from a :class:`magstack.firmware.calibration.FitResult`. Validity defaults to what
     the fit data covered (temperature range, max |B| component, current ranges)."""
     m = result.model
     p = m.unpack(result.theta)

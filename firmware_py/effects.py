@@ -1,8 +1,8 @@
 """The one catalogue of magnetometer error effects.
 
 Each effect has a stable name used everywhere: the simulator's error model
-(``sim.error_model``) implements its forward physics, the calibration model
-(``firmware_py.calibration``) offers the matching correction term where one exists, and
+(``magstack.sim.error_model``) implements its forward physics, the calibration model
+(``magstack.firmware.calibration``) offers the matching correction term where one exists, and
 the sim-to-real gap diagnosis attributes residuals to it. Define an effect here once;
 other modules look it up by name and must not keep their own lists.
 

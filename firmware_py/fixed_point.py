@@ -32,8 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.errors import CalTableInvalid
-from firmware_py.float_applier import ApplyFlag
+from magstack.firmware.errors import CalTableInvalid
+from magstack.firmware.float_applier import ApplyFlag
 
 S_FRAC = 27
 K_S_FRAC = 34
@@ -100,7 +100,7 @@ class FixedPointTable:
 
     @classmethod
     def from_table(cls, table) -> FixedPointTable:
-        """Quantise a :class:`firmware_py.cal_table.CalTable`; CalTableInvalid if a term is
+        """Quantise a :class:`magstack.firmware.cal_table.CalTable`; CalTableInvalid if a term is
         not supported or a coefficient does not fit its Q format."""
         extra = [t for t in table.terms if t not in FIXED_POINT_TERMS and t not in
                  ("time_skew", "session_offset", "drift")]

@@ -1,9 +1,9 @@
 """The on-board sampling loop: one cyclic executive step per sample period.
 
 Each :meth:`SamplingLoop.step` reads one sample through the common
-:class:`~drivers.magnetometer.Magnetometer` interface, applies the active calibration
+:class:`~magstack.drivers.magnetometer.Magnetometer` interface, applies the active calibration
 (if any) and publishes a :class:`PublishedSample`. Faults never escape: every
-:class:`~drivers.errors.MagError` is counted in :class:`HealthCounters` and the loop
+:class:`~magstack.drivers.errors.MagError` is counted in :class:`HealthCounters` and the loop
 keeps running; after ``reinit_after`` consecutive faults it calls the driver's
 ``reinit()`` (if it has one). Time comes only from the injected clock.
 """
@@ -14,10 +14,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
-from drivers.clock import Clock
-from drivers.errors import BusError, BusTimeout, MagError, StaleData
-from drivers.magnetometer import Magnetometer, MagSample
-from firmware_py.health import HealthCounters
+from magstack.drivers.clock import Clock
+from magstack.drivers.errors import BusError, BusTimeout, MagError, StaleData
+from magstack.drivers.magnetometer import Magnetometer, MagSample
+from magstack.firmware.health import HealthCounters
 
 
 class Corrector(Protocol):

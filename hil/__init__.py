@@ -1,5 +1,4 @@
-"""Ground and bench side: session files, bench runner, alignment, real-data import, the CLI.
-
-Top of the dependency graph: may use ``drivers``, ``sim`` and ``firmware_py``; nothing
-imports ``hil``.
+"""Hardware in the loop: the bench runner (a DUT and a reference side by side into a session file)
+and the Raspberry Pi wiring notes (hil/README.md). Uses drivers, data and, for the simulated bench,
+sim; only the CLI imports it.
 """

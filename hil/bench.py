@@ -1,7 +1,7 @@
 """Bench session runner: a DUT magnetometer and the FVM400 reference, side by side, to a session file.
 
 Each instrument runs at its own rate and every sample becomes one row of the session file
-(:mod:`hil.session_file`), host-timestamped (Unix epoch, UTC, through the injected clock): a DUT
+(:mod:`magstack.data.session`), host-timestamped (Unix epoch, UTC, through the injected clock): a DUT
 row carries ``dut_*_uT`` and ``temp_c`` with empty ``ref_*`` cells, a reference row the
 opposite. Nothing is resampled here; ``magstack align SESSION`` and ``import``-style pairing
 work on the raw interleaved streams.
@@ -9,7 +9,7 @@ work on the raw interleaved streams.
 Scheduling: with a real clock each instrument is read by its own thread (the HMC1053 front end
 blocks for a whole conversion cycle, which must not hold up the 4 Hz reference). In simulation a
 single-thread discrete-event loop serves whichever instrument's next action comes first; with one
-:class:`~drivers.clock.VirtualClock` per instrument (``ref_clock``, as :func:`build_sim_bench`
+:class:`~magstack.drivers.clock.VirtualClock` per instrument (``ref_clock``, as :func:`build_sim_bench`
 sets up) the lagging one catches up while the other blocks, so both keep their rates, and rows
 pass through a time-ordered buffer. With one shared virtual clock a blocking DUT read delays the
 reference (its timestamps stay exact).
@@ -34,10 +34,10 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.clock import Clock, VirtualClock
-from drivers.errors import ConfigurationError, MagError
-from drivers.magnetometer import Magnetometer, MagSample
-from hil.session_file import SessionWriter
+from magstack.data.session import SessionWriter
+from magstack.drivers.clock import Clock, VirtualClock
+from magstack.drivers.errors import ConfigurationError, MagError
+from magstack.drivers.magnetometer import Magnetometer, MagSample
 
 NAN3 = (math.nan, math.nan, math.nan)
 
@@ -291,12 +291,9 @@ def _run_threaded(dut, ref, dclock, rclock, t0, seconds, ref_rate_hz, dut_rate_h
 
 
 def _software_version() -> str:
-    try:
-        from hil.cli import version
+    from magstack import __version__
 
-        return f"magstack {version()}"
-    except Exception:  # pragma: no cover - cli import problems must not stop a session
-        return "magstack unknown"
+    return f"magstack {__version__}"
 
 
 # ------------------------------------------------------------------------ simulated bench
@@ -304,7 +301,7 @@ def _software_version() -> str:
 def _sim_dut_kwargs(chip: str, clock, truth, seed: int) -> dict:
     if chip == "hmc1053":
         return {"truth": truth, "seed": seed}
-    from sim.i2c_bench import default_bench
+    from magstack.sim.i2c_bench import default_bench
 
     return {"bench": default_bench(clock, truth, seed=seed)}
 
@@ -325,11 +322,11 @@ class SimBench:
 def build_sim_bench(chip: str, *, program: str = "steps_x", seconds: float = 60.0, seed: int = 0,
                     ref_faults: Mapping[str, float] | None = None, ref_noise_uT: float = 0.0,
                     ref_probe_from_truth=None, instrument_name: str = "bench") -> SimBench:
-    """Coil program -> truth -> DUT (via hil.chip_registry) and FVM400 model (``fvm400sim://<name>``)."""
-    from drivers.fvm400 import FVM400
-    from hil.chip_registry import open_chip
-    from sim.coil_programs import program as build_program
-    from sim.fvm400_model import FVM400Faults, FVM400Model, register_instrument
+    """Coil program -> truth -> DUT (via magstack.drivers.registry) and FVM400 model (``fvm400sim://<name>``)."""
+    from magstack.drivers.fvm400 import FVM400
+    from magstack.drivers.registry import open_chip
+    from magstack.sim.coil_programs import program as build_program
+    from magstack.sim.fvm400_model import FVM400Faults, FVM400Model, register_instrument
 
     clock = VirtualClock()
     ref_clock = VirtualClock()  # same epoch anchor; lets the reference keep 4 Hz while the DUT blocks

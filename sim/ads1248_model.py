@@ -1,12 +1,12 @@
-"""Command- and register-level model of the TI ADS1248 on :class:`sim.spi_bus.SimSpiBus`.
+"""Command- and register-level model of the TI ADS1248 on :class:`magstack.sim.spi_bus.SimSpiBus`.
 
-What it checks (fails loudly with :class:`drivers.errors.BusError`): illegal command bytes
+What it checks (fails loudly with :class:`magstack.drivers.errors.BusError`): illegal command bytes
 (e.g. the restricted 0xF1), SYS0 bit 7 set, DR codes above 1001, invalid IDAC1 codes, WREG
 past 0x0E or to address 0x0F, register access in RDATAC mode, commands while RESET is
 held low or within 0.6 ms after a reset, RDATA without 24 SCLKs of NOP, a SYNC not sent
 twice, unmodelled monitors (MUXCAL gain / supply / reference monitors, burn-out sources).
 
-Timing in virtual time via the injected clock (tables in :mod:`drivers.ads1248`): a filter
+Timing in virtual time via the injected clock (tables in :mod:`magstack.drivers.ads1248`): a filter
 restart (RESET, START rising, WAKEUP, SYNC) gives the first result after
 ``first_after_reset_s``; a write to MUX0/VBIAS/MUX1/SYS0 after ``first_after_write_s``;
 later results every ``period_s`` while START is high. DRDY falls when a result is ready
@@ -26,7 +26,7 @@ from typing import Protocol
 
 import numpy as np
 
-from drivers.ads1248 import (
+from magstack.drivers.ads1248 import (
     CODE_NEG_FS,
     CODE_POS_FS,
     DATA_RATE_BY_CODE,
@@ -42,9 +42,9 @@ from drivers.ads1248 import (
     Command,
     _finite,
 )
-from drivers.clock import Clock
-from drivers.errors import BusError, ConfigurationError
-from sim.gpio import SimInputLine, SimOutputLine
+from magstack.drivers.clock import Clock
+from magstack.drivers.errors import BusError, ConfigurationError
+from magstack.sim.gpio import SimInputLine, SimOutputLine
 
 _POR = bytes(r.reset for r in REGISTERS.values())
 _RO_MASK = tuple(r.ro_mask for r in REGISTERS.values())

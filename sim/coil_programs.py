@@ -1,6 +1,6 @@
 """Truth generators: bench coil programs (field, temperature, named currents, power cycles).
 
-Every program is a :class:`ProgramTruth`, which implements :class:`sim.truth_source.TruthSource`
+Every program is a :class:`ProgramTruth`, which implements :class:`magstack.sim.truth_source.TruthSource`
 (scalar ``field_uT(t)``, ``temp_c(t)``, ``currents_A(t)``, ``session(t)``) and the optional
 vectorised companions the error model uses when present (``field_series_uT(t)`` (N,3),
 ``temp_series_c(t)`` (N,), ``currents_series_A(t)`` {name: (N,)}, ``session_series(t)`` (N,)).
@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.errors import ConfigurationError
+from magstack.drivers.errors import ConfigurationError
 
 __all__ = [
     "ProgramTruth", "ProgramSpec", "PROGRAMS", "program", "program_names", "register_program",

@@ -1,7 +1,7 @@
 """Forward sensor error model: true field -> what a magnetometer reports, effect by effect.
 
-One ordered pipeline (the order and names come from :mod:`firmware_py.effects`, the single
-catalogue) applied to a :class:`~sim.truth_source.TruthSource`::
+One ordered pipeline (the order and names come from :mod:`magstack.firmware.effects`, the single
+catalogue) applied to a :class:`~magstack.sim.truth_source.TruthSource`::
 
     time_skew -> interference -> misalignment -> gain -> cross_axis -> nonlinearity
     -> temperature_gain -> hysteresis -> offset -> temperature_offset -> drift
@@ -36,8 +36,8 @@ from typing import Any
 
 import numpy as np
 
-from drivers.errors import ConfigurationError
-from firmware_py.effects import EFFECT_NAMES, effect
+from magstack.drivers.errors import ConfigurationError
+from magstack.firmware.effects import EFFECT_NAMES, effect
 
 __all__ = ["ErrorParams", "ErrorModel", "TruthSamples", "sample_truth", "without", "CROSS_AXIS_MODES"]
 
@@ -327,7 +327,7 @@ def sample_truth(truth: Any, t_s: np.ndarray) -> TruthSamples:
 
     Uses the optional vectorised methods ``field_series_uT``, ``temp_series_c``,
     ``currents_series_A`` and ``session_series`` when the source has them (see
-    :mod:`sim.coil_programs`), otherwise loops over the scalar protocol. Non-finite truth raises
+    :mod:`magstack.sim.coil_programs`), otherwise loops over the scalar protocol. Non-finite truth raises
     ConfigurationError naming the instant.
     """
     t = np.asarray(t_s, dtype=float).reshape(-1)

@@ -1,13 +1,13 @@
 """Simulated MEDA FVM400 fluxgate: the byte-level serial protocol of drivers/fvm400.py.
 
-The model reads the true field from a :class:`sim.truth_source.TruthSource` at the injected
-clock's time, answers the command set of ``drivers.fvm400.COMMANDS`` (facts and gaps:
+The model reads the true field from a :class:`magstack.sim.truth_source.TruthSource` at the injected
+clock's time, answers the command set of ``magstack.drivers.fvm400.COMMANDS`` (facts and gaps:
 hardware-facts section 6) and can inject faults: garbled records, partial records, dropped
 replies, over-range values and records in the wrong units (decimal tesla, as a front-panel
 unit change would produce). It is reached three ways:
 
 * ``open_serial("fvm400sim://?seed=1&garble=0.05")`` builds a private model (pyserial URL
-  handler :mod:`sim.serial_protocols.protocol_fvm400sim`);
+  handler :mod:`magstack.sim.serial_protocols.protocol_fvm400sim`);
 * ``register_instrument("bench", model)`` then ``open_serial("fvm400sim://bench")`` wires a
   named model to a bench truth source and clock;
 * :class:`PtyInstrument` serves a model behind a real pseudo-terminal (``os.openpty``), so a
@@ -31,10 +31,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.clock import Clock, SystemClock
-from drivers.errors import ConfigurationError
-from drivers.fvm400 import ACK, COMMANDS, DATA_TRAILER, EOT, NAK, RECORD_END, SERIAL_SETTINGS
-from sim.truth_source import StaticTruth, TruthSource
+from magstack.drivers.clock import Clock, SystemClock
+from magstack.drivers.errors import ConfigurationError
+from magstack.drivers.fvm400 import ACK, COMMANDS, DATA_TRAILER, EOT, NAK, RECORD_END, SERIAL_SETTINGS
+from magstack.sim.truth_source import StaticTruth, TruthSource
 
 
 @dataclass

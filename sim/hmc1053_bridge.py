@@ -24,10 +24,10 @@ from typing import Any
 
 import numpy as np
 
-from drivers.errors import BusError, ConfigurationError
-from firmware_py.effects import EFFECT_NAMES
-from sim.gpio import SimOutputLine
-from sim.i2c_register_model import IdealSensor  # noqa: F401  (re-exported: the noise-free bridge)
+from magstack.drivers.errors import BusError, ConfigurationError
+from magstack.firmware.effects import EFFECT_NAMES
+from magstack.sim.gpio import SimOutputLine
+from magstack.sim.i2c_register_model import IdealSensor  # noqa: F401  (re-exported: the noise-free bridge)
 
 #: Effects the ADC model does itself (sequential skew, quantisation, clipping): off in the default sensor.
 ADC_SIDE_EFFECTS = ("time_skew", "quantization", "saturation")
@@ -43,8 +43,8 @@ def default_sensor(seed: int = 0):
     """
     import dataclasses
 
-    from sim.error_model import ErrorModel
-    from sim.presets import preset
+    from magstack.sim.error_model import ErrorModel
+    from magstack.sim.presets import preset
 
     params = preset("hmc1053")
     params = dataclasses.replace(params, noise_white_uT=np.asarray(params.noise_white_uT) * math.sqrt(2.0))
@@ -52,7 +52,7 @@ def default_sensor(seed: int = 0):
 
 
 class HMC1053Bridge:
-    """Bridge model implementing :class:`sim.ads1248_model.AnalogInputs`.
+    """Bridge model implementing :class:`magstack.sim.ads1248_model.AnalogInputs`.
 
     ``offset_mV_per_V``: bridge offsets (default: drawn uniformly in +-1.25 mV/V from ``seed``);
     ``offset_tempco_per_c``: relative offset change per degC (does not flip, removed by set/reset);
@@ -165,10 +165,10 @@ class SimHMC1053Rig:
     clock: Any
     truth: Any
     bridge: HMC1053Bridge
-    adc_model: Any  # sim.ads1248_model.ADS1248Model
-    spi: Any  # sim.spi_bus.SimSpiBus
-    adc: Any  # drivers.ads1248.ADS1248
-    front_end: Any  # drivers.hmc1053.HMC1053
+    adc_model: Any  # magstack.sim.ads1248_model.ADS1248Model
+    spi: Any  # magstack.sim.spi_bus.SimSpiBus
+    adc: Any  # magstack.drivers.ads1248.ADS1248
+    front_end: Any  # magstack.drivers.hmc1053.HMC1053
 
 
 def build_sim_hmc1053(clock: Any = None, *, truth: Any = None, sensor: Any = None, seed: int = 0,
@@ -180,12 +180,12 @@ def build_sim_hmc1053(clock: Any = None, *, truth: Any = None, sensor: Any = Non
     table's nominal value (pass ``bridge_kwargs`` to make the simulated part differ).
     ``sensor`` defaults to the shared error model (:func:`default_sensor`).
     """
-    from drivers.ads1248 import ADS1248, DEFAULT_SPI_HZ, SPI_MODE, lookup
-    from drivers.clock import VirtualClock
-    from drivers.hmc1053 import FRONT_ENDS, HMC1053
-    from sim.ads1248_model import ADS1248Model
-    from sim.spi_bus import SimSpiBus
-    from sim.truth_source import StaticTruth
+    from magstack.drivers.ads1248 import ADS1248, DEFAULT_SPI_HZ, SPI_MODE, lookup
+    from magstack.drivers.clock import VirtualClock
+    from magstack.drivers.hmc1053 import FRONT_ENDS, HMC1053
+    from magstack.sim.ads1248_model import ADS1248Model
+    from magstack.sim.spi_bus import SimSpiBus
+    from magstack.sim.truth_source import StaticTruth
 
     clock = clock if clock is not None else VirtualClock()
     truth = truth if truth is not None else StaticTruth()

@@ -19,9 +19,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivers import hmc5983 as H
-from drivers.chip_table import ChipTable, encode_axes, encode_temperature
-from sim.i2c_register_model import RO, RW, MagnetometerModel, Reg, default_sensor, finite_vec3
+from magstack.drivers import hmc5983 as H
+from magstack.drivers.chip_table import ChipTable, encode_axes, encode_temperature
+from magstack.sim.i2c_register_model import RO, RW, MagnetometerModel, Reg, default_sensor, finite_vec3
 
 RDY_LOW_S = 250e-6
 

@@ -1,7 +1,7 @@
 """The default simulated I2C bench: LIS3MDL, HMC5983 and LSM303DLHC on simulated buses.
 
 Real wiring cannot put the HMC5983 and the LSM303DLHC magnetometer on one bus (both are fixed
-at 0x1E), so the bench has two buses sharing one :class:`~drivers.clock.VirtualClock` and one
+at 0x1E), so the bench has two buses sharing one :class:`~magstack.drivers.clock.VirtualClock` and one
 truth source:
 
 - ``sim-i2c-1``: LIS3MDL at 0x1C (SA1 low) and HMC5983 at 0x1E;
@@ -17,13 +17,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.clock import VirtualClock
-from sim.hmc5983_model import HMC5983Model
-from sim.i2c_bus import SimI2CBus
-from sim.i2c_register_model import default_sensor
-from sim.lis3mdl_model import LIS3MDLModel
-from sim.lsm303dlhc_model import LSM303DLHCModel
-from sim.truth_source import StaticTruth
+from magstack.drivers.clock import VirtualClock
+from magstack.sim.hmc5983_model import HMC5983Model
+from magstack.sim.i2c_bus import SimI2CBus
+from magstack.sim.i2c_register_model import default_sensor
+from magstack.sim.lis3mdl_model import LIS3MDLModel
+from magstack.sim.lsm303dlhc_model import LSM303DLHCModel
+from magstack.sim.truth_source import StaticTruth
 
 CHIPS = ("lis3mdl", "hmc5983", "lsm303dlhc")
 
@@ -46,7 +46,7 @@ class I2CBench:
         try:
             return self.chips[chip]
         except KeyError:
-            from drivers.errors import DeviceNotFound
+            from magstack.drivers.errors import DeviceNotFound
 
             raise DeviceNotFound(f"no {chip!r} on the simulated bench; present: {', '.join(self.chips)}") from None
 
@@ -63,7 +63,7 @@ class I2CBench:
 def chip_seed(seed: int, index: int) -> int:
     """Error-model seed of the ``index``-th chip of a bench seeded ``seed`` (independent streams)."""
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        from drivers.errors import ConfigurationError
+        from magstack.drivers.errors import ConfigurationError
 
         raise ConfigurationError(f"bench seed must be an int >= 0, got {seed!r}")
     return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1)[0])

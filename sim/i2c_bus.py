@@ -8,8 +8,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Protocol
 
-from drivers.bus.i2c import I2CMessage, I2CRead, I2CWrite, _check_address
-from drivers.errors import BusError
+from magstack.drivers.bus.i2c import I2CMessage, I2CRead, I2CWrite, _check_address
+from magstack.drivers.errors import BusError
 
 
 class I2CTarget(Protocol):
@@ -33,6 +33,9 @@ class SimI2CBus:
         self._devices: dict[int, I2CTarget] = {}
         self._nack_next: dict[int, int] = {}
         self.transfer_count = 0
+
+    def close(self) -> None:
+        """Nothing to release (same interface as the real adapter)."""
 
     def attach(self, address: int, device: I2CTarget) -> None:
         _check_address(address)

@@ -1,22 +1,22 @@
 """Generic register-file model of an I2C chip, and the converting magnetometer core on top.
 
-:class:`RegisterFileModel` is an :class:`sim.i2c_bus.I2CTarget`: the first byte of a write
+:class:`RegisterFileModel` is an :class:`magstack.sim.i2c_bus.I2CTarget`: the first byte of a write
 message sets the register pointer, further bytes are written at the pointer, reads return
 bytes from the pointer; after each byte the pointer moves by the chip's auto-increment rule
 (:meth:`RegisterFileModel.next_pointer`). Registers are declared with :class:`Reg` (RO / RW /
 WO mode, power-on value, bits that must keep a fixed value). Illegal access fails loudly with
-:class:`~drivers.errors.BusError`: an unmapped register, a write to a read-only register, a
+:class:`~magstack.drivers.errors.BusError`: an unmapped register, a write to a read-only register, a
 read of a write-only register, a fixed-bit violation, a multi-byte access the chip's
 auto-increment rule does not allow.
 
 Fault injection: :meth:`RegisterFileModel.inject_stuck` freezes registers (the chip core can
 no longer update them), :meth:`RegisterFileModel.inject_bit_flip` XORs a mask into the value
-the controller reads. NACKs are injected on the bus (:meth:`sim.i2c_bus.SimI2CBus.inject_nack`).
+the controller reads. NACKs are injected on the bus (:meth:`magstack.sim.i2c_bus.SimI2CBus.inject_nack`).
 
 :class:`MagnetometerModel` adds the conversion schedule: conversions happen only at the
 configured output rate in virtual time, evaluated lazily at the start of each bus message
 (never one ``sense()`` per register read), from a ``sensor`` object with
-``sense(t_s, truth) -> ndarray(3) in uT`` and a :class:`sim.truth_source.TruthSource`.
+``sense(t_s, truth) -> ndarray(3) in uT`` and a :class:`magstack.sim.truth_source.TruthSource`.
 """
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.errors import BusError, ConfigurationError
+from magstack.drivers.errors import BusError, ConfigurationError
 
 RO, RW, WO = "RO", "RW", "WO"
 
@@ -57,8 +57,8 @@ class IdealSensor:
 def default_sensor(chip: str, seed: int = 0):
     """The default sensed-value model of ``chip``: ``ErrorModel(preset(chip), seed=seed)`` with
     quantization and saturation off (the chip model quantises to its LSB and saturates itself)."""
-    from sim.error_model import ErrorModel, without
-    from sim.presets import preset
+    from magstack.sim.error_model import ErrorModel, without
+    from magstack.sim.presets import preset
 
     return ErrorModel(preset(chip), seed=seed, effects=without("quantization", "saturation"))
 

@@ -1,4 +1,4 @@
-"""Register-level LIS3MDL simulator on :class:`sim.i2c_bus.SimI2CBus` (hardware-facts section 1).
+"""Register-level LIS3MDL simulator on :class:`magstack.sim.i2c_bus.SimI2CBus` (hardware-facts section 1).
 
 - registers with power-on values (CTRL_REG1 0x10, CTRL_REG3 0x03 power-down, INT_CFG 0xE8);
   RO registers refuse writes, unmapped registers fail the transfer.
@@ -18,9 +18,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivers import lis3mdl as L
-from drivers.chip_table import encode_temperature
-from sim.i2c_register_model import RO, RW, MagnetometerModel, Reg, default_sensor, finite_vec3
+from magstack.drivers import lis3mdl as L
+from magstack.drivers.chip_table import encode_temperature
+from magstack.sim.i2c_register_model import RO, RW, MagnetometerModel, Reg, default_sensor, finite_vec3
 
 _DO_HZ = (0.625, 1.25, 2.5, 5.0, 10.0, 20.0, 40.0, 80.0)
 _FAST_HZ = {0: 1000.0, 1: 560.0, 2: 300.0, 3: 155.0}   # by OM

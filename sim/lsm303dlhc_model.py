@@ -1,6 +1,6 @@
 """Register-level LSM303DLHC magnetometer simulator (hardware-facts section 2).
 
-Same HMC5883L-style core as :mod:`sim.hmc5983_model` (pointer rule 0x08 -> 0x03, >= 0x0C ->
+Same HMC5883L-style core as :mod:`magstack.sim.hmc5983_model` (pointer rule 0x08 -> 0x03, >= 0x0C ->
 0x00; first set 2/f after a mode write; RDY not latched by default; -4096 overflow outside
 -2048..2047; first set after a gain change uses the old gain), with the DLHC differences:
 
@@ -14,11 +14,11 @@ from __future__ import annotations
 
 import math
 
-from drivers import lsm303dlhc as D
-from drivers.chip_table import TempFormat
-from drivers.errors import ConfigurationError
-from sim.hmc5983_model import HoneywellStyleModel
-from sim.i2c_register_model import RO, RW, Reg, default_sensor
+from magstack.drivers import lsm303dlhc as D
+from magstack.drivers.chip_table import TempFormat
+from magstack.drivers.errors import ConfigurationError
+from magstack.sim.hmc5983_model import HoneywellStyleModel
+from magstack.sim.i2c_register_model import RO, RW, Reg, default_sensor
 
 
 def lsm303dlhc_registers() -> tuple[Reg, ...]:

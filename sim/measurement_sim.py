@@ -1,8 +1,8 @@
 """Measurement-level bench simulation: DUT (error model) and reference (FVM400-like) against truth.
 
-Produces the arrays of a session (see hil/session_file.py) without importing hil: rows at the
+Produces the arrays of a session (see data/session.py) without importing hil: rows at the
 DUT's sample instants; ``ref_uT`` = truth + the reference instrument's own white noise, rounded to
-its 1 nT resolution; ``dut_uT`` = :class:`sim.error_model.ErrorModel` output. The reference sees
+its 1 nT resolution; ``dut_uT`` = :class:`magstack.sim.error_model.ErrorModel` output. The reference sees
 the true field at the row instant (its own skew is not modelled).
 """
 from __future__ import annotations
@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.errors import ConfigurationError
-from sim.error_model import ErrorModel, ErrorParams, sample_truth
+from magstack.drivers.errors import ConfigurationError
+from magstack.sim.error_model import ErrorModel, ErrorParams, sample_truth
 
 __all__ = ["SimulatedRun", "simulate_measurement", "FVM400_NOISE_uT", "FVM400_LSB_uT"]
 
@@ -74,5 +74,5 @@ def simulate_measurement(params: ErrorParams, truth, *, duration_s: float, rate_
 
 
 def _ordered(names) -> list[str]:
-    from firmware_py.effects import EFFECT_NAMES
+    from magstack.firmware.effects import EFFECT_NAMES
     return [e for e in EFFECT_NAMES if e in names]

@@ -1,4 +1,4 @@
-"""Error-model presets from the seed papers: one :class:`~sim.error_model.ErrorParams` per chip.
+"""Error-model presets from the seed papers: one :class:`~magstack.sim.error_model.ErrorParams` per chip.
 
 Sources (every value below cites its table):
 
@@ -24,7 +24,7 @@ from types import MappingProxyType
 
 import numpy as np
 
-from sim.error_model import ErrorParams
+from magstack.sim.error_model import ErrorParams
 
 __all__ = ["PRESET_NAMES", "preset", "preset_info", "PresetInfo", "LAB_STUDY_TABLE1"]
 

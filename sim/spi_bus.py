@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Protocol
 
-from drivers.errors import BusError
+from magstack.drivers.errors import BusError
 
 
 class SpiTarget(Protocol):

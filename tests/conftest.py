@@ -10,7 +10,7 @@ import os
 import pytest
 from hypothesis import settings
 
-from drivers.clock import VirtualClock
+from magstack.drivers.clock import VirtualClock
 
 # CI replays a fixed set of examples (no database, derandomised) so a run is reproducible;
 # developers' runs keep exploring new examples. Property tests set their own example counts.

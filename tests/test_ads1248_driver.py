@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.ads1248 import (
+from magstack.drivers.ads1248 import (
     ADS1248,
     CODE_NEG_FS,
     CODE_POS_FS,
@@ -19,10 +19,10 @@ from drivers.ads1248 import (
     diode_temp_c,
     signed24,
 )
-from drivers.clock import VirtualClock
-from drivers.errors import BusError, BusTimeout, ConfigurationError, ReadbackMismatch
-from sim.ads1248_model import ADS1248Model
-from sim.spi_bus import SimSpiBus
+from magstack.drivers.clock import VirtualClock
+from magstack.drivers.errors import BusError, BusTimeout, ConfigurationError, ReadbackMismatch
+from magstack.sim.ads1248_model import ADS1248Model
+from magstack.sim.spi_bus import SimSpiBus
 
 
 class Inputs:

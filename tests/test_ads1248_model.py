@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.ads1248 import (
+from magstack.drivers.ads1248 import (
     ADS1248,
     CODE_POS_FS,
     DATA_RATES,
@@ -15,10 +15,10 @@ from drivers.ads1248 import (
     Command,
     signed24,
 )
-from drivers.clock import VirtualClock
-from drivers.errors import BusError
-from sim.ads1248_model import ADS1248Model
-from sim.spi_bus import SimSpiBus
+from magstack.drivers.clock import VirtualClock
+from magstack.drivers.errors import BusError
+from magstack.sim.ads1248_model import ADS1248Model
+from magstack.sim.spi_bus import SimSpiBus
 from tests.test_ads1248_driver import Inputs
 
 NOP3 = bytes([Command.NOP] * 3)
@@ -232,7 +232,7 @@ def test_conversion_tracks_input_and_clips_at_full_scale(volts, pga):
     ({"max_clock_hz": 0}, "max_clock_hz"),
 ])
 def test_model_refuses_bad_parameters_with_a_typed_error(kw, word):
-    from drivers.errors import ConfigurationError
+    from magstack.drivers.errors import ConfigurationError
 
     with pytest.raises(ConfigurationError, match=word):
         ADS1248Model(VirtualClock(), Inputs(), **kw)

@@ -8,13 +8,13 @@ import math
 import numpy as np
 import pytest
 
-from drivers.errors import AlignmentError
-from hil.alignment import align_streams, estimate_clock_offset
-from hil.cli import main
-from sim.coil_programs import program
-from sim.error_model import without
-from sim.measurement_sim import simulate_measurement
-from sim.presets import preset
+from magstack.cli.main import main
+from magstack.ground.alignment import align_streams, estimate_clock_offset
+from magstack.ground.errors import AlignmentError
+from magstack.sim.coil_programs import program
+from magstack.sim.error_model import without
+from magstack.sim.measurement_sim import simulate_measurement
+from magstack.sim.presets import preset
 
 HMC1053_AXIS_DELAY_S = (0.0, 0.05, 0.10)  # sim/presets.py: sequential X, Y, Z conversion
 
@@ -119,7 +119,7 @@ def test_a_few_missing_temperatures_are_interpolated():
 
 def test_cli_align_on_a_thermally_cycled_bench_session(tmp_path, capsys):
     """End to end (the reported repro, shortened): simulated bench, temp_cycling -> magstack align."""
-    from hil.bench import build_sim_bench, run_bench
+    from magstack.hil.bench import build_sim_bench, run_bench
 
     sb = build_sim_bench("hmc1053", program="temp_cycling", seconds=200.0, instrument_name="t_al_temp")
     path = tmp_path / "tc.csv"

@@ -6,13 +6,13 @@ import io
 import numpy as np
 import pytest
 
-from drivers.clock import SystemClock
-from drivers.errors import BusTimeout, ConfigurationError, MagError
-from drivers.magnetometer import MagSample
-from hil.alignment import align_streams
-from hil.bench import ProgressLine, build_sim_bench, paired_view, run_bench
-from hil.cli import main
-from hil.session_file import read_session
+from magstack.cli.main import main
+from magstack.data.session import read_session
+from magstack.drivers.clock import SystemClock
+from magstack.drivers.errors import BusTimeout, ConfigurationError, MagError
+from magstack.drivers.magnetometer import MagSample
+from magstack.ground.alignment import align_streams
+from magstack.hil.bench import ProgressLine, build_sim_bench, paired_view, run_bench
 
 
 def _run(sb, path, **kw):
@@ -165,12 +165,12 @@ def test_cli_bench_sim(tmp_path, capsys):
 
 
 def test_single_virtual_clock_interleave(tmp_path):
-    from drivers.clock import VirtualClock
-    from drivers.fvm400 import FVM400
-    from hil.chip_registry import open_chip
-    from sim.coil_programs import program
-    from sim.fvm400_model import FVM400Model, register_instrument, unregister_instrument
-    from sim.i2c_bench import default_bench
+    from magstack.drivers.clock import VirtualClock
+    from magstack.drivers.fvm400 import FVM400
+    from magstack.drivers.registry import open_chip
+    from magstack.sim.coil_programs import program
+    from magstack.sim.fvm400_model import FVM400Model, register_instrument, unregister_instrument
+    from magstack.sim.i2c_bench import default_bench
 
     clock = VirtualClock()
     truth = program("sweep_z", 10.0)

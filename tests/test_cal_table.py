@@ -7,11 +7,11 @@ import os
 import numpy as np
 import pytest
 
-from drivers.errors import CalTableInvalid
-from firmware_py import cal_table as ct
-from firmware_py.calibration import FitOptions, fit
-from firmware_py.calibration.model import CalModel, resolve_terms
-from firmware_py.calibration.synthetic import make_data, random_theta
+from magstack.firmware import cal_table as ct
+from magstack.firmware.calibration import FitOptions, fit
+from magstack.firmware.calibration.model import CalModel, resolve_terms
+from magstack.firmware.errors import CalTableInvalid
+from magstack.sim.synthetic_calibration import make_data, random_theta
 
 
 def _good(device="hmc1053:sn1", **kw) -> ct.CalTable:

@@ -6,13 +6,13 @@ import json
 import numpy as np
 import pytest
 
-from firmware_py.cal_table import load_table
-from firmware_py.calibration.model import CalModel, resolve_terms
-from firmware_py.calibration.synthetic import make_data, random_theta
-from firmware_py.float_applier import apply_float
-from hil.cli import main
-from hil.commands.apply import FLAG_SHIFT
-from hil.session_file import Session, read_session, write_session
+from magstack.cli.main import main
+from magstack.data.session import Session, read_session, write_session
+from magstack.firmware.cal_table import load_table
+from magstack.firmware.calibration.model import CalModel, resolve_terms
+from magstack.firmware.float_applier import apply_float
+from magstack.ground.apply_session import FLAG_SHIFT
+from magstack.sim.synthetic_calibration import make_data, random_theta
 
 
 def _session_file(path, seed, session, n=1500, currents=("solar",)):
@@ -41,7 +41,7 @@ def test_fit_show_validate_apply(tmp_path, capsys):
     assert main(["table", "show", str(out)]) == 0
     shown = capsys.readouterr().out
     assert "D_solar (uT/A)" in shown and "valid:" in shown
-    assert main(["table", "validate", str(out), "--device-id", "other"]) == 2
+    assert main(["table", "validate", str(out), "--device-id", "other"]) == 1   # verdict: not valid
 
     # apply: NaN rows are kept and flagged, never dropped
     s = read_session(tmp_path / "a.csv")
@@ -75,15 +75,15 @@ def test_fit_show_validate_apply(tmp_path, capsys):
 def test_cli_errors_are_clean(tmp_path, capsys):
     _session_file(tmp_path / "a.csv", 1, 0)
     out = tmp_path / "cal.json"
-    assert main(["fit", str(tmp_path / "a.csv"), "--currents", "nope", "--out", str(out)]) == 2
+    assert main(["fit", str(tmp_path / "a.csv"), "--currents", "nope", "--out", str(out)]) == 3
     assert "no current 'nope'" in capsys.readouterr().err
     assert main(["fit", str(tmp_path / "a.csv"), "--terms", "bogus", "--out", str(out)]) == 2
     assert main(["fit", str(tmp_path / "a.csv"), "--currents", "solar", "--out", str(out), "--no-holdout"]) == 0
     (tmp_path / "broken.json").write_text(out.read_text()[:50])
-    assert main(["table", "show", str(tmp_path / "broken.json")]) == 2
+    assert main(["table", "show", str(tmp_path / "broken.json")]) == 3
     assert "corrupt or truncated" in capsys.readouterr().err
     assert main(["apply", str(tmp_path / "broken.json"), str(tmp_path / "a.csv"), "--out",
-                 str(tmp_path / "x.csv")]) == 2
+                 str(tmp_path / "x.csv")]) == 3
     assert not (tmp_path / "x.csv").exists()
 
 
@@ -94,7 +94,7 @@ def test_fit_refuses_unidentifiable_on_request(tmp_path, capsys):
     write_session(tmp_path / "s.csv", Session(d.t_s, d.b_ref_uT, d.b_meas_uT, d.temp_c, d.session,
                                               metadata={"device_id": "x"}))
     rc = main(["fit", str(tmp_path / "s.csv"), "--refuse-unidentifiable", "--out", str(tmp_path / "c.json")])
-    assert rc == 2 and "cannot determine" in capsys.readouterr().err
+    assert rc == 3 and "cannot determine" in capsys.readouterr().err
     assert main(["fit", str(tmp_path / "s.csv"), "--out", str(tmp_path / "c.json")]) == 0
     assert "held at prior" in capsys.readouterr().out
 
@@ -109,9 +109,9 @@ def test_model_choice(tmp_path, capsys, model):
 
 def test_calibrate_session_accepts_a_table_that_was_never_saved(tmp_path):
     """A table straight from the fit (crc32 not yet computed) still labels its output."""
-    from firmware_py.cal_table import table_from_fit
-    from firmware_py.calibration import FitData, fit
-    from hil.commands.apply import calibrate_session
+    from magstack.firmware.cal_table import table_from_fit
+    from magstack.firmware.calibration import FitData, fit
+    from magstack.ground.apply_session import calibrate_session
 
     _session_file(tmp_path / "a.csv", 1, 0, currents=())
     s = read_session(tmp_path / "a.csv")
@@ -129,22 +129,22 @@ def test_cli_refuses_bad_arguments_and_never_overwrites_good_files(tmp_path, cap
     good = out.read_bytes()
     # wrong arguments: exit 2, typed message, the existing table untouched
     for extra, msg in ((["--validity-temp", "30,20"], "finite LO < HI"), (["--validity-field", "nan"], "finite field"),
-                       (["--validity-temp=-100,20"], "fails validation")):
+                       (["--validity-temp=-100,20"], "must lie inside")):
         capsys.readouterr()
         assert main(["fit", str(tmp_path / "a.csv"), "--no-holdout", "--out", str(out), *extra]) == 2
         assert msg in capsys.readouterr().err
         assert out.read_bytes() == good
-    assert main(["fit", str(tmp_path / "a.csv"), "--no-holdout", "--out", str(tmp_path / "no" / "c.json")]) == 2
+    assert main(["fit", str(tmp_path / "a.csv"), "--no-holdout", "--out", str(tmp_path / "no" / "c.json")]) == 4
     assert "No such file or directory" in capsys.readouterr().err
-    # an invalid (but correctly signed) table: `table validate` and `table show` give exit 2
+    # an invalid (but correctly signed) table: `table validate` answers 1, `table show` exits 3 (bad input)
     doc = json.loads(good)
     doc["parameters"]["S"]["value"][1][1] = None
-    from firmware_py.cal_table import _crc
+    from magstack.firmware.cal_table import _crc
     doc["crc32"] = f"0x{_crc(doc):08x}"
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps(doc))
-    for action in ("validate", "show"):
-        assert main(["table", action, str(bad)]) == 2
+    for action, code in (("validate", 1), ("show", 3)):
+        assert main(["table", action, str(bad)]) == code
         assert "S has non-finite values" in capsys.readouterr().err
     # apply: never onto its own input, never twice
     assert main(["apply", str(out), str(tmp_path / "a.csv"), "--out", str(tmp_path / "a.csv")]) == 2
@@ -152,7 +152,7 @@ def test_cli_refuses_bad_arguments_and_never_overwrites_good_files(tmp_path, cap
     assert main(["fit", str(tmp_path / "a.csv"), "--out", str(tmp_path / "a.csv")]) == 2   # a table over the data
     assert "is the input file" in capsys.readouterr().err and read_session(tmp_path / "a.csv")
     assert main(["apply", str(out), str(tmp_path / "a.csv"), "--out", str(tmp_path / "c.csv")]) == 0
-    assert main(["apply", str(out), str(tmp_path / "c.csv"), "--out", str(tmp_path / "cc.csv")]) == 2
+    assert main(["apply", str(out), str(tmp_path / "c.csv"), "--out", str(tmp_path / "cc.csv")]) == 3
     assert "already calibrated" in capsys.readouterr().err
     assert not (tmp_path / "cc.csv").exists()
 

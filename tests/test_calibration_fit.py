@@ -6,13 +6,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.errors import FitError
-from firmware_py.calibration import CAL_TERMS, FitData, FitOptions, fit
-from firmware_py.calibration.fit import diagnose_steps, noise_floor, reference_steps
-from firmware_py.calibration.model import CalModel, resolve_terms, time_derivative
-from firmware_py.calibration.streaming import StreamingFit
-from firmware_py.calibration.synthetic import make_data, random_theta
-from firmware_py.effects import EFFECTS
+from magstack.firmware.calibration import CAL_TERMS, FitData, FitOptions, fit
+from magstack.firmware.calibration.fit import diagnose_steps, noise_floor, reference_steps
+from magstack.firmware.calibration.model import CalModel, resolve_terms, time_derivative
+from magstack.firmware.calibration.streaming import StreamingFit
+from magstack.firmware.effects import EFFECTS
+from magstack.firmware.errors import FitError
+from magstack.sim.synthetic_calibration import make_data, random_theta
 
 N = 3000
 T0_S = 1.6e9

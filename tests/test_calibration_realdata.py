@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from firmware_py.cal_table import table_from_fit, validate
-from firmware_py.calibration import FitData, FitOptions, fit
-from firmware_py.fixed_point import FixedPointTable, output_to_uT, to_fixed_inputs
-from firmware_py.float_applier import apply_float
+from magstack.firmware.cal_table import table_from_fit, validate
+from magstack.firmware.calibration import FitData, FitOptions, fit
+from magstack.firmware.fixed_point import FixedPointTable, output_to_uT, to_fixed_inputs
+from magstack.firmware.float_applier import apply_float
 
 PAIRS = {3: ("data2.csv", "ref3.csv"), 4: ("data3.csv", "ref4.csv"), 5: ("data5.csv", "ref5.csv"),
          6: ("data6.csv", "ref6.csv"), 7: ("data7.csv", "ref7.csv")}
@@ -22,8 +22,8 @@ DATA = Path(__file__).parent / "data" / "av-mageval"
 
 @pytest.fixture(scope="module")
 def bench():
-    from hil import mageval_import as mi
-    from hil.session_file import Session
+    from magstack.data.session import Session
+    from magstack.ground import mageval_import as mi
     parts = []
     for n, (d, r) in PAIRS.items():
         dp, rp = DATA / d, DATA / r

@@ -1,15 +1,15 @@
-"""The fit against the simulator's forward error model (sim.error_model): the distortion the
+"""The fit against the simulator's forward error model (magstack.sim.error_model): the distortion the
 simulator applies is undone by the fitted calibration to the simulated noise level."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from firmware_py.cal_table import table_from_fit, validate
-from firmware_py.calibration import FitData, FitOptions, fit
-from firmware_py.float_applier import apply_float
+from magstack.firmware.cal_table import table_from_fit, validate
+from magstack.firmware.calibration import FitData, FitOptions, fit
+from magstack.firmware.float_applier import apply_float
 
-em = pytest.importorskip("sim.error_model")
+em = pytest.importorskip("magstack.sim.error_model")
 
 N = 6000
 DT_S = 0.25

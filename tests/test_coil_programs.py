@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.errors import ConfigurationError
-from sim.coil_programs import (
+from magstack.drivers.errors import ConfigurationError
+from magstack.sim.coil_programs import (
     PROGRAMS,
     ProgramTruth,
     STEP_LEVELS_uT,
@@ -23,7 +23,7 @@ from sim.coil_programs import (
     steps_profile,
     sweep_profile,
 )
-from sim.truth_source import TruthSource
+from magstack.sim.truth_source import TruthSource
 
 REQUIRED = {"steps_x", "steps_y", "steps_z", "sweep_x", "sweep_y", "sweep_z", "rotation", "zero_field",
             "large_field", "heating", "temp_cycling", "currents"}

@@ -1,4 +1,4 @@
-"""``magstack demo``: the end-to-end run on the simulated bench (hil/demo.py, hil/commands/demo.py).
+"""``magstack demo``: the end-to-end run on the simulated bench (cli/demo.py, cli/commands/demo.py).
 
 One demo run (600 s calibration session, 300 s held-out session) is shared by the figure
 tests; bounds come from the simulated sensor, not from a previous run: the HMC1053 preset's
@@ -12,15 +12,16 @@ import math
 import numpy as np
 import pytest
 
-from drivers.clock import VirtualClock
-from drivers.errors import AlignmentError, ConfigurationError, MagError
-from firmware_py.cal_table import CalTableStore, load_table
-from firmware_py.fixed_point import to_fixed_inputs
-from firmware_py.float_applier import apply_float
-from hil.cli import main
-from hil.demo import ARTEFACTS, DEVICE_ID, DemoConfig, FixedPointCorrector, run_demo
-from hil.session_file import read_session
-from sim.presets import preset
+from magstack.cli.demo import ARTEFACTS, DEVICE_ID, DemoConfig, FixedPointCorrector, run_demo
+from magstack.cli.main import main
+from magstack.data.session import read_session
+from magstack.drivers.clock import VirtualClock
+from magstack.drivers.errors import ConfigurationError, MagError
+from magstack.firmware.cal_table import CalTableStore, load_table
+from magstack.firmware.fixed_point import to_fixed_inputs
+from magstack.firmware.float_applier import apply_float
+from magstack.ground.errors import AlignmentError
+from magstack.sim.presets import preset
 
 #: Norm of the HMC1053 preset's white noise per axis (uT): the floor no calibration can beat.
 NOISE_NORM_uT = float(np.linalg.norm(preset("hmc1053").noise_white_uT))
@@ -39,7 +40,7 @@ def demo(tmp_path_factory):
 
 def _sim_axis_spacing_s() -> tuple[float, float]:
     """(Y - X, Z - X) conversion-instant spacing of the simulated HMC1053, measured from a sample."""
-    from hil.chip_registry import open_chip
+    from magstack.drivers.registry import open_chip
 
     s = open_chip("hmc1053", "sim", VirtualClock()).read()
     return s.axis_t_s[1] - s.axis_t_s[0], s.axis_t_s[2] - s.axis_t_s[0]
@@ -162,7 +163,7 @@ def test_flight_loop_counts_injected_faults_and_keeps_running(demo):
 
 def test_corrector_matches_float_applier_and_needs_an_active_table(demo):
     res, _ = demo
-    from drivers.magnetometer import MagSample
+    from magstack.drivers.magnetometer import MagSample
 
     empty = FixedPointCorrector(CalTableStore(DEVICE_ID))
     s = MagSample(0.0, (10.0, -20.0, 30.0), 30.0)
@@ -210,13 +211,13 @@ def test_cli_rejects_bad_parameters(tmp_path, capsys):
 
 
 def test_failing_step_names_itself_and_exits_nonzero(tmp_path, monkeypatch, capsys):
-    import hil.alignment
+    import magstack.ground.alignment
 
     def refuse(*args, **kwargs):
         raise AlignmentError("the data do not determine the clock offset (injected by the test)")
 
-    monkeypatch.setattr(hil.alignment, "align_streams", refuse)
+    monkeypatch.setattr(magstack.ground.alignment, "align_streams", refuse)
     with pytest.raises(MagError, match=r"step 3 \(align\) failed: AlignmentError: .*injected"):
         run_demo(DemoConfig(out_dir=tmp_path / "x", seconds=300.0), say=lambda s: None)
-    assert main(["demo", "--out-dir", str(tmp_path / "y"), "--seconds", "300"]) == 2
+    assert main(["demo", "--out-dir", str(tmp_path / "y"), "--seconds", "300"]) == 3
     assert "step 3 (align) failed" in capsys.readouterr().err

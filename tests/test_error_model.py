@@ -9,12 +9,12 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from drivers.errors import ConfigurationError
-from firmware_py.effects import EFFECT_NAMES
-from sim.coil_programs import ProgramTruth, constant_field, piecewise_linear
-from sim.error_model import ErrorModel, ErrorParams, misalignment_matrix, without
-from sim.presets import preset
-from sim.truth_source import StaticTruth
+from magstack.drivers.errors import ConfigurationError
+from magstack.firmware.effects import EFFECT_NAMES
+from magstack.sim.coil_programs import ProgramTruth, constant_field, piecewise_linear
+from magstack.sim.error_model import ErrorModel, ErrorParams, misalignment_matrix, without
+from magstack.sim.presets import preset
+from magstack.sim.truth_source import StaticTruth
 
 
 class RampTruth:

@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from sim.coil_programs import ProgramTruth, constant_field, constant_temp, piecewise_linear, program
-from sim.error_model import ErrorModel, ErrorParams
-from sim.measurement_sim import simulate_measurement
-from sim.presets import LAB_STUDY_TABLE1, PRESET_NAMES, preset, preset_info
-from sim.truth_source import StaticTruth
+from magstack.sim.coil_programs import ProgramTruth, constant_field, constant_temp, piecewise_linear, program
+from magstack.sim.error_model import ErrorModel, ErrorParams
+from magstack.sim.measurement_sim import simulate_measurement
+from magstack.sim.presets import LAB_STUDY_TABLE1, PRESET_NAMES, preset, preset_info
+from magstack.sim.truth_source import StaticTruth
 
 DIGITAL = ("lsm303dlhc", "hmc5983", "lis3mdl")
 #: Datasheet LSB/G at the lowest range (hardware-facts 1.2, 2.2, 3.2): golden values.

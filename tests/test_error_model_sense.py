@@ -9,10 +9,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.errors import ConfigurationError
-from sim.error_model import ErrorModel, ErrorParams, without
-from sim.presets import PRESET_NAMES, preset
-from sim.truth_source import StaticTruth
+from magstack.drivers.errors import ConfigurationError
+from magstack.sim.error_model import ErrorModel, ErrorParams, without
+from magstack.sim.presets import PRESET_NAMES, preset
+from magstack.sim.truth_source import StaticTruth
 from tests.test_error_model import RampTruth, random_params
 
 
@@ -60,7 +60,7 @@ def test_interleaved_sense_and_series_continue_one_state(name):
 
 
 class _SeriesTruth:
-    """A truth source with the vectorised methods only (like sim.coil_programs.ProgramTruth)."""
+    """A truth source with the vectorised methods only (like magstack.sim.coil_programs.ProgramTruth)."""
 
     def __init__(self, bad_from_s=math.inf):
         self.bad_from_s = bad_from_s

@@ -10,10 +10,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.errors import CalTableInvalid
-from firmware_py import fixed_point as fp
-from firmware_py.cal_table import CalTable, validate
-from firmware_py.float_applier import ApplyFlag, apply_float
+from magstack.firmware import fixed_point as fp
+from magstack.firmware.cal_table import CalTable, validate
+from magstack.firmware.errors import CalTableInvalid
+from magstack.firmware.float_applier import ApplyFlag, apply_float
 
 EQ4 = ("gain_matrix", "temperature_gain", "offset", "temperature_offset", "currents")
 

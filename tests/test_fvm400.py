@@ -6,12 +6,26 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.bus.serial_port import open_serial
-from drivers.clock import SystemClock, VirtualClock
-from drivers.errors import BusError, BusTimeout, ProtocolError, ReadbackMismatch
-from drivers.fvm400 import COMMANDS, DEFAULT_MAX_ABS_NT, EOT, FVM400, SERIAL_SETTINGS, RecordError, parse_record
-from sim.fvm400_model import FVM400Faults, FVM400Model, PtyInstrument, register_instrument, unregister_instrument
-from sim.truth_source import StaticTruth
+from magstack.drivers.bus.serial_port import open_serial
+from magstack.drivers.clock import SystemClock, VirtualClock
+from magstack.drivers.errors import BusError, BusTimeout, ProtocolError, ReadbackMismatch
+from magstack.drivers.fvm400 import (
+    COMMANDS,
+    DEFAULT_MAX_ABS_NT,
+    EOT,
+    FVM400,
+    SERIAL_SETTINGS,
+    RecordError,
+    parse_record,
+)
+from magstack.sim.fvm400_model import (
+    FVM400Faults,
+    FVM400Model,
+    PtyInstrument,
+    register_instrument,
+    unregister_instrument,
+)
+from magstack.sim.truth_source import StaticTruth
 
 
 class RampTruth(StaticTruth):

@@ -5,9 +5,9 @@ import math
 
 import pytest
 
-from drivers.errors import ConfigurationError
-from hil.cli import main
-from hil.front_end_setup import DEFAULT_PINS, open_hmc1053, parse_spi_spec
+from magstack.cli.main import main
+from magstack.drivers.errors import ConfigurationError
+from magstack.drivers.registry import DEFAULT_PINS, open_chip, parse_spi_spec
 
 
 def test_cli_read_hmc1053_on_sim(capsys):
@@ -39,20 +39,23 @@ def test_parse_spi_spec_defaults_and_overrides():
 
 
 def test_sim_factory_passes_options_and_rejects_them_on_hardware():
-    from sim.hmc1053_bridge import IdealSensor
-    from sim.truth_source import StaticTruth
+    from magstack.sim.hmc1053_bridge import IdealSensor, build_sim_hmc1053
+    from magstack.sim.truth_source import StaticTruth
 
-    fe = open_hmc1053("sim", None, truth=StaticTruth((1.0, 2.0, 3.0)), sensor=IdealSensor(), table="hf8.2-8conv")
+    fe = open_chip("hmc1053", "sim", None, truth=StaticTruth((1.0, 2.0, 3.0)), sensor=IdealSensor(),
+                   table="hf8.2-8conv")
     assert fe.read().b_uT == pytest.approx((1.0, 2.0, 3.0), abs=1e-3)
-    assert fe.sim_rig.adc_model.reads_before_drdy == 0
+    rig = build_sim_hmc1053(None, truth=StaticTruth((1.0, 2.0, 3.0)), sensor=IdealSensor(), table="hf8.2-8conv")
+    assert rig.front_end.read().b_uT == pytest.approx((1.0, 2.0, 3.0), abs=1e-3)
+    assert rig.adc_model.reads_before_drdy == 0
     with pytest.raises(ConfigurationError, match="simulated bus"):
-        open_hmc1053("spi0.0", None, adc_kwargs={})
+        open_chip("hmc1053", "spi0.0", None, adc_kwargs={})
 
 
 @pytest.mark.hil
 def test_hil_hmc1053_reads_plausible_field(request):
     """On the bench (see docs/hmc1053-front-end.md): Earth-field-sized vector, sane telemetry."""
-    fe = open_hmc1053(f"spi{request.config.getoption('--spi-bus')}", None)
+    fe = open_chip("hmc1053", f"spi{request.config.getoption('--spi-bus')}", None)
     samples = [fe.read() for _ in range(5)]
     for s in samples:
         assert s.valid

@@ -8,12 +8,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.ads1248 import ADS1248, DATA_RATES
-from drivers.errors import BusError, BusTimeout, ConfigurationError, ReadbackMismatch
-from drivers.hmc1053 import FRONT_ENDS, FrontEndTable, TempChannel
-from drivers.magnetometer import Magnetometer
-from sim.hmc1053_bridge import HMC1053Bridge, IdealSensor, build_sim_hmc1053
-from sim.truth_source import StaticTruth
+from magstack.drivers.ads1248 import ADS1248, DATA_RATES
+from magstack.drivers.errors import BusError, BusTimeout, ConfigurationError, ReadbackMismatch
+from magstack.drivers.hmc1053 import FRONT_ENDS, FrontEndTable, TempChannel
+from magstack.drivers.magnetometer import Magnetometer
+from magstack.sim.hmc1053_bridge import HMC1053Bridge, IdealSensor, build_sim_hmc1053
+from magstack.sim.truth_source import StaticTruth
 
 T20 = DATA_RATES[20].first_after_write_s  # 50.822 ms [TI-DS Table 16]
 SETTLE = FRONT_ENDS["hf8.2"].strap_settle_s
@@ -150,7 +150,7 @@ def test_simulator_catches_a_driver_that_reads_before_drdy():
     m = rig.adc_model
     hasty = HastyADS1248(rig.spi, rig.clock, start=m.start_line, drdy=m.drdy_line, reset=m.reset_line)
     hasty.reset = lambda: None
-    from drivers.hmc1053 import HMC1053
+    from magstack.drivers.hmc1053 import HMC1053
 
     fe = HMC1053(hasty, rig.bridge.strap_line, rig.clock, "hf8.2", reset_adc=False)
     bad = fe.read()
@@ -279,7 +279,7 @@ def test_bridge_rejects_unwired_pins_and_bad_parameters():
 
 def test_default_sensor_is_the_shared_error_model():
     rig = build_sim_hmc1053(seed=1)
-    from sim.error_model import ErrorModel
+    from magstack.sim.error_model import ErrorModel
 
     assert isinstance(rig.bridge.sensor, ErrorModel)
     assert not {"time_skew", "quantization", "saturation"} & rig.bridge.sensor.enabled
@@ -292,7 +292,7 @@ def test_default_sensor_is_the_shared_error_model():
 def test_default_sensor_output_noise_and_offset_reproduce_the_preset():
     # the preset describes the reported value; the set/reset half-difference of two conversions
     # must come out with the preset's white sigma and keep its (magnetic) offset
-    from sim.presets import preset
+    from magstack.sim.presets import preset
 
     p = preset("hmc1053")
     rig = build_sim_hmc1053(seed=7, truth=StaticTruth((0.0, 0.0, 0.0)))

@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.bus.i2c import I2CDevice
-from drivers.clock import SystemClock, VirtualClock
-from drivers.errors import (
+from magstack.drivers.bus.i2c import I2CDevice
+from magstack.drivers.clock import SystemClock, VirtualClock
+from magstack.drivers.errors import (
     BusError,
     BusTimeout,
     ConfigurationError,
@@ -20,12 +20,12 @@ from drivers.errors import (
     SelfTestFailed,
     StaleData,
 )
-from drivers.hmc5983 import HMC5983, HMC5983_TABLE, HMC5983_TABLE_LATCHED, expected_self_test_counts
-from sim.hmc5983_model import HMC5983Model
-from sim.i2c_bus import SimI2CBus
-from sim.i2c_register_model import IdealSensor, default_sensor
-from sim.lsm303dlhc_model import LSM303DLHCModel
-from sim.truth_source import StaticTruth
+from magstack.drivers.hmc5983 import HMC5983, HMC5983_TABLE, HMC5983_TABLE_LATCHED, expected_self_test_counts
+from magstack.sim.hmc5983_model import HMC5983Model
+from magstack.sim.i2c_bus import SimI2CBus
+from magstack.sim.i2c_register_model import IdealSensor, default_sensor
+from magstack.sim.lsm303dlhc_model import LSM303DLHCModel
+from magstack.sim.truth_source import StaticTruth
 
 
 def rig(b_uT=(20.0, -5.0, 40.0), temp_c=25.0, sensor=None, drdy_latched=False, **driver_kw):
@@ -236,8 +236,8 @@ def test_single_mode_and_reinit():
 
 @pytest.mark.hil
 def test_hil_hmc5983(request):
-    from drivers.i2c_probe import probe
-    from hil.chip_registry import open_i2c_bus
+    from magstack.drivers.i2c_probe import probe
+    from magstack.drivers.registry import open_i2c_bus
 
     bus = open_i2c_bus(request.config.getoption("--i2c-bus"))
     if not any(r.chip == "hmc5983" for r in probe(bus, (0x1E,))):

@@ -5,8 +5,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.bus.i2c import I2CDevice
-from drivers.chip_table import (
+from magstack.drivers.bus.i2c import I2CDevice
+from magstack.drivers.chip_table import (
     Field,
     decode_axes,
     decode_temperature,
@@ -15,12 +15,12 @@ from drivers.chip_table import (
     lookup,
     write_field,
 )
-from drivers.errors import ConfigurationError, ReadbackMismatch
-from drivers.hmc5983 import HMC5983_TABLE
-from drivers.lis3mdl import LIS3MDL_TABLE
-from drivers.lsm303dlhc import LSM303DLHC_TABLE
-from sim.i2c_bus import SimI2CBus
-from sim.i2c_register_model import RW, Reg, RegisterFileModel
+from magstack.drivers.errors import ConfigurationError, ReadbackMismatch
+from magstack.drivers.hmc5983 import HMC5983_TABLE
+from magstack.drivers.lis3mdl import LIS3MDL_TABLE
+from magstack.drivers.lsm303dlhc import LSM303DLHC_TABLE
+from magstack.sim.i2c_bus import SimI2CBus
+from magstack.sim.i2c_register_model import RW, Reg, RegisterFileModel
 
 TABLES = (LIS3MDL_TABLE, HMC5983_TABLE, LSM303DLHC_TABLE)
 

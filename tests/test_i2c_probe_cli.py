@@ -5,18 +5,18 @@ from itertools import pairwise
 
 import pytest
 
-from drivers.clock import VirtualClock
-from drivers.errors import BusError, ConfigurationError, DeviceNotFound
-from drivers.i2c_probe import identify, probe, scan
-from drivers.lis3mdl import LIS3MDL
-from drivers.magnetometer import Magnetometer
-from hil import chip_registry
-from hil.cli import main
-from sim.i2c_bench import default_bench
-from sim.i2c_bus import SimI2CBus
-from sim.i2c_register_model import RO, IdealSensor, Reg, RegisterFileModel
-from sim.lis3mdl_model import LIS3MDLModel
-from sim.truth_source import StaticTruth
+from magstack.cli.main import main
+from magstack.drivers import registry as chip_registry
+from magstack.drivers.clock import VirtualClock
+from magstack.drivers.errors import BusError, ConfigurationError, DeviceNotFound
+from magstack.drivers.i2c_probe import identify, probe, scan
+from magstack.drivers.lis3mdl import LIS3MDL
+from magstack.drivers.magnetometer import Magnetometer
+from magstack.sim.i2c_bench import default_bench
+from magstack.sim.i2c_bus import SimI2CBus
+from magstack.sim.i2c_register_model import RO, IdealSensor, Reg, RegisterFileModel
+from magstack.sim.lis3mdl_model import LIS3MDLModel
+from magstack.sim.truth_source import StaticTruth
 
 
 def test_default_bench_layout_and_probe():
@@ -86,7 +86,8 @@ def test_probe_survives_nacks():
 
 
 def test_registry_entries_and_factories():
-    assert chip_registry.CHIP_FACTORIES["hmc1053"] == "hil.front_end_setup:open_hmc1053"
+    assert chip_registry.backend_name("sim") == "sim" and chip_registry.backend_name("1") == "linux"
+    assert chip_registry.is_simulated("SIM") and not chip_registry.is_simulated("/dev/i2c-1")
     assert {"lis3mdl", "hmc5983", "lsm303dlhc", "hmc1053"} <= set(chip_registry.chip_names())
     clock = VirtualClock()
     bench = default_bench(clock)
@@ -96,7 +97,7 @@ def test_registry_entries_and_factories():
         s = mag.read()
         assert len(s.b_uT) == 3 and s.temp_c is not None
     with pytest.raises(ConfigurationError, match="valid"):
-        chip_registry.factory("rm3100")
+        chip_registry.open_chip("rm3100", "sim", clock)
     assert chip_registry.parse_i2c_bus("/dev/i2c-1") == 1 and chip_registry.parse_i2c_bus("3") == 3
     with pytest.raises(ConfigurationError):
         chip_registry.parse_i2c_bus("i2c1")

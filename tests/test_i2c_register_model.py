@@ -3,14 +3,14 @@ from __future__ import annotations
 
 import pytest
 
-from drivers.bus.i2c import I2CDevice, I2CRead, I2CWrite
-from drivers.errors import BusError
-from sim.hmc5983_model import HMC5983Model
-from sim.i2c_bus import SimI2CBus
-from sim.i2c_register_model import RO, RW, WO, IdealSensor, Reg, RegisterFileModel
-from sim.lis3mdl_model import LIS3MDLModel
-from sim.lsm303dlhc_model import LSM303DLHCModel
-from sim.truth_source import StaticTruth
+from magstack.drivers.bus.i2c import I2CDevice, I2CRead, I2CWrite
+from magstack.drivers.errors import BusError
+from magstack.sim.hmc5983_model import HMC5983Model
+from magstack.sim.i2c_bus import SimI2CBus
+from magstack.sim.i2c_register_model import RO, RW, WO, IdealSensor, Reg, RegisterFileModel
+from magstack.sim.lis3mdl_model import LIS3MDLModel
+from magstack.sim.lsm303dlhc_model import LSM303DLHCModel
+from magstack.sim.truth_source import StaticTruth
 
 
 def _dev(model, address=0x40):
@@ -154,10 +154,10 @@ def test_conversions_only_at_output_rate(clock):
 @pytest.mark.parametrize("chip", ["lis3mdl", "hmc5983", "lsm303dlhc"])
 def test_non_finite_truth_fails_loudly_with_a_typed_error(clock, chip):
     """NaN from the truth (field or temperature) is never encoded as a register value."""
-    from drivers.errors import ConfigurationError
-    from drivers.hmc5983 import HMC5983
-    from drivers.lis3mdl import LIS3MDL
-    from drivers.lsm303dlhc import LSM303DLHC
+    from magstack.drivers.errors import ConfigurationError
+    from magstack.drivers.hmc5983 import HMC5983
+    from magstack.drivers.lis3mdl import LIS3MDL
+    from magstack.drivers.lsm303dlhc import LSM303DLHC
 
     cls, drv, addr = {"lis3mdl": (LIS3MDLModel, LIS3MDL, 0x1C), "hmc5983": (HMC5983Model, HMC5983, 0x1E),
                       "lsm303dlhc": (LSM303DLHCModel, LSM303DLHC, 0x1E)}[chip]
@@ -171,7 +171,7 @@ def test_non_finite_truth_fails_loudly_with_a_typed_error(clock, chip):
 
 
 def test_self_test_fault_knobs_refuse_non_finite_values(clock):
-    from drivers.errors import ConfigurationError
+    from magstack.drivers.errors import ConfigurationError
 
     with pytest.raises(ConfigurationError, match="delta_uT"):
         LIS3MDLModel(clock, StaticTruth(), IdealSensor()).break_self_test((float("nan"), 0.0, 0.0))

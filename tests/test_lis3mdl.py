@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.clock import SystemClock, VirtualClock
-from drivers.errors import (
+from magstack.drivers.clock import SystemClock, VirtualClock
+from magstack.drivers.errors import (
     BusError,
     BusTimeout,
     ConfigurationError,
@@ -20,12 +20,12 @@ from drivers.errors import (
     SelfTestFailed,
     StaleData,
 )
-from drivers.lis3mdl import LIS3MDL, LIS3MDL_TABLE
-from sim.i2c_bus import SimI2CBus
-from sim.i2c_register_model import IdealSensor, default_sensor
-from sim.lis3mdl_model import LIS3MDLModel
-from sim.lsm303dlhc_model import LSM303DLHCModel
-from sim.truth_source import StaticTruth
+from magstack.drivers.lis3mdl import LIS3MDL, LIS3MDL_TABLE
+from magstack.sim.i2c_bus import SimI2CBus
+from magstack.sim.i2c_register_model import IdealSensor, default_sensor
+from magstack.sim.lis3mdl_model import LIS3MDLModel
+from magstack.sim.lsm303dlhc_model import LSM303DLHCModel
+from magstack.sim.truth_source import StaticTruth
 
 
 class Recording:
@@ -248,8 +248,8 @@ def test_single_conversion_mode():
 
 @pytest.mark.hil
 def test_hil_lis3mdl_reads_earth_field(request):
-    from drivers.i2c_probe import probe
-    from hil.chip_registry import open_i2c_bus
+    from magstack.drivers.i2c_probe import probe
+    from magstack.drivers.registry import open_i2c_bus
 
     bus = open_i2c_bus(request.config.getoption("--i2c-bus"))
     found = [r for r in probe(bus, (0x1C, 0x1E)) if r.chip == "lis3mdl"]

@@ -9,14 +9,21 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.clock import SystemClock, VirtualClock
-from drivers.errors import BusError, BusTimeout, ConfigurationError, DeviceIdMismatch, DeviceNotFound, StaleData
-from drivers.lsm303dlhc import LSM303DLHC, LSM303DLHC_TABLE
-from sim.hmc5983_model import HMC5983Model
-from sim.i2c_bus import SimI2CBus
-from sim.i2c_register_model import IdealSensor, default_sensor
-from sim.lsm303dlhc_model import LSM303DLHCModel
-from sim.truth_source import StaticTruth
+from magstack.drivers.clock import SystemClock, VirtualClock
+from magstack.drivers.errors import (
+    BusError,
+    BusTimeout,
+    ConfigurationError,
+    DeviceIdMismatch,
+    DeviceNotFound,
+    StaleData,
+)
+from magstack.drivers.lsm303dlhc import LSM303DLHC, LSM303DLHC_TABLE
+from magstack.sim.hmc5983_model import HMC5983Model
+from magstack.sim.i2c_bus import SimI2CBus
+from magstack.sim.i2c_register_model import IdealSensor, default_sensor
+from magstack.sim.lsm303dlhc_model import LSM303DLHCModel
+from magstack.sim.truth_source import StaticTruth
 
 
 def rig(b_uT=(20.0, -5.0, 40.0), temp_c=25.0, sensor=None, model_temp_offset_c=20.0, **driver_kw):
@@ -146,8 +153,8 @@ def test_reinit_after_power_cycle():
 
 @pytest.mark.hil
 def test_hil_lsm303dlhc(request):
-    from drivers.i2c_probe import probe
-    from hil.chip_registry import open_i2c_bus
+    from magstack.drivers.i2c_probe import probe
+    from magstack.drivers.registry import open_i2c_bus
 
     bus = open_i2c_bus(request.config.getoption("--i2c-bus"))
     if not any(r.chip == "lsm303dlhc" for r in probe(bus, (0x1E,))):

@@ -6,10 +6,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.errors import AlignmentError, SessionFileError
-from hil.cli import main
-from hil.mageval_import import AUTHORS_OFFSET_S, FLAG_NO_REF, import_mageval, read_mageval_data, read_mageval_ref
-from hil.session_file import read_session, write_session
+from magstack.cli.main import main
+from magstack.data.errors import SessionFileError
+from magstack.data.session import read_session, write_session
+from magstack.ground.errors import AlignmentError
+from magstack.ground.mageval_import import (
+    AUTHORS_OFFSET_S,
+    FLAG_NO_REF,
+    import_mageval,
+    read_mageval_data,
+    read_mageval_ref,
+)
 
 DATA = Path(__file__).parent / "data" / "av-mageval"
 D5, R5 = DATA / "data5.csv", DATA / "ref5.csv"

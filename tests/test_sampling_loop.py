@@ -3,10 +3,10 @@ from __future__ import annotations
 
 import pytest
 
-from drivers.clock import VirtualClock
-from drivers.errors import BusError, BusTimeout, DeviceIdMismatch, StaleData
-from drivers.magnetometer import MagSample
-from firmware_py.sampling_loop import SamplingLoop
+from magstack.drivers.clock import VirtualClock
+from magstack.drivers.errors import BusError, BusTimeout, DeviceIdMismatch, StaleData
+from magstack.drivers.magnetometer import MagSample
+from magstack.firmware.sampling_loop import SamplingLoop
 
 
 class ScriptedMag:

@@ -14,8 +14,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.errors import SessionFileError
-from hil.session_file import REQUIRED_COLUMNS, Session, SessionWriter, read_session, write_session
+from magstack.data.errors import SessionFileError
+from magstack.data.session import REQUIRED_COLUMNS, Session, SessionWriter, read_session, write_session
 
 
 def _session(n=5, currents=("solar",), flag=True) -> Session:
@@ -147,7 +147,7 @@ def test_concatenate_and_select():
 
 CHILD = textwrap.dedent("""
     import sys
-    from hil.session_file import SessionWriter
+    from magstack.data.session import SessionWriter
     w = SessionWriter(sys.argv[1], {"dut_chip": "sim"}, current_names=["coil"], block_rows=7)
     k = 0
     while True:

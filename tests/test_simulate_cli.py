@@ -6,13 +6,13 @@ import json
 import numpy as np
 import pytest
 
-from firmware_py.effects import EFFECT_NAMES
-from hil.cli import main
-from hil.session_file import read_session
-from sim.coil_programs import PROGRAMS, program
-from sim.error_model import ErrorParams
-from sim.measurement_sim import FVM400_NOISE_uT, simulate_measurement
-from sim.presets import preset
+from magstack.cli.main import main
+from magstack.data.session import read_session
+from magstack.firmware.effects import EFFECT_NAMES
+from magstack.sim.coil_programs import PROGRAMS, program
+from magstack.sim.error_model import ErrorParams
+from magstack.sim.measurement_sim import FVM400_NOISE_uT, simulate_measurement
+from magstack.sim.presets import preset
 
 
 def _run(tmp_path, name, *args):
@@ -109,7 +109,7 @@ def test_measurement_sim_reference_noise_and_dut_from_model():
     ({"ref_noise_uT": (0.001, float("nan"), 0.001)}, "ref_noise_uT"), ({"t_start_s": float("inf")}, "t_start_s"),
 ])
 def test_measurement_sim_refuses_bad_parameters(kw, word):
-    from drivers.errors import ConfigurationError
+    from magstack.drivers.errors import ConfigurationError
 
     args = {"duration_s": 5.0, "rate_hz": 2.0, **kw}
     with pytest.raises(ConfigurationError, match=word):

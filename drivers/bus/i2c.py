@@ -2,7 +2,7 @@
 
 ``transfer(addr, [I2CWrite(b"\\x28"), I2CRead(6)])`` performs the messages as one
 combined transaction (repeated start between them) and returns one ``bytes`` per read
-message. Any failure raises :class:`drivers.errors.BusError` naming address and operation.
+message. Any failure raises :class:`magstack.drivers.errors.BusError` naming address and operation.
 """
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
-from drivers.errors import BusError
+from magstack.drivers.errors import BusError
 
 
 @dataclass(frozen=True)

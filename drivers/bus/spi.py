@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Protocol, runtime_checkable
 
-from drivers.errors import BusError
+from magstack.drivers.errors import BusError
 
 
 @runtime_checkable

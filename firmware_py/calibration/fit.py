@@ -19,8 +19,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
-from drivers.errors import FitError
-from firmware_py.calibration.model import AXES, MODELS, CalModel, resolve_terms
+from magstack.firmware.calibration.model import AXES, MODELS, CalModel, resolve_terms
+from magstack.firmware.errors import FitError
 
 #: Rank tolerance: a column whose part orthogonal to the columns accepted before it is
 #: below this fraction of its own norm is numerically undetermined.
@@ -62,7 +62,7 @@ class FitData:
 
     @classmethod
     def from_session(cls, s, weights=None) -> FitData:
-        """From any object with Session's attributes (hil.session_file.Session)."""
+        """From any object with Session's attributes (magstack.data.session.Session)."""
         return cls(s.dut_uT, s.ref_uT, s.temp_c, s.t_s, s.session, dict(s.currents_A), weights,
                    getattr(s, "flag", None))
 

@@ -9,7 +9,7 @@ with ``dT = T - t0_c`` (degC). The model is linear in its parameters: every outp
 columns are named features; ``cols_i`` selects the columns axis ``i`` uses (on-axis
 terms such as ``cubic`` use only their own axis).
 
-Term names are the ``cal_term`` values of :mod:`firmware_py.effects` (the single
+Term names are the ``cal_term`` values of :mod:`magstack.firmware.effects` (the single
 catalogue); this module defines only how each term enters the equation.
 """
 from __future__ import annotations
@@ -19,8 +19,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.errors import FitError
-from firmware_py.effects import EFFECTS
+from magstack.firmware.effects import EFFECTS
+from magstack.firmware.errors import FitError
 
 AXES = ("x", "y", "z")
 

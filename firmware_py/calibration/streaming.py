@@ -16,9 +16,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivers.errors import FitError
-from firmware_py.calibration.fit import Coverage, FitOptions, FitResult, identify, qr_r, solve_axis
-from firmware_py.calibration.model import CalModel
+from magstack.firmware.calibration.fit import Coverage, FitOptions, FitResult, identify, qr_r, solve_axis
+from magstack.firmware.calibration.model import CalModel
+from magstack.firmware.errors import FitError
 
 
 class StreamingFit:

@@ -1,6 +1,6 @@
 """pyserial URL handlers for simulated serial instruments.
 
-``drivers.bus.serial_port.open_serial`` adds this package to
+``magstack.drivers.bus.serial_port.open_serial`` adds this package to
 ``serial.protocol_handler_packages``; ``serial.serial_for_url("<scheme>://...")`` then imports
-``sim.serial_protocols.protocol_<scheme>`` and uses its ``Serial`` class.
+``magstack.sim.serial_protocols.protocol_<scheme>`` and uses its ``Serial`` class.
 """

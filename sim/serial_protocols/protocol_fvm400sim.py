@@ -5,7 +5,7 @@ URL forms::
     fvm400sim://bench                        the model registered as "bench"
     fvm400sim://?seed=1&noise_uT=0.02&garble=0.05&partial=0&dropout=0&over_range=0&wrong_units=0
 
-The second form builds a private :class:`sim.fvm400_model.FVM400Model` (static truth field,
+The second form builds a private :class:`magstack.sim.fvm400_model.FVM400Model` (static truth field,
 virtual clock). Reads never block in real time: when fewer bytes are available than asked, the
 read returns them and, if the model's clock is virtual (has ``advance_s``), advances it by the
 port timeout, as a real timed-out read would take. Each byte read also advances a virtual clock
@@ -17,8 +17,8 @@ import urllib.parse
 
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 
-from drivers.clock import VirtualClock
-from sim.fvm400_model import FVM400Faults, FVM400Model, get_instrument
+from magstack.drivers.clock import VirtualClock
+from magstack.sim.fvm400_model import FVM400Faults, FVM400Model, get_instrument
 
 _FAULT_KEYS = set(FVM400Faults().__dict__)
 

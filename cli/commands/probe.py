@@ -1,12 +1,12 @@
 """``magstack probe [--bus sim | --bus /dev/i2c-1]``: scan and identify the magnetometers.
 
 Prints one line per device: bus, address, type, identity bytes (hex and ASCII), how it was
-identified. ``--bus sim`` probes the default simulated bench (:mod:`sim.i2c_bench`).
+identified. ``--bus sim`` probes the default simulated bench (:mod:`magstack.sim.i2c_bench`).
 Exit status 0 when at least one known magnetometer was found, 1 otherwise.
 """
 from __future__ import annotations
 
-from drivers.i2c_probe import ProbeResult, probe
+from magstack.drivers.i2c_probe import ProbeResult, probe
 
 
 def register(subparsers) -> None:
@@ -27,18 +27,14 @@ def format_result(bus_name: str, r: ProbeResult) -> str:
 
 def probe_buses(bus_spec: str) -> list[tuple[str, ProbeResult]]:
     """(bus name, result) for every device on ``bus_spec``'s bus(es)."""
-    if str(bus_spec).strip().lower() == "sim":
-        from sim.i2c_bench import default_bench
+    from magstack.drivers.registry import i2c_buses
 
-        bench = default_bench()
-        return [(name, r) for name, bus in bench.buses.items() for r in probe(bus)]
-    from hil.chip_registry import open_i2c_bus
-
-    bus = open_i2c_bus(bus_spec)
+    buses = i2c_buses(bus_spec)
     try:
-        return [(bus.name, r) for r in probe(bus)]
+        return [(name, r) for name, bus in buses for r in probe(bus)]
     finally:
-        bus.close()
+        for _, bus in buses:
+            bus.close()
 
 
 def run(args) -> int:

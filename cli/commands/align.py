@@ -6,10 +6,10 @@ import json
 
 import numpy as np
 
-from drivers.errors import ConfigurationError
-from hil.alignment import align_streams, aligned_session
-from hil.mageval_import import AUTHORS_OFFSET_S, KELVIN_OFFSET, read_mageval_data, read_mageval_ref
-from hil.session_file import read_session, refuse_overwriting_inputs, write_session
+from magstack.data.session import read_session, refuse_overwriting_inputs, write_session
+from magstack.drivers.errors import ConfigurationError
+from magstack.ground.alignment import align_streams, aligned_session
+from magstack.ground.mageval_import import AUTHORS_OFFSET_S, KELVIN_OFFSET, read_mageval_data, read_mageval_ref
 
 
 def register(subparsers) -> None:

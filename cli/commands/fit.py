@@ -4,13 +4,13 @@ from __future__ import annotations
 import argparse
 import math
 
-import numpy as np
-
-from drivers.errors import CalTableInvalid, ConfigurationError, FitError
-from firmware_py.cal_table import save_table, table_from_fit, validate
-from firmware_py.calibration import FitData, FitOptions, fit
-from firmware_py.calibration.model import CAL_TERMS, MODELS
-from hil.session_file import Session, read_session, refuse_overwriting_inputs
+from magstack.data.session import load_sessions, refuse_overwriting_inputs
+from magstack.drivers.errors import ConfigurationError
+from magstack.firmware.cal_table import BOUNDS as TABLE_BOUNDS
+from magstack.firmware.cal_table import save_table, table_from_fit, validate
+from magstack.firmware.calibration import FitData, FitOptions, fit
+from magstack.firmware.calibration.model import CAL_TERMS, MODELS
+from magstack.firmware.errors import CalTableInvalid, FitError
 
 
 def _split(values) -> list[str]:
@@ -52,32 +52,6 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def load_sessions(paths) -> tuple[Session, list[str]]:
-    """Read files; each keeps its session ids unless ids collide across files, in which case
-    every (file, session) pair gets a new id 1..M (the mapping is returned as text lines)."""
-    parts = [read_session(p) for p in paths]
-    notes = []
-    for path, s in zip(paths, parts, strict=True):
-        notes += [f"{path}: {w}" for w in s.warnings]
-    ids = [set(np.unique(s.session).tolist()) for s in parts]
-    if sum(len(i) for i in ids) != len(set().union(*ids)):
-        new = 0
-        for path, s in zip(paths, parts, strict=True):
-            remap = {}
-            for old in sorted(set(np.unique(s.session).tolist())):
-                new += 1
-                remap[old] = new
-                notes.append(f"{path}: session {old} -> {new}")
-            s.session = np.array([remap[int(x)] for x in s.session], dtype=np.int64)
-    names = [list(s.currents_A) for s in parts]
-    if any(n != names[0] for n in names):
-        common = [c for c in names[0] if all(c in n for n in names)]
-        for s in parts:
-            s.currents_A = {k: s.currents_A[k] for k in common}
-        notes.append(f"current columns differ between files; kept the common ones {common}")
-    return Session.concatenate(parts), notes
-
-
 def _validity_args(args) -> tuple[float, float] | None:
     """Check --validity-temp / --validity-field before any work (ConfigurationError)."""
     if args.validity_field is not None and not (math.isfinite(args.validity_field) and args.validity_field > 0):
@@ -90,11 +64,18 @@ def _validity_args(args) -> tuple[float, float] | None:
         raise ConfigurationError(f"--validity-temp wants LO,HI in degC, got {args.validity_temp!r}") from None
     if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
         raise ConfigurationError(f"--validity-temp wants finite LO < HI in degC, got {args.validity_temp!r}")
+    t_lo, t_hi = TABLE_BOUNDS["temp_c"]
+    if not (t_lo <= lo and hi <= t_hi):
+        raise ConfigurationError(f"--validity-temp must lie inside [{t_lo:g}, {t_hi:g}] degC, "
+                                 f"got {args.validity_temp!r}")
     return lo, hi
 
 
 def run(args: argparse.Namespace) -> int:
     vt = _validity_args(args)
+    unknown = [t for t in _split(args.terms) if t not in CAL_TERMS]
+    if unknown:
+        raise ConfigurationError(f"--terms: unknown term(s) {unknown}; valid: {', '.join(CAL_TERMS)}")
     refuse_overwriting_inputs(args.out, args.sessions)
     session, notes = load_sessions(args.sessions)
     device_id = args.device_id or session.metadata.get("device_id") or session.metadata.get("dut_chip")

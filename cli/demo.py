@@ -6,22 +6,22 @@ printing a short headline through ``say``:
 1. :func:`probe_bench` - scan the simulated I2C buses (LIS3MDL, HMC5983, LSM303DLHC; two
    chips share 0x1E and are told apart by their identity registers), bring up the HMC1053
    front end (ADS1248 over simulated SPI) and read every chip through
-   :func:`hil.chip_registry.open_chip` (the common ``Magnetometer`` interface).
-2. :func:`record_session` - a bench session with :func:`hil.bench.run_bench`: HMC1053 DUT
+   :func:`magstack.drivers.registry.open_chip` (the common ``Magnetometer`` interface).
+2. :func:`record_session` - a bench session with :func:`magstack.hil.bench.run_bench`: HMC1053 DUT
    through the register-level ADC + bridge + shared error model, FVM400 reference through the
    real driver over ``fvm400sim://``; coil program ``full`` (steps, sweeps, rotation and
    +-150 uT excursions on every axis, one thermal cycle 5..55 degC).
-3. :func:`align_session` - clock offset, per-axis skew, axis map (:mod:`hil.alignment`) and
+3. :func:`align_session` - clock offset, per-axis skew, axis map (:mod:`magstack.ground.alignment`) and
    the paired session.
 4. :func:`fit_calibration` - belsten Eq. 3 (24 parameters) and optional terms, held-out
    errors, the identifiability report, and the same fit on a thermally flat slice to show
    what is held / refused when the data cannot determine a parameter.
 5. :func:`table_lifecycle` - save, validate, load + activate in a
-   :class:`~firmware_py.cal_table.CalTableStore`; corrupted copies are refused with
-   :class:`~drivers.errors.CalTableInvalid` while the active table stays in force.
+   :class:`~magstack.firmware.cal_table.CalTableStore`; corrupted copies are refused with
+   :class:`~magstack.drivers.errors.CalTableInvalid` while the active table stays in force.
 6. :func:`holdout_check` - a second, independent session (other seed, other length), aligned
    and calibrated with the fixed-point applier (``magstack apply`` logic); residual before/after.
-7. :func:`flight_loop` - :class:`~firmware_py.sampling_loop.SamplingLoop` on a simulated
+7. :func:`flight_loop` - :class:`~magstack.firmware.sampling_loop.SamplingLoop` on a simulated
    HMC1053 with a corrector backed by the active table's fixed-point applier; an SPI fault and
    a stuck DRDY are injected and must show up in the health counters.
 
@@ -44,7 +44,8 @@ from typing import Any
 
 import numpy as np
 
-from drivers.errors import CalTableInvalid, ConfigurationError, FitError, MagError
+from magstack.drivers.errors import ConfigurationError, MagError
+from magstack.firmware.errors import CalTableInvalid, FitError
 
 #: Device id of the simulated HMC1053 board (tables and sessions carry it).
 DEVICE_ID = "hmc1053:sim-bench"
@@ -157,12 +158,12 @@ class ProbeFigures:
 
 def probe_bench(seed: int, *, samples_per_chip: int = 3, say: Say = print) -> ProbeFigures:
     """Probe the simulated I2C buses and the HMC1053 front end; read each chip."""
-    from drivers.clock import VirtualClock
-    from drivers.i2c_probe import probe
-    from hil.chip_registry import open_chip
-    from hil.commands.probe import format_result
-    from sim.i2c_bench import CHIPS, default_bench
-    from sim.truth_source import StaticTruth
+    from magstack.cli.commands.probe import format_result
+    from magstack.drivers.clock import VirtualClock
+    from magstack.drivers.i2c_probe import probe
+    from magstack.drivers.registry import open_chip
+    from magstack.sim.i2c_bench import CHIPS, default_bench
+    from magstack.sim.truth_source import StaticTruth
 
     clock = VirtualClock()
     truth = StaticTruth(PROBE_FIELD_uT, PROBE_TEMP_C)
@@ -223,9 +224,9 @@ class BenchFigures:
 def record_session(path: Path, *, program: str, seconds: float, seed: int, session_id: int,
                    ref_garble: float, instrument_name: str, say: Say = print) -> BenchFigures:
     """Record one simulated bench session (HMC1053 DUT + FVM400 reference) into ``path``."""
-    from hil.bench import build_sim_bench, run_bench, truth_currents
-    from hil.session_file import read_session
-    from sim.measurement_sim import FVM400_NOISE_uT
+    from magstack.data.session import read_session
+    from magstack.hil.bench import build_sim_bench, run_bench, truth_currents
+    from magstack.sim.measurement_sim import FVM400_NOISE_uT
 
     ref_noise_uT = float(np.sqrt(np.mean(np.square(FVM400_NOISE_uT))))
     sb = build_sim_bench("hmc1053", program=program, seconds=seconds, seed=seed,
@@ -239,7 +240,7 @@ def record_session(path: Path, *, program: str, seconds: float, seed: int, sessi
         res = run_bench(sb.dut, sb.ref, sb.clock, path, seconds=seconds, ref_clock=sb.ref_clock,
                         session_id=session_id, metadata=meta, currents=cur, current_names=names)
     finally:
-        from sim.fvm400_model import unregister_instrument
+        from magstack.sim.fvm400_model import unregister_instrument
 
         sb.ref.close()
         unregister_instrument(instrument_name)
@@ -282,9 +283,9 @@ class AlignFigures:
 
 def align_session(raw_path: Path, paired_path: Path, *, say: Say = print, verbose: bool = True) -> AlignFigures:
     """Estimate offset / skew / axis map from a raw bench session and write the paired session."""
-    from hil.alignment import align_streams, aligned_session
-    from hil.bench import paired_view
-    from hil.session_file import read_session, write_session
+    from magstack.data.session import read_session, write_session
+    from magstack.ground.alignment import align_streams, aligned_session
+    from magstack.hil.bench import paired_view
 
     raw = read_session(raw_path)
     t_dut, dut, t_ref, ref = paired_view(raw)
@@ -340,8 +341,8 @@ CANDIDATE_TERMS: tuple[tuple[str, ...], ...] = ((), ("time_skew",), ("time_skew"
 
 
 def _fixed_point_ok(terms) -> bool:
-    from firmware_py.cal_table import GROUND_ONLY_TERMS
-    from firmware_py.fixed_point import FIXED_POINT_TERMS
+    from magstack.firmware.cal_table import GROUND_ONLY_TERMS
+    from magstack.firmware.fixed_point import FIXED_POINT_TERMS
 
     return all(t in FIXED_POINT_TERMS or t in GROUND_ONLY_TERMS for t in terms)
 
@@ -353,7 +354,7 @@ def recovery_vs_preset(result, preset_name: str = "hmc1053") -> dict[str, float]
     offset o; ``dT = T - temp_ref_c``), so to first order in dT the calibration that undoes it is
     ``S = G^-1``, ``K_S = -G^-1 K``, ``O = -G^-1 o`` at ``t0_c = temp_ref_c``.
     """
-    from sim.presets import preset
+    from magstack.sim.presets import preset
 
     p = preset(preset_name)
     g_inv = np.linalg.inv(np.asarray(p.gain_matrix, float))
@@ -386,8 +387,8 @@ def _flat_slice(fd, fraction: float = 0.1, min_rows: int = 300) -> tuple[np.ndar
 def fit_calibration(paired_path: Path, report_path: Path, *, exclude_steps_uT: float,
                     say: Say = print) -> FitFigures:
     """Fit Eq. 3 (+ the optional terms that help held out) to the paired session."""
-    from firmware_py.calibration import FitData, FitOptions, fit
-    from hil.session_file import read_session
+    from magstack.data.session import read_session
+    from magstack.firmware.calibration import FitData, FitOptions, fit
 
     paired = read_session(paired_path)
     fd = FitData.from_session(paired)
@@ -489,7 +490,7 @@ def _corrupt_one_digit(text: str) -> str:
 def table_lifecycle(fit_result, out_dir: Path, *, created_epoch_s: float, description: str,
                     say: Say = print) -> TableFigures:
     """cal.json: save, validate, load + activate; two corrupted copies must be refused."""
-    from firmware_py.cal_table import CalTableStore, save_table, table_from_fit, validate
+    from magstack.firmware.cal_table import CalTableStore, save_table, table_from_fit, validate
 
     table = table_from_fit(fit_result, DEVICE_ID, description=description, created_utc=_iso_utc(created_epoch_s))
     v = validate(table)
@@ -531,7 +532,7 @@ def table_lifecycle(fit_result, out_dir: Path, *, created_epoch_s: float, descri
 
 
 def _out_limit_uT() -> float:
-    from firmware_py.fixed_point import OUT_LIMIT_uT
+    from magstack.firmware.fixed_point import OUT_LIMIT_uT
 
     return OUT_LIMIT_uT
 
@@ -559,11 +560,11 @@ class HoldoutFigures:
 def holdout_check(table, out_dir: Path, *, program: str, seconds: float, seed: int, ref_garble: float,
                   exclude_steps_uT: float, say: Say = print) -> HoldoutFigures:
     """Record an independent session, pair it, calibrate it with the fixed-point applier."""
-    from firmware_py.calibration.fit import reference_steps
-    from firmware_py.fixed_point import to_fixed_inputs
-    from firmware_py.float_applier import ApplyFlag, apply_float
-    from hil.commands.apply import FLAG_SHIFT, calibrate_session
-    from hil.session_file import read_session, write_session
+    from magstack.data.session import read_session, write_session
+    from magstack.firmware.calibration.fit import reference_steps
+    from magstack.firmware.fixed_point import to_fixed_inputs
+    from magstack.firmware.float_applier import ApplyFlag, apply_float
+    from magstack.ground.apply_session import FLAG_SHIFT, calibrate_session
 
     bench = record_session(out_dir / "holdout-session.csv", program=program, seconds=seconds, seed=seed,
                            session_id=2, ref_garble=ref_garble, instrument_name="demo-holdout", say=say)
@@ -620,8 +621,8 @@ class FixedPointCorrector:
         self.status = Counter()
 
     def __call__(self, sample) -> tuple[float, float, float] | None:
-        from firmware_py.fixed_point import OUT_FRAC
-        from firmware_py.float_applier import ApplyFlag
+        from magstack.firmware.fixed_point import OUT_FRAC
+        from magstack.firmware.float_applier import ApplyFlag
 
         fx = self.store.active_fixed
         if fx is None or fx.D or not all(math.isfinite(v) for v in sample.b_uT):
@@ -661,15 +662,15 @@ class LoopFigures:
 
 def flight_loop(store, out_path: Path, *, seed: int, cycles: int, period_s: float, say: Say = print) -> LoopFigures:
     """Run the flight sampling loop on a simulated HMC1053, inject an SPI fault and a stuck DRDY."""
-    from drivers.clock import VirtualClock
-    from firmware_py.sampling_loop import SamplingLoop
-    from hil.chip_registry import open_chip
-    from sim.truth_source import StaticTruth
+    from magstack.drivers.clock import VirtualClock
+    from magstack.firmware.sampling_loop import SamplingLoop
+    from magstack.sim.hmc1053_bridge import build_sim_hmc1053
+    from magstack.sim.truth_source import StaticTruth
 
     clock = VirtualClock()
     truth = StaticTruth(LOOP_FIELD_uT, LOOP_TEMP_C)
-    fe = open_chip("hmc1053", "sim", clock, truth=truth, seed=seed)
-    rig = fe.sim_rig
+    rig = build_sim_hmc1053(clock, truth=truth, seed=seed)   # the typed board handle, for fault injection
+    fe = rig.front_end
     corrector = FixedPointCorrector(store)
     loop = SamplingLoop(fe, clock, period_s=period_s, corrector=corrector)
     bus_fault_at, drdy_fault_at = cycles // 4, (2 * cycles) // 3
@@ -807,7 +808,7 @@ def run_demo(config: DemoConfig | None = None, *, say: Say = print) -> DemoResul
     say(f"magstack demo: simulated bench, seed {cfg.seed}, calibration session {cfg.seconds:g} s of coil program "
         f"'{cfg.program}', held-out session {cfg.holdout_s:g} s (seed {cfg.seed + 1}); output in {out}/")
 
-    with _step(1, "probe", "probe the simulated bench and read every chip (hil.chip_registry)", res, say):
+    with _step(1, "probe", "probe the simulated bench and read every chip (magstack.drivers.registry)", res, say):
         res.probe = probe_bench(cfg.seed, samples_per_chip=cfg.samples_per_chip, say=say)
         (out / "probe.json").write_text(json.dumps(res.probe.__dict__, default=_json_default, indent=1) + "\n",
                                         encoding="utf-8")
@@ -820,7 +821,7 @@ def run_demo(config: DemoConfig | None = None, *, say: Say = print) -> DemoResul
                                    session_id=1, ref_garble=cfg.ref_garble, instrument_name="demo-bench", say=say)
         say(f"  -> {res.bench.path.name}: {res.bench.rows} rows")
 
-    with _step(3, "align", "align DUT and reference streams (hil.alignment)", res, say):
+    with _step(3, "align", "align DUT and reference streams (magstack.ground.alignment)", res, say):
         res.align = align_session(res.bench.path, out / "session-paired.csv", say=say)
         say(f"  -> {res.align.paired_path.name}")
 

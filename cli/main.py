@@ -1,6 +1,6 @@
 """``magstack`` command line.
 
-Each sub-command lives in its own module under :mod:`hil.commands` and exposes
+Each sub-command lives in its own module under :mod:`magstack.cli.commands` and exposes
 ``register(subparsers)``, which adds its parser and sets ``func(args) -> int``.
 Modules are discovered, so adding a command never edits this file.
 """
@@ -12,11 +12,11 @@ import os
 import pkgutil
 import sys
 
-from drivers.errors import MagError
+from magstack.errors import EXIT_DEVICE, MagError
 
 
 def build_parser() -> argparse.ArgumentParser:
-    import hil.commands as commands
+    import magstack.cli.commands as commands
 
     parser = argparse.ArgumentParser(prog="magstack", description="magstack: AMR magnetometer sensor stack")
     parser.add_argument("--version", action="version", version=f"magstack {version()}")
@@ -24,18 +24,15 @@ def build_parser() -> argparse.ArgumentParser:
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
         if info.name.startswith("_"):
             continue
-        module = importlib.import_module(f"hil.commands.{info.name}")
+        module = importlib.import_module(f"magstack.cli.commands.{info.name}")
         module.register(sub)
     return parser
 
 
 def version() -> str:
-    try:
-        from importlib.metadata import version as _v
+    from magstack import __version__
 
-        return _v("magstack")
-    except Exception:  # not installed (running from a checkout)
-        return "0.1.0+checkout"
+    return __version__
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -48,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except MagError as exc:
         print(f"magstack {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        return exc.exit_code
     except BrokenPipeError:
         # output piped into a reader that stopped (``| head``): files are already written
         devnull = os.open(os.devnull, os.O_WRONLY)
@@ -58,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
         # a file-system problem outside the typed tree (missing output directory, permissions)
         where = f" ({exc.filename})" if exc.filename else ""
         print(f"magstack {args.command}: error: {exc.strerror or exc}{where}", file=sys.stderr)
-        return 2
+        return EXIT_DEVICE
     except KeyboardInterrupt:
         print(f"magstack {args.command}: interrupted", file=sys.stderr)
         return 130

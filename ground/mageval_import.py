@@ -6,7 +6,7 @@
 1. the reference axes are mapped onto the DUT axes (authors' map by default:
    ``dut_x = ref_y, dut_y = ref_x, dut_z = -ref_z``);
 2. the clock offset (added to reference time) is estimated from the data with
-   :func:`hil.alignment.estimate_clock_offset` (with the chosen temperature: its Eq. 3
+   :func:`magstack.ground.alignment.estimate_clock_offset` (with the chosen temperature: its Eq. 3
    temperature terms are used when the temperature span is material; ``clock_offset_model``
    records the model); when the data do not determine it (static
    field) the authors' ``4 h - 0.5 s`` prior is used and the fact is recorded (or, with
@@ -29,9 +29,11 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.errors import AlignmentError, ConfigurationError, SessionFileError
-from hil.alignment import estimate_clock_offset, interp_no_extrapolation
-from hil.session_file import Session, read_text_file
+from magstack.data.errors import SessionFileError
+from magstack.data.session import Session, read_text_file
+from magstack.drivers.errors import ConfigurationError
+from magstack.ground.alignment import estimate_clock_offset, interp_no_extrapolation
+from magstack.ground.errors import AlignmentError
 
 #: DUT logger header (dataN.csv).
 DATA_COLUMNS = ("time", "x_test", "y_test", "z_test", "x_U7", "y_U7", "z_U7", "x_U9", "y_U9", "z_U9",

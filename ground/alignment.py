@@ -6,7 +6,7 @@ Conventions (all times in seconds, fields in uT):
   ``t_ref_on_dut = t_ref + offset_s``. The value of the reference at DUT time ``t`` is the
   reference stream interpolated at ``t - offset_s`` (reference clock).
 * ``skew_s[i]`` is the per-axis time skew of DUT axis ``i`` in the sense of the
-  ``time_skew`` effect (:mod:`firmware_py.effects`): DUT axis ``i`` reads the field at DUT
+  ``time_skew`` effect (:mod:`magstack.firmware.effects`): DUT axis ``i`` reads the field at DUT
   time ``t + skew_s[i]``. It is measured relative to the common ``offset_s`` (a common shift
   of all three axes cannot be told apart from the clock offset).
 * ``axis_map`` is a signed permutation: DUT axis ``i`` = ``sign[i]`` * reference axis
@@ -22,7 +22,7 @@ mistaken for a time shift. Which model was used is recorded (``model``); without
 temperature the plain model is used. The uncertainty is the larger of the curvature of that
 residual, ``var = 2 s^2 / SSR''`` (residual variance ``s^2`` inflated for the residuals' lag-1
 autocorrelation), and a delete-one-block jackknife. When the data cannot determine a
-parameter (static field, no overlap, periodic ambiguity) :class:`drivers.errors.AlignmentError`
+parameter (static field, no overlap, periodic ambiguity) :class:`magstack.drivers.errors.AlignmentError`
 is raised (offset) or the per-axis result is flagged ``determined=False`` with a reason (skew,
 axis map).
 
@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.errors import AlignmentError
+from magstack.ground.errors import AlignmentError
 
 AXES = "xyz"
 #: Coarse offset search limits (keep a long session's search to a few seconds).
@@ -754,7 +754,7 @@ def aligned_session(session, report: AlignmentReport, *, correct_skew: bool = Fa
     determined is re-sampled at ``t - skew_i`` (interpolating the DUT stream itself). Temperature,
     session id and currents come from the DUT rows. Metadata records what was applied.
     """
-    from hil.session_file import Session
+    from magstack.data.session import Session
 
     if gaps not in ("nan", "drop"):
         raise AlignmentError(f"gaps must be 'nan' or 'drop', got {gaps!r}")

@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import argparse
 
-from drivers.errors import ConfigurationError
-from hil.mageval_import import AUTHORS_OFFSET_S, import_mageval
-from hil.session_file import refuse_overwriting_inputs, write_session
+from magstack.data.session import refuse_overwriting_inputs, write_session
+from magstack.drivers.errors import ConfigurationError
+from magstack.ground.mageval_import import AUTHORS_OFFSET_S, import_mageval
 
 
 def register(subparsers) -> None:

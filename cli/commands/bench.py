@@ -3,15 +3,15 @@ from __future__ import annotations
 
 import argparse
 
-from drivers.errors import ConfigurationError
-from hil.bench import ProgressLine, build_sim_bench, run_bench, truth_currents
-from hil.chip_registry import chip_names, open_chip
+from magstack.drivers.errors import ConfigurationError
+from magstack.drivers.registry import chip_names, is_simulated, open_chip
+from magstack.hil.bench import ProgressLine, build_sim_bench, run_bench, truth_currents
 
 
 def _faults(text: str) -> dict[str, float]:
     from dataclasses import fields
 
-    from sim.fvm400_model import FVM400Faults
+    from magstack.sim.fvm400_model import FVM400Faults
 
     valid = [f.name for f in fields(FVM400Faults)]
     out = {}
@@ -50,7 +50,7 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     progress = None if args.no_progress else ProgressLine(args.seconds)
-    if str(args.bus).strip().lower() == "sim":
+    if is_simulated(args.bus):
         sb = build_sim_bench(args.dut, program=args.program, seconds=args.seconds, seed=args.seed,
                              ref_faults=args.sim_ref_faults)
         names, cur = truth_currents(sb.truth)
@@ -63,8 +63,8 @@ def run(args: argparse.Namespace) -> int:
     else:
         if args.sim_ref_faults:
             raise ConfigurationError("--sim-ref-faults only applies with --bus sim")
-        from drivers.clock import SystemClock
-        from drivers.fvm400 import FVM400
+        from magstack.drivers.clock import SystemClock
+        from magstack.drivers.fvm400 import FVM400
 
         clock = SystemClock()
         ref = FVM400.open(args.ref_port, clock)

@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.errors import SessionFileError
+from magstack.data.errors import SessionFileError
+from magstack.drivers.errors import ConfigurationError
 
 FORMAT_KEY = "magstack-session"
 FORMAT_VERSION = "1"
@@ -217,11 +218,11 @@ class SessionWriter:
 
 
 def refuse_overwriting_inputs(out: str | os.PathLike, inputs: Iterable[str | os.PathLike]) -> None:
-    """SessionFileError when the output path names one of the input files (which it would replace)."""
+    """ConfigurationError (a usage error) when the output path names one of the input files."""
     o = Path(out).resolve()
     for p in inputs:
         if Path(p).resolve() == o:
-            raise SessionFileError(f"--out {out} is the input file {p}: write the result elsewhere")
+            raise ConfigurationError(f"--out {out} is the input file {p}: write the result elsewhere")
 
 
 def write_session(path: str | os.PathLike, s: Session, *, block_rows: int = 5000) -> Path:
@@ -351,3 +352,29 @@ def read_session(source: str | os.PathLike | io.TextIOBase) -> Session:
                 {_CURRENT_RE.match(c).group(1): col(c) for c in current_cols}, metadata, flag)
     s.warnings.extend(warnings)
     return s
+
+
+def load_sessions(paths) -> tuple[Session, list[str]]:
+    """Read files; each keeps its session ids unless ids collide across files, in which case
+    every (file, session) pair gets a new id 1..M (the mapping is returned as text lines)."""
+    parts = [read_session(p) for p in paths]
+    notes = []
+    for path, s in zip(paths, parts, strict=True):
+        notes += [f"{path}: {w}" for w in s.warnings]
+    ids = [set(np.unique(s.session).tolist()) for s in parts]
+    if sum(len(i) for i in ids) != len(set().union(*ids)):
+        new = 0
+        for path, s in zip(paths, parts, strict=True):
+            remap = {}
+            for old in sorted(set(np.unique(s.session).tolist())):
+                new += 1
+                remap[old] = new
+                notes.append(f"{path}: session {old} -> {new}")
+            s.session = np.array([remap[int(x)] for x in s.session], dtype=np.int64)
+    names = [list(s.currents_A) for s in parts]
+    if any(n != names[0] for n in names):
+        common = [c for c in names[0] if all(c in n for n in names)]
+        for s in parts:
+            s.currents_A = {k: s.currents_A[k] for k in common}
+        notes.append(f"current columns differ between files; kept the common ones {common}")
+    return Session.concatenate(parts), notes

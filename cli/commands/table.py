@@ -2,11 +2,13 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 import numpy as np
 
-from drivers.errors import CalTableInvalid
-from firmware_py.cal_table import load_table, validate
+from magstack.errors import EXIT_NEGATIVE
+from magstack.firmware.cal_table import load_table, validate
+from magstack.firmware.errors import CalTableInvalid
 
 
 def register(subparsers) -> None:
@@ -21,9 +23,17 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    t = load_table(args.table)
-    if args.device_id is not None and t.device_id != args.device_id:
-        raise CalTableInvalid(f"{args.table}: table is for device {t.device_id!r}, not {args.device_id!r}")
+    """``show``: an unreadable or invalid table is bad input (exit 3). ``validate``: the verdict is the
+    answer, so an invalid table prints why and exits 1."""
+    try:
+        t = load_table(args.table)
+        if args.device_id is not None and t.device_id != args.device_id:
+            raise CalTableInvalid(f"{args.table}: table is for device {t.device_id!r}, not {args.device_id!r}")
+    except CalTableInvalid as exc:
+        if args.action != "validate":
+            raise
+        print(f"INVALID: {exc}", file=sys.stderr)
+        return EXIT_NEGATIVE
     v = validate(t)
     if args.action == "show":
         print(f"table {t.table_name} schema v{t.schema_version} device {t.device_id} crc32 0x{t.crc32:08x}")
@@ -53,5 +63,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"valid: worst-case output {v.worst_output_uT:.1f} uT, max condition number {v.max_cond:.3g}")
         return 0
     print("INVALID: " + "; ".join(v.problems))
-    v.raise_if_bad(str(args.table))   # typed error, exit 2 (after ``show`` has printed the contents)
-    return 2
+    if args.action == "validate":
+        print(f"INVALID: {args.table}: " + "; ".join(v.problems), file=sys.stderr)
+        return EXIT_NEGATIVE
+    v.raise_if_bad(str(args.table))   # typed error, exit 3 (after ``show`` has printed the contents)
+    return EXIT_NEGATIVE

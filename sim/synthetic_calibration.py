@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from firmware_py.calibration.fit import FitData
-from firmware_py.calibration.model import CalModel
+from magstack.firmware.calibration.fit import FitData
+from magstack.firmware.calibration.model import CalModel
 
 
 def random_theta(model: CalModel, rng: np.random.Generator) -> np.ndarray:

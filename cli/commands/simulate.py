@@ -7,13 +7,13 @@ import math
 
 import numpy as np
 
-from drivers.errors import ConfigurationError
-from firmware_py.effects import EFFECT_NAMES, effect
-from hil.session_file import Session, write_session
-from sim.coil_programs import PROGRAMS, program
-from sim.error_model import ErrorParams
-from sim.measurement_sim import FVM400_LSB_uT, FVM400_NOISE_uT, simulate_measurement
-from sim.presets import PRESET_NAMES, preset, preset_info
+from magstack.data.session import Session, write_session
+from magstack.drivers.errors import ConfigurationError
+from magstack.firmware.effects import EFFECT_NAMES, effect
+from magstack.sim.coil_programs import PROGRAMS, program
+from magstack.sim.error_model import ErrorParams
+from magstack.sim.measurement_sim import FVM400_LSB_uT, FVM400_NOISE_uT, simulate_measurement
+from magstack.sim.presets import PRESET_NAMES, preset, preset_info
 
 #: Default start of the simulated run (Unix epoch s): 2020-08-25 12:00:00 UTC, the real bench's day.
 DEFAULT_T0_EPOCH_S = 1598356800.0
@@ -105,11 +105,11 @@ def run(args) -> int:
                                  f"{MAX_ROWS:.0e}: shorten --seconds or lower --rate-hz")
     run_ = simulate_measurement(params, truth, duration_s=truth.duration_s, rate_hz=rate, seed=args.seed,
                                 effects=effects)
-    from hil.cli import version
+    from magstack import __version__ as version_str
 
     metadata = {
         "source": "magstack simulate",
-        "software_version": version(),
+        "software_version": version_str,
         "dut_chip": args.chip,
         "preset": args.chip,
         "preset_source": info.source,

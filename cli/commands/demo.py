@@ -4,13 +4,13 @@ Probe and read every chip, record a bench session (HMC1053 DUT + FVM400 referenc
 fit the calibration, save/validate/activate the table (corrupted copies refused), apply it
 with the fixed-point applier to an independent session, and run the flight sampling loop
 with injected faults. No hardware needed; deterministic for a seed. The logic lives in
-hil/demo.py; docs/demo.md explains each step.
+cli/demo.py; docs/demo.md explains each step.
 """
 from __future__ import annotations
 
 import argparse
 
-from hil.demo import MAX_SECONDS, MIN_SECONDS, DemoConfig, run_demo
+from magstack.cli.demo import MAX_SECONDS, MIN_SECONDS, DemoConfig, run_demo
 
 
 def register(subparsers) -> None:

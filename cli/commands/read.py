@@ -2,14 +2,14 @@
 
 One line per new sample: time (s, the driver clock), field X/Y/Z in uT (``nan`` on an
 overflowed axis, flagged ``OVF``), on-chip temperature in degC. Chips come from
-:mod:`hil.chip_registry`.
+:mod:`magstack.drivers.registry`.
 """
 from __future__ import annotations
 
 import math
 
-from drivers.errors import ConfigurationError
-from hil.chip_registry import chip_names, open_chip
+from magstack.drivers.errors import ConfigurationError
+from magstack.drivers.registry import chip_names, clock_for, open_chip
 
 
 def register(subparsers) -> None:
@@ -40,14 +40,7 @@ def run(args) -> int:
         config["odr_hz"] = args.odr_hz
     if config and args.chip == "hmc1053":
         raise ConfigurationError("--range/--rate do not apply to hmc1053 (fixed analog front end)")
-    if str(args.bus).strip().lower() == "sim":
-        from drivers.clock import VirtualClock
-
-        clock = VirtualClock()
-    else:
-        from drivers.clock import SystemClock
-
-        clock = SystemClock()
+    clock = clock_for(args.bus)
     mag = open_chip(args.chip, args.bus, clock, **config)
     print(f"# {args.chip} on {args.bus}" + "".join(f" {k}={v:g}" for k, v in config.items()))
     print(f"{'t_s':>12} {'x_uT':>10} {'y_uT':>10} {'z_uT':>10} {'temp_c':>8}")

@@ -1,0 +1,1 @@
+"""Sub-commands of ``magstack``; one module each, discovered by :mod:`magstack.cli.main`."""

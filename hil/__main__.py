@@ -1,5 +1,0 @@
-import sys
-
-from hil.cli import main
-
-sys.exit(main())

@@ -1,1 +1,0 @@
-"""Sub-commands of ``magstack``; one module each, discovered by :mod:`hil.cli`."""

@@ -1,0 +1,33 @@
+"""magstack: a flight-software-style sensor stack for small-spacecraft magnetometers.
+
+One import root; the repository folders map onto sub-packages (pyproject ``package-dir``):
+
+=====================  ==============================================================
+``magstack.drivers``   ``drivers/``      bus transports, chip tables and drivers, chip factory
+``magstack.data``      ``data/``         session / telemetry file format, merge, row split, atomic I/O
+``magstack.firmware``  ``firmware_py/``  on-board code: calibration, tables, appliers, flight loop
+``magstack.sim``       ``sim/``          simulated buses, chip models, error model, truth generators
+``magstack.ground``    ``ground/``       alignment, apply-to-session, importers, reports, diagnosis
+``magstack.hil``       ``hil/``          bench runner and Raspberry Pi wiring
+``magstack.cli``       ``cli/``          the ``magstack`` command and the demo
+=====================  ==============================================================
+
+Each layer imports only the layers listed above it (checked by import-linter in CI);
+``docs/architecture.md`` has the picture.
+"""
+from __future__ import annotations
+
+__all__ = ["__version__"]
+
+
+def _version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("magstack")
+    except Exception:  # running from a checkout without an install
+        return "0.0.0+checkout"
+
+
+#: Installed distribution version (``0.0.0+checkout`` when not installed).
+__version__ = _version()

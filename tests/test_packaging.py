@@ -1,0 +1,49 @@
+"""One import root: the folders map onto ``magstack.*`` and nothing else is installed at top level."""
+from __future__ import annotations
+
+import subprocess
+import sys
+import tomllib
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+CONFIG = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+
+
+def test_every_package_folder_is_listed():
+    """A new sub-package must be added to pyproject's ``packages`` or it is missing from the wheel."""
+    listed = set(CONFIG["packages"])
+    found = set()
+    for package, folder in CONFIG["package-dir"].items():
+        base = ROOT / folder
+        for init in base.rglob("__init__.py"):
+            rel = init.parent.relative_to(base)
+            found.add(".".join([package, *rel.parts]))
+    assert found == listed
+
+
+def test_python_dash_m_magstack_runs():
+    out = subprocess.run([sys.executable, "-m", "magstack", "--version"], capture_output=True, text=True,
+                         cwd=ROOT.parent, timeout=60)
+    assert out.returncode == 0 and out.stdout.startswith("magstack ")
+
+
+@pytest.mark.slow
+def test_wheel_installs_only_magstack(tmp_path):
+    """``pip wheel .`` holds only ``magstack/`` and its dist-info at top level."""
+    pytest.importorskip("setuptools")
+    r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(tmp_path), str(ROOT)],
+                       capture_output=True, text=True, timeout=600)
+    if r.returncode != 0:
+        pytest.skip(f"cannot build a wheel here: {r.stderr.strip()[-200:]}")
+    wheel = next(tmp_path.glob("magstack-*.whl"))
+    tops = {name.split("/")[0] for name in zipfile.ZipFile(wheel).namelist()}
+    assert {t for t in tops if not t.endswith(".dist-info")} == {"magstack"}
+    names = zipfile.ZipFile(wheel).namelist()
+    for module in ("magstack/drivers/registry.py", "magstack/data/session.py", "magstack/firmware/cal_table.py",
+                   "magstack/sim/backends.py", "magstack/ground/alignment.py", "magstack/hil/bench.py",
+                   "magstack/cli/main.py", "magstack/cli/commands/demo.py"):
+        assert module in names
