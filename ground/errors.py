@@ -10,3 +10,7 @@ class GroundError(InputDataError):
 
 class AlignmentError(GroundError):
     """Two streams cannot be aligned (no overlap, data does not determine the parameter)."""
+
+
+class DiagnosisError(GroundError):
+    """The gap diagnosis cannot run on the given data (too few usable rows, no prediction)."""

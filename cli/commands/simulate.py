@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from magstack.data.session import Session, write_session
+from magstack.data.session import Session, refuse_overwriting_inputs, write_session
 from magstack.drivers.errors import ConfigurationError
 from magstack.firmware.effects import EFFECT_NAMES, effect
 from magstack.sim.coil_programs import PROGRAMS, program
@@ -43,6 +43,8 @@ def register(subparsers) -> None:
     p.add_argument("--t0", type=float, default=DEFAULT_T0_EPOCH_S,
                    help=f"epoch time (s) of the first row (default {DEFAULT_T0_EPOCH_S:.0f})")
     p.add_argument("--out", required=True, help="output session file (.csv)")
+    p.add_argument("--save-params", metavar="PARAMS.json", default=None,
+                   help="also write the error-model parameters and effects used (for diagnose --sim)")
     p.set_defaults(func=run)
 
 
@@ -74,6 +76,21 @@ def _interference(items: list[str]) -> dict[str, tuple[float, float, float]]:
 MAX_ROWS = 10_000_000
 
 
+def _save_params(path: str, params: ErrorParams, effects, chip: str) -> None:
+    """PARAMS.json for ``diagnose --sim`` (format in ground/diagnose/sim_adapter.py), written atomically."""
+    import os
+    from pathlib import Path
+
+    from magstack.ground.diagnose.sim_adapter import params_document
+    p = Path(path)
+    part = p.with_name(p.name + ".part")
+    with open(part, "w", encoding="utf-8") as fh:
+        json.dump(params_document(params, effects, chip), fh, indent=1)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(part, p)
+
+
 def run(args) -> int:
     if args.program not in PROGRAMS:
         raise ConfigurationError(f"unknown program {args.program!r}; valid: {', '.join(PROGRAMS)}")
@@ -81,6 +98,8 @@ def run(args) -> int:
         raise ConfigurationError(f"--seed must be >= 0, got {args.seed}")
     if args.sessions < 1:
         raise ConfigurationError(f"--sessions must be >= 1, got {args.sessions}")
+    if args.save_params:
+        refuse_overwriting_inputs(args.save_params, [args.out])
     if args.effects is not None:
         effects = _names(args.effects)
     elif args.without is not None:
@@ -128,6 +147,9 @@ def run(args) -> int:
     session = Session(t_s=args.t0 + run_.t_s, ref_uT=run_.ref_uT, dut_uT=run_.dut_uT, temp_c=run_.temp_c,
                       session=run_.session.astype(np.int64), currents_A=currents, metadata=metadata)
     path = write_session(args.out, session)
+    if args.save_params:
+        _save_params(args.save_params, params, run_.effects, args.chip)
+        print(f"wrote {args.save_params}: error-model parameters ({len(run_.effects)} effects on)")
     print(f"wrote {path}: {len(session)} rows, chip {args.chip}, program {args.program}, "
           f"{len(run_.effects)} effects, seed {args.seed}")
     return 0

@@ -1,0 +1,34 @@
+"""Sim-to-real gap diagnosis (issue 14): where the gap lies, which unmodelled catalogue effect causes
+it, how far it shrinks (docs/diagnosis.md).
+
+The core (every module here except ``validate`` and ``sim_adapter``) never imports the simulator's
+error model (import-linter contract in pyproject.toml).
+"""
+from magstack.ground.diagnose.core import Diagnosis, diagnose
+from magstack.ground.diagnose.gap import Gap, check_rows, fixed_gap, model_gap
+from magstack.ground.diagnose.search import Options
+from magstack.ground.diagnose.spec import parse_model
+
+__all__ = ["Diagnosis", "diagnose", "Gap", "check_rows", "fixed_gap", "model_gap", "Options", "parse_model",
+           "diagnose_model", "shift_source"]
+
+
+def shift_source(full, keep):
+    """Gap.shift_source: the reference field of every usable row."""
+    from magstack.ground.diagnose.nonlinear import runs
+    return (full.t_s, full.ref_uT, keep, runs(full.t_s, full.session))
+
+
+def diagnose_model(session, model: str = "gain_offset", options: Options | None = None,
+                   t0_c: float = 25.0) -> Diagnosis:
+    """Mode (a) in one call: ``model`` as ``--model``; parameters fitted to ``session``."""
+    from magstack.ground.diagnose.spec import hysteresis_base
+    options = options or Options()
+    terms, modelled, hyst = parse_model(model)
+    full, keep, notes = check_rows(session, exclude_bends=options.exclude_bends)
+    s = full.select(keep)
+    extra = hysteresis_base(s.dut_uT) if hyst else None
+    g = model_gap(s, terms, modelled, f"--model {model}", t0_c, extra)
+    g.shift_source = shift_source(full, keep)
+    g.notes += notes
+    return diagnose(g, options)

@@ -1,0 +1,242 @@
+"""``diagnose``: where the gap lies, which unmodelled effect causes it, how far it shrinks.
+
+Input: a :class:`~magstack.ground.diagnose.gap.Gap` (mode (a) model fitted to the session, or mode
+(b) fixed prediction). Output: a :class:`Diagnosis` whose :meth:`Diagnosis.to_dict` is the stable
+JSON of ``magstack diagnose --json`` (keys ``verdict``, ``baseline_rmse_nT``, ``after_rmse_nT``,
+``noise_floor_nT``, ``ranking``, ``not_testable``, ``where``, ``parameters``, plus context keys).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from magstack.ground.diagnose import nonlinear as nl
+from magstack.ground.diagnose import search as sr
+from magstack.ground.diagnose import where as wh
+from magstack.ground.diagnose.gap import Block, Gap, folds_from_blocks, jackknife_se, solve, time_blocks
+
+#: misalignment vs gain (same calibration term): a rotation / non-orthogonality changes no axis's
+#: sensitivity to first order, so the fitted matrix change is called "gain" when its largest diagonal
+#: element reaches this fraction of its largest off-diagonal element.
+GAIN_DIAGONAL_RATIO = 0.25
+
+
+@dataclass
+class Diagnosis:
+    gap: Gap
+    result: sr.SearchResult
+    noise_floor_uT: np.ndarray
+    where: dict
+    parameters: dict
+    options: sr.Options
+    verdict_note: str = ""
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def verdict(self) -> str:
+        return self.result.verdict
+
+    @property
+    def after_trial(self) -> sr.Trial:
+        for t in self.result.trials:
+            if t.effect == self.verdict:
+                return t
+        return self.result.baseline
+
+    def to_dict(self) -> dict:
+        r = self.result
+        nf = float(np.linalg.norm(self.noise_floor_uT) * 1e3) if np.all(np.isfinite(self.noise_floor_uT)) else None
+        return {
+            "verdict": r.verdict,
+            "baseline_rmse_nT": float(r.baseline.rmse_norm_uT * 1e3),
+            "after_rmse_nT": float(self.after_trial.rmse_norm_uT * 1e3),
+            "noise_floor_nT": nf,
+            "ranking": [{"effect": t.effect, "rmse_nT": float(t.rmse_norm_uT * 1e3), "shrink": float(t.shrink),
+                         "significant": bool(t.significant), "p_value": float(t.p_value),
+                         "p_holm": float(t.p_holm), "kind": t.kind,
+                         "rmse_axes_nT": [float(v * 1e3) for v in t.rmse_uT]} for t in r.trials],
+            "not_testable": r.not_testable,
+            "where": self.where,
+            "parameters": self.parameters,
+            "runner_up": r.runner_up,
+            "p_vs_runner_up": r.p_vs_runner_up,
+            "distinguishable": r.distinguishable,
+            "confounded_with": r.confounded_with,
+            "verdict_note": self.verdict_note,
+            "modelled": r.modelled,
+            "mode": self.gap.mode,
+            "simulator": self.gap.description,
+            "baseline_rmse_axes_nT": [float(v * 1e3) for v in r.baseline.rmse_uT],
+            "noise_floor_axes_nT": [float(v * 1e3) for v in self.noise_floor_uT],
+            "n_rows": int(self.gap.n),
+            "sessions": list(self.gap.sessions),
+            "method": {"block_s": self.options.block_s, "n_folds": self.options.n_folds, "alpha": self.options.alpha,
+                       "min_shrink": self.options.min_shrink,
+                       "test": "one-sided sign-flip permutation test on held-out block SSE differences, "
+                               "Holm-corrected across effects"},
+            "notes": self.gap.notes + r.notes + self.notes,
+        }
+
+    def text(self) -> str:
+        d = self.to_dict()
+        L = [f"simulator: {d['simulator']} ({d['mode']}); {d['n_rows']} rows, sessions {d['sessions']}",
+             f"gap (held-out, norm of per-axis RMS): {d['baseline_rmse_nT']:.1f} nT; noise floor "
+             f"{_f(d['noise_floor_nT'])} nT", f"verdict: {d['verdict']}"]
+        if d["verdict"] != "none":
+            L.append(f"  after adding it: {d['after_rmse_nT']:.1f} nT (noise floor {_f(d['noise_floor_nT'])} nT)")
+        if self.verdict_note:
+            L.append("  " + self.verdict_note)
+        L.append(f"{'effect':20s}{'held-out nT':>12s}{'shrink':>9s}{'p':>9s}{'p(Holm)':>9s}  significant")
+        for t in d["ranking"]:
+            L.append(f"{t['effect']:20s}{t['rmse_nT']:12.1f}{t['shrink']:9.1%}{t['p_value']:9.4f}{t['p_holm']:9.4f}"
+                     f"  {'yes' if t['significant'] else 'no'}")
+        if d["parameters"]:
+            L.append("parameters of the verdict's effect (value +- standard error):")
+            for name, p in d["parameters"].items():
+                L.append(f"  {name:18s}{p['value']:14.6g} +- {p['se']:.3g} {p['unit']}")
+        for nt in d["not_testable"]:
+            L.append(f"not testable: {nt['effect']}: {nt['reason']}")
+        if d["modelled"]:
+            L.append(f"modelled by the simulator: {', '.join(d['modelled'])}")
+        L += [f"note: {n}" for n in d["notes"]]
+        return "\n".join(L)
+
+
+def _f(x) -> str:
+    return "n/a" if x is None else f"{x:.1f}"
+
+
+def _linear_params(X: np.ndarray, Y: np.ndarray, blk_all: Block, first: int, fold: np.ndarray) -> dict:
+    th, se = solve(X, Y, blk_all.mask, with_se=True)
+    thetas = [solve(X, Y, blk_all.mask, fold != f) for f in np.unique(fold)]
+    jk = sr_jack(thetas, th)
+    out = {}
+    for i in range(3):
+        for c in range(first, blk_all.p):
+            if blk_all.mask[i, c]:
+                name = blk_all.names[i][c]
+                out[name] = {"value": float(th[i, c]), "se": float(np.nanmax([se[i, c], jk[i, c]])),
+                             "se_ols": float(se[i, c]), "se_jackknife": float(jk[i, c]), "unit": blk_all.units[c]}
+    return out
+
+
+def sr_jack(thetas, like):
+    return jackknife_se(thetas) if len(thetas) >= 2 else np.full_like(like, np.nan)
+
+
+def verdict_parameters(gap: Gap, res: sr.SearchResult, fold: np.ndarray, run: np.ndarray) -> dict:
+    """Fitted parameters of the verdict's effect on all rows with standard errors (the larger of the
+    OLS and the delete-one-fold jackknife, which is robust to autocorrelated residuals)."""
+    v = next((t for t in res.trials if t.effect == res.verdict), None)
+    if v is None:
+        return {}
+    base = gap.base_design()
+    Y = gap.target
+    if v.kind == "delay":
+        grid = v.extra["grid_s"]
+        d = nl.search_delays(sr.delay_sse_fn(gap, np.ones(gap.n, bool)), grid)
+        jk = jackknife_se([np.asarray(x) for x in v.extra["fold_delays_s"]])
+        out = {f"dt[{a}]": {"value": float(d[j]), "se": float(jk[j]),
+                            "se_jackknife": float(jk[j]), "unit": "s",
+                            "meaning": "DUT axis reads the field at t + dt relative to the reference"}
+               for j, a in enumerate("xyz")}
+        return out
+    if v.kind == "hysteresis":
+        thr = sr.choose_thresholds(gap, base, Y, _hyst_cands(gap), np.ones(gap.n, bool))
+        blk = sr.hysteresis_block(gap, thr)
+        allb = Block.join([base, blk], gap.n)
+        out = _linear_params(allb.X, Y, allb, base.p, fold)
+        for j, a in enumerate("xyz"):
+            if np.isfinite(thr[j]):
+                out[f"threshold[{a}]"] = {"value": float(thr[j]), "se": float("nan"), "unit": "uT (chosen level)"}
+        return out
+    blk = v.extra["block"]
+    allb = Block.join([base, blk], gap.n)
+    return _linear_params(allb.X, Y, allb, base.p, fold)
+
+
+def _hyst_cands(gap: Gap):
+    return nl.hysteresis_thresholds(gap.session.dut_uT)
+
+
+def _gain_or_misalignment(res: sr.SearchResult, params: dict) -> str | None:
+    """Tell gain from misalignment when both were tried with the same columns (see GAIN_DIAGONAL_RATIO)."""
+    names = {t.effect for t in res.trials}
+    if res.verdict not in ("gain", "misalignment") or not {"gain", "misalignment"} <= names:
+        return None
+    dS = np.zeros((3, 3))
+    for k, p in params.items():
+        if k.startswith("S[") and len(k) == 6:
+            i, j = "xyz".index(k[2]), "xyz".index(k[4])
+            dS[i, j] = p["value"]   # the gap-side change of the matrix (identity gain or fixed table)
+    diag = float(np.max(np.abs(np.diag(dS))))
+    off = float(np.max(np.abs(dS - np.diag(np.diag(dS)))))
+    return "gain" if diag >= GAIN_DIAGONAL_RATIO * off else "misalignment"
+
+
+def diagnose(gap: Gap, options: sr.Options | None = None) -> Diagnosis:
+    """Run the whole diagnosis on a gap (see the module docs of gap, search, where, nonlinear)."""
+    opts = options or sr.Options()
+    s = gap.session
+    blocks = time_blocks(s.t_s, s.session, opts.block_s)
+    fold = folds_from_blocks(blocks, s.session, opts.n_folds)
+    run = nl.runs(s.t_s, s.session)
+    res = sr.search(gap, blocks, fold, opts)
+    notes: list[str] = []
+    params = verdict_parameters(gap, res, fold, run)
+    choice = _gain_or_misalignment(res, params)
+    if choice is not None and choice != res.verdict:
+        # same columns, same held-out figures: the matrix structure decides
+        other = res.verdict
+        res.verdict, res.runner_up = choice, other
+        res.trials.sort(key=lambda t: (t.rmse_norm_uT, t.effect != choice))
+        res.confounded_with = [e for e in res.confounded_with if e != choice] + [other]
+    if choice is not None:
+        notes.append("gain and misalignment share the calibration columns (gain_matrix); told apart by the fitted "
+                     "matrix change: misalignment leaves the diagonal unchanged to first order")
+    # noise floor: richest linear model in-sample
+    base = gap.base_design()
+    rich = [base] + [sr.Block(t.columns, np.ones((3, t.columns.shape[1]), bool), [[""] * t.columns.shape[1]] * 3,
+                              [""] * t.columns.shape[1]) for t in res.trials if t.columns is not None
+                     and t.kind != "delay" and np.all(np.isfinite(t.columns))]
+    rb = Block.join(rich, gap.n)
+    if rb.p:
+        th = solve(rb.X, gap.target, rb.mask)
+        rr = gap.target - rb.X @ np.where(rb.mask, th, 0).T
+    else:
+        rr = gap.target
+    nf = wh.noise_floor_uT(rr, s.t_s, s.session)
+    where = wh.breakdowns(res.baseline.resid, s, blocks)
+    where["spectrum"] = wh.spectrum(res.baseline.resid, s.t_s, s.session)
+    diag = Diagnosis(gap, res, nf, where, params, opts, notes=notes)
+    diag.verdict_note = verdict_note(diag)
+    return diag
+
+
+def verdict_note(d: Diagnosis) -> str:
+    r = d.result
+    if r.verdict == "none":
+        best = r.trials[0] if r.trials else None
+        if best is None:
+            return "no testable effect"
+        return (f"nothing unmodelled found: the best candidate, {best.effect}, changes the held-out gap by "
+                f"{best.shrink:.1%} (p = {best.p_holm:.3g} after Holm)")
+    v = d.after_trial
+    txt = (f"{r.verdict} closes {v.shrink:.1%} of the held-out gap (p = {v.p_value:.2g}, Holm {v.p_holm:.2g})")
+    if r.runner_up:
+        ru = next(t for t in r.trials if t.effect == r.runner_up)
+        txt += (f"; runner-up {ru.effect} ({ru.rmse_norm_uT * 1e3:.1f} nT, shrink {ru.shrink:.1%})")
+        if r.distinguishable:
+            txt += f"; the verdict beats it on held-out blocks (p = {r.p_vs_runner_up:.2g})"
+        else:
+            txt += (f"; NOT distinguishable from it on this data (p = {_f3(r.p_vs_runner_up)}"
+                    f"{', columns confounded' if r.runner_up in r.confounded_with else ''})")
+    if r.verdict == "time_skew":
+        txt += ("; a delay common to all axes could also be latency of the reference pairing or a bandwidth limit "
+                "(a first-order low-pass of time constant tau looks like a delay tau at low frequency)")
+    return txt
+
+
+def _f3(x) -> str:
+    return "n/a" if x is None else f"{x:.2g}"

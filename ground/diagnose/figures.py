@@ -1,0 +1,111 @@
+"""The diagnosis as one HTML page (``diagnose --report DIR``): verdict text, residual against time,
+temperature and field with the verdict's fit overlaid, spectrum, before/after bars per effect."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from magstack.ground.diagnose import where as wh
+from magstack.ground.report import Report, figure
+
+_AX = "xyz"
+
+
+def write_report(diag, out_dir) -> Path:
+    """Write ``out_dir``/diagnosis.html (the directory is created); returns the path."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    d = diag.to_dict()
+    s = diag.gap.session
+    base = diag.result.baseline.resid * 1e3
+    after = diag.after_trial.resid * 1e3
+    explained = base - after
+    rep = Report(f"magstack diagnose: {d['simulator']}")
+    rep.text(f"Verdict: {d['verdict']}", "verdict")
+    rep.text(diag.verdict_note)
+    rep.table(["", "nT"], [["gap before (held-out)", f"{d['baseline_rmse_nT']:.1f}"],
+                           ["gap after the verdict's effect (held-out)", f"{d['after_rmse_nT']:.1f}"],
+                           ["noise floor (from the data)", _f(d["noise_floor_nT"])]])
+    rep.heading("Ranking (held-out blocks)")
+    rep.table(["effect", "held-out RMSE nT", "shrink", "p", "p (Holm)", "significant"],
+              [[r["effect"], f"{r['rmse_nT']:.1f}", f"{r['shrink']:.1%}", f"{r['p_value']:.3g}",
+                f"{r['p_holm']:.3g}", "yes" if r["significant"] else "no"] for r in d["ranking"]])
+    rep.image(_bars(d), "before/after bars per effect")
+    rep.heading("Where the gap lies")
+    t = s.t_s - s.t_s.min()
+    rep.image(_scatter(t, base, explained, "time since start (s)", d["verdict"]), "residual vs time")
+    if np.isfinite(s.temp_c).any() and np.ptp(s.temp_c[np.isfinite(s.temp_c)]) > 0:
+        rep.image(_scatter(s.temp_c, base, explained, "temperature (degC)", d["verdict"]), "residual vs temperature")
+    rep.image(_scatter(np.linalg.norm(s.ref_uT, axis=1), base, explained, "|B| reference (uT)", d["verdict"]),
+              "residual vs field")
+    rate = wh.field_rate_uT_per_s(s.ref_uT, s.t_s, s.session)
+    rep.image(_scatter(np.log10(np.maximum(rate, 1e-3)), base, explained, "log10 |dB/dt| (uT/s)", d["verdict"]),
+              "residual vs rate")
+    rep.image(_spectrum(d, diag), "spectrum")
+    if d["parameters"]:
+        rep.heading("Parameters of the verdict's effect")
+        rep.table(["parameter", "value", "std err", "unit"],
+                  [[k, f"{v['value']:.6g}", f"{v['se']:.3g}", v["unit"]] for k, v in d["parameters"].items()])
+    if d["not_testable"]:
+        rep.heading("Not testable with these columns")
+        rep.table(["effect", "reason"], [[n["effect"], n["reason"]] for n in d["not_testable"]])
+    rep.heading("Text report")
+    rep.preformatted(diag.text())
+    return rep.write(out / "diagnosis.html")
+
+
+def _f(x):
+    return "n/a" if x is None else f"{x:.1f}"
+
+
+def _bars(d):
+    fig, axs = figure(9, 3.5)
+    ax = axs[0, 0]
+    names = ["(baseline)"] + [r["effect"] for r in d["ranking"]]
+    vals = [d["baseline_rmse_nT"]] + [r["rmse_nT"] for r in d["ranking"]]
+    colors = ["0.5"] + ["tab:green" if r["significant"] else "tab:blue" for r in d["ranking"]]
+    ax.bar(range(len(vals)), vals, color=colors)
+    if d["noise_floor_nT"]:
+        ax.axhline(d["noise_floor_nT"], color="k", ls="--", lw=1, label="noise floor")
+        ax.legend()
+    ax.set_xticks(range(len(vals)), names, rotation=30, ha="right")
+    ax.set_ylabel("held-out RMSE (nT)")
+    ax.set_title("gap with each effect added (green: significant)")
+    return fig
+
+
+def _scatter(x, base, explained, xlabel, verdict):
+    fig, axs = figure(9, 6, 3, 1)
+    order = np.argsort(x)
+    for i in range(3):
+        ax = axs[i, 0]
+        ax.plot(x, base[:, i], ".", ms=1.5, color="0.4", label="gap (held-out)")
+        if verdict != "none":
+            ax.plot(x[order], explained[order, i], ".", ms=1.5, color="tab:red", label=f"{verdict} fit")
+        ax.set_ylabel(f"{_AX[i]} (nT)")
+        if i == 0:
+            ax.legend(loc="upper right", markerscale=6)
+    axs[2, 0].set_xlabel(xlabel)
+    return fig
+
+
+def _spectrum(d, diag):
+    fig, axs = figure(9, 3.5)
+    ax = axs[0, 0]
+    sp = d["where"]["spectrum"]
+    f = np.asarray(sp["freq_hz"])
+    if f.size:
+        for i in range(3):
+            ax.loglog(f, np.maximum(np.asarray(sp["psd_nT2_per_hz"][i]), 1e-12), lw=1, label=f"gap {_AX[i]}")
+        s = diag.gap.session
+        spa = wh.spectrum(diag.after_trial.resid, s.t_s, s.session)
+        if spa["freq_hz"]:
+            for i in range(3):
+                ax.loglog(spa["freq_hz"], np.maximum(np.asarray(spa["psd_nT2_per_hz"][i]), 1e-12), lw=0.8,
+                          ls=":", label=f"after {_AX[i]}")
+    ax.set_xlabel("frequency (Hz)")
+    ax.set_ylabel("PSD (nT^2/Hz)")
+    ax.set_title(f"residual spectrum ({sp['method']})")
+    ax.legend(fontsize=7, ncol=2)
+    return fig

@@ -1,0 +1,344 @@
+"""The gap between a session and "the simulator", and the linear machinery to explain it.
+
+Two ways to say what the simulator is (issue 14):
+
+* ``model`` (a): a set of calibration terms whose parameters are fitted to the session. The gap is
+  what remains of ``ref - model(dut)``; the target is the reference field and the base design holds
+  the model's columns (built by :class:`magstack.firmware.calibration.model.CalModel` from the DUT
+  reading). Without ``gain_matrix`` the gain is held at identity (target ``ref - dut``).
+* ``fixed`` (b): parameters held fixed (a calibration table, or error-model parameters through the
+  ``--sim`` adapter). The gap is the session minus the fixed prediction; the base design holds only
+  nuisance terms the fixed simulator treats as random (per-session offsets).
+
+Every candidate effect is then a block of extra columns added to the base design. Folds are
+interleaved time blocks within each session (block ``k`` of a session goes to fold ``k mod n``), as
+the calibration's held-out check; all figures are uT inside, nT at the JSON boundary.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+
+from magstack.data.session import Session
+from magstack.firmware.calibration.model import CalModel
+from magstack.firmware.errors import FitError
+from magstack.ground.errors import DiagnosisError
+
+#: Relative singular-value cut-off of the column-equilibrated least-squares solves.
+RCOND = 1e-10
+
+
+@dataclass
+class Block:
+    """Design columns ``X`` (N,p), output-axis mask (3,p), parameter names [axis][col], units (p,)."""
+
+    X: np.ndarray
+    mask: np.ndarray
+    names: list[list[str]]
+    units: list[str]
+
+    @property
+    def p(self) -> int:
+        return self.X.shape[1]
+
+    @staticmethod
+    def join(blocks: Sequence[Block], n: int) -> Block:
+        if not blocks:
+            return Block(np.zeros((n, 0)), np.zeros((3, 0), bool), [[], [], []], [])
+        return Block(np.hstack([b.X for b in blocks]), np.hstack([b.mask for b in blocks]),
+                     [sum((b.names[i] for b in blocks), []) for i in range(3)], sum((b.units for b in blocks), []))
+
+
+@dataclass
+class Gap:
+    """What the search explains.
+
+    ``target`` (N,3) uT; ``predictor_uT`` (N,3) the field candidate columns are built from (the DUT
+    reading in mode (a), the prediction's input in mode (b)); ``base_terms`` the calibration terms
+    fitted as the base (mode (a)) or as nuisance (mode (b)); ``identity_gain``: the base has no
+    gain_matrix and the target already has the predictor subtracted; ``modelled`` effect names the
+    simulator covers; ``raw_gap_uT`` the fixed gap in mode (b) (None in (a)).
+    """
+
+    mode: str
+    session: Session
+    target: np.ndarray
+    predictor_uT: np.ndarray
+    base_terms: tuple[str, ...]
+    identity_gain: bool
+    modelled: tuple[str, ...]
+    description: str
+    t0_c: float = 25.0
+    extra_base: Callable[[np.ndarray], Block] | None = None
+    notes: list[str] = field(default_factory=list)
+    #: (t_s, ref_uT, keep, run) of all usable rows, to re-sample the reference in time across rows
+    #: the diagnosis leaves out (None: the gap's own rows)
+    shift_source: tuple | None = None
+
+    #: mode (b): d(prediction)/d(DUT reading) (3,3) used to de-skew the fixed gap (None in mode (a),
+    #: where the base is refitted on the de-skewed reading)
+    deskew_J: np.ndarray | None = None
+
+    def _dut_image(self) -> np.ndarray:
+        """A (3,3): the DUT-space image of the reference, ``dut ~ A ref + b`` (least squares)."""
+        if getattr(self, "_A", None) is None:
+            s = self.session
+            X = np.column_stack([s.ref_uT, np.ones(len(s))])
+            coef, *_ = np.linalg.lstsq(X, s.dut_uT, rcond=None)
+            self._A = coef[:3].T
+        return self._A
+
+    def skew_columns(self, delay_s, shift_fn) -> np.ndarray:
+        """(N,3) what DUT axis j gains by reading ``delay_j`` late, from the reference's (nearly
+        noiseless) field mapped into DUT units: ``F_j = A_j . (ref(t + delay_j) - ref(t))``.
+        ``shift_fn`` = nonlinear.shift_axes; shifting the clean reference (not the DUT reading) keeps
+        the DUT's sample noise out of the correction."""
+        if self.shift_source is None:
+            from magstack.ground.diagnose.nonlinear import runs
+            t, ref, keep = self.session.t_s, self.session.ref_uT, slice(None)
+            run = runs(t, self.session.session)
+        else:
+            t, ref, keep, run = self.shift_source
+        A = self._dut_image()
+        d = np.asarray(delay_s, dtype=float)
+        out = np.zeros((self.n, 3))
+        for j in range(3):
+            if d[j] != 0:
+                moved = shift_fn(ref, t, run, np.full(3, -d[j])) - ref
+                out[:, j] = moved[keep] @ A[j]
+        return out
+
+    def deskewed(self, F: np.ndarray) -> tuple[Block, np.ndarray]:
+        """(base design, target) with the DUT reading corrected by ``F`` (N,3)."""
+        if self.deskew_J is not None:
+            return self.base_design(), self.target + F @ self.deskew_J.T
+        p = self.predictor_uT - F
+        return self.base_design(p), self.target_for(p)
+
+    @property
+    def n(self) -> int:
+        return self.target.shape[0]
+
+    @property
+    def sessions(self) -> tuple[int, ...]:
+        return tuple(int(s) for s in np.unique(self.session.session))
+
+    def term_design(self, terms: Sequence[str], predictor_uT: np.ndarray | None = None) -> Block:
+        """Columns of calibration ``terms`` (catalogue ``cal_term`` names) built from the predictor.
+
+        FitError from the calibration model (e.g. no temperature) propagates; the caller turns it
+        into "not testable".
+        """
+        terms = tuple(terms)
+        s = self.session
+        p = self.predictor_uT if predictor_uT is None else predictor_uT
+        cm = CalModel(("gain_matrix",) + tuple(t for t in terms if t != "gain_matrix"),
+                      tuple(s.currents_A) if "currents" in terms else (),
+                      self.sessions if "session_offset" in terms else (), self.t0_c, float(np.mean(s.t_s)))
+        X = cm.design(p, s.temp_c, s.currents_A, s.session, s.t_s)
+        keep = [c for c, col in enumerate(cm.columns) if col.term in terms]
+        names = [[cm.param_name(i, c) for c in keep] for i in range(3)]
+        return Block(X[:, keep], cm.axis_mask()[:, keep], names, [cm.columns[c].unit for c in keep])
+
+    def base_design(self, predictor_uT: np.ndarray | None = None) -> Block:
+        """The base model's (mode a) or nuisance (mode b) columns."""
+        blocks = []
+        if self.base_terms:
+            blocks.append(self.term_design(self.base_terms, predictor_uT))
+        if self.extra_base is not None:
+            blocks.append(self.extra_base(self.predictor_uT if predictor_uT is None else predictor_uT))
+        return Block.join(blocks, self.n)
+
+    def target_for(self, predictor_uT: np.ndarray) -> np.ndarray:
+        """Target with a (shifted) predictor: only the identity-gain base subtracts the predictor."""
+        if self.identity_gain:
+            return self.target + self.predictor_uT - predictor_uT
+        return self.target
+
+
+# ----------------------------------------------------------------------------- folds
+def time_blocks(t_s: np.ndarray, session: np.ndarray, block_s: float) -> np.ndarray:
+    """Block id per row: consecutive ``block_s`` windows of each session, numbered globally."""
+    out = np.zeros(t_s.size, dtype=np.int64)
+    nxt = 0
+    for s in np.unique(session):
+        m = session == s
+        k = np.floor((t_s[m] - np.nanmin(t_s[m])) / block_s).astype(np.int64)
+        _, inv = np.unique(k, return_inverse=True)
+        out[m] = inv + nxt
+        nxt += int(inv.max()) + 1 if inv.size else 0
+    return out
+
+
+def folds_from_blocks(blocks: np.ndarray, session: np.ndarray, n_folds: int) -> np.ndarray:
+    """Fold id per row: the k-th block of each session goes to fold k mod n_folds."""
+    fold = np.zeros(blocks.size, dtype=np.int64)
+    for s in np.unique(session):
+        m = session == s
+        _, inv = np.unique(blocks[m], return_inverse=True)
+        fold[m] = inv % n_folds
+    return fold
+
+
+# ----------------------------------------------------------------------------- least squares
+def gram(X: np.ndarray, Y: np.ndarray, rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Normal-equation blocks ``X^T X`` (p,p) and ``X^T Y`` (p,3) over ``rows``."""
+    A = X if rows is None else X[rows]
+    B = Y if rows is None else Y[rows]
+    return A.T @ A, A.T @ B
+
+
+def solve_gram(G: np.ndarray, XtY: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Least-squares coefficients (3,p) from normal equations, per output axis over ``mask[i]``.
+
+    Columns are equilibrated (unit diagonal) and solved by Cholesky; a (near) rank-deficient block
+    falls back to the pseudo-inverse with relative cut-off RCOND (minimum-norm solution).
+    """
+    p = G.shape[0]
+    theta = np.zeros((3, p))
+    groups: dict[bytes, list[int]] = {}
+    for i in range(3):
+        groups.setdefault(mask[i].tobytes(), []).append(i)
+    for _, axes in groups.items():
+        cols = np.flatnonzero(mask[axes[0]])
+        if cols.size == 0:
+            continue
+        Gs = G[np.ix_(cols, cols)]
+        d = np.sqrt(np.diag(Gs))
+        d[d == 0] = 1.0
+        Gn = Gs / np.outer(d, d)
+        bn = XtY[np.ix_(cols, axes)] / d[:, None]
+        try:
+            c, low = scipy.linalg.cho_factor(Gn)
+            if np.min(np.diag(c)) ** 2 < RCOND * np.max(np.diag(c)) ** 2:
+                raise np.linalg.LinAlgError
+            sol = scipy.linalg.cho_solve((c, low), bn)
+        except (np.linalg.LinAlgError, ValueError):
+            sol = np.linalg.pinv(Gn, rcond=RCOND, hermitian=True) @ bn
+        theta[np.ix_(axes, cols)] = (sol / d[:, None]).T
+    return theta
+
+
+def solve(X: np.ndarray, Y: np.ndarray, mask: np.ndarray, rows: np.ndarray | None = None,
+          with_se: bool = False):
+    """Least squares per output axis over the columns ``mask[i]`` uses.
+
+    Returns ``theta`` (3,p) (unused entries 0) and, with ``with_se``, OLS standard errors (3,p)
+    (NaN where unused): ``s^2 (X^T X)^-1`` with ``s^2 = SSE / (n - p_i)``.
+    """
+    G, XtY = gram(X, Y, rows)
+    theta = solve_gram(G, XtY, mask)
+    if not with_se:
+        return theta
+    A = X if rows is None else X[rows]
+    Yr = Y if rows is None else Y[rows]
+    se = np.full(theta.shape, np.nan)
+    r = Yr - predict(A, theta, mask)
+    for i in range(3):
+        cols = np.flatnonzero(mask[i])
+        if cols.size == 0:
+            continue
+        Gs = G[np.ix_(cols, cols)]
+        d = np.sqrt(np.diag(Gs))
+        d[d == 0] = 1.0
+        cov = np.linalg.pinv(Gs / np.outer(d, d), rcond=RCOND, hermitian=True) / np.outer(d, d)
+        s2 = float(r[:, i] @ r[:, i]) / max(A.shape[0] - cols.size, 1)
+        se[i, cols] = np.sqrt(np.clip(np.diag(cov), 0, None) * s2)
+    return theta, se
+
+
+def predict(X: np.ndarray, theta: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    return X @ np.where(mask, theta, 0.0).T
+
+
+def out_of_fold(X: np.ndarray, Y: np.ndarray, mask: np.ndarray, fold: np.ndarray):
+    """Out-of-fold residual (N,3) and the per-fold coefficient arrays (for a delete-one-fold jackknife).
+
+    The training normal equations are the total minus the fold's own (one pass over the data)."""
+    resid = np.full(Y.shape, np.nan)
+    thetas = []
+    G, XtY = gram(X, Y)
+    for f in np.unique(fold):
+        test = fold == f
+        if (~test).sum() <= X.shape[1] or test.sum() == 0:
+            continue
+        Gf, Bf = gram(X, Y, test)
+        th = solve_gram(G - Gf, XtY - Bf, mask)
+        resid[test] = Y[test] - predict(X[test], th, mask)
+        thetas.append(th)
+    return resid, thetas
+
+
+def jackknife_se(thetas: list[np.ndarray]) -> np.ndarray:
+    """Delete-one-fold jackknife standard error of fold estimates (each fit leaves one fold out)."""
+    if len(thetas) < 2:
+        return np.full_like(thetas[0], np.nan) if thetas else np.array([])
+    a = np.stack(thetas)
+    k = a.shape[0]
+    return np.sqrt((k - 1) / k * np.sum((a - a.mean(axis=0)) ** 2, axis=0))
+
+
+def usable_rows(s: Session) -> np.ndarray:
+    """Rows with finite reference and DUT fields, finite time and flag 0."""
+    ok = np.all(np.isfinite(s.ref_uT), axis=1) & np.all(np.isfinite(s.dut_uT), axis=1) & np.isfinite(s.t_s)
+    if s.flag is not None:
+        ok &= s.flag == 0
+    return ok
+
+
+def check_rows(s: Session, min_rows: int = 50, exclude_bends: float | None = None
+               ) -> tuple[Session, np.ndarray, list[str]]:
+    """The usable rows sorted by session then time, the mask of those kept for the diagnosis (with
+    ``exclude_bends``: not at sharp bends of the reference, see :func:`nonlinear.bend_rows`), and
+    notes; DiagnosisError when too few remain."""
+    from magstack.ground.diagnose.nonlinear import bend_rows
+    notes = []
+    ok = usable_rows(s)
+    if ok.sum() < min_rows:
+        raise DiagnosisError(f"only {int(ok.sum())} usable rows (finite ref and DUT, flag 0) of {len(s)}: "
+                             f"need at least {min_rows}")
+    if (~ok).any():
+        notes.append(f"{int((~ok).sum())} rows without finite ref/DUT or with flag != 0 left out")
+    s2 = s.select(ok)
+    order = np.lexsort((s2.t_s, s2.session))
+    s2 = s2.select(order)
+    keep = np.ones(len(s2), bool)
+    if exclude_bends is not None:
+        bend = bend_rows(s2.ref_uT, s2.t_s, s2.session, exclude_bends)
+        if (~bend).sum() >= min_rows and bend.any():
+            notes.append(f"{int(bend.sum())} rows at sharp bends of the reference field (step corners: "
+                         f"|second difference| > {exclude_bends:g}x its robust level) left out: there two sample "
+                         "streams cannot be paired to a fraction of a sample")
+            keep = ~bend
+    return s2, keep, notes
+
+
+def model_gap(s: Session, base_terms: Sequence[str], modelled: Sequence[str], description: str,
+              t0_c: float = 25.0, extra_base=None) -> Gap:
+    """Mode (a): parameters of ``base_terms`` are fitted to the session itself."""
+    terms = tuple(base_terms)
+    identity = "gain_matrix" not in terms
+    target = s.ref_uT - s.dut_uT if identity else s.ref_uT.copy()
+    g = Gap("model", s, target, s.dut_uT.copy(), terms, identity, tuple(modelled), description, t0_c, extra_base)
+    try:
+        g.base_design()
+    except FitError as exc:
+        raise DiagnosisError(f"the model cannot be built on this session: {exc}") from None
+    return g
+
+
+def fixed_gap(s: Session, gap_uT: np.ndarray, predictor_uT: np.ndarray, modelled: Sequence[str],
+              description: str, nuisance_terms: Sequence[str] = (), t0_c: float = 25.0) -> Gap:
+    """Mode (b): the gap (N,3) uT is the session minus a fixed prediction."""
+    gap = np.asarray(gap_uT, dtype=float)
+    ok = np.all(np.isfinite(gap), axis=1)
+    if ok.sum() < 50:
+        raise DiagnosisError(f"the fixed prediction is finite on only {int(ok.sum())} rows of {len(s)}")
+    g = Gap("fixed", s.select(ok), gap[ok], np.asarray(predictor_uT, dtype=float)[ok], tuple(nuisance_terms),
+            False, tuple(modelled), description, t0_c)
+    if (~ok).any():
+        g.notes.append(f"{int((~ok).sum())} rows without a fixed prediction (NaN) left out")
+    return g

@@ -1,0 +1,163 @@
+"""Effects that are not linear in their parameters, estimated as such.
+
+* ``time_skew`` (catalogue: DUT axis j reads the field at ``t + dt_j``): a per-axis delay search.
+  The DUT axis j is re-sampled at ``t - dt_j`` (linear interpolation inside contiguous runs of a
+  session) and the base model is refitted; ``dt_j`` minimises the training residual, coordinate by
+  coordinate over a grid (two passes, parabolic refinement). Used in mode (a) with a fitted gain:
+  there the re-sampled reading replaces the reading in the design, so the DUT's own sample noise
+  never enters both sides of the fit. Elsewhere the catalogue's first-order calibration term
+  (``dB/dt`` columns by central differences, which exclude the row's own sample) is used.
+* ``hysteresis`` (catalogue: the offset shifts by a remanent amount signed by the last excursion
+  beyond a threshold, not cleared by power cycles): per axis a state column in {-1, 0, +1} that
+  follows the sign of the last DUT reading with ``|B_j| >= threshold``; the threshold is chosen
+  on the training rows among high quantiles of ``|B_j|``. A per-session offset is constant within
+  a session, the hysteresis state changes inside a session at an excursion and persists across
+  sessions: the two are told apart by those rows (and declared confounded when they coincide).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+#: Delay grid half-width, in units of the median row spacing, and number of grid points.
+DELAY_HALF_WIDTH_ROWS = 1.25
+DELAY_GRID_POINTS = 15
+#: Quantiles of |B_j| tried as the hysteresis threshold.
+HYSTERESIS_QUANTILES = (0.90, 0.95, 0.98, 0.99, 0.995)
+#: A threshold must exceed this multiple of the median |B_j| (an "excursion", not ordinary field).
+HYSTERESIS_MIN_RATIO = 1.5
+#: Rows needed in each of at least two states for a hysteresis column to be testable.
+HYSTERESIS_MIN_ROWS = 20
+
+
+def runs(t_s: np.ndarray, session: np.ndarray, gap_factor: float = 3.0) -> np.ndarray:
+    """Contiguous-run id per row: breaks at a session change, a non-increasing time or a gap above
+    ``gap_factor`` times the median spacing."""
+    dt = np.diff(t_s)
+    pos = dt[dt > 0]
+    med = float(np.median(pos)) if pos.size else 1.0
+    brk = (dt <= 0) | (dt > gap_factor * med) | (session[1:] != session[:-1])
+    return np.concatenate([[0], np.cumsum(brk)])
+
+
+def shift_axes(p_uT: np.ndarray, t_s: np.ndarray, run: np.ndarray, delay_s) -> np.ndarray:
+    """Copy of ``p_uT`` with axis j re-sampled at ``t - delay_s[j]`` inside each run (ends held).
+
+    One interpolation per axis over a composite time axis on which runs are far apart."""
+    out = p_uT.copy()
+    d = np.asarray(delay_s, dtype=float)
+    if not np.any(d):
+        return out
+    t = t_s - t_s.min()
+    big = 2.0 * (float(np.ptp(t)) + 1.0 + float(np.max(np.abs(d))))
+    T = t + run * big
+    lo = np.minimum.reduceat(T, np.r_[0, np.flatnonzero(np.diff(run)) + 1])
+    hi = np.maximum.reduceat(T, np.r_[0, np.flatnonzero(np.diff(run)) + 1])
+    first = np.r_[0, np.flatnonzero(np.diff(run)) + 1]
+    k = np.cumsum(np.isin(np.arange(run.size), first)) - 1
+    for j in range(3):
+        if d[j] != 0:
+            q = np.clip(T - d[j], lo[k], hi[k])
+            out[:, j] = np.interp(q, T, p_uT[:, j])
+    return out
+
+
+def delay_grid(t_s: np.ndarray) -> np.ndarray:
+    dt = np.diff(t_s)
+    med = float(np.median(dt[dt > 0])) if np.any(dt > 0) else 1.0
+    half = DELAY_HALF_WIDTH_ROWS * med
+    return np.linspace(-half, half, DELAY_GRID_POINTS)
+
+
+def search_delays(sse_of, grid: np.ndarray, passes: int = 2) -> np.ndarray:
+    """Coordinate search of three delays minimising ``sse_of(delays (3,)) -> float``."""
+    d = np.zeros(3)
+    for _ in range(passes):
+        for j in range(3):
+            vals = []
+            for g in grid:
+                trial = d.copy()
+                trial[j] = g
+                vals.append(sse_of(trial))
+            vals = np.array(vals)
+            k = int(np.argmin(vals))
+            best = grid[k]
+            if 0 < k < grid.size - 1:   # parabola through the minimum and its neighbours
+                y0, y1, y2 = vals[k - 1], vals[k], vals[k + 1]
+                den = y0 - 2 * y1 + y2
+                if den > 0:
+                    best = grid[k] + 0.5 * (y0 - y2) / den * (grid[1] - grid[0])
+            d[j] = best
+    return d
+
+
+def hysteresis_state(b_uT: np.ndarray, threshold_uT: np.ndarray) -> np.ndarray:
+    """(N,3) sign (-1/0/+1) of the last reading with ``|B_j| >= threshold_j`` (0 before the first)."""
+    n = b_uT.shape[0]
+    out = np.zeros((n, 3))
+    ar = np.arange(n)
+    for j in range(3):
+        thr = threshold_uT[j]
+        if not np.isfinite(thr):
+            continue
+        e = np.where(np.abs(b_uT[:, j]) >= thr, np.sign(b_uT[:, j]), 0.0)
+        last = np.maximum.accumulate(np.where(e != 0, ar, -1))
+        out[:, j] = np.where(last >= 0, e[np.maximum(last, 0)], 0.0)
+    return out
+
+
+def hysteresis_thresholds(b_uT: np.ndarray) -> list[list[float]]:
+    """Candidate thresholds per axis (uT) whose state column has >= 2 states with enough rows."""
+    out = []
+    for j in range(3):
+        a = np.abs(b_uT[:, j])
+        med = float(np.median(a))
+        cands = []
+        for q in HYSTERESIS_QUANTILES:
+            thr = float(np.quantile(a, q))
+            if thr <= HYSTERESIS_MIN_RATIO * med or thr <= 0 or any(abs(thr - c) < 1e-9 for c in cands):
+                continue
+            st = hysteresis_state(b_uT[:, [j, j, j]], np.array([thr, np.inf, np.inf]))[:, 0]
+            counts = [int(np.sum(st == v)) for v in (-1.0, 0.0, 1.0)]
+            if sum(c >= HYSTERESIS_MIN_ROWS for c in counts) >= 2:
+                cands.append(thr)
+        out.append(cands)
+    return out
+
+
+def higher_order_temperature_gain(p_uT: np.ndarray, temp_c: np.ndarray, t0_c: float):
+    """On-axis columns ``B_i dT^2``, ``B_i dT^3`` (N,6): the catalogue's forward ``temperature_gain``
+    (B <- (I + K_S dT) B) seen from the calibration side is ``(I + K_S dT)^-1 = I - K_S dT + K_S^2 dT^2
+    - ...``; over a +-25 degC cycle at -2700 ppm/degC the second-order part is ~0.5 % of the field
+    (0.7 uT at 150 uT), the third ~0.05 %, both above bench noise."""
+    dT = np.asarray(temp_c, dtype=float) - t0_c
+    return np.hstack([p_uT * (dT ** 2)[:, None], p_uT * (dT ** 3)[:, None]])
+
+
+def bend_rows(ref_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, factor: float) -> np.ndarray:
+    """Rows where the reference field bends sharply (step corners): |second difference| on any axis
+    above ``factor`` times its robust (1.4826 MAD) level, and their neighbours. There no interpolation
+    can pair two sample streams to a fraction of a sample, so time-skew and pairing error are not
+    separable from the data."""
+    run = runs(t_s, session)
+    d2 = np.zeros_like(ref_uT)
+    same = (run[2:] == run[:-2]) & (run[1:-1] == run[2:])
+    d2[1:-1] = np.where(same[:, None], ref_uT[2:] - 2 * ref_uT[1:-1] + ref_uT[:-2], 0.0)
+    scale = 1.4826 * np.median(np.abs(d2[1:-1] - np.median(d2[1:-1], axis=0)), axis=0)
+    scale = np.maximum(scale, 1e-6)
+    big = np.any(np.abs(d2) > factor * scale, axis=1)
+    out = big.copy()
+    out[1:] |= big[:-1]
+    out[:-1] |= big[1:]
+    return out
+
+
+def second_order_cross_axis(p_uT: np.ndarray) -> np.ndarray:
+    """Columns ``B_i B_c^2`` for every output axis i and cross axis c != i (N,6; order: x<-y, x<-z, y<-x,
+    y<-z, z<-x, z<-y): the catalogue's cross-axis effect with set/reset averaging leaves
+    ``B_i H0^2/(H0^2 - B_c^2) ~ B_i (1 + B_c^2/H0^2)``, which the first-order products B_j B_k miss."""
+    cols = []
+    for i in range(3):
+        for c in range(3):
+            if c != i:
+                cols.append(p_uT[:, i] * p_uT[:, c] ** 2)
+    return np.column_stack(cols)

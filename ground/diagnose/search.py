@@ -1,0 +1,383 @@
+"""Which unmodelled effect: every testable catalogue effect, ranked on held-out blocks, with a test.
+
+For each effect of :data:`magstack.firmware.effects.EFFECTS` that the simulator leaves out:
+
+1. Its columns are built (the calibration term named by the effect's ``cal_term``; the non-linear
+   estimators of :mod:`.nonlinear` for ``time_skew`` and ``hysteresis``). Offset-like effects
+   (``cal_term == "session_offset"``) get a constant column too when the base has no offset.
+   It is *not testable* when the columns cannot be built (no temperature, no currents, one session),
+   are all combinations of the base columns, or (temperature effects) the temperature spans less
+   than ``MIN_TEMP_SPAN_C``.
+2. Base + effect is fitted on four folds of time blocks and predicts the fifth (never in-sample);
+   the figure of merit is the out-of-fold RMSE (vector norm of per-axis RMS).
+3. Significance: per held-out block ``b`` the paired difference ``d_b = SSE_base(b) - SSE_effect(b)``
+   (summed over axes). Blocks (default 60 s) are the unit, so residual autocorrelation inside a block
+   does not inflate the evidence. One-sided sign-flip permutation test of ``mean(d_b) > 0``; under
+   "nothing unmodelled" the extra columns only add estimation noise, so ``d_b`` is symmetric minus a
+   positive term: the test is conservative. Holm's step-down correction across the effects tested
+   controls the family-wise false-alarm rate at ``alpha``; an effect must also shrink the RMSE by at
+   least ``min_shrink`` (practical significance).
+4. Verdict: the significant effect with the lowest held-out RMSE, else ``none``. The runner-up is the
+   next in the ranking; the verdict is compared with it by the same block test and by the canonical
+   correlation of their columns (after removing the base), and is declared indistinguishable when
+   the data cannot separate them.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.stats
+
+from magstack.firmware.effects import EFFECT_NAMES, EFFECTS
+from magstack.firmware.errors import FitError
+from magstack.ground.diagnose import nonlinear as nl
+from magstack.ground.diagnose.gap import Block, Gap, out_of_fold, predict, solve
+
+#: Temperature effects need at least this temperature span (degC) to be tested.
+MIN_TEMP_SPAN_C = 1.0
+#: Columns whose part orthogonal to the base is below this fraction of their norm are not excited.
+EXCITATION_RTOL = 1e-6
+#: Canonical correlation above which two effects' columns are called confounded in this session.
+CONFOUNDED_CORR = 0.95
+#: Fewer held-out blocks than this: no significance claimed.
+MIN_BLOCKS = 6
+#: Sign-flip resamples (exact enumeration below 2**13 blocks is not needed at this count).
+N_RESAMPLES = 9999
+
+
+@dataclass
+class Trial:
+    """One effect tried on held-out blocks."""
+
+    effect: str
+    kind: str                      # "linear", "delay" or "hysteresis"
+    rmse_uT: np.ndarray            # (3,) out-of-fold
+    resid: np.ndarray              # (N,3) out-of-fold residual
+    block_sse: np.ndarray          # (B,) per block, uT^2
+    p_value: float = 1.0
+    p_holm: float = 1.0
+    significant: bool = False
+    shrink: float = 0.0
+    columns: np.ndarray | None = None   # (N,k) the effect's own columns (for confounding checks)
+    note: str = ""
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def rmse_norm_uT(self) -> float:
+        return float(np.linalg.norm(self.rmse_uT))
+
+    @property
+    def n_params(self) -> int:
+        return int(self.extra.get("n_params", 0))
+
+
+@dataclass
+class Options:
+    block_s: float = 60.0
+    exclude_bends: float | None = 10.0
+    n_folds: int = 5
+    alpha: float = 0.05
+    min_shrink: float = 0.005
+    seed: int = 0
+
+
+@dataclass
+class Candidate:
+    effect: str
+    kind: str
+    block: Block | None = None          # linear columns
+    thresholds: list | None = None      # hysteresis candidates per axis
+
+
+@dataclass
+class SearchResult:
+    baseline: Trial
+    trials: list[Trial]
+    not_testable: list[dict]
+    modelled: list[str]
+    verdict: str = "none"
+    runner_up: str | None = None
+    p_vs_runner_up: float | None = None
+    distinguishable: bool | None = None
+    confounded_with: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+
+# ----------------------------------------------------------------------------- helpers
+def rms3(r: np.ndarray) -> np.ndarray:
+    ok = np.all(np.isfinite(r), axis=1)
+    return np.sqrt(np.mean(r[ok] ** 2, axis=0)) if ok.any() else np.full(3, np.nan)
+
+
+def block_sse(r: np.ndarray, blocks: np.ndarray, nb: int) -> np.ndarray:
+    sq = np.where(np.isfinite(r), r, 0.0) ** 2
+    return np.bincount(blocks, weights=sq.sum(axis=1), minlength=nb)
+
+
+def sign_flip_p(d: np.ndarray, seed: int = 0) -> float:
+    """One-sided p-value of mean(d) > 0 by random sign flips of the block differences."""
+    d = np.asarray(d, dtype=float)
+    d = d[np.isfinite(d)]
+    if d.size < MIN_BLOCKS or not np.any(d):
+        return 1.0
+    res = scipy.stats.permutation_test((d,), lambda x, axis: np.mean(x, axis=axis), permutation_type="samples",
+                                       alternative="greater", n_resamples=N_RESAMPLES, vectorized=True,
+                                       random_state=seed)
+    return float(res.pvalue)
+
+
+def holm(p: list[float]) -> list[float]:
+    """Holm step-down adjusted p-values."""
+    m = len(p)
+    order = np.argsort(p)
+    adj = np.empty(m)
+    run = 0.0
+    for k, i in enumerate(order):
+        run = max(run, min(1.0, (m - k) * p[i]))
+        adj[i] = run
+    return adj.tolist()
+
+
+def orth_part(X: np.ndarray, base: np.ndarray) -> np.ndarray:
+    """Part of the columns of X orthogonal to the base columns (least squares)."""
+    if base.shape[1] == 0 or X.shape[1] == 0:
+        return X - X.mean(axis=0) * 0
+    coef, *_ = np.linalg.lstsq(base, X, rcond=None)
+    return X - base @ coef
+
+
+def canonical_corr(A: np.ndarray, B: np.ndarray) -> float:
+    """Largest canonical correlation between column spaces of A and B (0 if either is empty)."""
+    def basis(M):
+        if M.size == 0:
+            return None
+        u, s, _ = np.linalg.svd(M, full_matrices=False)
+        keep = s > s.max() * 1e-8 if s.size else []
+        return u[:, keep] if np.any(keep) else None
+    qa, qb = basis(A), basis(B)
+    if qa is None or qb is None:
+        return 0.0
+    return float(np.linalg.svd(qa.T @ qb, compute_uv=False).max(initial=0.0))
+
+
+# ----------------------------------------------------------------------------- candidates
+def build_candidates(gap: Gap, base: Block) -> tuple[list[Candidate], list[dict], list[str]]:
+    """Testable candidates, not-testable effects with reasons, effects the simulator models."""
+    cands, not_testable, modelled = [], [], []
+    s = gap.session
+    temp_ok = np.isfinite(s.temp_c)
+    temp_span = float(np.ptp(s.temp_c[temp_ok])) if temp_ok.any() else 0.0
+    base_terms = set(gap.base_terms)
+    for name in EFFECT_NAMES:
+        e = EFFECTS[name]
+        if name in gap.modelled:
+            modelled.append(name)
+            # mode (a) fits the modelled effects; mode (b) holds them fixed, so a changed one is a candidate
+            if gap.mode == "model" or e.cal_term in gap.base_terms:
+                continue
+        if e.cal_term is None:
+            not_testable.append({"effect": name, "reason": "no correction term in the catalogue (cal_term None): "
+                                                           "it is part of the noise floor / data limits"})
+            continue
+        if e.cal_term in ("temperature_gain", "temperature_offset") and temp_span < MIN_TEMP_SPAN_C:
+            not_testable.append({"effect": name, "reason": f"temperature spans {temp_span:.2f} degC "
+                                                           f"(need {MIN_TEMP_SPAN_C:g} degC)"
+                                 + ("" if temp_ok.any() else ": no temp_c values")})
+            continue
+        if name == "time_skew":
+            cands.append(Candidate(name, "delay"))
+            continue
+        if name == "hysteresis":
+            thr = nl.hysteresis_thresholds(s.dut_uT)
+            if not any(thr):
+                not_testable.append({"effect": name, "reason": "no large excursions: no |B| level well above "
+                                                               "the session's typical field splits the rows into "
+                                                               "two remanence states"})
+                continue
+            cands.append(Candidate(name, "hysteresis", thresholds=thr))
+            continue
+        terms = (e.cal_term,)
+        if e.cal_term == "session_offset" and "offset" not in base_terms:
+            terms = ("offset", "session_offset")
+        if e.cal_term == "temperature_gain" and "temperature_offset" not in base_terms:
+            # a gain applied before the offset, inverted, leaves K_S dT O: a dT column
+            terms = ("temperature_gain", "temperature_offset")
+        try:
+            blk = gap.term_design(terms)
+        except FitError as exc:
+            not_testable.append({"effect": name, "reason": str(exc)})
+            continue
+        except ValueError as exc:   # a calibration term the model does not know (catalogue ahead of the model)
+            not_testable.append({"effect": name, "reason": f"no estimator for cal_term {e.cal_term!r}: {exc}"})
+            continue
+        if name == "temperature_gain" and blk.p:
+            q = nl.higher_order_temperature_gain(gap.predictor_uT, s.temp_c, gap.t0_c)
+            blk = Block.join([blk, Block(q, np.hstack([np.eye(3, dtype=bool)] * 2),
+                                         [[f"K_S2[{a}]" for a in "xyz"] + [f"K_S3[{a}]" for a in "xyz"]] * 3,
+                                         ["1/degC^2"] * 3 + ["1/degC^3"] * 3)], gap.n)
+        if name == "cross_axis" and blk.p:
+            q = nl.second_order_cross_axis(gap.predictor_uT)
+            m = np.zeros((3, 6), bool)
+            for k in range(6):
+                m[k // 2, k] = True
+            blk = Block.join([blk, Block(q, m, [[f"Q[{o},{c}]" for o in "xyz" for c in "xyz" if c != o]] * 3,
+                                         ["1/uT^2"] * 6)], gap.n)
+        if blk.p == 0:
+            why = {"session_offset": "only one session", "currents": "no current columns"}.get(
+                e.cal_term, "no columns")
+            not_testable.append({"effect": name, "reason": why})
+            continue
+        ok = np.all(np.isfinite(blk.X), axis=1)
+        if not ok.all():
+            not_testable.append({"effect": name, "reason": f"its columns are not finite on {int((~ok).sum())} "
+                                                           "rows (missing temperature or currents)"})
+            continue
+        if base.p and not _excited(blk.X, base.X):
+            not_testable.append({"effect": name, "reason": "its columns are combinations of the base model's "
+                                                           "columns in this session (not excited)"})
+            continue
+        cands.append(Candidate(name, "linear", block=blk))
+    return cands, not_testable, modelled
+
+
+def _excited(X: np.ndarray, base: np.ndarray) -> bool:
+    r = orth_part(X, base)
+    return bool(np.any(np.linalg.norm(r, axis=0) > EXCITATION_RTOL * np.maximum(np.linalg.norm(X, axis=0), 1e-300)))
+
+
+def hysteresis_block(gap: Gap, thresholds: np.ndarray) -> Block:
+    st = nl.hysteresis_state(gap.session.dut_uT, thresholds)
+    mask = np.eye(3, dtype=bool)
+    names = [[f"H[{a}]" if i == j else "" for j in range(3)] for i, a in enumerate("xyz")]
+    blk = Block(st, mask, names, ["uT"] * 3)
+    keep = np.isfinite(thresholds)
+    blk = Block(st[:, keep], mask[:, keep], [[n for n, k in zip(r, keep, strict=True) if k] for r in names],
+                [u for u, k in zip(blk.units, keep, strict=True) if k])
+    if "offset" not in gap.base_terms:
+        off = gap.term_design(("offset",))
+        blk = Block.join([off, blk], gap.n)
+    return blk
+
+
+def choose_thresholds(gap: Gap, base: Block, Y: np.ndarray, cands: list, rows: np.ndarray) -> np.ndarray:
+    """Per axis, the candidate threshold with the lowest training SSE (axis by axis)."""
+    thr = np.full(3, np.inf)
+    for j in range(3):
+        best, best_sse = np.inf, np.inf
+        for c in cands[j]:
+            trial = thr.copy()
+            trial[j] = c
+            blk = Block.join([base, hysteresis_block(gap, trial)], gap.n)
+            th = solve(blk.X, Y, blk.mask, rows)
+            sse = float(np.sum((Y[rows] - predict(blk.X[rows], th, blk.mask)) ** 2))
+            if sse < best_sse:
+                best, best_sse = c, sse
+        thr[j] = best
+    return thr
+
+
+def delay_sse_fn(gap: Gap, rows: np.ndarray):
+    """Training SSE of the base refitted on the DUT reading de-skewed by delays ``d`` (3,) s."""
+    def sse_of(d):
+        blk, Y = gap.deskewed(gap.skew_columns(d, nl.shift_axes))
+        th = solve(blk.X, Y, blk.mask, rows)
+        return float(np.sum((Y[rows] - predict(blk.X[rows], th, blk.mask)) ** 2))
+    return sse_of
+
+
+# ----------------------------------------------------------------------------- evaluation
+def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: np.ndarray, nb: int,
+             base_trial: Trial, opts: Options) -> Trial:
+    Y = gap.target
+    if cand.kind == "linear":
+        blk = Block.join([base, cand.block], gap.n)
+        r, _ = out_of_fold(blk.X, Y, blk.mask, fold)
+        cols = cand.block.X
+    elif cand.kind == "hysteresis":
+        r = np.full(Y.shape, np.nan)
+        fold_thr = []
+        for f in np.unique(fold):
+            test, train = fold == f, fold != f
+            thr = choose_thresholds(gap, base, Y, cand.thresholds, train)
+            fold_thr.append(thr)
+            blk = Block.join([base, hysteresis_block(gap, thr)], gap.n)
+            th = solve(blk.X, Y, blk.mask, train)
+            r[test] = Y[test] - predict(blk.X[test], th, blk.mask)
+        cols = nl.hysteresis_state(gap.session.dut_uT, choose_thresholds(gap, base, Y, cand.thresholds,
+                                                                          np.ones(gap.n, bool)))
+    else:   # delay
+        r = np.full(Y.shape, np.nan)
+        grid = nl.delay_grid(gap.session.t_s)
+        fold_d = []
+        for f in np.unique(fold):
+            test, train = fold == f, fold != f
+            d = nl.search_delays(delay_sse_fn(gap, train), grid)
+            fold_d.append(d)
+            blk, Yd = gap.deskewed(gap.skew_columns(d, nl.shift_axes))
+            th = solve(blk.X, Yd, blk.mask, train)
+            r[test] = Yd[test] - predict(blk.X[test], th, blk.mask)
+        cols = gap.term_design(("time_skew",)).X
+    sse = block_sse(r, blocks, nb)
+    t = Trial(cand.effect, cand.kind, rms3(r), r, sse, columns=cols)
+    if cand.kind == "linear":
+        t.extra["block"] = cand.block
+        t.extra["n_params"] = int(cand.block.mask.sum())
+    elif cand.kind == "delay":
+        t.extra["fold_delays_s"] = fold_d
+        t.extra["n_params"] = 3
+        t.extra["grid_s"] = grid
+    elif cand.kind == "hysteresis":
+        t.extra["fold_thresholds_uT"] = fold_thr
+        t.extra["n_params"] = 2 * sum(1 for c in cand.thresholds if c) + (0 if "offset" in gap.base_terms else 3)
+    t.p_value = sign_flip_p(base_trial.block_sse - sse, opts.seed)
+    b = base_trial.rmse_norm_uT
+    t.shrink = float(1.0 - t.rmse_norm_uT / b) if b > 0 else 0.0
+    return t
+
+
+def search(gap: Gap, blocks: np.ndarray, fold: np.ndarray, opts: Options) -> SearchResult:
+    nb = int(blocks.max()) + 1
+    base = gap.base_design()
+    if base.p:
+        r0, _ = out_of_fold(base.X, gap.target, base.mask, fold)
+    else:
+        r0 = gap.target.copy()
+    baseline = Trial("baseline", "base", rms3(r0), r0, block_sse(r0, blocks, nb))
+    cands, not_testable, modelled = build_candidates(gap, base)
+    trials = [evaluate(gap, c, base, fold, blocks, nb, baseline, opts) for c in cands]
+    res = SearchResult(baseline, trials, not_testable, modelled)
+    if len(np.unique(blocks)) < MIN_BLOCKS:
+        res.notes.append(f"only {len(np.unique(blocks))} held-out blocks of {opts.block_s:g} s: too few for a "
+                         "significance claim (shorten --block-s or add data)")
+    if trials:
+        adj = holm([t.p_value for t in trials])
+        for t, a in zip(trials, adj, strict=True):
+            t.p_holm = a
+            t.significant = bool(a < opts.alpha and t.shrink >= opts.min_shrink)
+    trials.sort(key=lambda t: t.rmse_norm_uT)
+    sig = [t for t in trials if t.significant]
+    if sig:
+        v = sig[0]
+        # parsimony: a significant effect with fewer parameters that the data cannot tell from the best
+        for t in sorted(sig[1:], key=lambda t: (t.n_params, t.rmse_norm_uT)):
+            if t.n_params < v.n_params and sign_flip_p(t.block_sse - v.block_sse, opts.seed) >= opts.alpha:
+                res.notes.append(f"{t.effect} ({t.n_params} parameters) explains the gap as well as {v.effect} "
+                                 f"({v.n_params}) on held-out blocks: the simpler one is named")
+                v = t
+                break
+        trials.remove(v)
+        trials.insert(0, v)
+        res.verdict = v.effect
+        others = [t for t in trials if t is not v]
+        if others:
+            ru = others[0]
+            res.runner_up = ru.effect
+            res.p_vs_runner_up = sign_flip_p(ru.block_sse - v.block_sse, opts.seed)
+            corr = canonical_corr(orth_part(v.columns, base.X), orth_part(ru.columns, base.X))
+            res.distinguishable = bool(res.p_vs_runner_up < opts.alpha and corr < CONFOUNDED_CORR)
+            for t in others:
+                c = canonical_corr(orth_part(v.columns, base.X), orth_part(t.columns, base.X))
+                if c >= CONFOUNDED_CORR:
+                    res.confounded_with.append(t.effect)
+    return res

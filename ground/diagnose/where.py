@@ -1,0 +1,157 @@
+"""Where the gap lies: breakdowns by axis, temperature, field magnitude, rate of change, time and
+session, and by frequency; and the noise floor estimated from the data.
+
+Noise floor (two estimates, both from the session itself):
+
+* ``noise_floor_uT`` (the one the verdict is judged against): per axis, the robust spread (1.4826 MAD)
+  of differences of residual samples about 1 s apart within a session, divided by sqrt(2)
+  (:func:`magstack.firmware.calibration.fit.noise_floor`), applied to the in-sample residual of the
+  richest linear model (base + every testable linear candidate). Differencing removes slow misfit that
+  survives, the MAD ignores the few rows at field steps, and the rich model removes fast misfit.
+* ``spectral_white_nT`` (a cross-check): the white level implied by the median residual PSD over the
+  upper half of the band, ``sqrt(median PSD * f_nyquist)``.
+
+Spectrum: Welch (scipy.signal.welch, Hann, 50 % overlap) averaged over contiguous uniformly sampled
+runs when every run has the same sample spacing to 1 %; otherwise Lomb-Scargle
+(scipy.signal.lombscargle) over the whole record, scaled to a one-sided PSD.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.signal
+
+from magstack.data.session import Session
+from magstack.firmware.calibration.fit import noise_floor
+from magstack.ground.diagnose.nonlinear import runs
+
+FIELD_EDGES_uT = (0.0, 5.0, 20.0, 40.0, 60.0, 100.0, 200.0, np.inf)
+RATE_EDGES_uT_PER_S = (0.0, 0.1, 1.0, 10.0, np.inf)
+N_TEMP_BANDS = 5
+NOISE_LAG_S = 1.0
+
+
+def _band(r: np.ndarray, m: np.ndarray, lo: float, hi: float) -> dict:
+    rr = r[m]
+    return {"lo": _num(lo), "hi": _num(hi), "n": int(m.sum()),
+            "rms_nT": [float(v) for v in np.sqrt(np.mean(rr ** 2, axis=0)) * 1e3],
+            "mean_nT": [float(v) for v in np.mean(rr, axis=0) * 1e3],
+            "rms_norm_nT": float(np.linalg.norm(np.sqrt(np.mean(rr ** 2, axis=0))) * 1e3)}
+
+
+def _num(x: float):
+    return None if not np.isfinite(x) else float(x)
+
+
+def _bands(r: np.ndarray, v: np.ndarray, edges) -> list[dict]:
+    out = []
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        m = (v >= lo) & (v < hi) & np.isfinite(v)
+        if m.sum() >= 5:
+            out.append(_band(r, m, lo, hi))
+    return out
+
+
+def field_rate_uT_per_s(b_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray) -> np.ndarray:
+    """|dB/dt| (uT/s) by differences inside contiguous runs (0 at single-sample runs)."""
+    run = runs(t_s, session)
+    out = np.zeros(t_s.size)
+    for k in np.unique(run):
+        idx = np.flatnonzero(run == k)
+        if idx.size < 2:
+            continue
+        g = np.gradient(b_uT[idx], t_s[idx], axis=0)
+        out[idx] = np.linalg.norm(g, axis=1)
+    return out
+
+
+def breakdowns(r: np.ndarray, s: Session, blocks: np.ndarray) -> dict:
+    """The gap ``r`` (N,3) uT broken down; every figure in nT."""
+    out: dict = {"axis": {a: {"rms_nT": float(np.sqrt(np.mean(r[:, i] ** 2)) * 1e3),
+                              "mean_nT": float(np.mean(r[:, i]) * 1e3)} for i, a in enumerate("xyz")}}
+    t = s.temp_c
+    tok = np.isfinite(t)
+    if tok.sum() >= 5 and np.ptp(t[tok]) > 0:
+        edges = np.unique(np.quantile(t[tok], np.linspace(0, 1, N_TEMP_BANDS + 1)))
+        edges[-1] = np.nextafter(edges[-1], np.inf)
+        out["temperature_c"] = _bands(r, t, edges)
+    else:
+        out["temperature_c"] = []
+    out["field_magnitude_uT"] = _bands(r, np.linalg.norm(s.ref_uT, axis=1), FIELD_EDGES_uT)
+    out["field_rate_uT_per_s"] = _bands(r, field_rate_uT_per_s(s.ref_uT, s.t_s, s.session), RATE_EDGES_uT_PER_S)
+    out["session"] = [{"session": int(k), **_band(r, s.session == k, np.nan, np.nan)}
+                      for k in np.unique(s.session)]
+    for d in out["session"]:
+        d.pop("lo")
+        d.pop("hi")
+    tb = []
+    for b in np.unique(blocks):
+        m = blocks == b
+        tb.append({"t_mid_s": float(np.mean(s.t_s[m])), "session": int(s.session[m][0]),
+                   "rms_norm_nT": float(np.linalg.norm(np.sqrt(np.mean(r[m] ** 2, axis=0))) * 1e3),
+                   "mean_nT": [float(v) for v in np.mean(r[m], axis=0) * 1e3]})
+    out["time_blocks"] = tb
+    return out
+
+
+def spectrum(r: np.ndarray, t_s: np.ndarray, session: np.ndarray) -> dict:
+    """One-sided PSD (nT^2/Hz) per axis of the residual (mean removed per session)."""
+    x = r.copy()
+    for k in np.unique(session):
+        m = session == k
+        x[m] -= x[m].mean(axis=0)
+    x *= 1e3
+    run = runs(t_s, session)
+    uniform, dts = True, []
+    for k in np.unique(run):
+        idx = np.flatnonzero(run == k)
+        if idx.size < 2:
+            continue
+        d = np.diff(t_s[idx])
+        med = float(np.median(d))
+        dts.append(med)
+        if med <= 0 or np.max(np.abs(d - med)) > 0.01 * med:
+            uniform = False
+    if dts and (max(dts) - min(dts)) > 0.01 * min(dts):
+        uniform = False
+    if uniform and dts:
+        fs = 1.0 / float(np.median(dts))
+        lens = {k: int(np.sum(run == k)) for k in np.unique(run)}
+        nper = 256
+        while nper > 16 and sum(v for v in lens.values() if v >= nper) < 0.5 * t_s.size:
+            nper //= 2
+        acc, wsum, f = None, 0.0, None
+        for k, n_k in lens.items():
+            if n_k < nper:
+                continue
+            idx = np.flatnonzero(run == k)
+            f, p = scipy.signal.welch(x[idx], fs=fs, nperseg=nper, axis=0)
+            acc = p * n_k if acc is None else acc + p * n_k
+            wsum += n_k
+        if acc is not None:
+            return _spec_out("welch", f[1:], (acc / wsum)[1:], fs / 2)
+    # uneven sampling: Lomb-Scargle over the record
+    tt = t_s - t_s.min()
+    span = float(np.ptp(tt))
+    if span <= 0 or t_s.size < 8:
+        return {"method": "none", "freq_hz": [], "psd_nT2_per_hz": [[], [], []], "spectral_white_nT": [None] * 3}
+    dt_med = float(np.median(np.diff(np.sort(t_s))[np.diff(np.sort(t_s)) > 0]))
+    fny = 0.5 / dt_med
+    f = np.linspace(1.0 / span, fny, 400)
+    psd = np.empty((f.size, 3))
+    for j in range(3):
+        pg = scipy.signal.lombscargle(tt, x[:, j], 2 * np.pi * f, precenter=True)
+        # unnormalised Lomb-Scargle of white noise of variance s2 averages s2; its one-sided PSD is s2/fny
+        psd[:, j] = pg / fny
+    return _spec_out("lombscargle", f, psd, fny)
+
+
+def _spec_out(method: str, f: np.ndarray, psd: np.ndarray, fny: float) -> dict:
+    upper = f >= 0.5 * fny
+    white = [float(np.sqrt(np.median(psd[upper, j]) * fny)) if upper.any() else None for j in range(3)]
+    return {"method": method, "freq_hz": [float(v) for v in f],
+            "psd_nT2_per_hz": [[float(v) for v in psd[:, j]] for j in range(3)], "spectral_white_nT": white}
+
+
+def noise_floor_uT(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray) -> np.ndarray:
+    """Per-axis white-noise level of a residual (see module doc)."""
+    return noise_floor(resid_uT, t_s, session, NOISE_LAG_S)
