@@ -322,12 +322,13 @@ class Nonlinearity(Stage):
         self.active = bool((params.cubic_per_uT2 != 0).any())
 
     def vector(self, b_sensor_uT: np.ndarray, at: FieldInputs) -> np.ndarray:
-        return b_sensor_uT + self._c3 * b_sensor_uT ** 3
+        b = b_sensor_uT
+        return b + self._c3 * (b * b * b)  # b * b * b, not b ** 3: numpy's power and libm's pow round differently
 
     def single(self, b_sensor_uT: list[float], at: FieldInputs) -> list[float]:
         c = self._c3_f
         x, y, z = b_sensor_uT
-        return [x + c[0] * x ** 3, y + c[1] * y ** 3, z + c[2] * z ** 3]
+        return [x + c[0] * (x * x * x), y + c[1] * (y * y * y), z + c[2] * (z * z * z)]
 
 
 @stage
