@@ -67,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
         gap = table_gap(s, table, f"--table {args.table}")
     elif args.sim:
         from magstack.ground.diagnose.sim_adapter import sim_gap
-        gap = sim_gap(s, args.sim)
+        gap = sim_gap(full, keep, args.sim)
     else:
         gap = model_gap(s, terms, modelled, f"--model {args.model}", args.t0,
                         hysteresis_base(s.dut_uT) if hyst else None)

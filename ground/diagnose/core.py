@@ -151,7 +151,7 @@ def verdict_parameters(gap: Gap, res: sr.SearchResult, fold: np.ndarray, run: np
             if np.isfinite(thr[j]):
                 out[f"threshold[{a}]"] = {"value": float(thr[j]), "se": float("nan"), "unit": "uT (chosen level)"}
         return out
-    blk = v.extra["block"]
+    blk = sr.linear_block(gap, v.effect, v.extra["terms"])
     allb = Block.join([base, blk], gap.n)
     return _linear_params(allb.X, Y, allb, base.p, fold)
 
@@ -195,18 +195,9 @@ def diagnose(gap: Gap, options: sr.Options | None = None) -> Diagnosis:
     if choice is not None:
         notes.append("gain and misalignment share the calibration columns (gain_matrix); told apart by the fitted "
                      "matrix change: misalignment leaves the diagonal unchanged to first order")
-    # noise floor: richest linear model in-sample
-    base = gap.base_design()
-    rich = [base] + [sr.Block(t.columns, np.ones((3, t.columns.shape[1]), bool), [[""] * t.columns.shape[1]] * 3,
-                              [""] * t.columns.shape[1]) for t in res.trials if t.columns is not None
-                     and t.kind != "delay" and np.all(np.isfinite(t.columns))]
-    rb = Block.join(rich, gap.n)
-    if rb.p:
-        th = solve(rb.X, gap.target, rb.mask)
-        rr = gap.target - rb.X @ np.where(rb.mask, th, 0).T
-    else:
-        rr = gap.target
-    nf = wh.noise_floor_uT(rr, s.t_s, s.session)
+    # noise floor: white level of the residual of the best description found (lowest held-out RMSE)
+    best = min([res.baseline] + [t for t in res.trials if t.resid is not None], key=lambda t: t.rmse_norm_uT)
+    nf = wh.noise_floor_uT(np.asarray(best.resid, dtype=float), s.t_s, s.session)
     where = wh.breakdowns(res.baseline.resid, s, blocks)
     where["spectrum"] = wh.spectrum(res.baseline.resid, s.t_s, s.session)
     diag = Diagnosis(gap, res, nf, where, params, opts, notes=notes)

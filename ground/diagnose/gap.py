@@ -27,6 +27,8 @@ from magstack.firmware.calibration.model import CalModel
 from magstack.firmware.errors import FitError
 from magstack.ground.errors import DiagnosisError
 
+#: Memoised skew columns kept (floats); one column per (axis, delay) tried by the delay search.
+SKEW_CACHE_FLOATS = 4_000_000
 #: Relative singular-value cut-off of the column-equilibrated least-squares solves.
 RCOND = 1e-10
 
@@ -105,10 +107,17 @@ class Gap:
         A = self._dut_image()
         d = np.asarray(delay_s, dtype=float)
         out = np.zeros((self.n, 3))
+        cache = self.__dict__.setdefault("_skew_cache", {})
         for j in range(3):
             if d[j] != 0:
-                moved = shift_fn(ref, t, run, np.full(3, -d[j])) - ref
-                out[:, j] = moved[keep] @ A[j]
+                key = (j, float(d[j]))
+                col = cache.get(key)
+                if col is None:
+                    if len(cache) * self.n > SKEW_CACHE_FLOATS:
+                        cache.clear()
+                    moved = shift_fn(ref, t, run, np.full(3, -d[j])) - ref
+                    col = cache[key] = moved[keep] @ A[j]
+                out[:, j] = col
         return out
 
     def deskewed(self, F: np.ndarray) -> tuple[Block, np.ndarray]:
@@ -307,10 +316,11 @@ def check_rows(s: Session, min_rows: int = 50, exclude_bends: float | None = Non
     s2 = s2.select(order)
     keep = np.ones(len(s2), bool)
     if exclude_bends is not None:
-        bend = bend_rows(s2.ref_uT, s2.t_s, s2.session, exclude_bends)
+        bend = bend_rows(s2.ref_uT, s2.t_s, s2.session, exclude_bends, s2.dut_uT)
         if (~bend).sum() >= min_rows and bend.any():
             notes.append(f"{int(bend.sum())} rows at sharp bends of the reference field (step corners: "
-                         f"|second difference| > {exclude_bends:g}x its robust level) left out: there two sample "
+                         f"|second difference| > {exclude_bends:g}x its robust level and > 8x the DUT noise) left "
+                         "out: there two sample "
                          "streams cannot be paired to a fraction of a sample")
             keep = ~bend
     return s2, keep, notes

@@ -50,10 +50,10 @@ def shift_axes(p_uT: np.ndarray, t_s: np.ndarray, run: np.ndarray, delay_s) -> n
     t = t_s - t_s.min()
     big = 2.0 * (float(np.ptp(t)) + 1.0 + float(np.max(np.abs(d))))
     T = t + run * big
-    lo = np.minimum.reduceat(T, np.r_[0, np.flatnonzero(np.diff(run)) + 1])
-    hi = np.maximum.reduceat(T, np.r_[0, np.flatnonzero(np.diff(run)) + 1])
     first = np.r_[0, np.flatnonzero(np.diff(run)) + 1]
-    k = np.cumsum(np.isin(np.arange(run.size), first)) - 1
+    lo = T[first]
+    hi = np.r_[T[first[1:] - 1], T[-1]]
+    k = np.repeat(np.arange(first.size), np.diff(np.r_[first, run.size]))
     for j in range(3):
         if d[j] != 0:
             q = np.clip(T - d[j], lo[k], hi[k])
@@ -133,18 +133,36 @@ def higher_order_temperature_gain(p_uT: np.ndarray, temp_c: np.ndarray, t0_c: fl
     return np.hstack([p_uT * (dT ** 2)[:, None], p_uT * (dT ** 3)[:, None]])
 
 
-def bend_rows(ref_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, factor: float) -> np.ndarray:
-    """Rows where the reference field bends sharply (step corners): |second difference| on any axis
-    above ``factor`` times its robust (1.4826 MAD) level, and their neighbours. There no interpolation
-    can pair two sample streams to a fraction of a sample, so time-skew and pairing error are not
-    separable from the data."""
-    run = runs(t_s, session)
-    d2 = np.zeros_like(ref_uT)
+def _d2(x: np.ndarray, run: np.ndarray) -> np.ndarray:
+    d2 = np.zeros_like(x)
     same = (run[2:] == run[:-2]) & (run[1:-1] == run[2:])
-    d2[1:-1] = np.where(same[:, None], ref_uT[2:] - 2 * ref_uT[1:-1] + ref_uT[:-2], 0.0)
-    scale = 1.4826 * np.median(np.abs(d2[1:-1] - np.median(d2[1:-1], axis=0)), axis=0)
-    scale = np.maximum(scale, 1e-6)
-    big = np.any(np.abs(d2) > factor * scale, axis=1)
+    d2[1:-1] = np.where(same[:, None], x[2:] - 2 * x[1:-1] + x[:-2], 0.0)
+    return d2
+
+
+def _mad(x: np.ndarray) -> np.ndarray:
+    return 1.4826 * np.median(np.abs(x - np.median(x, axis=0)), axis=0)
+
+
+def bend_rows(ref_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, factor: float,
+              dut_uT: np.ndarray | None = None) -> np.ndarray:
+    """Rows where the reference field bends sharply (step corners), and their neighbours.
+
+    A row is flagged when the reference's second difference on some axis exceeds both ``factor``
+    times its robust (1.4826 MAD) level and 8 times the DUT's white-noise level on that axis
+    (``1.4826 MAD`` of the DUT's second differences / sqrt 6): linear interpolation across a bend
+    errs by up to |second difference| / 8, so below that the pairing error hides under the DUT noise.
+    There no interpolation pairs two sample streams to a fraction of a sample, so time skew and
+    pairing error cannot be told apart."""
+    run = runs(t_s, session)
+    d2 = _d2(ref_uT, run)
+    scale = np.maximum(_mad(d2[1:-1]), 1e-6)
+    thr = factor * scale
+    if dut_uT is not None:
+        ok = np.all(np.isfinite(dut_uT), axis=1)
+        sig = _mad(_d2(np.where(ok[:, None], dut_uT, 0.0), run)[1:-1]) / np.sqrt(6.0)
+        thr = np.maximum(thr, 8.0 * sig)
+    big = np.any(np.abs(d2) > thr, axis=1)
     out = big.copy()
     out[1:] |= big[:-1]
     out[:-1] |= big[1:]

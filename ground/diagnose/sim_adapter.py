@@ -136,25 +136,24 @@ def predict_dut(s: Session, params: ErrorParams, effects) -> np.ndarray:
     p = dataclasses.replace(params, drift_walk_uT_per_sqrt_s=(0.0, 0.0, 0.0))
     on = [e for e in effects if e not in RANDOM_EFFECTS]
     out = np.full((len(s), 3), np.nan)
-    model = ErrorModel(p, seed=0, effects=on)   # hysteresis state carries across power cycles
-    if np.all(np.diff(s.t_s) >= 0):
-        order = [np.arange(len(s))]
-    else:
-        order = [np.flatnonzero(s.session == k) for k in np.unique(s.session)]
-    for idx in order:
+    if np.all(np.diff(s.t_s) >= 0):   # one record: hysteresis state carries across power cycles
+        return ErrorModel(p, seed=0, effects=on).sense_series(s.t_s, SessionTruth(s))
+    for k in np.unique(s.session):
+        idx = np.flatnonzero(s.session == k)
         sub = s.select(idx)
         if not np.all(np.diff(sub.t_s) >= 0):
             raise SessionFileError("time stamps are not increasing within a session: cannot run the simulator")
-        if model._last_t is not None and sub.t_s[0] < model._last_t:
-            model = ErrorModel(p, seed=0, effects=on)
-        out[idx] = model.sense_series(sub.t_s, SessionTruth(sub))
+        out[idx] = ErrorModel(p, seed=0, effects=on).sense_series(sub.t_s, SessionTruth(sub))
     return out
 
 
-def sim_gap(s: Session, params_path, t0_c: float | None = None) -> Gap:
-    """Mode (b) gap from PARAMS.json: ``dut - prediction`` (sensor units); features from the reference."""
+def sim_gap(full: Session, keep: np.ndarray, params_path, t0_c: float | None = None) -> Gap:
+    """Mode (b) gap from PARAMS.json on the rows ``keep`` of ``full``: ``dut - prediction`` (sensor
+    units); features from the reference. The simulator runs on every usable row (``full``), so its
+    truth is interpolated only between neighbouring samples."""
     params, effects = load_params(params_path)
-    pred = predict_dut(s, params, effects)
+    pred = predict_dut(full, params, effects)[keep]
+    s = full.select(keep)
     modelled = modelled_effects(params, effects)
     nuisance = ("session_offset",) if ("session_offset" in modelled and len(np.unique(s.session)) > 1) else ()
     t0 = params.temp_ref_c if t0_c is None else t0_c

@@ -202,7 +202,7 @@ def _sim_case(seed, duration_s, opts, out, params_document, sim_gap):
     unit = dataclasses.replace(p, offset_uT=np.asarray(p.offset_uT) + np.array([0.15, -0.10, 0.12]))
     s = simulate(None, 0.0, seed, duration_s, params=unit, effects=eff)
     full, keep, notes = check_rows(s, exclude_bends=opts.exclude_bends)
-    g = sim_gap(full.select(keep), path)
+    g = sim_gap(full, keep, path)
     g.shift_source = (full.t_s, full.ref_uT, keep, runs(full.t_s, full.session))
     g.notes += notes
     return diagnose(g, opts)

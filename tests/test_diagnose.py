@@ -1,0 +1,254 @@
+"""Sim-to-real gap diagnosis (issue 14): ranking on held-out blocks, significance, confounding,
+not-testable effects, fixed-parameter paths, JSON, report and CLI.
+
+The generators here are written in this file (plain numpy forward models of the catalogue's physics),
+not the project's error model, so a pass does not come from the diagnoser and the generator sharing
+code; the withheld-effect harness with the project's simulator is tested in test_diagnose_validate.py.
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from magstack.data.session import Session, write_session
+from magstack.ground.diagnose import Options, check_rows, diagnose, diagnose_model, fixed_gap
+from magstack.ground.diagnose.search import holm, sign_flip_p
+
+RATE_HZ = 2.0
+G = np.array([[1.09, 0.05, -0.03], [0.04, 1.11, 0.02], [-0.02, 0.03, 1.10]])
+O = np.array([0.3, -0.1, 0.45])
+
+
+def bench(seconds=2400.0, sessions=3, temp=True, currents=True, seed=0, noise_uT=0.02):
+    """Independent stimulus: smooth tumbling field (|B| 20-60 uT), excursions to +-140 uT, slow thermal
+    cycle, a square-wave current; returns truth pieces."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0, seconds, 1 / RATE_HZ)
+    w = 2 * np.pi * np.array([1 / 97.0, 1 / 131.0, 1 / 173.0])
+    b = np.column_stack([40 * np.sin(w[0] * t), 35 * np.cos(w[1] * t + 0.3), 30 * np.sin(w[2] * t + 1.1)])
+    for k, t0 in enumerate((0.3, 0.55, 0.8)):   # excursions, one axis at a time, +peak then -peak
+        for sign, dt in ((1, 0.0), (-1, 0.05)):
+            m = (t > (t0 + dt) * seconds) & (t < (t0 + dt) * seconds + 20)
+            b[m, k] = sign * 140.0
+    temp_c = 30 + 20 * np.sin(2 * np.pi * t / seconds) if temp else np.full(t.size, np.nan)
+    cur = {"heater_A": 0.4 * ((t // 45) % 2)} if currents else {}
+    sess = np.minimum((t / seconds * sessions).astype(int), sessions - 1)
+    return t, b, temp_c, cur, sess, rng, noise_uT
+
+
+def make(effect=None, strength=1.0, **kw):
+    t, b, temp_c, cur, sess, rng, noise = bench(**kw)
+    dut = b @ G.T
+    if effect == "time_skew":
+        d = strength * np.array([0.0, 0.05, 0.1])
+        dut = np.column_stack([np.column_stack([np.interp(t + d[j], t, b[:, k]) for k in range(3)]) @ G[j]
+                               for j in range(3)])
+    if effect == "temperature_offset":
+        dut = dut + strength * np.outer(temp_c - 25, [-0.14, 0.02, 0.03])
+    if effect == "interference":
+        dut = dut + strength * np.outer(cur["heater_A"], [0.5, -0.4, 0.6])
+    if effect == "session_offset":
+        dut = dut + strength * np.array([[0.1, -0.08, 0.06], [-0.05, 0.1, -0.1], [0.0, -0.03, 0.08]])[sess]
+    if effect == "hysteresis":
+        st = np.zeros_like(b)
+        for j in range(3):
+            e = np.where(np.abs(dut[:, j]) >= 120, np.sign(dut[:, j]), 0.0)
+            last = np.maximum.accumulate(np.where(e != 0, np.arange(t.size), -1))
+            st[:, j] = np.where(last >= 0, e[np.maximum(last, 0)], 0.0)
+        dut = dut + strength * 0.06 * st
+    dut = dut + O + rng.standard_normal(dut.shape) * noise
+    ref = b + rng.standard_normal(b.shape) * 0.001
+    return Session(1.6e9 + t, ref, dut, temp_c, sess, cur, {"device_id": "test"})
+
+
+# ----------------------------------------------------------------------------- statistics
+def test_sign_flip_test_is_calibrated_under_the_null():
+    rng = np.random.default_rng(1)
+    p = np.array([sign_flip_p(rng.standard_normal(30), seed=k) for k in range(200)])
+    assert 0.02 <= np.mean(p < 0.05) <= 0.09
+    assert sign_flip_p(rng.standard_normal(30) + 1.0) < 0.001
+
+
+def test_holm_adjusts_and_keeps_order():
+    assert holm([0.01, 0.04, 0.03]) == pytest.approx([0.03, 0.06, 0.06])
+
+
+# ----------------------------------------------------------------------------- verdicts
+@pytest.mark.parametrize("effect", ["time_skew", "temperature_offset", "interference", "session_offset",
+                                    "hysteresis"])
+def test_an_effect_the_model_leaves_out_is_named_and_closes_the_gap(effect):
+    d = diagnose_model(make(effect), "gain_offset")
+    j = d.to_dict()
+    assert j["verdict"] == effect, d.text()
+    assert j["after_rmse_nT"] <= 1.2 * j["noise_floor_nT"], d.text()
+    assert j["baseline_rmse_nT"] > 1.5 * j["after_rmse_nT"]
+    top = j["ranking"][0]
+    assert top["effect"] == effect and top["significant"]
+
+
+def test_nothing_unmodelled_gives_none():
+    for seed in range(3):
+        d = diagnose_model(make(None, seed=seed), "gain_offset")
+        assert d.verdict == "none", d.text()
+        assert d.to_dict()["after_rmse_nT"] == d.to_dict()["baseline_rmse_nT"]
+
+
+def test_time_skew_parameters_recovered_with_standard_errors():
+    p = diagnose_model(make("time_skew"), "gain_offset").parameters
+    for a, true in zip("xyz", (0.0, 0.05, 0.1), strict=True):
+        v = p[f"dt[{a}]"]
+        assert v["unit"] == "s"
+        assert abs(v["value"] - true) < max(5 * v["se"], 0.004), p
+
+
+def test_interference_parameters_in_catalogue_units():
+    p = diagnose_model(make("interference"), "gain_offset").parameters
+    # calibration direction: the correction is -G^-1 D (uT/A)
+    want = -np.linalg.solve(G, [0.5, -0.4, 0.6])
+    got = np.array([p[f"D_heater_A[{a}]"]["value"] for a in "xyz"])
+    assert np.allclose(got, want, atol=0.01)
+    assert all(p[f"D_heater_A[{a}]"]["unit"] == "uT/A" for a in "xyz")
+
+
+def test_hysteresis_is_told_apart_from_a_per_session_offset():
+    d = diagnose_model(make("hysteresis"), "gain_offset")
+    assert d.verdict == "hysteresis"
+    so = next(t for t in d.result.trials if t.effect == "session_offset")
+    assert so.rmse_norm_uT > d.after_trial.rmse_norm_uT * 1.3
+    d2 = diagnose_model(make("session_offset"), "gain_offset")
+    assert d2.verdict == "session_offset"
+
+
+def test_offset_and_per_session_offset_indistinguishable_names_the_simpler_and_says_so():
+    s = make(None)
+    d = diagnose_model(s, "gain")   # the model leaves the (common) offset out
+    j = d.to_dict()
+    assert j["verdict"] == "offset"
+    assert any("simpler" in n for n in j["notes"]) or j["runner_up"] in ("session_offset", "hysteresis")
+
+
+# ----------------------------------------------------------------------------- not testable
+def test_columns_that_cannot_test_an_effect_are_listed_not_crashed():
+    s = make(None, temp=False, currents=False, sessions=1)
+    j = diagnose_model(s, "gain_offset").to_dict()
+    nt = {n["effect"]: n["reason"] for n in j["not_testable"]}
+    assert {"temperature_gain", "temperature_offset", "interference", "session_offset"} <= set(nt)
+    assert "one session" in nt["session_offset"]
+    assert j["verdict"] == "none"
+
+
+def test_too_few_rows_is_a_clean_error():
+    from magstack.ground.errors import DiagnosisError
+    s = make(None).select(np.arange(20))
+    with pytest.raises(DiagnosisError):
+        check_rows(s)
+
+
+# ----------------------------------------------------------------------------- fixed path (b)
+def test_fixed_table_path_names_the_effect_that_changed():
+    from magstack.firmware.cal_table import table_from_fit
+    from magstack.firmware.calibration import FitData, FitOptions, fit
+    from magstack.ground.diagnose.spec import table_gap
+    clean = make(None, seed=5)
+    table = table_from_fit(fit(FitData.from_session(clean), "eq3", options=FitOptions(holdout=False)), "test")
+    later = make("temperature_offset", seed=6)
+    full, keep, _ = check_rows(later, exclude_bends=10.0)
+    d = diagnose(table_gap(full.select(keep), table, "table"), Options())
+    assert d.verdict == "temperature_offset", d.text()
+    unchanged = make(None, seed=7)
+    full, keep, _ = check_rows(unchanged, exclude_bends=10.0)
+    assert diagnose(table_gap(full.select(keep), table, "table"), Options()).verdict == "none"
+
+
+def test_fixed_gap_nan_rows_are_left_out_with_a_note():
+    s = make(None)
+    gap = s.ref_uT - (s.dut_uT - O) @ np.linalg.inv(G).T
+    gap[:10] = np.nan
+    g = fixed_gap(s, gap, s.ref_uT, ("gain", "offset"), "test")
+    assert g.n == len(s) - 10 and g.notes
+
+
+# ----------------------------------------------------------------------------- JSON, where, report
+def test_json_has_the_stable_keys_and_breakdowns():
+    j = diagnose_model(make("temperature_offset"), "gain_offset").to_dict()
+    for k in ("verdict", "baseline_rmse_nT", "after_rmse_nT", "noise_floor_nT", "ranking", "not_testable",
+              "where", "parameters"):
+        assert k in j
+    for r in j["ranking"]:
+        assert set(r) >= {"effect", "rmse_nT", "shrink", "significant"}
+    for k in ("axis", "temperature_c", "field_magnitude_uT", "field_rate_uT_per_s", "session", "time_blocks",
+              "spectrum"):
+        assert k in j["where"]
+    # the temperature bands show the gap growing away from 25 degC
+    bands = j["where"]["temperature_c"]
+    assert bands[0]["rms_norm_nT"] > 2 * min(b["rms_norm_nT"] for b in bands)
+    json.dumps(j)
+
+
+def test_noise_floor_and_spectrum_match_injected_white_noise():
+    d = diagnose_model(make(None, noise_uT=0.03), "gain_offset")
+    nf = d.to_dict()["noise_floor_axes_nT"]
+    assert np.allclose(nf, 30.0 / np.diag(G), rtol=0.15)
+    white = d.where["spectrum"]["spectral_white_nT"]
+    assert np.allclose(white, 30.0 / np.diag(G), rtol=0.25)
+
+
+def test_report_is_one_self_contained_html_page(tmp_path):
+    pytest.importorskip("matplotlib")
+    from magstack.ground.diagnose.figures import write_report
+    path = write_report(diagnose_model(make("interference"), "gain_offset"), tmp_path / "rep")
+    html = path.read_text()
+    assert html.count("data:image/png;base64,") >= 5 and "interference" in html
+    assert "src=\"http" not in html and not list((tmp_path / "rep").glob("*.part"))
+
+
+# ----------------------------------------------------------------------------- CLI
+def _cli(*args):
+    return subprocess.run([sys.executable, "-m", "magstack", *args], capture_output=True, text=True)
+
+
+def test_cli_diagnose_writes_json_and_sim_path_round_trips(tmp_path):
+    s1 = tmp_path / "s.csv"
+    p = tmp_path / "p.json"
+    r = _cli("simulate", "--program", "full", "--seconds", "900", "--effects",
+             "gain,offset,noise,quantization,temperature_gain", "--out", str(s1), "--save-params", str(p))
+    assert r.returncode == 0, r.stderr
+    out = tmp_path / "d.json"
+    r = _cli("diagnose", str(s1), "--json", str(out), "--block-s", "30")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(out.read_text())["verdict"] == "temperature_gain"
+    r = _cli("diagnose", str(s1), "--sim", str(p), "--block-s", "30", "--json", str(out))
+    assert r.returncode == 0, r.stderr
+    assert json.loads(out.read_text())["verdict"] == "none"
+
+
+@pytest.mark.parametrize("args, code, text", [
+    (["diagnose", "MISSING.csv"], 3, "no such session file"),
+    (["diagnose", "{s}", "--model", "bogus"], 2, "unknown model or effect"),
+    (["diagnose", "{s}", "--block-s", "0"], 2, "--block-s"),
+    (["diagnose", "{s}", "--sim", "{bad}"], 3, "line 1"),
+    (["diagnose", "{s}", "--table", "{bad}"], 3, "not a valid JSON table"),
+    (["diagnose", "{short}"], 3, "usable rows"),
+    (["diagnose", "{garbled}"], 3, "cells, header has"),
+    (["validate-diagnosis", "--seeds", "0", "--out", "{tmp}"], 2, "--seeds"),
+])
+def test_cli_bad_input_is_one_clean_line_with_the_documented_exit_code(tmp_path, args, code, text):
+    s = tmp_path / "s.csv"
+    write_session(s, make(None, seconds=600))
+    short = tmp_path / "short.csv"
+    write_session(short, make(None, seconds=600).select(np.arange(10)))
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    garbled = tmp_path / "g.csv"
+    lines = s.read_text().splitlines()
+    k = next(i for i, line in enumerate(lines) if not line.startswith("#"))
+    garbled.write_text("\n".join(lines[:k + 1] + ["1,2,x"] + lines[k + 2:]) + "\n")
+    args = [a.format(s=s, bad=bad, short=short, garbled=garbled, tmp=tmp_path / "v") for a in args]
+    r = _cli(*args)
+    assert r.returncode == code, (r.stdout, r.stderr)
+    assert text in r.stderr and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
