@@ -210,3 +210,23 @@ class HMC5983Model(HoneywellStyleModel):
         super().__init__(hmc5983_registers(), name="hmc5983-sim", clock=clock, truth=truth,
                          sensor=sensor if sensor is not None else default_sensor("hmc5983"), address=address,
                          drdy_latched=drdy_latched, lock_on_mode_read=lock_on_mode_read, lints=lints)
+
+
+def hmc5883l_registers() -> tuple[Reg, ...]:
+    """HMC5883L: the HMC5983 map without temperature registers; CRA bit 7 must be 0 (p.12)."""
+    return tuple(Reg(r.addr, r.name, r.mode, r.reset, fixed_mask=r.fixed_mask | 0x80, fixed_value=r.fixed_value)
+                 if r.addr == H.CRA else r for r in hmc5983_registers() if r.addr not in (H.TEMP_MSB, H.TEMP_LSB))
+
+
+class HMC5883LModel(HoneywellStyleModel):
+    """Simulated HMC5883L (no temperature sensor): 0x31/0x32 read 0 like every invalid address,
+    a write of CRA bit 7 is ignored (NACKed with the ``nack_illegal_write`` lint). Used to check
+    that nothing identifies it as an HMC5983 or turns its reserved TS bit on."""
+
+    table = H.HMC5983_TABLE
+
+    def __init__(self, clock, truth, sensor=None, *, address: int = 0x1E, drdy_latched: bool = False,
+                 lock_on_mode_read: bool = True, lints=None) -> None:
+        super().__init__(hmc5883l_registers(), name="hmc5883l-sim", clock=clock, truth=truth,
+                         sensor=sensor if sensor is not None else default_sensor("hmc5983"), address=address,
+                         drdy_latched=drdy_latched, lock_on_mode_read=lock_on_mode_read, lints=lints)

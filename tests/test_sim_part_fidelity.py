@@ -184,3 +184,32 @@ def test_invalid_gain_code_is_ignored_by_default_and_refused_by_the_lint():
     bus2.attach(0x1E, strict)
     with pytest.raises(BusError, match="nack_illegal_write"):
         I2CDevice(bus2, 0x1E).write_register(0x01, 0x00)
+
+
+def test_hmc5883l_is_probed_honestly_and_the_driver_never_turns_its_ts_bit_on():
+    """An HMC5883L answers 0 at 0x31/0x32 (invalid address) and CRA7 must stay 0: the probe does not
+    call it an HMC5983; the HMC5983 driver with temperature=False runs on it and reports no
+    temperature; with temperature=True the ignored TS write fails the read-back at open (never a
+    constant fake 25 degC)."""
+    from magstack.drivers.errors import BusError, ReadbackMismatch
+    from magstack.drivers.i2c_probe import identify
+    from magstack.sim.hmc5983_model import HMC5883LModel
+
+    clock = VirtualClock()
+    truth = StaticTruth((20.0, -5.0, 40.0), temp_c=21.0)
+    model = HMC5883LModel(clock, truth, IdealSensor())
+    bus = SimI2CBus()
+    bus.attach(0x1E, model)
+    assert identify(bus, 0x1E).chip == "hmc5883l_or_hmc5983"
+    d = HMC5983(bus, clock, temperature=False, stuck_limit=None)
+    s = d.read()
+    assert s.temp_c is None and model.values[0x00] & 0x80 == 0
+    np.testing.assert_allclose(s.b_uT, truth.b_uT, atol=0.1)
+    assert identify(bus, 0x1E).chip == "hmc5883l_or_hmc5983"
+    with pytest.raises(ReadbackMismatch):
+        HMC5983(bus, clock, temperature=True)
+    strict = HMC5883LModel(clock, truth, IdealSensor(), lints=("nack_illegal_write",))
+    bus2 = SimI2CBus()
+    bus2.attach(0x1E, strict)
+    with pytest.raises(BusError, match="nack_illegal_write"):
+        HMC5983(bus2, clock, temperature=True)
