@@ -298,6 +298,14 @@ class HMC1053:
         if reset_adc:
             self.adc.reset()
 
+    def reinit(self) -> None:
+        """Recover after persistent faults (the sampling loop calls this): reset and bring up the ADC
+        again, and return the strap line to its idle level so the next cycle's SET edge is clean.
+        The ADC's bus errors propagate (typed) so the caller can count them."""
+        self.strap.set(self._idle_level)
+        self._strap_level = self._idle_level
+        self.adc.reset()
+
     def with_table(self, **changes) -> FrontEndTable:
         """A validated copy of the current table with ``changes`` (does not apply it)."""
         return replace(self.table, **changes).validate()

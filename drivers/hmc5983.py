@@ -214,7 +214,7 @@ class HoneywellStyleMagnetometer(TableMagnetometer):
 
     def reinit(self) -> None:
         """Identity check, power-on values, then the last configuration again."""
-        self.identity = check_identity(self.dev, self.table)
+        self.identity = check_identity(self.dev, self.table, known_present=True)
         self.soft_reset()
         self.configure(**self._config)
 
