@@ -61,6 +61,13 @@ class Chip:
     def period_s(self):
         return self.model.period_s()
 
+    def partial(self, n):
+        """Read the first ``n`` bytes of the data block (n < 6 leaves LOCK / BDU holding)."""
+        self.dev.read_registers(0x28 if self.kind == "lis3mdl" else 0x03, n)
+
+    def read_mode(self):
+        self.dev.read_register(0x22 if self.kind == "lis3mdl" else 0x02)
+
     def poll(self):
         self.dev.read_register(0x27 if self.kind == "lis3mdl" else 0x09)
 
@@ -77,6 +84,10 @@ def _run(kind, ops, poll_fraction):
             chip.gain(arg)
         elif op == "rate":
             chip.rate(arg)
+        elif op == "partial":
+            chip.partial(arg)
+        elif op == "mode":
+            chip.read_mode()
         else:
             remaining = arg * chip.period_s()
             step = poll_fraction * chip.period_s() if poll_fraction else remaining
@@ -91,6 +102,8 @@ def _run(kind, ops, poll_fraction):
 
 OPS = st.lists(st.one_of(st.tuples(st.just("gain"), st.integers(0, 7)),
                          st.tuples(st.just("rate"), st.integers(3, 7)),
+                         st.tuples(st.just("partial"), st.integers(1, 6)),   # LOCK / BDU hold
+                         st.tuples(st.just("mode"), st.just(0)),             # HMC5983: LOCK on MR read
                          # whole periods + 0.37: never exactly on a conversion instant, where summing
                          # the polling steps in floating point could land either side of it
                          st.tuples(st.just("idle"), st.integers(0, 6).map(lambda n: n + 0.37))),
@@ -101,8 +114,9 @@ OPS = st.lists(st.one_of(st.tuples(st.just("gain"), st.integers(0, 7)),
 @settings(max_examples=60, deadline=None)
 @given(ops=OPS, poll=st.sampled_from([0.05, 0.3, 0.9]))
 def test_a_read_does_not_depend_on_how_often_the_host_polled(kind, ops, poll):
-    """Status register and data block after any sequence of range/rate writes and idle times are
-    the same whether the host polled the status register in between or never touched the bus."""
+    """Status register and data block after any sequence of range/rate writes, partial data reads,
+    mode-register reads and idle times are the same whether the host polled the status register in
+    between or never touched the bus (gain lag, data-ready, overrun, LOCK/BDU hold)."""
     ops = [*ops, ("idle", 3.37)]
     assert _run(kind, ops, 0.0) == _run(kind, ops, poll)
 
