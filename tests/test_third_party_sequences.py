@@ -9,7 +9,8 @@ here from their documented behaviour (no code copied):
   the matching performance mode first), range (CTRL_REG2 FS) and continuous mode (CTRL_REG3 MD)
   as read-modify-writes of single registers (``RWBits``), 10 ms sleeps after reset, rate and
   range changes; the field is ``Struct(0x28, "<hhh")``: write [0x28], read 6 bytes, **without**
-  the 0x80 auto-increment flag, scaled by 6842/3421/2281/1711 LSB/G.
+  the 0x80 auto-increment flag, scaled by 6842/3421/2281/1711 LSB/G for the range read back from
+  CTRL_REG2 (once per axis).
 - Adafruit CircuitPython LSM303DLH_Mag (``adafruit_lsm303dlh_mag``): MR <- 0x00 at init; gain
   setter writes CRB only; rate setter writes CRA = rate << 2; the field is write [0x03], read 6
   bytes, ``>hhh`` in X, Z, Y order, scaled by the X/Y and Z gains of the selected range.
@@ -95,7 +96,9 @@ class AdafruitStyleLIS3MDL:
 
     def magnetic(self):
         raw = struct.unpack("<hhh", self.dev.write_then_readinto(bytes([0x28]), 6))
-        return np.array([r / self._lsb * 100.0 for r in raw])
+        # the range used for scaling is read back from CTRL_REG2 for every axis (a property read)
+        lsb = {code: lsb for code, lsb in LIS_RANGES.values()}
+        return np.array([r / lsb[(self._read_u8(0x21) >> 5) & 0x03] * 100.0 for r in raw])
 
 
 def _lis_rig():
