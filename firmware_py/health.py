@@ -20,6 +20,7 @@ class HealthCounters:
     other_errors: int = 0        # any other MagError
     uncalibrated: int = 0        # samples published without an active calibration table
     reinits: int = 0             # driver re-initialisations after persistent faults
+    reinit_failures: int = 0     # re-initialisations that failed (the error is also counted in its class)
     consecutive_faults: int = 0  # resets on every good sample
 
     @property

@@ -56,6 +56,20 @@ class SamplingLoop:
         self.health = HealthCounters()
         self._next_s: float | None = None
 
+    def _count(self, exc: MagError) -> str:
+        """Count ``exc`` in its fault class (the same classes for reads and re-initialisations)."""
+        if isinstance(exc, BusTimeout):
+            self.health.timeouts += 1
+            return "timeout"
+        if isinstance(exc, StaleData):
+            self.health.stale += 1
+            return "stale"
+        if isinstance(exc, BusError):
+            self.health.bus_errors += 1
+            return "bus"
+        self.health.other_errors += 1
+        return type(exc).__name__
+
     def _fault(self, t_s: float, kind: str, exc: Exception | None) -> PublishedSample:
         self.health.consecutive_faults += 1
         if self.health.consecutive_faults >= self.reinit_after and hasattr(self.mag, "reinit"):
@@ -63,8 +77,9 @@ class SamplingLoop:
                 self.mag.reinit()
                 self.health.reinits += 1
                 self.health.consecutive_faults = 0
-            except MagError:
-                self.health.other_errors += 1
+            except MagError as rexc:   # e.g. a NACK during the re-initialisation: a bus error
+                self.health.reinit_failures += 1
+                self._count(rexc)
         return PublishedSample(t_s, None, None, None, False, self.health.error_count,
                                f"{kind}: {exc}" if exc else kind)
 
@@ -79,18 +94,8 @@ class SamplingLoop:
         t_s = self.clock.monotonic_s()
         try:
             sample = self.mag.read()
-        except BusTimeout as exc:
-            self.health.timeouts += 1
-            out = self._fault(t_s, "timeout", exc)
-        except StaleData as exc:
-            self.health.stale += 1
-            out = self._fault(t_s, "stale", exc)
-        except BusError as exc:
-            self.health.bus_errors += 1
-            out = self._fault(t_s, "bus", exc)
         except MagError as exc:
-            self.health.other_errors += 1
-            out = self._fault(t_s, type(exc).__name__, exc)
+            out = self._fault(t_s, self._count(exc), exc)
         else:
             out = self._publish(sample)
         if self.sink is not None:

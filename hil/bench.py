@@ -100,7 +100,8 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
               metadata: Mapping[str, str] | None = None,
               currents: Callable[[float], Mapping[str, float]] | None = None, current_names: tuple[str, ...] = (),
               progress: Callable[..., None] | None = None, max_consecutive_errors: int = 10,
-              threaded: bool | None = None, block_rows: int = 20, ref_clock: Clock | None = None) -> BenchResult:
+              threaded: bool | None = None, block_rows: int = 20, ref_clock: Clock | None = None,
+              temp_calibration=None) -> BenchResult:
     """Record ``seconds`` of DUT and reference samples into the session file ``out``.
 
     ``clock`` times the DUT, ``ref_clock`` (default: the same) the reference; in simulation two
@@ -109,6 +110,10 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
     time order). ``ref_rate_hz``: reference query rate; ``dut_rate_hz``: None = every new DUT
     sample, else one read per period. ``currents(t_monotonic_s)`` (optional) gives the named
     currents recorded on every row (a current monitor; the simulated bench uses the coil program).
+    ``temp_calibration`` (a :class:`magstack.drivers.hmc1053.TempCalibration` fitted from an earlier
+    session against a reference thermometer) is folded into the DUT's board table when the DUT has
+    ``calibrate_temperature`` (HMC1053 front end), else applied to each DUT row's ``temp_c``; the
+    metadata records it.
     """
     if not (seconds > 0 and math.isfinite(seconds)):
         raise ConfigurationError(f"seconds must be > 0, got {seconds}")
@@ -126,6 +131,12 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
             raise ConfigurationError("DUT and reference clocks must share one epoch anchor")
         lag = clock.monotonic_s() - rclock.monotonic_s()  # opening/configuring used different times
         (rclock if lag > 0 else clock).sleep_s(abs(lag))
+    temp_fix = None
+    if temp_calibration is not None:
+        if hasattr(dut, "calibrate_temperature"):
+            dut.calibrate_temperature(temp_calibration)
+        else:
+            temp_fix = temp_calibration.apply
     scheduler = "threads" if threaded else ("discrete-event, one clock per instrument" if rclock is not clock
                                             else "single-thread interleave")
     meta = {"dut_chip": getattr(dut, "name", "unknown"), "dut_serial": str(getattr(dut, "serial", "unknown")),
@@ -133,7 +144,9 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
             "dut_rate_hz": "every new sample" if dut_rate_hz is None else f"{dut_rate_hz:g}",
             "alignment_applied": "none (raw host timestamps; one row per sample of either instrument)",
             "start_utc_epoch_s": f"{clock.epoch_s():.3f}", "requested_s": f"{seconds:g}",
-            "scheduler": scheduler, "software_version": _software_version(), **dict(metadata or {})}
+            "scheduler": scheduler, "software_version": _software_version(),
+            **({"temp_calibration": temp_calibration.describe()} if temp_calibration is not None else {}),
+            **dict(metadata or {})}
     res = BenchResult(Path(out))
     writer = SessionWriter(out, meta, current_names=current_names, block_rows=block_rows)
     t0 = clock.monotonic_s()
@@ -156,7 +169,8 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
         if kind == "dut":
             res.dut_samples += 1
             res.dut_overflows += bool(sample.overflow)
-            temp = math.nan if sample.temp_c is None else float(sample.temp_c)
+            temp = math.nan if sample.temp_c is None else float(sample.temp_c if temp_fix is None
+                                                                 else temp_fix(sample.temp_c))
             row = (t_epoch, NAN3, sample.b_uT, temp, session_id, cur)
         else:
             res.ref_samples += 1

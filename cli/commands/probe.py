@@ -6,7 +6,7 @@ Exit status 0 when at least one known magnetometer was found, 1 otherwise.
 """
 from __future__ import annotations
 
-from magstack.drivers.i2c_probe import ProbeResult, probe
+from magstack.drivers.i2c_probe import ProbeResult, driver_for, probe
 
 
 def register(subparsers) -> None:
@@ -42,7 +42,7 @@ def run(args) -> int:
     print(f"{'bus':<12} {'addr':<5} {'type':<11} {'identity':<22} notes")
     for name, r in found:
         print(format_result(name, r))
-    known = [r for _, r in found if r.chip in ("lis3mdl", "hmc5983", "lsm303dlhc")]
+    known = [r for _, r in found if driver_for(r.chip) is not None]
     if not known:
         print(f"no supported magnetometer found on {args.bus}")
         return 1
