@@ -113,6 +113,8 @@ class MagChannel:
     _repeat_run: int = 0
     _last_counts: tuple[int, int, int] | None = None
     _diffs: deque = field(default_factory=lambda: deque(maxlen=256))
+    _diffs_new: int = 0
+    _threshold: int | None = None
 
     def stale_threshold(self) -> int:
         """Consecutive exact repeats that mean frozen data.
@@ -125,6 +127,13 @@ class MagChannel:
         whose noise spans many counts, 2-3 for a coarse range in a quiet field. Without raw counts (24-bit
         front end, floats) it is 1.
         """
+        if self._diffs_new < 32 and self._threshold is not None:
+            return self._threshold                  # re-estimated every 32 new differences (cheap per cycle)
+        self._diffs_new = 0
+        self._threshold = self._estimate_threshold()
+        return self._threshold
+
+    def _estimate_threshold(self) -> int:
         if len(self._diffs) < 32:
             return 1
         d = np.asarray(self._diffs, dtype=float)
@@ -234,6 +243,7 @@ class MagChannel:
         if isinstance(counts, tuple) and len(counts) == 3 and all(isinstance(c, int) for c in counts):
             if self._last_counts is not None and not same:
                 self._diffs.append(tuple(abs(a - b0) for a, b0 in zip(counts, self._last_counts, strict=True)))
+                self._diffs_new += 1
             self._last_counts = counts
         if self._repeat_run >= k:
             return self._fault(now_s, "stale", EventId.CHAN_STALE, None, s, TlmFlag.STALE | extra_flags)
