@@ -86,10 +86,19 @@ class SamplingLoop:
     def step(self) -> PublishedSample:
         """Wait for the next cycle boundary, read, correct, publish. Never raises MagError."""
         now = self.clock.monotonic_s()
-        if self._next_s is None:
-            self._next_s = now
+        if self._next_s is None or now < self._next_s - self.period_s:
+            self._next_s = now        # first cycle, or the clock went back: re-anchor, never stall
         if self._next_s > now:
             self.clock.sleep_s(self._next_s - now)
+        elif now - self._next_s >= self.period_s:
+            # slots passed while the last read blocked: skip them (counted), no catch-up burst
+            k = int((now - self._next_s) // self.period_s)
+            self.health.missed_slots += k
+            self._next_s += k * self.period_s
+            if self._next_s < now:
+                self._next_s += self.period_s
+                self.health.missed_slots += 1
+                self.clock.sleep_s(self._next_s - now)
         self._next_s += self.period_s
         t_s = self.clock.monotonic_s()
         try:

@@ -145,7 +145,7 @@ def test_cli_refuses_bad_arguments_and_never_overwrites_good_files(tmp_path, cap
     bad.write_text(json.dumps(doc))
     for action, code in (("validate", 1), ("show", 3)):
         assert main(["table", action, str(bad)]) == code
-        assert "S has non-finite values" in capsys.readouterr().err
+        assert "parameters.S.value[1][1]: must be a finite number" in capsys.readouterr().err
     # apply: never onto its own input, never twice
     assert main(["apply", str(out), str(tmp_path / "a.csv"), "--out", str(tmp_path / "a.csv")]) == 2
     assert "is the input file" in capsys.readouterr().err

@@ -145,3 +145,39 @@ def test_nan_from_the_simulated_hmc1053_is_an_overflow_not_an_escape():
     (p,) = loop.run(1)
     assert loop.health.overflows == 1 and loop.health.other_errors == 0
     assert p.b_uT is None and p.fault.startswith("overflow on axes (0, 2)")
+
+
+def test_no_catch_up_burst_after_a_blocking_read():
+    """Issue 17 item 9: after a read that blocks several periods the loop skips the missed slots
+    (counted) instead of running them back to back; a clock stepped back re-anchors at once."""
+    from magstack.drivers.clock import VirtualClock
+    from magstack.drivers.magnetometer import MagSample
+    from magstack.firmware.sampling_loop import SamplingLoop
+
+    clock = VirtualClock()
+
+    class Slow:
+        name = "slow"
+        n = 0
+
+        def read(self):
+            self.n += 1
+            if self.n == 3:
+                clock.sleep_s(0.45)          # blocks 4.5 periods
+            return MagSample(clock.monotonic_s(), (1.0 + self.n, 2.0, 3.0), 25.0)
+
+        def data_ready(self):
+            return True
+
+    loop = SamplingLoop(Slow(), clock, period_s=0.1)
+    starts = []
+    for _ in range(12):
+        loop.step()
+        starts.append(loop._next_s - loop.period_s)
+    gaps = [b - a for a, b in zip(starts, starts[1:], strict=False)]
+    assert min(gaps) >= 0.1 - 1e-9
+    assert loop.health.missed_slots == 4
+    clock._t_s -= 100.0                       # the clock steps back 100 s
+    t0 = clock.monotonic_s()
+    loop.step()
+    assert clock.monotonic_s() - t0 < 0.2     # no 100 s stall
