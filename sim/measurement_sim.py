@@ -4,6 +4,10 @@ Produces the arrays of a session (see data/session.py) without importing hil: ro
 DUT's sample instants; ``ref_uT`` = truth + the reference instrument's own white noise, rounded to
 its 1 nT resolution; ``dut_uT`` = :class:`magstack.sim.error_model.ErrorModel` output. The reference sees
 the true field at the row instant (its own skew is not modelled).
+
+Frames: ``truth_uT`` and ``ref_uT`` are in the body (coil) frame, the reference's axes taken as the
+body axes; ``dut_uT`` is on the DUT's sensor axes (the error model's ``misalignment`` maps body ->
+sensor).
 """
 from __future__ import annotations
 
@@ -60,17 +64,19 @@ def simulate_measurement(params: ErrorParams, truth, *, duration_s: float, rate_
     n = int(math.floor(duration_s * rate_hz + 1e-9)) + 1
     t = t_start_s + np.arange(n) / rate_hz
     model = ErrorModel(params, seed=seed, effects=effects)
-    dut = model.sense_series(t, truth)
+    dut_sensor_uT = model.sense_series(t, truth)
     ts = sample_truth(truth, t)
+    b_body_uT = ts.b_uT
     noise = np.asarray(ref_noise_uT, dtype=float).reshape(3)
     if (noise < 0).any() or not np.isfinite(noise).all():
         raise ConfigurationError(f"ref_noise_uT must be finite and >= 0, got {noise}")
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0xF7A400]))
-    ref = ts.b_uT + rng.standard_normal((n, 3)) * noise
+    ref_body_uT = b_body_uT + rng.standard_normal((n, 3)) * noise
     if ref_lsb_uT > 0:
-        ref = np.round(ref / ref_lsb_uT) * ref_lsb_uT + 0.0  # + 0.0: no negative zeros
+        ref_body_uT = np.round(ref_body_uT / ref_lsb_uT) * ref_lsb_uT + 0.0  # + 0.0: no negative zeros
     effects_on = tuple(e for e in _ordered(model.enabled))
-    return SimulatedRun(t, ts.b_uT, ref, dut, ts.temp_c, ts.session, ts.currents_A, effects_on, seed)
+    return SimulatedRun(t, b_body_uT, ref_body_uT, dut_sensor_uT, ts.temp_c, ts.session, ts.currents_A, effects_on,
+                        seed)
 
 
 def _ordered(names) -> list[str]:
