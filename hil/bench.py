@@ -18,15 +18,23 @@ Fault responses: a reference reply that is garbled, partial, out of range or in 
 is skipped by the driver and counted; a reference timeout or DUT bus error is counted and the
 session continues; ``max_consecutive_errors`` failures in a row on one instrument abort the
 session, leaving the crash-safe ``.part`` file with every row so far.
+
+Stopping early: ``stop`` (anything with ``is_set()``, e.g. a ``threading.Event`` set by a SIGTERM
+handler) ends the session at the next sample; the rows so far are written and the file is closed
+and renamed as usual (a complete, shorter session; ``BenchResult.stopped_early``).
+
+The simulated bench (:func:`record_sim_session`) is the one recipe for "a session on simulated
+hardware": ``magstack bench --bus sim`` and the demo both call it. Progress goes to a callback
+(``progress(elapsed_s, result, final=False)``); the CLI draws it with tqdm. Events are logged
+on the ``magstack.hil.bench`` logger.
 """
 from __future__ import annotations
 
 import heapq
+import logging
 import math
 import queue
-import sys
 import threading
-import time
 from collections import Counter
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -40,6 +48,7 @@ from magstack.drivers.errors import ConfigurationError, MagError
 from magstack.drivers.magnetometer import Magnetometer, MagSample
 
 NAN3 = (math.nan, math.nan, math.nan)
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -56,6 +65,8 @@ class BenchResult:
     dut_overflows: int = 0
     duration_s: float = 0.0
     completed: bool = False
+    #: True when ``stop`` ended the session before ``seconds`` (the file is still complete and closed)
+    stopped_early: bool = False
 
     def summary(self) -> str:
         err = lambda c: ", ".join(f"{k} {v}" for k, v in sorted(c.items())) or "none"  # noqa: E731
@@ -64,7 +75,16 @@ class BenchResult:
                 f"({rate(self.dut_samples):.2f} Hz, overflow {self.dut_overflows}, errors: {err(self.dut_errors)}); "
                 f"reference {self.ref_samples} samples ({rate(self.ref_samples):.2f} Hz, errors: "
                 f"{err(self.ref_errors)}, skipped replies: {err(self.ref_skipped)})"
-                + ("" if self.completed else "; INCOMPLETE (.part file kept)"))
+                + ("" if self.completed else "; INCOMPLETE (.part file kept)")
+                + ("; stopped early on request" if self.stopped_early else ""))
+
+    def to_dict(self) -> dict:
+        """Stable keys for ``magstack bench --json``."""
+        return {"path": str(self.path), "rows": self.rows, "dut_samples": self.dut_samples,
+                "ref_samples": self.ref_samples, "dut_errors": dict(self.dut_errors),
+                "ref_errors": dict(self.ref_errors), "ref_skipped": dict(self.ref_skipped),
+                "dut_overflows": self.dut_overflows, "duration_s": self.duration_s, "completed": self.completed,
+                "stopped_early": self.stopped_early}
 
 
 def _epoch_of(clock: Clock, sample: MagSample) -> float:
@@ -72,35 +92,13 @@ def _epoch_of(clock: Clock, sample: MagSample) -> float:
     return clock.epoch_s() - (clock.monotonic_s() - sample.t_s)
 
 
-class ProgressLine:
-    """A one-line text progress display on a stream (throttled in wall time)."""
-
-    def __init__(self, total_s: float, stream=None, min_interval_s: float = 0.2) -> None:
-        self.total_s = total_s
-        self.stream = stream if stream is not None else sys.stderr
-        self.min_interval_s = min_interval_s
-        self._last = -math.inf
-
-    def __call__(self, elapsed_s: float, res: BenchResult, final: bool = False) -> None:
-        now = time.monotonic()
-        if not final and now - self._last < self.min_interval_s:
-            return
-        self._last = now
-        frac = min(1.0, max(0.0, elapsed_s / self.total_s)) if self.total_s > 0 else 1.0
-        bar = "#" * int(frac * 30)
-        errs = sum(res.dut_errors.values()) + sum(res.ref_errors.values())
-        skipped = sum(res.ref_skipped.values())
-        self.stream.write(f"\r[{bar:<30}] {frac:4.0%} {elapsed_s:7.1f}/{self.total_s:.0f} s  dut {res.dut_samples}"
-                          f"  ref {res.ref_samples}  skipped {skipped}  errors {errs}" + ("\n" if final else ""))
-        self.stream.flush()
-
-
 def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Path, *, seconds: float,
               ref_rate_hz: float = 4.0, dut_rate_hz: float | None = None, session_id: int = 0,
               metadata: Mapping[str, str] | None = None,
               currents: Callable[[float], Mapping[str, float]] | None = None, current_names: tuple[str, ...] = (),
               progress: Callable[..., None] | None = None, max_consecutive_errors: int = 10,
-              threaded: bool | None = None, block_rows: int = 20, ref_clock: Clock | None = None) -> BenchResult:
+              threaded: bool | None = None, block_rows: int = 20, ref_clock: Clock | None = None,
+              stop=None) -> BenchResult:
     """Record ``seconds`` of DUT and reference samples into the session file ``out``.
 
     ``clock`` times the DUT, ``ref_clock`` (default: the same) the reference; in simulation two
@@ -109,6 +107,7 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
     time order). ``ref_rate_hz``: reference query rate; ``dut_rate_hz``: None = every new DUT
     sample, else one read per period. ``currents(t_monotonic_s)`` (optional) gives the named
     currents recorded on every row (a current monitor; the simulated bench uses the coil program).
+    ``stop`` (optional, has ``is_set()``): ends the session early, file closed and complete.
     """
     if not (seconds > 0 and math.isfinite(seconds)):
         raise ConfigurationError(f"seconds must be > 0, got {seconds}")
@@ -136,6 +135,8 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
             "scheduler": scheduler, "software_version": _software_version(), **dict(metadata or {})}
     res = BenchResult(Path(out))
     writer = SessionWriter(out, meta, current_names=current_names, block_rows=block_rows)
+    log.info("bench: recording %g s of %s + %s into %s (%s)", seconds, meta["dut_chip"], meta["reference"],
+             writer.part_path, scheduler)
     t0 = clock.monotonic_s()
     consecutive = {"dut": 0, "ref": 0}
     pending: list[tuple[float, int, tuple]] = []  # rows not yet written: (t_epoch, seq, row)
@@ -146,7 +147,10 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
             bucket = res.dut_errors if kind == "dut" else res.ref_errors
             bucket[type(err).__name__] += 1
             consecutive[kind] += 1
+            log.debug("bench: %s read failed (%s in a row): %s", kind, consecutive[kind], err)
             if consecutive[kind] >= max_consecutive_errors:
+                log.error("bench: %s failed %d times in a row; aborting, %s kept", kind, consecutive[kind],
+                          writer.part_path)
                 raise MagError(f"{kind} failed {consecutive[kind]} times in a row; last: {err}") from err
             return
         assert sample is not None
@@ -177,10 +181,10 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
     try:
         if threaded:
             _run_threaded(dut, ref, clock, rclock, t0, seconds, ref_rate_hz, dut_rate_hz, record, drain, res,
-                          progress)
+                          progress, stop)
         else:
             _run_event_loop(dut, ref, clock, rclock, t0, seconds, ref_rate_hz, dut_rate_hz, record, drain, res,
-                            progress)
+                            progress, stop)
         drain(math.inf)
     except BaseException:
         finish_durations()
@@ -192,6 +196,11 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
     finish_durations()
     writer.close()
     res.completed = True
+    res.stopped_early = stop is not None and stop.is_set()
+    if res.stopped_early:
+        log.warning("bench: stopped on request after %.1f of %g s; %s closed with %d rows", res.duration_s,
+                    seconds, res.path, res.rows)
+    log.info("bench: %s", res.summary())
     if progress is not None:
         progress(res.duration_s, res, final=True)
     return res
@@ -205,7 +214,7 @@ def _read(dev: Magnetometer) -> tuple[MagSample | None, Exception | None]:
 
 
 def _run_event_loop(dut, ref, dclock, rclock, t0, seconds, ref_rate_hz, dut_rate_hz, record, drain, res,
-                    progress) -> None:
+                    progress, stop=None) -> None:
     """Single-thread scheduler: serve whichever instrument's next action comes first.
 
     With one clock this interleaves (a blocking DUT read delays the reference); with one clock
@@ -216,7 +225,7 @@ def _run_event_loop(dut, ref, dclock, rclock, t0, seconds, ref_rate_hz, dut_rate
     next_ref = t0
     next_dut = t0
     same = rclock is dclock
-    while True:
+    while stop is None or not stop.is_set():
         td, tr = dclock.monotonic_s(), rclock.monotonic_s()
         ref_at = max(tr, next_ref)
         dut_at = max(td, next_dut) if dut_rate_hz is not None else td
@@ -246,7 +255,7 @@ def _run_event_loop(dut, ref, dclock, rclock, t0, seconds, ref_rate_hz, dut_rate
 
 
 def _run_threaded(dut, ref, dclock, rclock, t0, seconds, ref_rate_hz, dut_rate_hz, record, drain, res,
-                  progress) -> None:
+                  progress, stop_request=None) -> None:
     events: queue.Queue = queue.Queue()
     stop = threading.Event()
 
@@ -271,6 +280,8 @@ def _run_threaded(dut, ref, dclock, rclock, t0, seconds, ref_rate_hz, dut_rate_h
     done = 0
     try:
         while done < 2:
+            if stop_request is not None and stop_request.is_set():
+                stop.set()  # workers finish their current read and post their done marker
             try:
                 kind, sample, err = events.get(timeout=0.2)
             except queue.Empty:
@@ -341,6 +352,38 @@ def build_sim_bench(chip: str, *, program: str = "steps_x", seconds: float = 60.
     ref = FVM400.open(url, ref_clock)
     dut = open_chip(chip, "sim", clock, **_sim_dut_kwargs(chip, clock, truth, seed))
     return SimBench(clock, ref_clock, truth, dut, ref, model, url)
+
+
+def record_sim_session(chip: str, out: str | Path, *, program: str, seconds: float, seed: int = 0,
+                       session_id: int = 0, ref_rate_hz: float = 4.0, dut_rate_hz: float | None = None,
+                       ref_faults: Mapping[str, float] | None = None, ref_noise_uT: float = 0.0,
+                       instrument_name: str = "bench", metadata: Mapping[str, str] | None = None,
+                       progress: Callable[..., None] | None = None, stop=None) -> tuple[BenchResult, SimBench]:
+    """A bench session on the simulated bench: :func:`build_sim_bench` + :func:`run_bench` in virtual time.
+
+    The one recipe behind ``magstack bench --bus sim`` and the demo. Metadata records bus, program,
+    seed, reference port and noise, injected reference faults, plus ``metadata``. The simulated
+    instrument is closed and unregistered afterwards, also on failure. Returns the result and the
+    bench (its clocks give the end time).
+    """
+    faults = {k: float(v) for k, v in (ref_faults or {}).items() if v}
+    sb = build_sim_bench(chip, program=program, seconds=seconds, seed=seed, ref_faults=faults or None,
+                         ref_noise_uT=ref_noise_uT, instrument_name=instrument_name)
+    try:
+        names, cur = truth_currents(sb.truth)
+        meta = {"bus": "sim", "program": program, "seed": str(seed), "ref_port": sb.ref_url, "clock": "virtual",
+                "ref_noise_uT": f"{ref_noise_uT:g}",
+                "ref_faults": ",".join(f"{k}={v:g}" for k, v in sorted(faults.items())) or "none",
+                **dict(metadata or {})}
+        res = run_bench(sb.dut, sb.ref, sb.clock, out, seconds=seconds, ref_rate_hz=ref_rate_hz,
+                        dut_rate_hz=dut_rate_hz, ref_clock=sb.ref_clock, session_id=session_id, metadata=meta,
+                        currents=cur, current_names=names, progress=progress, stop=stop)
+    finally:
+        from magstack.sim.fvm400_model import unregister_instrument
+
+        sb.ref.close()
+        unregister_instrument(instrument_name)
+    return res, sb
 
 
 def truth_currents(truth) -> tuple[tuple[str, ...], Callable[[float], Mapping[str, float]] | None]:

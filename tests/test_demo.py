@@ -12,12 +12,13 @@ import math
 import numpy as np
 import pytest
 
-from magstack.cli.demo import ARTEFACTS, DEVICE_ID, DemoConfig, FixedPointCorrector, run_demo
+from magstack.cli.demo import ARTEFACTS, DEVICE_ID, DemoConfig, run_demo
 from magstack.cli.main import main
 from magstack.data.session import read_session
 from magstack.drivers.clock import VirtualClock
 from magstack.drivers.errors import ConfigurationError, MagError
 from magstack.firmware.cal_table import CalTableStore, load_table
+from magstack.firmware.corrector import FixedPointCorrector
 from magstack.firmware.fixed_point import to_fixed_inputs
 from magstack.firmware.float_applier import apply_float
 from magstack.ground.errors import AlignmentError
@@ -204,8 +205,14 @@ def test_cli_demo_runs_and_is_deterministic(tmp_path, capsys):
 
 def test_cli_rejects_bad_parameters(tmp_path, capsys):
     assert main(["demo", "--out-dir", str(tmp_path), "--seconds", "10"]) == 2
-    assert "seconds must be in" in capsys.readouterr().err
+    assert "argument --seconds: must be within [300, 36000] s, got '10'" in capsys.readouterr().err
     assert main(["demo", "--out-dir", str(tmp_path), "--seed", "-1"]) == 2
+    assert "argument --seed: must be within [0, 4294967295], got '-1'" in capsys.readouterr().err
+    assert main(["demo", "--out-dir", ""]) == 2
+    assert "argument --out-dir: expected a directory name" in capsys.readouterr().err
+    (tmp_path / "file").write_text("x")
+    assert main(["demo", "--out-dir", str(tmp_path / "file")]) == 2
+    assert "exists and is not a directory" in capsys.readouterr().err
     with pytest.raises(ConfigurationError):
         DemoConfig(seconds=math.nan)
 
