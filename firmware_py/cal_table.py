@@ -256,12 +256,18 @@ def load_table(path: str | os.PathLike) -> CalTable:
         raw = p.read_bytes()
     except OSError as exc:
         raise CalTableInvalid(f"{p}: cannot read ({exc.strerror or exc})") from None
+    nested = CalTableInvalid(f"{p}: not a valid JSON table (nested too deeply)")
     try:
         doc = json.loads(raw.decode("utf-8"), parse_constant=lambda c: (_ for _ in ()).throw(
             ValueError(f"non-finite constant {c}")))
     except (UnicodeDecodeError, ValueError) as exc:
         raise CalTableInvalid(f"{p}: not a valid JSON table (corrupt or truncated: {exc})") from None
-    return table_from_document(doc, str(p))
+    except RecursionError:   # json nests by recursion: a hostile file must not escape as a traceback
+        raise nested from None
+    try:
+        return table_from_document(doc, str(p))
+    except RecursionError:   # the CRC re-serialises the document, also by recursion
+        raise nested from None
 
 
 def save_table(table: CalTable, path: str | os.PathLike) -> Path:

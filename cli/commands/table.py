@@ -41,7 +41,7 @@ def run(args: argparse.Namespace) -> CommandResult:
         if args.action != "validate":
             raise
         log.error("INVALID: %s", exc)
-        return CommandResult("table", {**data, "problems": [str(exc)]}, [], EXIT_NEGATIVE)
+        return CommandResult("table", {**data, "problems": [str(exc)]}, [f"INVALID: {exc}"], EXIT_NEGATIVE)
     v = validate(t)
     data.update(valid=v.ok, problems=list(v.problems), crc32=f"0x{t.crc32:08x}", device_id=t.device_id,
                 model=t.model_name, terms=list(t.terms), worst_output_uT=v.worst_output_uT, max_cond=v.max_cond)
