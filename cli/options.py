@@ -71,7 +71,7 @@ class CommandParser(argparse.ArgumentParser):
 
 # ------------------------------------------------------------------------------ option types
 def _num_text(v: float) -> str:
-    return str(v) if isinstance(v, int) else f"{v:g}"
+    return str(v) if isinstance(v, int) else f"{v:.15g}"
 
 
 def _range_text(lo: float | None, hi: float | None, lo_open: bool, hi_open: bool, unit: str) -> str:

@@ -48,9 +48,10 @@ def bar(total: float | None, desc: str, unit: str = "it", *, enabled: bool = Tru
 class Stages:
     """A bar over named stages; :meth:`next` marks the previous stage done and names the next."""
 
-    def __init__(self, pbar: tqdm, names: Sequence[str]) -> None:
+    def __init__(self, pbar: tqdm, names: Sequence[str], desc: str) -> None:
         self._bar = pbar
         self._names = list(names)
+        self._desc = desc
         self._i = -1
 
     def next(self, name: str | None = None) -> None:
@@ -58,14 +59,14 @@ class Stages:
             self._bar.update(1)
         self._i += 1
         label = name or (self._names[self._i] if self._i < len(self._names) else "")
-        self._bar.set_postfix_str(label, refresh=True)
+        self._bar.set_description(f"{self._desc} ({label})" if label else self._desc, refresh=True)
 
 
 @contextmanager
 def stages(desc: str, names: Sequence[str]) -> Iterator[Stages]:
     """Context manager yielding a :class:`Stages` bar (total = number of stages)."""
-    with bar(len(names), desc, unit="step", bar_format="{desc}: {n_fmt}/{total_fmt} {bar} {postfix} "
-                                                       "[{elapsed}]") as pbar:
-        st = Stages(pbar, names)
+    # tqdm appends ": " to descriptions set later (set_description), not to the initial one
+    with bar(len(names), f"{desc}: ", unit="step", bar_format="{desc}{n_fmt}/{total_fmt} {bar} [{elapsed}]") as pbar:
+        st = Stages(pbar, names, desc)
         yield st
         pbar.update(pbar.total - pbar.n)

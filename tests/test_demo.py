@@ -1,4 +1,4 @@
-"""``magstack demo``: the end-to-end run on the simulated bench (cli/demo.py, cli/commands/demo.py).
+"""``magstack demo``: the end-to-end run on the simulated bench (cli/demo/, cli/commands/demo.py).
 
 One demo run (600 s calibration session, 300 s held-out session) is shared by the figure
 tests; bounds come from the simulated sensor, not from a previous run: the HMC1053 preset's

@@ -72,11 +72,11 @@ def test_effects_option_only_selected_effects(tmp_path):
     (["--without", "nope"], "unknown effect 'nope'"),
     (["--program", "nope"], "invalid choice: 'nope'"),
     (["--seed", "-1"], "--seed"),
-    (["--seconds", "-5"], "argument --seconds: must be within (0, 7.776e+06] s, got '-5'"),
+    (["--seconds", "-5"], "argument --seconds: must be within (0, 7776000] s, got '-5'"),
     # issue 17 item 11: every option validated at parse time, the option named
     (["--t0", "inf"], "argument --t0: expected a finite number"),
     (["--t0", "nan"], "argument --t0: expected a finite number"),
-    (["--t0", "-1"], "argument --t0: must be within [0, 4.10244e+09] s"),
+    (["--t0", "-1"], "argument --t0: must be within [0, 4102444800] s"),
     (["--rate-hz", "1e-300"], "argument --rate-hz: must be within [0.001, 10000] Hz"),
     (["--sessions", "100000"], "argument --sessions: must be within [1, 1000]"),
     (["--sessions", "200", "--seconds", "60"], "fewer than 5 per session for --sessions 200"),

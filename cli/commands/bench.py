@@ -7,6 +7,7 @@ closed and renamed (a complete, shorter session), a message says so, and the exi
 from __future__ import annotations
 
 import argparse
+import time
 from dataclasses import fields
 
 from magstack.cli.interrupt import EXIT_FOR_SIGNAL, graceful_stop
@@ -80,8 +81,15 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def _progress_callback(pbar):
+def _progress_callback(pbar, min_interval_s: float = 0.1):
+    """run_bench's progress callback drawing ``pbar`` (throttled: the event loop calls it per sample)."""
+    last = [-1.0]
+
     def progress(elapsed_s: float, res, final: bool = False) -> None:
+        now = time.monotonic()
+        if not final and now - last[0] < min_interval_s:
+            return
+        last[0] = now
         pbar.n = min(float(pbar.total), round(elapsed_s, 1))
         errs = sum(res.dut_errors.values()) + sum(res.ref_errors.values())
         pbar.set_postfix(dut=res.dut_samples, ref=res.ref_samples, skipped=sum(res.ref_skipped.values()),
