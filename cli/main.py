@@ -62,8 +62,9 @@ def _emit(result, args: argparse.Namespace, json_mode: bool) -> int:
     return int(result or 0)
 
 
-def _error(args: argparse.Namespace, json_mode: bool, message: str, code: int) -> int:
-    print(f"magstack {args.command}: {message}", file=sys.stderr)
+def _error(args: argparse.Namespace, json_mode: bool, message: str, code: int, kind: str = "error") -> int:
+    print(f"magstack {args.command}: {kind}: {message}" if kind else f"magstack {args.command}: {message}",
+          file=sys.stderr)
     if json_mode:
         print(dumps({"command": args.command, "exit_code": code, "error": message}))
     return code
@@ -85,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return _emit(args.func(args), args, json_mode)
     except MagError as exc:
-        return _error(args, json_mode, f"error: {exc}", exc.exit_code)
+        return _error(args, json_mode, str(exc), exc.exit_code)
     except BrokenPipeError:
         # output piped into a reader that stopped (``| head``): files are already written
         devnull = os.open(os.devnull, os.O_WRONLY)
@@ -94,9 +95,9 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         # a file-system problem outside the typed tree (missing output directory, permissions)
         where = f" ({exc.filename})" if exc.filename else ""
-        return _error(args, json_mode, f"error: {exc.strerror or exc}{where}", EXIT_DEVICE)
+        return _error(args, json_mode, f"{exc.strerror or exc}{where}", EXIT_DEVICE)
     except KeyboardInterrupt:
-        return _error(args, json_mode, "interrupted", 130)
+        return _error(args, json_mode, "interrupted", 130, kind="")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -282,3 +282,21 @@ def test_simulate_blocks_match_the_one_shot_simulation():
     # equal up to floating-point rounding of the noise-filter state: at most an occasional 1-LSB flip
     assert np.all(np.abs(dut - one.dut_uT) <= lsb * 1.0001)
     assert np.mean(np.any(dut != one.dut_uT, axis=1)) < 0.01
+
+
+def test_no_module_imports_a_cli_command_module():
+    """Library code (and the demo) never imports from cli/commands/: step logic lives in library layers."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    offenders = []
+    for folder in ("magstack", "drivers", "data", "firmware_py", "sim", "ground", "hil", "cli"):
+        for path in (root / folder).rglob("*.py"):
+            if path.parent.name == "commands" or path.name == "main.py" and path.parent.name == "cli":
+                continue
+            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+                names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                         else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+                offenders += [f"{path.relative_to(root)}: {n}" for n in names if n.startswith("magstack.cli.commands")]
+    assert offenders == []

@@ -198,7 +198,17 @@ def test_cli_demo_runs_and_is_deterministic(tmp_path, capsys):
     for n in range(1, 8):
         assert f"[{n}/7]" in text
     assert "summary" in text and "files written" in text
-    assert main(["demo", "--out-dir", str(b), "--seconds", "300", "--seed", "1"]) == 0
+    # the same run with --json: stdout holds only the summary figures as strict JSON
+    assert main(["demo", "--out-dir", str(b), "--seconds", "300", "--seed", "1", "--json"]) == 0
+    cap = capsys.readouterr()
+
+    def refuse(c):
+        raise ValueError(f"non-standard JSON constant {c}")
+
+    doc = json.loads(cap.out, parse_constant=refuse)
+    assert doc["command"] == "demo" and doc["exit_code"] == 0 and doc["out_dir"] == str(b)
+    assert {"probe", "bench", "align", "fit", "table", "holdout", "loop", "wall_s", "files"} <= set(doc)
+    assert doc["loop"]["health"]["error_count"] == 2 and cap.err == ""
     for name in ("session.csv", "session-paired.csv", "cal.json", "holdout-calibrated.csv", "flight-loop.csv"):
         assert (a / name).read_bytes() == (b / name).read_bytes(), name
 

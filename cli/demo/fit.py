@@ -71,11 +71,11 @@ def fit_calibration(paired_path: Path, report_path: Path, *, exclude_steps_uT: f
                     say: Say = print) -> FitFigures:
     """Fit Eq. 3 (+ the optional terms that help held out) to the paired session."""
     paired = read_session(paired_path)
-    fd = FitData.from_session(paired)
+    fit_data = FitData.from_session(paired)
     opts = FitOptions(exclude_ref_steps_uT=exclude_steps_uT)
-    sel = select_terms(fd, candidates=CANDIDATE_TERMS, t0_c=25.0, options=opts)
+    sel = select_terms(fit_data, candidates=CANDIDATE_TERMS, t0_c=25.0, options=opts)
     res, best, cands = sel.result, sel.best, sel.candidates
-    st = res.stats()
+    stats = res.stats()
     for c in cands:
         mark = "<- adopted" if c is best else ("" if c["fixed_point"] else "(float-only: not loadable on board)")
         say(f"  {c['model']:<22} in-sample {c['rmse_norm_uT'] * 1e3:7.1f} nT   held-out time blocks "
@@ -98,8 +98,8 @@ def fit_calibration(paired_path: Path, report_path: Path, *, exclude_steps_uT: f
         f"{rec['O_max_abs_uT'] * 1e3:.1f} nT")
     # the same fit on the thermally flattest slice: what the report does when the data cannot
     # determine the temperature terms
-    mask, span = flattest_window(fd.temp_c)
-    flat = fd.select(mask)
+    mask, span = flattest_window(fit_data.temp_c)
+    flat = fit_data.select(mask)
     t0 = float(np.nanmin(paired.t_s))
     window = (float(flat.t_s.min() - t0), float(flat.t_s.max() - t0))
     flat_opts = FitOptions(exclude_ref_steps_uT=exclude_steps_uT, holdout=False)
@@ -122,6 +122,7 @@ def fit_calibration(paired_path: Path, report_path: Path, *, exclude_steps_uT: f
                                  + "\n".join(json.dumps(c) for c in cands) + "\n\nFlat-slice refusal:\n"
                                  + (refused or "none") + "\n", encoding="utf-8")
     return FitFigures(res.model.name, list(best["terms"]), cands, rec, res.n_used, res.n_excluded,
-                      [float(x) for x in res.raw_rmse_uT], st["raw_rmse_norm_uT"], [float(x) for x in res.rmse_uT],
-                      st["rmse_norm_uT"], st["holdout_blocks_rmse_norm_uT"], st["noise_floor_norm_uT"], held, spans,
+                      [float(x) for x in res.raw_rmse_uT], stats["raw_rmse_norm_uT"], [float(x) for x in res.rmse_uT],
+                      stats["rmse_norm_uT"], stats["holdout_blocks_rmse_norm_uT"], stats["noise_floor_norm_uT"], held,
+                      spans,
                       window, span, slice_held, refused, Path(report_path), res)
