@@ -39,10 +39,9 @@ def common_parser() -> argparse.ArgumentParser:
     """The parent parser holding the flags every sub-command has (defaults suppressed, so that a
     nested sub-command does not reset a flag given to its parent; read them with :func:`common_flags`)."""
     p = argparse.ArgumentParser(add_help=False)
-    g = p.add_argument_group("output")
-    g.add_argument("--json", action="store_true", default=argparse.SUPPRESS,
+    p.add_argument("--json", action="store_true", default=argparse.SUPPRESS,
                    help="print the result as one strict JSON object on stdout (non-finite numbers -> null)")
-    v = g.add_mutually_exclusive_group()
+    v = p.add_mutually_exclusive_group()
     v.add_argument("-v", "--verbose", action="count", default=argparse.SUPPRESS,
                    help="more log messages on stderr (-vv: debug)")
     v.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,

@@ -138,41 +138,7 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
     log.info("bench: recording %g s of %s + %s into %s (%s)", seconds, meta["dut_chip"], meta["reference"],
              writer.part_path, scheduler)
     t0 = clock.monotonic_s()
-    consecutive = {"dut": 0, "ref": 0}
-    pending: list[tuple[float, int, tuple]] = []  # rows not yet written: (t_epoch, seq, row)
-    seq = [0]
-
-    def record(kind: str, sample: MagSample | None, err: Exception | None) -> None:
-        if err is not None:
-            bucket = res.dut_errors if kind == "dut" else res.ref_errors
-            bucket[type(err).__name__] += 1
-            consecutive[kind] += 1
-            log.debug("bench: %s read failed (%s in a row): %s", kind, consecutive[kind], err)
-            if consecutive[kind] >= max_consecutive_errors:
-                log.error("bench: %s failed %d times in a row; aborting, %s kept", kind, consecutive[kind],
-                          writer.part_path)
-                raise MagError(f"{kind} failed {consecutive[kind]} times in a row; last: {err}") from err
-            return
-        assert sample is not None
-        consecutive[kind] = 0
-        t_epoch = _epoch_of(clock if kind == "dut" else rclock, sample)
-        cur = dict(currents(sample.t_s)) if currents is not None else {}
-        if kind == "dut":
-            res.dut_samples += 1
-            res.dut_overflows += bool(sample.overflow)
-            temp = math.nan if sample.temp_c is None else float(sample.temp_c)
-            row = (t_epoch, NAN3, sample.b_uT, temp, session_id, cur)
-        else:
-            res.ref_samples += 1
-            row = (t_epoch, sample.b_uT, NAN3, math.nan, session_id, cur)
-        heapq.heappush(pending, (t_epoch, seq[0], row))
-        seq[0] += 1
-        res.rows += 1
-
-    def drain(watermark_epoch: float) -> None:
-        """Write buffered rows stamped at or before the watermark, in time order."""
-        while pending and pending[0][0] <= watermark_epoch:
-            writer.write_row(*heapq.heappop(pending)[2])
+    rec = _Recorder(res, writer, clock, rclock, currents, session_id, max_consecutive_errors)
 
     def finish_durations() -> None:
         res.duration_s = max(clock.monotonic_s(), rclock.monotonic_s()) - t0
@@ -180,16 +146,16 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
 
     try:
         if threaded:
-            _run_threaded(dut, ref, clock, rclock, t0, seconds, ref_rate_hz, dut_rate_hz, record, drain, res,
-                          progress, stop)
+            _run_threaded(dut, ref, clock, rclock, t0, seconds, ref_rate_hz, dut_rate_hz, rec.record, rec.drain,
+                          res, progress, stop)
         else:
-            _run_event_loop(dut, ref, clock, rclock, t0, seconds, ref_rate_hz, dut_rate_hz, record, drain, res,
-                            progress, stop)
-        drain(math.inf)
+            _run_event_loop(dut, ref, clock, rclock, t0, seconds, ref_rate_hz, dut_rate_hz, rec.record, rec.drain,
+                            res, progress, stop)
+        rec.drain(math.inf)
     except BaseException:
         finish_durations()
         try:
-            drain(math.inf)
+            rec.drain(math.inf)
         finally:
             writer.abort()
         raise
@@ -204,6 +170,60 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
     if progress is not None:
         progress(res.duration_s, res, final=True)
     return res
+
+
+class _Recorder:
+    """Turns samples and read errors into counted results and time-ordered session rows.
+
+    ``record`` counts an error (aborting after ``max_consecutive`` in a row on one instrument) or
+    buffers a sample as a row stamped with its host epoch; ``drain`` writes the buffered rows up
+    to a watermark in time order (rows of the two instruments interleave correctly).
+    """
+
+    def __init__(self, res: BenchResult, writer: SessionWriter, dut_clock: Clock, ref_clock: Clock,
+                 currents: Callable[[float], Mapping[str, float]] | None, session_id: int,
+                 max_consecutive: int) -> None:
+        self.res = res
+        self.writer = writer
+        self.clocks = {"dut": dut_clock, "ref": ref_clock}
+        self.currents = currents
+        self.session_id = session_id
+        self.max_consecutive = max_consecutive
+        self.consecutive = {"dut": 0, "ref": 0}
+        self.pending: list[tuple[float, int, tuple]] = []  # rows not yet written: (t_epoch, seq, row)
+        self.seq = 0
+
+    def record(self, kind: str, sample: MagSample | None, err: Exception | None) -> None:
+        res = self.res
+        if err is not None:
+            (res.dut_errors if kind == "dut" else res.ref_errors)[type(err).__name__] += 1
+            self.consecutive[kind] += 1
+            n = self.consecutive[kind]
+            log.debug("bench: %s read failed (%s in a row): %s", kind, n, err)
+            if n >= self.max_consecutive:
+                log.error("bench: %s failed %d times in a row; aborting, %s kept", kind, n, self.writer.part_path)
+                raise MagError(f"{kind} failed {n} times in a row; last: {err}") from err
+            return
+        assert sample is not None
+        self.consecutive[kind] = 0
+        t_epoch = _epoch_of(self.clocks[kind], sample)
+        cur = dict(self.currents(sample.t_s)) if self.currents is not None else {}
+        if kind == "dut":
+            res.dut_samples += 1
+            res.dut_overflows += bool(sample.overflow)
+            temp = math.nan if sample.temp_c is None else float(sample.temp_c)
+            row = (t_epoch, NAN3, sample.b_uT, temp, self.session_id, cur)
+        else:
+            res.ref_samples += 1
+            row = (t_epoch, sample.b_uT, NAN3, math.nan, self.session_id, cur)
+        heapq.heappush(self.pending, (t_epoch, self.seq, row))
+        self.seq += 1
+        res.rows += 1
+
+    def drain(self, watermark_epoch: float) -> None:
+        """Write buffered rows stamped at or before the watermark, in time order."""
+        while self.pending and self.pending[0][0] <= watermark_epoch:
+            self.writer.write_row(*heapq.heappop(self.pending)[2])
 
 
 def _read(dev: Magnetometer) -> tuple[MagSample | None, Exception | None]:

@@ -55,9 +55,9 @@ def flight_loop(store, out_path: Path, *, seed: int, cycles: int, period_s: floa
     """Run the flight sampling loop on a simulated HMC1053, inject an SPI fault and a stuck DRDY."""
     clock = VirtualClock()
     truth = StaticTruth(LOOP_FIELD_uT, LOOP_TEMP_C)
-    rig = build_sim_hmc1053(clock, truth=truth, seed=seed)   # the typed board handle, for fault injection
+    board = build_sim_hmc1053(clock, truth=truth, seed=seed)   # the typed board handle, for fault injection
     corrector = FixedPointCorrector(store)
-    loop = SamplingLoop(rig.front_end, clock, period_s=period_s, corrector=corrector)
+    loop = SamplingLoop(board.front_end, clock, period_s=period_s, corrector=corrector)
     bus_fault_at, drdy_fault_at = cycles // 4, (2 * cycles) // 3
     injected = {"bus_errors": 0, "timeouts": 0}
     published = []
@@ -67,9 +67,9 @@ def flight_loop(store, out_path: Path, *, seed: int, cycles: int, period_s: floa
     for k in range(cycles):
         store.cycle_boundary()  # the scheduler's table-swap point (nothing staged here)
         if k == bus_fault_at:
-            rig.spi.inject_fault(1)
+            board.spi.inject_fault(1)
             injected["bus_errors"] += 1
-        rig.adc_model.drdy_stuck_high = k == drdy_fault_at
+        board.adc_model.drdy_stuck_high = k == drdy_fault_at
         if k == drdy_fault_at:
             injected["timeouts"] += 1
         p = loop.step()
@@ -81,7 +81,7 @@ def flight_loop(store, out_path: Path, *, seed: int, cycles: int, period_s: floa
         tail = f"  FAULT {p.fault}" if p.fault else ""
         errs = f"{err:9.1f}" if math.isfinite(err) else f"{'-':>9}"
         say(f"    {k:5d} {p.t_s:8.3f}  {raw}  {calv} {errs} {p.error_count:6d}{tail}")
-    rig.adc_model.drdy_stuck_high = False
+    board.adc_model.drdy_stuck_high = False
     health = loop.health.snapshot()
     good = [p for p in published if p["b_uT"] is not None]
     raw_err = norm_rms_uT(np.array([np.subtract(p["raw_uT"], LOOP_FIELD_uT) for p in good]).reshape(-1, 3))
