@@ -72,10 +72,17 @@ def _error(args: argparse.Namespace, json_mode: bool, message: str, code: int, k
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    CommandParser.last_error = None
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # usage error (2) or --help / --version (0)
-        return EXIT_USAGE if exc.code not in (0, None) else 0
+        if exc.code in (0, None):
+            return 0
+        if "--json" in argv and CommandParser.last_error is not None:
+            command = next((a for a in argv if not a.startswith("-")), None)
+            print(dumps({"command": command, "exit_code": EXIT_USAGE, "error": CommandParser.last_error}))
+        return EXIT_USAGE
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return EXIT_USAGE

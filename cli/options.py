@@ -62,10 +62,17 @@ class CommandParser(argparse.ArgumentParser):
     common one (``conflict_handler="resolve"``) instead of failing at start-up.
     """
 
+    #: The last usage-error message (main() repeats it as JSON when --json was asked for).
+    last_error: str | None = None
+
     def __init__(self, *a: Any, **kw: Any) -> None:
         kw["parents"] = [*kw.get("parents", ()), common_parser()]
         kw.setdefault("conflict_handler", "resolve")
         super().__init__(*a, **kw)
+
+    def error(self, message: str):
+        CommandParser.last_error = message
+        super().error(message)
 
 
 # ------------------------------------------------------------------------------ option types

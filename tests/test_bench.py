@@ -268,3 +268,36 @@ def test_cli_bench_validates_options_at_parse_time(tmp_path, capsys, args, msg):
     assert main(argv) == 2
     assert msg in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
+
+
+def test_threaded_session_stops_on_request(tmp_path):
+    import threading
+
+    clock = SystemClock()
+    stop = threading.Event()
+    timer = threading.Timer(0.5, stop.set)
+    timer.start()
+    try:
+        res = run_bench(_SlowDut(clock), _FlakyRef(clock), clock, tmp_path / "t.csv", seconds=30.0, ref_rate_hz=10.0,
+                        stop=stop)
+    finally:
+        timer.cancel()
+    assert res.completed and res.stopped_early and res.duration_s < 5.0
+    assert len(read_session(tmp_path / "t.csv")) == res.rows > 0
+
+
+def test_graceful_stop_turns_sigterm_into_an_event_and_restores_handlers():
+    import os
+    import signal
+    import time
+
+    from magstack.cli.interrupt import graceful_stop
+
+    before = signal.getsignal(signal.SIGTERM)
+    with graceful_stop() as stop:
+        os.kill(os.getpid(), signal.SIGTERM)
+        deadline = time.monotonic() + 5
+        while not stop.is_set() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert stop.is_set() and stop.signal_name == "SIGTERM"
+    assert signal.getsignal(signal.SIGTERM) == before

@@ -88,6 +88,11 @@ def test_usage_errors_exit_2_without_systemexit(capsys):
     assert "unrecognized arguments: --bogus" in capsys.readouterr().err
     assert main(["--version"]) == 0
     assert main(["probe", "--json", "--quiet", "--verbose"]) == 2   # -v and -q exclude each other
+    capsys.readouterr()
+    assert main(["simulate", "--json", "--t0", "nan", "--out", "x.csv"]) == 2   # scripts asking JSON get JSON
+    doc = strict_json(capsys.readouterr().out)
+    assert doc == {"command": "simulate", "exit_code": 2,
+                   "error": "argument --t0: expected a finite number [0, 4102444800] s, got 'nan' (not finite)"}
 
 
 @pytest.fixture(scope="module")

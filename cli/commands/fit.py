@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 
 from magstack.cli.options import finite_float, float_list, nonempty_path
-from magstack.cli.output import CommandResult
+from magstack.cli.output import CommandResult, say
 from magstack.cli.progress import stages
 from magstack.data.session import load_sessions, refuse_overwriting_inputs
 from magstack.drivers.errors import ConfigurationError
@@ -84,8 +84,8 @@ def run(args: argparse.Namespace) -> CommandResult:
                                validity_temp_c=args.validity_temp, validity_field_uT=args.validity_field)
         v = validate(table)
         if not v.ok:   # never replace a file (perhaps a good table) with one the board would refuse
-            raise CalTableInvalid(f"fitted table fails validation, {args.out} not written: "
-                                  + "; ".join(v.problems) + f"\n{report}")
+            say(report)   # the report explains why; the error itself stays one line
+            raise CalTableInvalid(f"fitted table fails validation, {args.out} not written: " + "; ".join(v.problems))
         save_table(table, args.out)
     crc = table.to_document()["crc32"]
     lines = [f"note: {n}" for n in notes] + [report,
