@@ -50,6 +50,21 @@ class ProbeResult:
     notes: str = ""
 
 
+#: Column header matching :func:`format_probe_result` lines.
+PROBE_TABLE_HEADER = f"{'bus':<12} {'addr':<5} {'type':<11} {'identity':<22} notes"
+
+
+def identity_text(r: ProbeResult) -> str:
+    """Identity bytes as hex and printable ASCII, e.g. ``48 34 33 'H43'``."""
+    text = "".join(chr(b) if 0x20 <= b < 0x7F else "." for b in r.identity)
+    return f"{r.identity.hex(' ')} '{text}'"
+
+
+def format_probe_result(bus_name: str, r: ProbeResult) -> str:
+    """One fixed-width line: bus, address, chip, identity, notes (columns of PROBE_TABLE_HEADER)."""
+    return f"{bus_name:<12} {r.address:#04x}  {(r.chip or 'unknown'):<11} {identity_text(r):<22} {r.notes}"
+
+
 def scan(bus: I2CBus, addresses=range(0x08, 0x78)) -> list[int]:
     """Addresses that acknowledge an address-only write (like ``i2cdetect -q``)."""
     found = []

@@ -162,5 +162,8 @@ def test_cli_read_options_and_errors(capsys):
     assert main(["read", "--chip", "hmc5983", "-n", "1", "--range", "500"]) == 2
     err = capsys.readouterr().err
     assert "error: invalid hmc5983 range_uT 500" in err and "88, 130" in err
-    with pytest.raises(SystemExit):
-        main(["read", "--chip", "nosuchchip"])
+    assert main(["read", "--chip", "nosuchchip"]) == 2   # usage error: exit 2, no SystemExit out of main()
+    assert "argument --chip: invalid choice: 'nosuchchip'" in capsys.readouterr().err
+    for bad in (["-n", "0"], ["--range", "nan"], ["--rate", "-1"]):
+        assert main(["read", "--chip", "lis3mdl", *bad]) == 2
+        assert f"argument {bad[0]}: " in capsys.readouterr().err
