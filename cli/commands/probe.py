@@ -10,7 +10,6 @@ from magstack.cli.output import CommandResult
 from magstack.drivers.i2c_probe import PROBE_TABLE_HEADER, ProbeResult, driver_for, format_probe_result, probe
 
 
-
 def register(subparsers) -> None:
     p = subparsers.add_parser("probe", help="scan I2C bus(es) and identify magnetometers",
                               description=__doc__.split("\n\n")[0].replace("``", ""))
