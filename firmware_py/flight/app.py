@@ -19,11 +19,11 @@ from typing import Any
 from magstack.drivers.clock import SystemClock, VirtualClock
 from magstack.drivers.registry import open_chip
 from magstack.firmware.cal_table import CalTableStore, load_table, validate
+from magstack.firmware.corrector import TableCorrector
 from magstack.firmware.errors import CalTableInvalid
 from magstack.firmware.flight.channel import ChannelLimits, MagChannel
 from magstack.firmware.flight.commands import Command, CommandSpool
 from magstack.firmware.flight.config import FlightConfig, SensorConfig
-from magstack.firmware.flight.corrector import TableCorrector
 from magstack.firmware.flight.events import EventFileSink, EventId, EventLog
 from magstack.firmware.flight.executive import Executive, RateGroup
 from magstack.firmware.flight.telemetry import ChannelTelemetry
