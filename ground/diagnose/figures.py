@@ -84,6 +84,9 @@ def _scatter(x, base, explained, xlabel, verdict):
         if verdict != "none":
             ax.plot(x[order], explained[order, i], ".", ms=1.5, color="tab:red", label=f"{verdict} fit")
         ax.set_ylabel(f"{_AX[i]} (nT)")
+        lim = float(np.nanquantile(np.abs(base[:, i]), 0.995)) * 1.5
+        if np.isfinite(lim) and lim > 0:   # a few step rows must not flatten the rest
+            ax.set_ylim(-lim, lim)
         if i == 0:
             ax.legend(loc="upper right", markerscale=6)
     axs[2, 0].set_xlabel(xlabel)

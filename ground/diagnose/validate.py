@@ -128,11 +128,26 @@ def _row(kind, withheld, scale, seed, d, seconds) -> dict:
             "top": [(r["effect"], round(r["rmse_nT"], 1), r["significant"]) for r in j["ranking"][:3]]}
 
 
-def run_validation(out_dir, seeds: int = 1, n_null: int | None = None, duration_s: float = DURATION_S,
-                   progress: bool = True) -> dict:
-    """Run the whole validation, write results into ``out_dir`` and return the summary dict."""
-    from tqdm import tqdm
+def _jobs(seeds: int, n_null: int | None) -> list[tuple]:
+    effects = [e for e in nameable() if e in STRENGTHS]
+    n_null = n_null if n_null is not None else max(20, 10 * seeds)
+    jobs = [("withheld", e, s, 1000 * k + i) for k, e in enumerate(effects) for s in (1.0, 0.5)
+            for i in range(seeds)]
+    jobs += [("null", None, 0.0, 50_000 + i) for i in range(n_null)]
+    jobs += [("table", e, 1.0, 70_000 + i) for e in ("offset", "temperature_offset", "none") for i in range(seeds)]
+    jobs += [("sim", "offset", 1.0, 80_000 + i) for i in range(seeds)]
+    return jobs
 
+
+def jobs_count(seeds: int = 1, n_null: int | None = None) -> int:
+    """Number of sessions :func:`run_validation` simulates and diagnoses (for a progress bar)."""
+    return len(_jobs(seeds, n_null))
+
+
+def run_validation(out_dir, seeds: int = 1, n_null: int | None = None, duration_s: float = DURATION_S,
+                   on_session=None) -> dict:
+    """Run the whole validation, write results into ``out_dir`` and return the summary dict.
+    ``on_session()`` is called after each session (progress)."""
     from magstack.ground.diagnose.sim_adapter import params_document, sim_gap
     from magstack.ground.diagnose.spec import table_gap
 
@@ -140,16 +155,11 @@ def run_validation(out_dir, seeds: int = 1, n_null: int | None = None, duration_
     out.mkdir(parents=True, exist_ok=True)
     effects = [e for e in nameable() if e in STRENGTHS]
     not_validated = [e for e in nameable() if e not in STRENGTHS]
-    n_null = n_null if n_null is not None else max(20, 10 * seeds)
-    jobs = [("withheld", e, s, 1000 * k + i) for k, e in enumerate(effects) for s in (1.0, 0.5)
-            for i in range(seeds)]
-    jobs += [("null", None, 0.0, 50_000 + i) for i in range(n_null)]
-    jobs += [("table", e, 1.0, 70_000 + i) for e in ("offset", "temperature_offset", "none") for i in range(seeds)]
-    jobs += [("sim", "offset", 1.0, 80_000 + i) for i in range(seeds)]
+    jobs = _jobs(seeds, n_null)
     rows = []
     opts = Options()
     t_all = time.perf_counter()
-    for kind, e, scale, seed in tqdm(jobs, desc="validate-diagnosis", disable=not progress, unit="session"):
+    for kind, e, scale, seed in jobs:
         t0 = time.perf_counter()
         if kind in ("withheld", "null"):
             s = simulate(e, scale, seed, duration_s)
@@ -160,6 +170,8 @@ def run_validation(out_dir, seeds: int = 1, n_null: int | None = None, duration_
         else:
             d = _sim_case(seed, duration_s, opts, out, params_document, sim_gap)
         rows.append(_row(kind, e, scale, seed, d, time.perf_counter() - t0))
+        if on_session is not None:
+            on_session()
     summary = summarise(rows, effects, not_validated, time.perf_counter() - t_all)
     _write(out, rows, summary)
     return summary
