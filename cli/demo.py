@@ -44,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from magstack.data.io import to_json
 from magstack.drivers.errors import ConfigurationError, MagError
 from magstack.firmware.errors import CalTableInvalid, FitError
 
@@ -128,16 +129,6 @@ def _norm_rms_uT(err_uT: np.ndarray) -> float:
 
 def _iso_utc(epoch_s: float) -> str:
     return _dt.datetime.fromtimestamp(round(epoch_s), _dt.UTC).isoformat().replace("+00:00", "Z")
-
-
-def _json_default(x):
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, (np.floating, np.integer)):
-        return x.item()
-    if isinstance(x, Path):
-        return str(x)
-    raise TypeError(f"not JSON serialisable: {type(x).__name__}")
 
 
 def _finite_or_none(x: float) -> float | None:
@@ -283,15 +274,15 @@ class AlignFigures:
 
 def align_session(raw_path: Path, paired_path: Path, *, say: Say = print, verbose: bool = True) -> AlignFigures:
     """Estimate offset / skew / axis map from a raw bench session and write the paired session."""
+    from magstack.data.pairing import split_streams
     from magstack.data.session import read_session, write_session
     from magstack.ground.alignment import align_streams, aligned_session
-    from magstack.hil.bench import paired_view
 
     raw = read_session(raw_path)
-    t_dut, dut, t_ref, ref = paired_view(raw)
+    st = split_streams(raw)
     # both streams carry the host clock: search 0 +- 10 s as `magstack align` does for a session file
-    temp_dut_c = raw.temp_c[np.all(np.isfinite(raw.dut_uT), axis=1)]   # same rows paired_view keeps
-    rep = align_streams(t_dut, dut, t_ref, ref, prior_s=0.0, search_halfwidth_s=10.0, temp_c=temp_dut_c)
+    rep = align_streams(st.t_dut_s, st.dut_uT, st.t_ref_s, st.ref_uT, prior_s=0.0, search_halfwidth_s=10.0,
+                        temp_c=st.temp_dut_c)
     paired = aligned_session(raw, rep, correct_skew=True)
     write_session(paired_path, paired)
     am = rep.axis_map
@@ -810,7 +801,7 @@ def run_demo(config: DemoConfig | None = None, *, say: Say = print) -> DemoResul
 
     with _step(1, "probe", "probe the simulated bench and read every chip (magstack.drivers.registry)", res, say):
         res.probe = probe_bench(cfg.seed, samples_per_chip=cfg.samples_per_chip, say=say)
-        (out / "probe.json").write_text(json.dumps(res.probe.__dict__, default=_json_default, indent=1) + "\n",
+        (out / "probe.json").write_text(to_json(res.probe.__dict__, indent=1) + "\n",
                                         encoding="utf-8")
         sh = ", ".join(f"{c} on {b}" for b, c in res.probe.shared_address_chips.items())
         say(f"  -> {len(res.probe.devices)} I2C magnetometers identified (0x1E: {sh}) + HMC1053/ADS1248 on SPI")
@@ -851,7 +842,7 @@ def run_demo(config: DemoConfig | None = None, *, say: Say = print) -> DemoResul
 
     res.wall_s = time.perf_counter() - t_start
     res.files = [out / n for n in ARTEFACTS if n != "summary.json"] + [out / "summary.json"]
-    (out / "summary.json").write_text(json.dumps(res.figures(), default=_json_default, indent=1) + "\n",
+    (out / "summary.json").write_text(to_json(res.figures(), indent=1) + "\n",
                                       encoding="utf-8")
     for line in summary_lines(res):
         say(line)

@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from magstack.data.pairing import finite_rows, sort_unique, split_streams
 from magstack.ground.errors import AlignmentError
 
 AXES = "xyz"
@@ -290,16 +291,11 @@ def _clean(t: np.ndarray, v: np.ndarray, what: str, temp_c: np.ndarray | None = 
         temp = np.asarray(temp_c, float).reshape(-1)
         if temp.size != t.size:
             raise AlignmentError(f"{what}: temp_c has {temp.size} values for {t.size} timestamps")
-    ok = np.isfinite(t) & np.all(np.isfinite(v), axis=1)
-    t, v = t[ok], v[ok]
-    order = np.argsort(t, kind="stable")
-    t, v = t[order], v[order]
-    keep = np.concatenate([[True], np.diff(t) > 0])
+    arrays = (v,) if temp is None else (v, temp)
+    t, cleaned, _ = sort_unique(t, *arrays, keep=finite_rows(t, v))
     if t.size < 10:
         raise AlignmentError(f"{what}: only {t.size} finite samples; need at least 10")
-    if temp_c is None:
-        return t[keep], v[keep]
-    return t[keep], v[keep], temp[ok][order][keep]
+    return (t, cleaned[0]) if temp is None else (t, cleaned[0], cleaned[1])
 
 
 def _temperature_terms(t_s: np.ndarray, temp_c: np.ndarray | None, mode: str, min_span_c: float,
@@ -758,12 +754,14 @@ def aligned_session(session, report: AlignmentReport, *, correct_skew: bool = Fa
 
     if gaps not in ("nan", "drop"):
         raise AlignmentError(f"gaps must be 'nan' or 'drop', got {gaps!r}")
-    d = np.all(np.isfinite(session.dut_uT), axis=1)
-    r = np.all(np.isfinite(session.ref_uT), axis=1)
-    if d.sum() < 2 or r.sum() < 2:
-        raise AlignmentError(f"session has {int(d.sum())} DUT and {int(r.sum())} reference rows: nothing to pair")
-    t_dut, dut = session.t_s[d], session.dut_uT[d].copy()
-    t_ref, ref = session.t_s[r], session.ref_uT[r]
+    streams = split_streams(session)
+    d = streams.dut_rows
+    if d.sum() < 2 or streams.ref_rows.sum() < 2:
+        raise AlignmentError(f"session has {int(d.sum())} DUT and {int(streams.ref_rows.sum())} reference rows: "
+                             "nothing to pair")
+    streams.require_increasing()   # names file and line of the first out-of-order row
+    t_dut, dut = streams.t_dut_s, streams.dut_uT.copy()
+    t_ref, ref = streams.t_ref_s, streams.ref_uT
     gap = max_gap_s if max_gap_s is not None else max(4 * float(np.median(np.diff(t_ref))), 1.0)
     off = report.offset.offset_s
     ref_on, ok = interp_no_extrapolation(t_ref + off, ref, t_dut, gap)
@@ -784,5 +782,6 @@ def aligned_session(session, report: AlignmentReport, *, correct_skew: bool = Fa
     meta["gap_rows"] = str(int((flag != 0).sum()))
     meta["gap_policy"] = gaps
     out = Session(t_dut, ref_on, dut, session.temp_c[d], session.session[d],
-                  {k: v[d] for k, v in session.currents_A.items()}, meta, flag)
+                  {k: v[d] for k, v in session.currents_A.items()}, meta, flag,
+                  extra={k: v[d] for k, v in session.extra.items()})
     return out.select(flag == 0) if gaps == "drop" else out

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from magstack.data.errors import SessionFileError
+from magstack.data.pairing import sort_unique
 from magstack.data.session import Session, read_text_file
 from magstack.drivers.errors import ConfigurationError
 from magstack.ground.alignment import estimate_clock_offset, interp_no_extrapolation
@@ -79,14 +80,6 @@ def _parse_rows(path: Path, ncols: int, header: Sequence[str] | None, bad_lines:
     if len(rows) < 2:
         raise SessionFileError(f"{path}: only {len(rows)} usable rows")
     return np.asarray(rows, dtype=float), skipped
-
-
-def _monotonic(t: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, list[np.ndarray], int]:
-    """Sort by time and drop repeated timestamps (keep first); returns the count removed."""
-    order = np.argsort(t, kind="stable")
-    t = t[order]
-    keep = np.concatenate([[True], np.diff(t) > 0])
-    return t[keep], [a[order][keep] for a in arrays], int((~keep).sum())
 
 
 def read_mageval_data(data_csv: str | os.PathLike, *, bad_lines: str = "raise") -> tuple[dict[str, np.ndarray], int]:
@@ -164,8 +157,8 @@ def import_mageval(data_csv: str | os.PathLike, ref_csv: str | os.PathLike, *,
     t_ref_raw, ref_raw, skipped_ref = read_mageval_ref(ref_csv, bad_lines=bad_lines)
     dut_raw = np.column_stack([cols["x_test"], cols["y_test"], cols["z_test"]])
     temp_c_raw = cols[temp_column] - KELVIN_OFFSET
-    t_dut, (dut, temp_c), dup_dut = _monotonic(cols["time"], dut_raw, temp_c_raw)
-    t_ref, (ref_native,), dup_ref = _monotonic(t_ref_raw, ref_raw)
+    t_dut, (dut, temp_c), dup_dut = sort_unique(cols["time"], dut_raw, temp_c_raw)
+    t_ref, (ref_native,), dup_ref = sort_unique(t_ref_raw, ref_raw)
     ref = apply_axis_map(ref_native, axis_map)
 
     meta: dict[str, str] = {

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 
+from magstack.data.pairing import split_streams
 from magstack.data.session import read_session, refuse_overwriting_inputs, write_session
 from magstack.drivers.errors import ConfigurationError
 from magstack.ground.alignment import align_streams, aligned_session
@@ -43,12 +44,10 @@ def register(subparsers) -> None:
 
 def _load(inputs: list[str], prior: float | None, halfwidth: float | None):
     if len(inputs) == 1:
-        s = read_session(inputs[0])
-        ok = np.all(np.isfinite(s.dut_uT), axis=1)
-        okr = np.all(np.isfinite(s.ref_uT), axis=1)
+        st = split_streams(read_session(inputs[0]))
         if prior is None and halfwidth is None:
             prior, halfwidth = 0.0, 10.0
-        return s.t_s[ok], s.dut_uT[ok], s.t_s[okr], s.ref_uT[okr], prior, halfwidth, s.temp_c[ok]
+        return st.t_dut_s, st.dut_uT, st.t_ref_s, st.ref_uT, prior, halfwidth, st.temp_dut_c
     if len(inputs) == 2:
         cols, _ = read_mageval_data(inputs[0])
         t_ref, ref, _ = read_mageval_ref(inputs[1])
