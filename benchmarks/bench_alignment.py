@@ -1,6 +1,11 @@
 """Alignment on real bench data: time per file, estimated offsets, linear-fit RMSE vs. the authors.
 
     python benchmarks/bench_alignment.py [DIR]
+    python benchmarks/bench_alignment.py --memory [ROWS]
+
+With ``--memory`` it writes a synthetic raw bench session of ROWS rows (default 2,000,000) and
+runs ``magstack align SESSION --json`` on it in a fresh process, printing wall time and peak RSS
+(``resource.getrusage``, which covers numpy's buffers) next to a process that only reads the file.
 
 DIR holds dataN.csv/refN.csv (default: tests/data/av-mageval, the shipped subset; the full
 copy is ../shared/realdata/av-mageval with testN/ sub-folders, also accepted). For each of
@@ -57,7 +62,76 @@ def _find(root: Path, name: str, test: int) -> Path:
 
 
 
+MEMORY_CHILD = """
+import resource, sys, time
+from magstack.data.session import read_session
+t0 = time.perf_counter()
+if sys.argv[2] == "read":
+    read_session(sys.argv[1])
+else:
+    from magstack.cli.main import main
+    import contextlib, io
+    with contextlib.redirect_stdout(io.StringIO()) as out:
+        rc = main(["align", sys.argv[1], "--json"])
+    assert rc == 0, out.getvalue()
+print(time.perf_counter() - t0, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
+"""
+
+
+def synthetic_raw_session(path: Path, rows: int, offset_s: float = 0.137, rate_hz: float = 80.0) -> None:
+    """A raw bench session of ``rows`` interleaved DUT/reference rows at ``rate_hz`` each: a field of
+    slow random sinusoids (0.005-0.3 Hz, 30 uT), DUT = gain/offset/axis-mixed field read ``offset_s``
+    later on its own clock plus 20 nT noise, reference = field plus 1 nT noise, 25 degC."""
+    from magstack.data.session import SessionWriter
+
+    rng = np.random.default_rng(7)
+    freqs, phases = rng.uniform(0.005, 0.3, (3, 12)), rng.uniform(0, 2 * np.pi, (3, 12))
+    A = np.array([[1.02, 0.01, -0.02], [0.015, 0.97, 0.01], [-0.01, 0.02, 1.05]])
+
+    def field(t: np.ndarray) -> np.ndarray:
+        return np.stack([np.sin(2 * np.pi * freqs[i] * t[:, None] + phases[i]).sum(axis=1) for i in range(3)],
+                        axis=1) * (30.0 / np.sqrt(12))
+
+    n_each = rows // 2
+    with SessionWriter(path, {"dut_chip": "synthetic", "reference": "synthetic"}, block_rows=20000) as w:
+        for start in range(0, n_each, 100000):
+            k = np.arange(start, min(n_each, start + 100000))
+            t = 1.7e9 + k / rate_hz
+            t_rel = k / rate_hz
+            ref = field(t_rel) + rng.normal(0, 0.001, (k.size, 3))
+            dut = (field(t_rel - offset_s) @ A.T + [0.5, -0.3, 0.2]) + rng.normal(0, 0.02, (k.size, 3))
+            table = np.full((2 * k.size, 9), np.nan)
+            table[0::2, 0], table[1::2, 0] = t, t + 0.5 / rate_hz
+            table[0::2, 4:7], table[1::2, 1:4] = dut, ref
+            table[:, 7], table[:, 8] = 25.0, 0
+            w.write_block(table)
+
+
+def memory(rows: int) -> int:
+    """Peak memory (max RSS) of ``magstack align SESSION --json`` on a synthetic raw session."""
+    import subprocess
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="bench-align-mem-") as tmp:
+        path = Path(tmp) / "raw.csv"
+        synthetic_raw_session(path, rows)
+        size = path.stat().st_size
+        res = {}
+        for what in ("read", "align"):
+            out = subprocess.run([sys.executable, "-c", MEMORY_CHILD, str(path), what], capture_output=True,
+                                 text=True, check=True).stdout.split()
+            res[what] = (float(out[0]), int(out[1]))
+    print(f"synthetic raw session: {rows:,} rows ({rows // 2:,} DUT + {rows // 2:,} reference at 80 Hz), "
+          f"{size / 1e6:.1f} MB")
+    for what, label in (("read", "read_session only (baseline)"), ("align", "magstack align --json")):
+        t, rss = res[what]
+        print(f"  {label}: {t:.1f} s, peak RSS {rss / 1e6:.0f} MB = {rss / size:.1f}x the file size")
+    return 0
+
+
 def main(argv: list[str]) -> int:
+    if len(argv) > 1 and argv[1] == "--memory":
+        return memory(int(argv[2]) if len(argv) > 2 else 2_000_000)
     root = Path(argv[1]) if len(argv) > 1 else ROOT / "tests" / "data" / "av-mageval"
     print(f"data: {root}")
     print(f"{'test':>4} {'align s':>8} {'x base':>7} {'offset - authors (s)':>22} {'RMSE nT ours/authors':>22} "

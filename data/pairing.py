@@ -80,8 +80,8 @@ class Streams:
                 k = int(idx[bad[0] + 1])
                 line = row_line(self.session, k)
                 where = f"{self.session.source or '<session>'}: " + (f"line {line}: " if line else f"row {k + 1}: ")
-                raise SessionFileError(f"{where}t_s {t[bad[0] + 1]!r} is not after the previous {what} row's "
-                                       f"{t[bad[0]]!r}: {what} timestamps must strictly increase (sort the file "
+                raise SessionFileError(f"{where}t_s {float(t[bad[0] + 1])!r} is not after the previous {what} row's "
+                                       f"{float(t[bad[0]])!r}: {what} timestamps must strictly increase (sort the file "
                                        "and drop repeated rows first)")
 
 

@@ -372,15 +372,22 @@ def read_text_file(path: str | os.PathLike, kind: str) -> str:
         raise SessionFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
 
 
+def read_file_bytes(path: str | os.PathLike, kind: str) -> bytes:
+    """Bytes of ``path`` without a leading UTF-8 byte-order mark; a missing or unreadable file raises
+    SessionFileError naming it."""
+    try:
+        raw = Path(path).read_bytes()
+    except FileNotFoundError:
+        raise SessionFileError(f"{path}: no such {kind}") from None
+    except OSError as exc:
+        raise SessionFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    return raw[len(_BOM):] if raw.startswith(_BOM) else raw
+
+
 def _read_bytes(source: str | os.PathLike | io.IOBase) -> tuple[bytes, str]:
     if isinstance(source, io.TextIOBase):
         return source.read().encode("utf-8", "surrogateescape"), getattr(source, "name", "<stream>")
-    try:
-        return Path(source).read_bytes(), str(source)
-    except FileNotFoundError:
-        raise SessionFileError(f"{source}: no such session file") from None
-    except OSError as exc:
-        raise SessionFileError(f"{source}: cannot read ({exc.strerror or exc})") from None
+    return read_file_bytes(source, "session file"), str(source)
 
 
 def _decode(b: bytes, name: str) -> str:
@@ -427,12 +434,12 @@ def _fast_table(body: bytes, ncols: int) -> np.ndarray | None:
 _CHUNK_BYTES = 8 << 20
 
 
-def _table(body: bytes, first_lineno: int, header: list[str], name: str) -> np.ndarray:
+def parse_table(body: bytes, first_lineno: int, header: Sequence[str], name: str) -> np.ndarray:
     """All rows of ``body`` (complete lines starting at line ``first_lineno``) as an (n, columns) array.
 
     Blocks of about :data:`_CHUNK_BYTES` go through :func:`_fast_table`; a block it refuses goes
     through :func:`_line_table`, which names the bad cell or, when the block is valid after all
-    (blank or comment lines, blanks in cells), parses it.
+    (blank or comment lines, blanks in cells), parses it. Cells: plain decimals; empty or ``nan`` = NaN.
     """
     parts, pos = [], 0
     while pos < len(body):
@@ -449,7 +456,7 @@ def _table(body: bytes, first_lineno: int, header: list[str], name: str) -> np.n
     return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
-def _line_table(body: str, first_lineno: int, header: list[str], name: str) -> np.ndarray:
+def _line_table(body: str, first_lineno: int, header: Sequence[str], name: str) -> np.ndarray:
     """Line-by-line parser (the reference): rows of complete lines; SessionFileError names the cell."""
     rows: list[list[float]] = []
     for j, line in enumerate(body.split("\n")[:-1] if body else []):
@@ -463,7 +470,7 @@ def _line_table(body: str, first_lineno: int, header: list[str], name: str) -> n
     return np.array(rows, dtype=float).reshape(len(rows), len(header))
 
 
-def _data_row_line(body: bytes, first_lineno: int, k: int) -> int:
+def data_row_line(body: bytes, first_lineno: int, k: int) -> int:
     """File line number of data row ``k`` (0-based) of ``body`` (blank and ``#`` lines skipped)."""
     n = -1
     for j, line in enumerate(body.split(b"\n")):
@@ -483,7 +490,7 @@ def _check_integer_column(v: np.ndarray, col: str, name: object, *, header_line:
         bad &= np.isfinite(v)
     if np.any(bad):
         k = int(np.flatnonzero(bad)[0])
-        line = _data_row_line(body, header_line + 1, k)
+        line = data_row_line(body, header_line + 1, k)
         raise SessionFileError(f"{name}: line {line}: {col!r} column must hold integers on every row "
                                f"(data row {k + 1} after the header on line {header_line} has {float(v[k])!r})")
 
@@ -553,7 +560,7 @@ def read_session(source: str | os.PathLike | io.TextIOBase) -> Session:
             b1 = start
     body = raw[b0:b1]
     del raw
-    arr = _table(body, first_lineno, header, name)
+    arr = parse_table(body, first_lineno, header, name)
     if tail.strip() and not tail.startswith(b"#"):
         tail_lineno = first_lineno + body.count(b"\n") + has_closing_line
         if is_part:
@@ -617,7 +624,7 @@ def row_line(s: Session, k: int) -> int | None:
     h = 0
     while h < len(lines) and lines[h].startswith(b"#"):
         h += 1
-    return _data_row_line(b"\n".join(lines[h + 1:]), h + 2, k)
+    return data_row_line(b"\n".join(lines[h + 1:]), h + 2, k)
 
 
 def _file_identity(path) -> tuple[int, int] | None:

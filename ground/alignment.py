@@ -43,6 +43,11 @@ AXES = "xyz"
 #: Coarse offset search limits (keep a long session's search to a few seconds).
 MAX_COARSE_CANDIDATES = 4000
 MAX_COARSE_ROWS = 1000
+#: Candidate offsets x rows x design columns evaluated at once: bounds the memory of every search
+#: stage (~8 MB per intermediate array) independently of the session length.
+MAX_CHUNK_ELEMENTS = 1_000_000
+#: A reference whose RMS variation on the compared rows is below this (uT) is constant: nothing to align on.
+MIN_REF_VARIATION_UT = 1e-6
 #: Temperature model (``temp_model="auto"``): used when the temperature is finite on at least
 #: MIN_TEMP_FRACTION of the DUT rows and its 2..98 % percentile span is at least MIN_TEMP_SPAN_C.
 #: (HMC1053 sensitivity tempco ~ -2700 ppm/degC: 1 degC ~ 135 nT at 50 uT.)
@@ -174,28 +179,33 @@ def _solve_ssr(xtx, xty, yty, ysum, n) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return ssr, np.where(ok[:, None], sst, np.nan), n
 
 
-def _batched_ssr(X: np.ndarray, Y: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For each candidate c: SSR of ``Y[c] ~ [X[c], 1]`` on rows valid[c].
+def _block_sums(design, n_cand: int, n_rows: int, n_blocks: int, width: int) -> list[tuple]:
+    """:func:`_normal_eqs` sums of each of ``n_blocks`` contiguous row blocks, accumulated over row chunks.
 
-    X (C,M,p) or (M,p); Y (C,M,k) or (M,k); returns (ssr (C,), sst (C,), n (C,)), summed over
-    the k target columns.
+    ``design(rows: slice) -> (X, Y, valid)`` gives every candidate's design on those rows (as
+    :func:`_normal_eqs` takes them). Chunks hold at most about :data:`MAX_CHUNK_ELEMENTS`
+    candidate x row x ``width`` values, so the memory of a search does not grow with the row count
+    (the sums are the same as over all rows at once, up to rounding).
     """
-    ssr, sst, n = _solve_ssr(*_normal_eqs(X, Y, valid))
-    return ssr.sum(axis=1), sst.sum(axis=1), n
-
-
-def _block_ssr(X: np.ndarray, Y: np.ndarray, valid: np.ndarray, n_blocks: int):
-    """SSR (C,k) on all rows and with each of ``n_blocks`` contiguous row blocks deleted.
-
-    Returns ``(ssr_all, sst_all, [ssr_without_block_b])``; one pass over the rows (the normal
-    equations of each block are subtracted from the total).
-    """
-    M = valid.shape[1]
-    edges = np.linspace(0, M, n_blocks + 1).astype(int)
+    edges = np.linspace(0, n_rows, n_blocks + 1).astype(int)
+    step = max(1, MAX_CHUNK_ELEMENTS // max(1, n_cand * width))
     parts = []
     for b in range(n_blocks):
-        sl = slice(edges[b], edges[b + 1])
-        parts.append(_normal_eqs(X[..., sl, :], Y[..., sl, :], valid[:, sl]))
+        acc = None
+        for r0 in range(edges[b], edges[b + 1], step) if edges[b + 1] > edges[b] else [edges[b]]:
+            sums = _normal_eqs(*design(slice(r0, min(r0 + step, edges[b + 1]))))
+            acc = sums if acc is None else tuple(a + q for a, q in zip(acc, sums, strict=True))
+        parts.append(acc)
+    return parts
+
+
+def _block_ssr(design, n_cand: int, n_rows: int, n_blocks: int, width: int):
+    """SSR (C,k) on all rows and with each of ``n_blocks`` contiguous row blocks deleted.
+
+    Returns ``(ssr_all, sst_all, [ssr_without_block_b])``; one streamed pass over the rows
+    (:func:`_block_sums`; the normal equations of each block are subtracted from the total).
+    """
+    parts = _block_sums(design, n_cand, n_rows, n_blocks, width)
     total = tuple(sum(pt[i] for pt in parts) for i in range(5))
     ssr, sst, _ = _solve_ssr(*total)
     loo = [_solve_ssr(*(t - q for t, q in zip(total, pt, strict=True)))[0] for pt in parts]
@@ -508,24 +518,27 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
         td = t_dut if rows is None else t_dut[rows]
         dd = xd if rows is None else xd[rows]
         min_rows = max(10, int(0.2 * td.size))
-        out_ssr = np.full(offsets.size, np.nan)
-        out_sst = np.full(offsets.size, np.nan)
-        out_n = np.zeros(offsets.size)
-        chunk = max(1, 2_000_000 // max(1, td.size * dd.shape[1]))
-        for s in range(0, offsets.size, chunk):
-            o = offsets[s:s + chunk]
-            tq = td[None, :] - o[:, None]
-            y, valid = _interp_batch(t_ref, ref, tq, gap)
-            ssr, sst, n = _batched_ssr(dd, y, valid)
-            out_ssr[s:s + chunk], out_sst[s:s + chunk], out_n[s:s + chunk] = ssr, sst, n
-        bad = out_n < min_rows
-        out_ssr[bad] = np.nan
+
+        def design(rs: slice):
+            y, valid = _interp_batch(t_ref, ref, td[None, rs] - offsets[:, None], gap)
+            return dd[rs], y, valid
+
+        (sums,) = _block_sums(design, offsets.size, td.size, 1, dd.shape[1] + 8)
+        out_ssr, out_sst, out_n = _solve_ssr(*sums)
+        out_ssr, out_sst = out_ssr.sum(axis=1), out_sst.sum(axis=1)
+        out_ssr[out_n < min_rows] = np.nan
+        # a constant reference (zero-field session, the first seconds of a run) explains nothing
+        out_sst[~(out_sst > 3 * out_n * MIN_REF_VARIATION_UT ** 2)] = np.nan
         return out_ssr, out_sst, out_n
 
     ssr, sst, n = cost(grid, sub)
     if not np.any(np.isfinite(ssr)):
         raise AlignmentError("no offset in the searched range gives enough overlapping samples "
                              f"(searched {lo:.1f}..{hi:.1f} s)")
+    if not np.any(np.isfinite(ssr / sst)):
+        raise AlignmentError("the data cannot determine a clock offset: the reference field is constant on the "
+                             "overlapping samples (a zero-field session or the start of a run?); record while "
+                             "the field changes")
     unexpl = ssr / sst
     k = int(np.nanargmin(unexpl))
     best_u = float(unexpl[k])
@@ -541,13 +554,17 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
     if h_coarse > h or sub.size < t_dut.size:
         mid = center + np.arange(-2 * h_coarse, 2 * h_coarse + h / 2, h)
         ssr_m, sst_m, _ = cost(mid)
-        if np.any(np.isfinite(ssr_m)):
+        if np.any(np.isfinite(ssr_m / sst_m)):
             center = float(mid[int(np.nanargmin(ssr_m / sst_m))])
 
     # Fine stage on a 5 ms grid; the curve is computed once, then once per deleted block.
     fine = center + np.arange(-max(2 * h, 0.25), max(2 * h, 0.25) + 0.0025, 0.005)
-    yf, vf = _interp_batch(t_ref, ref, t_dut[None, :] - fine[:, None], gap)
-    ssr_f, _, loo = _block_ssr(xd, yf, vf, n_blocks)
+
+    def fine_design(rs: slice):
+        y, valid = _interp_batch(t_ref, ref, t_dut[None, rs] - fine[:, None], gap)
+        return xd[rs], y, valid
+
+    ssr_f, _, loo = _block_ssr(fine_design, fine.size, t_dut.size, n_blocks, xd.shape[1] + 8)
     win = max(h, 0.1)
     vertex, curv, kf = _vertex(fine, ssr_f.sum(axis=1), win)
     jack = [_vertex(fine, s_b.sum(axis=1), win)[0] for s_b in loo]
@@ -600,25 +617,40 @@ def estimate_axis_skew(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarray,
     half = max_skew_s if max_skew_s is not None else dt_dut
     sig_max = max_sigma_s if max_sigma_s is not None else dt_dut
     grid = np.arange(-half, half + 0.0025, 0.005)
-    tq = t_dut[None, :] + grid[:, None] - offset_s
-    y, valid = _interp_batch(t_ref, ref, tq, gap)
+    q = 0 if tcols is None else tcols.shape[1]
+    width = 3 * (1 + q) + q + 8
+    step = max(1, MAX_CHUNK_ELEMENTS // (grid.size * width))
+
+    def reference_at(rows):
+        return _interp_batch(t_ref, ref, t_dut[None, rows] + grid[:, None] - offset_s, gap)
+
     # rows valid for every candidate so that all costs use the same samples
-    common = np.all(valid, axis=0)
+    common = np.concatenate([reference_at(slice(r0, r0 + step))[1].all(axis=0)
+                             for r0 in range(0, t_dut.size, step)])
+    idx = np.flatnonzero(common)
     out: list[ParamEstimate] = []
-    if common.sum() < 10:
+    if idx.size < 10:
         return [ParamEstimate(math.nan, math.nan, False, "too little overlap") for _ in range(3)]
-    yv = _with_temp(y[:, common, :], None if tcols is None else tcols[common])
-    vmask = np.ones(yv.shape[:2], bool)
+
+    def design(rs: slice):
+        rows = idx[rs]
+        y, _ = reference_at(rows)
+        yv = _with_temp(y, None if tcols is None else tcols[rows])
+        return yv, dut[rows], np.ones(yv.shape[:2], bool)
+
     # the design (reference columns) is shared by the three DUT axes: one pass gives every axis's
     # residual curve, all rows and each block deleted
-    ssr_all, sst_all, loo = _block_ssr(yv, dut[common], vmask, n_blocks)
+    ssr_all, sst_all, loo = _block_ssr(design, grid.size, idx.size, n_blocks, width)
+    tcols_c = None if tcols is None else tcols[idx]
     win = max(dt_ref / 2, 0.1)
     for i in range(3):
         ssr, sst = ssr_all[:, i], sst_all[:, i]
         vertex, curv, k = _vertex(grid, ssr, win)
         r2 = 1 - ssr[k] / sst[k]
-        _, _, resid = linear_fit(yv[k], dut[common, i:i + 1])
-        s2 = float(np.sum(resid ** 2)) / max(1, resid.size - yv.shape[2] - 1)
+        y_k, _ = interp_no_extrapolation(t_ref, ref, t_dut[idx] + grid[k] - offset_s, gap)
+        yv_k = _with_temp(y_k, tcols_c)
+        _, _, resid = linear_fit(yv_k, dut[idx, i:i + 1])
+        s2 = float(np.sum(resid ** 2)) / max(1, resid.size - yv_k.shape[1] - 1)
         sigma_curv = math.sqrt(2 * s2 / curv) * _eff_factor(resid) if curv > 0 else math.inf
         jack = [_vertex(grid, s_b[:, i], win)[0] for s_b in loo]
         sigma = max(sigma_curv, _jackknife_sigma(jack))

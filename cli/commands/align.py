@@ -2,10 +2,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 
 import numpy as np
 
+from magstack.data.io import to_json
 from magstack.data.pairing import split_streams
 from magstack.data.session import read_session, refuse_overwriting_inputs, write_session
 from magstack.drivers.errors import ConfigurationError
@@ -33,7 +33,9 @@ def register(subparsers) -> None:
                    help="temperature span (degC, 2..98 %% percentiles) above which auto uses the temperature model")
     p.add_argument("--temp-order", type=int, choices=(1, 2), default=2,
                    help="temperature terms: 1 = belsten Eq. 3 (field*dT, dT); 2 = also field*dT^2, dT^2 (default)")
-    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.add_argument("--json", action="store_true",
+                   help="print the report as strict JSON (non-finite numbers, e.g. runner_up_ratio when no other "
+                        "minimum exists, are null)")
     p.add_argument("--out", default=None,
                    help="write the paired session: reference interpolated onto the DUT timestamps at the "
                         "estimated offset (session input only; for DATA/REF use import-mageval)")
@@ -67,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
                         max_gap_s=args.max_gap_s, min_r2=args.min_r2, temp_c=temp_c, temp_model=args.temp_model,
                         min_temp_span_c=args.min_temp_span_c, temp_order=args.temp_order)
     if args.json:
-        print(json.dumps(rep.as_dict(), indent=2))
+        print(to_json(rep.as_dict(), indent=2))   # strict JSON: inf / nan (e.g. no runner-up) -> null
         return 0
     o = rep.offset
     runner_up = ("no other minimum in the search window" if not np.isfinite(o.runner_up_ratio)

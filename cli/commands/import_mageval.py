@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 from magstack.data.session import refuse_overwriting_inputs, write_session
 from magstack.drivers.errors import ConfigurationError
@@ -46,6 +47,9 @@ def run(args: argparse.Namespace) -> int:
                        bad_lines="skip" if args.skip_bad_lines else "raise", session_id=args.session_id)
     write_session(args.out, s)
     m = s.metadata
+    if m["clock_offset_method"].startswith("prior"):
+        print(f"magstack import-mageval: warning: clock offset NOT estimated, the authors' value was used: "
+              f"{m['clock_offset_method']} (use --strict-offset to fail instead)", file=sys.stderr)
     print(f"wrote {args.out}: {len(s)} rows; clock offset {m['clock_offset_s']} s "
           f"({m['clock_offset_vs_authors_s']} s vs authors, sigma {m['clock_offset_sigma_s']} s, "
           f"{m['clock_offset_method']}); gap rows {m['gap_rows']} ({m['gap_policy']})")
