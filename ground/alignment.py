@@ -80,6 +80,14 @@ def interp_no_extrapolation(t_src: np.ndarray, y_src: np.ndarray, t_query: np.nd
         return (out[:, 0] if one_d else out), np.zeros(tq.size, bool)
     if np.any(np.diff(t_src) <= 0):
         raise AlignmentError("source timestamps must be strictly increasing")
+    y_out, valid = _interp_sorted(t_src, y, tq, max_gap_s)
+    return (y_out[:, 0] if one_d else y_out), valid
+
+
+def _interp_sorted(t_src: np.ndarray, y: np.ndarray, tq: np.ndarray, max_gap_s: float):
+    """:func:`interp_no_extrapolation` for a source already finite and strictly increasing (>= 2 rows,
+    ``y`` (N,k)): the search stages call it per chunk without re-checking the whole source."""
+    out = np.full((tq.size, y.shape[1]), np.nan)
     idx = np.searchsorted(t_src, tq, side="right")
     inside = np.isfinite(tq) & (tq >= t_src[0]) & (tq <= t_src[-1])
     hi = np.clip(idx, 1, t_src.size - 1)
@@ -89,13 +97,14 @@ def interp_no_extrapolation(t_src: np.ndarray, y_src: np.ndarray, t_query: np.nd
     w = np.where(valid, (tq - t_src[lo]) / np.where(span > 0, span, 1.0), 0.0)
     vals = y[lo] * (1 - w)[:, None] + y[hi] * w[:, None]
     out[valid] = vals[valid]
-    return (out[:, 0] if one_d else out), valid
+    return out, valid
 
 
 def _interp_batch(t_src: np.ndarray, y_src: np.ndarray, tq: np.ndarray, max_gap_s: float):
-    """Interpolation of (N,k) at a 2-D query array tq (C,M) -> (C,M,k), valid (C,M)."""
+    """Interpolation of a cleaned source (N,k) (see :func:`_clean`) at a 2-D query array tq (C,M)
+    -> (C,M,k), valid (C,M)."""
     shape = tq.shape
-    y, valid = interp_no_extrapolation(t_src, y_src, tq.reshape(-1), max_gap_s)
+    y, valid = _interp_sorted(t_src, y_src, tq.reshape(-1), max_gap_s)
     return y.reshape(*shape, -1), valid.reshape(shape)
 
 

@@ -16,7 +16,7 @@ from magstack.ground.mageval_import import AUTHORS_OFFSET_S, KELVIN_OFFSET, read
 def register(subparsers) -> None:
     p = subparsers.add_parser("align", help="estimate clock offset, per-axis time skew and axis map",
                               description="Inputs: one session file (its ref_* columns are aligned against its "
-                                          "dut_* columns), or an AV-MagEval pair DATA.csv REF.csv. Exit 2 with "
+                                          "dut_* columns), or an AV-MagEval pair DATA.csv REF.csv. Exit 3 with "
                                           "an error when the data cannot determine the clock offset.")
     p.add_argument("inputs", nargs="+", help="SESSION.csv | DATA.csv REF.csv")
     p.add_argument("--prior-s", type=float, default=None,
