@@ -28,7 +28,7 @@ import math
 import os
 import re
 import zlib
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -434,26 +434,30 @@ def _fast_table(body: bytes, ncols: int) -> np.ndarray | None:
 _CHUNK_BYTES = 8 << 20
 
 
-def parse_table(body: bytes, first_lineno: int, header: Sequence[str], name: str) -> np.ndarray:
-    """All rows of ``body`` (complete lines starting at line ``first_lineno``) as an (n, columns) array.
+def parse_table(body: bytes, first_lineno: int, header: Sequence[str], name: str, start: int = 0,
+                end: int | None = None) -> np.ndarray:
+    """All rows of ``body[start:end]`` (complete lines, the first being line ``first_lineno``) as an
+    (n, columns) float array.
 
     Blocks of about :data:`_CHUNK_BYTES` go through :func:`_fast_table`; a block it refuses goes
     through :func:`_line_table`, which names the bad cell or, when the block is valid after all
     (blank or comment lines, blanks in cells), parses it. Cells: plain decimals; empty or ``nan`` = NaN.
+    The result is filled in place (no concatenation copy); ``body`` itself is not copied.
     """
-    parts, pos = [], 0
-    while pos < len(body):
-        stop = body.find(b"\n", pos + _CHUNK_BYTES)
-        stop = len(body) if stop < 0 else stop + 1
+    end = len(body) if end is None else end
+    out = np.empty((body.count(b"\n", start, end), len(header)))
+    n, pos = 0, start
+    while pos < end:
+        stop = body.find(b"\n", min(pos + _CHUNK_BYTES, end - 1), end)
+        stop = end if stop < 0 else stop + 1
         chunk = body[pos:stop]
         arr = _fast_table(chunk, len(header))
         if arr is None:
-            arr = _line_table(_decode(chunk, name), first_lineno + body.count(b"\n", 0, pos), header, name)
-        parts.append(arr)
+            arr = _line_table(_decode(chunk, name), first_lineno + body.count(b"\n", start, pos), header, name)
+        out[n:n + arr.shape[0]] = arr
+        n += arr.shape[0]
         pos = stop
-    if not parts:
-        return np.empty((0, len(header)))
-    return parts[0] if len(parts) == 1 else np.concatenate(parts)
+    return out[:n]
 
 
 def _line_table(body: str, first_lineno: int, header: Sequence[str], name: str) -> np.ndarray:
@@ -482,7 +486,7 @@ def data_row_line(body: bytes, first_lineno: int, k: int) -> int:
 
 
 def _check_integer_column(v: np.ndarray, col: str, name: object, *, header_line: int, allow_empty: bool,
-                          body: bytes) -> None:
+                          locate: Callable[[int], int]) -> None:
     """SessionFileError naming the line of the first row whose cell is not an integer within +-2**53."""
     with np.errstate(invalid="ignore"):
         bad = ~((v == np.round(v)) & (np.abs(v) <= 2.0 ** 53))
@@ -490,7 +494,7 @@ def _check_integer_column(v: np.ndarray, col: str, name: object, *, header_line:
         bad &= np.isfinite(v)
     if np.any(bad):
         k = int(np.flatnonzero(bad)[0])
-        line = data_row_line(body, header_line + 1, k)
+        line = locate(k)
         raise SessionFileError(f"{name}: line {line}: {col!r} column must hold integers on every row "
                                f"(data row {k + 1} after the header on line {header_line} has {float(v[k])!r})")
 
@@ -558,11 +562,9 @@ def read_session(source: str | os.PathLike | io.TextIOBase) -> Session:
             if closing is None:
                 warnings.append("unreadable closing line (the row count cannot be checked)")
             b1 = start
-    body = raw[b0:b1]
-    del raw
-    arr = parse_table(body, first_lineno, header, name)
+    arr = parse_table(raw, first_lineno, header, name, b0, b1)
     if tail.strip() and not tail.startswith(b"#"):
-        tail_lineno = first_lineno + body.count(b"\n") + has_closing_line
+        tail_lineno = first_lineno + raw.count(b"\n", b0, b1) + has_closing_line
         if is_part:
             # in a killed writer's .part file an unterminated line was cut short even if it
             # parses ("12" cut to "1"): never trust it
@@ -579,28 +581,31 @@ def read_session(source: str | os.PathLike | io.TextIOBase) -> Session:
                             f"({arr.shape[0]} rows read)")
         elif closing is not None:
             n_said, crc_said = int(closing.group(1)), int(closing.group(2), 16)
-            crc = zlib.crc32(body)
+            crc = zlib.crc32(memoryview(raw)[b0:b1])
             if n_said != arr.shape[0] or crc_said != crc or tail.strip():
                 warnings.append(f"closing line says {n_said} rows, crc32 0x{crc_said:08x}, but the file has "
                                 f"{arr.shape[0]} rows, crc32 0x{crc:08x}: the file was cut or changed after it "
                                 "was written")
-    return _session_from_table(arr, header, current_cols, extra_cols, metadata, warnings, name, header_line, body)
+    def locate(k: int) -> int:
+        return data_row_line(raw[b0:b1], first_lineno, k)
+
+    return _session_from_table(arr, header, current_cols, extra_cols, metadata, warnings, name, header_line, locate)
 
 
 def _session_from_table(arr: np.ndarray, header: list[str], current_cols: list[str], extra_cols: list[str],
                         metadata: dict[str, str], warnings: list[str], name: str, header_line: int,
-                        body: bytes) -> Session:
+                        locate: Callable[[int], int]) -> Session:
     idx = {c: k for k, c in enumerate(header)}
 
     def col(c: str) -> np.ndarray:
         return arr[:, idx[c]]
 
     sess = col("session")
-    _check_integer_column(sess, "session", name, header_line=header_line, allow_empty=False, body=body)
+    _check_integer_column(sess, "session", name, header_line=header_line, allow_empty=False, locate=locate)
     flag = None
     if "flag" in idx:
         fl = col("flag")
-        _check_integer_column(fl, "flag", name, header_line=header_line, allow_empty=True, body=body)
+        _check_integer_column(fl, "flag", name, header_line=header_line, allow_empty=True, locate=locate)
         flag = np.where(np.isfinite(fl), fl, 0).astype(np.int64)   # an empty flag cell means 0 (ok)
     def vec(prefix: str) -> np.ndarray:
         k = [idx[f"{prefix}_{a}_uT"] for a in "xyz"]
