@@ -2,10 +2,14 @@
 
     python benchmarks/bench_alignment.py [DIR]
     python benchmarks/bench_alignment.py --memory [ROWS]
+    python benchmarks/bench_alignment.py --mageval-memory [DUT_ROWS]
 
 With ``--memory`` it writes a synthetic raw bench session of ROWS rows (default 2,000,000) and
 runs ``magstack align SESSION --json`` on it in a fresh process, printing wall time and peak RSS
 (``resource.getrusage``, which covers numpy's buffers) next to a process that only reads the file.
+With ``--mageval-memory`` it writes an AV-MagEval-shaped pair (DUT_ROWS rows at 0.47 s, default
+1,000,000; reference at 4 Hz, 4 h - 0.3 s behind) and runs ``magstack import-mageval`` and
+``magstack align DATA REF --json`` on it, printing exit code, wall time and peak RSS.
 
 DIR holds dataN.csv/refN.csv (default: tests/data/av-mageval, the shipped subset; the full
 copy is ../shared/realdata/av-mageval with testN/ sub-folders, also accepted). For each of
@@ -107,6 +111,70 @@ def synthetic_raw_session(path: Path, rows: int, offset_s: float = 0.137, rate_h
             w.write_block(table)
 
 
+MAGEVAL_CHILD = """
+import resource, sys, time, contextlib, io
+from magstack.cli.main import main
+t0 = time.perf_counter()
+with contextlib.redirect_stdout(io.StringIO()) as out, contextlib.redirect_stderr(io.StringIO()) as err:
+    rc = main(sys.argv[1:])
+print(rc, time.perf_counter() - t0, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
+print(out.getvalue().strip()[:300].replace(chr(10), " | "))
+print(err.getvalue().strip()[:300])
+"""
+
+
+def synthetic_mageval(data_csv: Path, ref_csv: Path, dut_rows: int, offset_s: float = 4 * 3600 - 0.3) -> None:
+    """AV-MagEval-shaped files: DUT logger at ~2.13 Hz (0.47 s), FVM400 reference at 4 Hz on a clock
+    ``offset_s`` behind; a field of slow random sinusoids (0.002-0.1 Hz); temperatures in kelvin."""
+    rng = np.random.default_rng(11)
+    freqs, phases = rng.uniform(0.002, 0.1, (3, 12)), rng.uniform(0, 2 * np.pi, (3, 12))
+
+    def field(t: np.ndarray) -> np.ndarray:
+        return np.stack([np.sin(2 * np.pi * freqs[i] * t[:, None] + phases[i]).sum(axis=1) for i in range(3)],
+                        axis=1) * (30.0 / np.sqrt(12))
+
+    t0 = 1.598e9
+    with open(data_csv, "w") as fh:
+        fh.write("time,x_test,y_test,z_test,x_U7,y_U7,z_U7,x_U9,y_U9,z_U9,temp_mag,temp_pi\n")
+        for start in range(0, dut_rows, 200000):
+            k = np.arange(start, min(dut_rows, start + 200000))
+            t = k * 0.47
+            b = field(t)
+            dut = np.column_stack([b[:, 1], b[:, 0], -b[:, 2]]) + rng.normal(0, 0.02, (k.size, 3))
+            table = np.column_stack([t0 + t, dut, dut * 0.9, dut * 1.1, np.full(k.size, 298.9),
+                                     297.1 + 0.05 * np.sin(t / 600)])
+            np.savetxt(fh, table, fmt=["%.3f"] + ["%.3f"] * 9 + ["%.3f", "%.3f"], delimiter=",")
+    with open(ref_csv, "w") as fh:
+        n_ref = int(dut_rows * 0.47 * 4)
+        for start in range(0, n_ref, 400000):
+            k = np.arange(start, min(n_ref, start + 400000))
+            t = k * 0.25
+            np.savetxt(fh, np.column_stack([t0 + t - offset_s, field(t) + rng.normal(0, 0.001, (k.size, 3))]),
+                       fmt="%.3f", delimiter=",")
+
+
+def mageval_memory(dut_rows: int) -> int:
+    """Time and peak memory of ``import-mageval`` and ``align DATA REF`` on large AV-MagEval-shaped files."""
+    import subprocess
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="bench-mageval-mem-") as tmp:
+        d, r = Path(tmp) / "data1.csv", Path(tmp) / "ref1.csv"
+        synthetic_mageval(d, r, dut_rows)
+        sizes = d.stat().st_size, r.stat().st_size
+        print(f"synthetic AV-MagEval pair: {dut_rows:,} DUT rows ({sizes[0] / 1e6:.1f} MB), "
+              f"{int(dut_rows * 0.47 * 4):,} reference rows ({sizes[1] / 1e6:.1f} MB); true offset 4 h - 0.3 s")
+        for args in (["import-mageval", str(d), str(r), "--out", str(Path(tmp) / "s.csv")],
+                     ["align", "--json", str(d), str(r)]):
+            out = subprocess.run([sys.executable, "-c", MAGEVAL_CHILD, *args], capture_output=True, text=True,
+                                 check=True).stdout.splitlines()
+            rc, t, rss = out[0].split()
+            print(f"  magstack {args[0]}: exit {rc}, {float(t):.1f} s, peak RSS {int(rss) / 1e6:.0f} MB = "
+                  f"{int(rss) / sum(sizes):.1f}x the input size")
+            print(f"    {out[1][:200] if len(out) > 1 else ''} {out[2][:200] if len(out) > 2 else ''}")
+    return 0
+
+
 def memory(rows: int) -> int:
     """Peak memory (max RSS) of ``magstack align SESSION --json`` on a synthetic raw session."""
     import subprocess
@@ -132,6 +200,8 @@ def memory(rows: int) -> int:
 def main(argv: list[str]) -> int:
     if len(argv) > 1 and argv[1] == "--memory":
         return memory(int(argv[2]) if len(argv) > 2 else 2_000_000)
+    if len(argv) > 1 and argv[1] == "--mageval-memory":
+        return mageval_memory(int(argv[2]) if len(argv) > 2 else 1_000_000)
     root = Path(argv[1]) if len(argv) > 1 else ROOT / "tests" / "data" / "av-mageval"
     print(f"data: {root}")
     print(f"{'test':>4} {'align s':>8} {'x base':>7} {'offset - authors (s)':>22} {'RMSE nT ours/authors':>22} "

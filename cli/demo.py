@@ -215,6 +215,7 @@ class BenchFigures:
 def record_session(path: Path, *, program: str, seconds: float, seed: int, session_id: int,
                    ref_garble: float, instrument_name: str, say: Say = print) -> BenchFigures:
     """Record one simulated bench session (HMC1053 DUT + FVM400 reference) into ``path``."""
+    from magstack.data.pairing import split_streams
     from magstack.data.session import read_session
     from magstack.hil.bench import build_sim_bench, run_bench, truth_currents
     from magstack.sim.measurement_sim import FVM400_NOISE_uT
@@ -236,8 +237,8 @@ def record_session(path: Path, *, program: str, seconds: float, seed: int, sessi
         sb.ref.close()
         unregister_instrument(instrument_name)
     s = read_session(path)
-    dut_rows = np.all(np.isfinite(s.dut_uT), axis=1)
-    t = s.temp_c[dut_rows & np.isfinite(s.temp_c)]
+    t = split_streams(s).temp_dut_c
+    t = t[np.isfinite(t)]
     fig = BenchFigures(
         Path(path), program, float(seconds), seed, res.rows, res.dut_samples, res.ref_samples,
         res.dut_samples / res.duration_s, res.ref_samples / res.duration_s, dict(res.ref_skipped),
