@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -188,7 +189,12 @@ def _solve_ssr(xtx, xty, yty, ysum, n) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return ssr, np.where(ok[:, None], sst, np.nan), n
 
 
-def _block_sums(design, n_cand: int, n_rows: int, n_blocks: int, width: int) -> list[tuple]:
+#: Progress callback: ``progress(stage, fraction_done)`` with fraction in [0, 1], called per row chunk.
+Progress = Callable[[str, float], None]
+
+
+def _block_sums(design, n_cand: int, n_rows: int, n_blocks: int, width: int,
+                progress: tuple[Progress, str] | None = None) -> list[tuple]:
     """:func:`_normal_eqs` sums of each of ``n_blocks`` contiguous row blocks, accumulated over row chunks.
 
     ``design(rows: slice) -> (X, Y, valid)`` gives every candidate's design on those rows (as
@@ -202,19 +208,23 @@ def _block_sums(design, n_cand: int, n_rows: int, n_blocks: int, width: int) -> 
     for b in range(n_blocks):
         acc = None
         for r0 in range(edges[b], edges[b + 1], step) if edges[b + 1] > edges[b] else [edges[b]]:
-            sums = _normal_eqs(*design(slice(r0, min(r0 + step, edges[b + 1]))))
+            r1 = min(r0 + step, edges[b + 1])
+            sums = _normal_eqs(*design(slice(r0, r1)))
             acc = sums if acc is None else tuple(a + q for a, q in zip(acc, sums, strict=True))
+            if progress is not None:
+                progress[0](progress[1], r1 / max(1, n_rows))
         parts.append(acc)
     return parts
 
 
-def _block_ssr(design, n_cand: int, n_rows: int, n_blocks: int, width: int):
+def _block_ssr(design, n_cand: int, n_rows: int, n_blocks: int, width: int,
+               progress: tuple[Progress, str] | None = None):
     """SSR (C,k) on all rows and with each of ``n_blocks`` contiguous row blocks deleted.
 
     Returns ``(ssr_all, sst_all, [ssr_without_block_b])``; one streamed pass over the rows
     (:func:`_block_sums`; the normal equations of each block are subtracted from the total).
     """
-    parts = _block_sums(design, n_cand, n_rows, n_blocks, width)
+    parts = _block_sums(design, n_cand, n_rows, n_blocks, width, progress)
     total = tuple(sum(pt[i] for pt in parts) for i in range(5))
     ssr, sst, _ = _solve_ssr(*total)
     loo = [_solve_ssr(*(t - q for t, q in zip(total, pt, strict=True)))[0] for pt in parts]
@@ -480,7 +490,7 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
                           min_r2: float = 0.9, max_sigma_s: float = 1.0,
                           ambiguity_ratio: float = 2.0, n_blocks: int = 20, temp_c: np.ndarray | None = None,
                           temp_model: str = "auto", min_temp_span_c: float = MIN_TEMP_SPAN_C,
-                          temp_order: int = TEMP_ORDER) -> OffsetEstimate:
+                          temp_order: int = TEMP_ORDER, progress: Progress | None = None) -> OffsetEstimate:
     """Clock offset (add to reference time to get DUT time) minimising ``ref ~ A dut + b``.
 
     ``temp_c`` (degC, one per DUT row, NaN allowed) adds the Eq. 3 temperature columns
@@ -523,7 +533,7 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
     grid = np.linspace(lo, hi, int(math.ceil((hi - lo) / h_coarse)) + 1)
     sub = np.unique(np.linspace(0, t_dut.size - 1, min(t_dut.size, MAX_COARSE_ROWS)).astype(int))
 
-    def cost(offsets: np.ndarray, rows: np.ndarray | None = None):
+    def cost(offsets: np.ndarray, rows: np.ndarray | None = None, stage: str = ""):
         td = t_dut if rows is None else t_dut[rows]
         dd = xd if rows is None else xd[rows]
         min_rows = max(10, int(0.2 * td.size))
@@ -532,7 +542,8 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
             y, valid = _interp_batch(t_ref, ref, td[None, rs] - offsets[:, None], gap)
             return dd[rs], y, valid
 
-        (sums,) = _block_sums(design, offsets.size, td.size, 1, dd.shape[1] + 8)
+        (sums,) = _block_sums(design, offsets.size, td.size, 1, dd.shape[1] + 8,
+                              None if progress is None else (progress, stage))
         out_ssr, out_sst, out_n = _solve_ssr(*sums)
         out_ssr, out_sst = out_ssr.sum(axis=1), out_sst.sum(axis=1)
         out_ssr[out_n < min_rows] = np.nan
@@ -540,7 +551,7 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
         out_sst[~(out_sst > 3 * out_n * MIN_REF_VARIATION_UT ** 2)] = np.nan
         return out_ssr, out_sst, out_n
 
-    ssr, sst, n = cost(grid, sub)
+    ssr, sst, n = cost(grid, sub, "clock offset: coarse search")
     if not np.any(np.isfinite(ssr)):
         raise AlignmentError("no offset in the searched range gives enough overlapping samples "
                              f"(searched {lo:.1f}..{hi:.1f} s)")
@@ -562,7 +573,7 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
     center = float(grid[k])
     if h_coarse > h or sub.size < t_dut.size:
         mid = center + np.arange(-2 * h_coarse, 2 * h_coarse + h / 2, h)
-        ssr_m, sst_m, _ = cost(mid)
+        ssr_m, sst_m, _ = cost(mid, None, "clock offset: medium search")
         if np.any(np.isfinite(ssr_m / sst_m)):
             center = float(mid[int(np.nanargmin(ssr_m / sst_m))])
 
@@ -573,7 +584,8 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
         y, valid = _interp_batch(t_ref, ref, t_dut[None, rs] - fine[:, None], gap)
         return xd[rs], y, valid
 
-    ssr_f, _, loo = _block_ssr(fine_design, fine.size, t_dut.size, n_blocks, xd.shape[1] + 8)
+    ssr_f, _, loo = _block_ssr(fine_design, fine.size, t_dut.size, n_blocks, xd.shape[1] + 8,
+                               None if progress is None else (progress, "clock offset: fine search"))
     win = max(h, 0.1)
     vertex, curv, kf = _vertex(fine, ssr_f.sum(axis=1), win)
     jack = [_vertex(fine, s_b.sum(axis=1), win)[0] for s_b in loo]
@@ -608,7 +620,8 @@ def estimate_axis_skew(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarray,
                        offset_s: float, *, max_skew_s: float | None = None, max_gap_s: float | None = None,
                        min_r2: float = 0.9, max_sigma_s: float | None = None,
                        n_blocks: int = 20, temp_c: np.ndarray | None = None, temp_model: str = "auto",
-                       min_temp_span_c: float = MIN_TEMP_SPAN_C, temp_order: int = TEMP_ORDER) -> list[ParamEstimate]:
+                       min_temp_span_c: float = MIN_TEMP_SPAN_C, temp_order: int = TEMP_ORDER,
+                       progress: Progress | None = None) -> list[ParamEstimate]:
     """Per-axis time skew of the DUT relative to ``offset_s`` (see module doc for the sign).
 
     For axis ``i`` the skew minimises the residual of ``dut_i ~ a . ref(t + skew - offset) + c``.
@@ -649,7 +662,8 @@ def estimate_axis_skew(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarray,
 
     # the design (reference columns) is shared by the three DUT axes: one pass gives every axis's
     # residual curve, all rows and each block deleted
-    ssr_all, sst_all, loo = _block_ssr(design, grid.size, idx.size, n_blocks, width)
+    ssr_all, sst_all, loo = _block_ssr(design, grid.size, idx.size, n_blocks, width,
+                                       None if progress is None else (progress, "per-axis skew"))
     tcols_c = None if tcols is None else tcols[idx]
     win = max(dt_ref / 2, 0.1)
     for i in range(3):
@@ -747,7 +761,7 @@ def align_streams(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarray, ref_
                   prior_s: float | None = None, search_halfwidth_s: float | None = None,
                   max_gap_s: float | None = None, min_r2: float = 0.9, temp_c: np.ndarray | None = None,
                   temp_model: str = "auto", min_temp_span_c: float = MIN_TEMP_SPAN_C,
-                  temp_order: int = TEMP_ORDER) -> AlignmentReport:
+                  temp_order: int = TEMP_ORDER, progress: Progress | None = None) -> AlignmentReport:
     """Clock offset, per-axis skew and axis map of a DUT/reference pair, with uncertainties.
 
     Raises AlignmentError when the clock offset cannot be determined; skew and axis-map entries
@@ -758,7 +772,8 @@ def align_streams(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarray, ref_
     reference interpolated onto the DUT timestamps at the estimated offset; ``rmse_model_uT``
     that of the temperature model (None when it was not used).
     """
-    tkw = {"temp_c": temp_c, "temp_model": temp_model, "min_temp_span_c": min_temp_span_c, "temp_order": temp_order}
+    tkw = {"temp_c": temp_c, "temp_model": temp_model, "min_temp_span_c": min_temp_span_c, "temp_order": temp_order,
+           "progress": progress}
     off = estimate_clock_offset(t_dut, dut_uT, t_ref, ref_uT, prior_s=prior_s,
                                 search_halfwidth_s=search_halfwidth_s, max_gap_s=max_gap_s, min_r2=min_r2, **tkw)
     skew = estimate_axis_skew(t_dut, dut_uT, t_ref, ref_uT, off.offset_s, max_gap_s=max_gap_s, min_r2=min_r2,

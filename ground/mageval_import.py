@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -164,7 +164,8 @@ def import_mageval(data_csv: str | os.PathLike, ref_csv: str | os.PathLike, *,
                    gaps: str = "nan",
                    bad_lines: str = "raise",
                    session_id: int = 0,
-                   metadata: Mapping[str, str] | None = None) -> Session:
+                   metadata: Mapping[str, str] | None = None,
+                   progress: Callable[[str, float], None] | None = None) -> Session:
     """Pair an AV-MagEval ``dataN.csv`` with its ``refN.csv`` into an aligned :class:`Session`.
 
     Parameters
@@ -182,6 +183,7 @@ def import_mageval(data_csv: str | os.PathLike, ref_csv: str | os.PathLike, *,
     gaps: ``"nan"`` keeps gap rows with NaN and ``flag`` bits (1: no reference, 2: no DUT);
         ``"drop"`` removes them. Either way the count is in the metadata.
     bad_lines: ``"raise"`` (SessionFileError naming the line) or ``"skip"`` (counted in metadata).
+    progress: ``progress(stage, fraction)`` callback of the clock-offset search (see alignment).
     """
     if temp_column not in ("temp_pi", "temp_mag"):
         raise ConfigurationError(f"temp_column must be 'temp_pi' or 'temp_mag', got {temp_column!r}")
@@ -227,7 +229,7 @@ def import_mageval(data_csv: str | os.PathLike, ref_csv: str | os.PathLike, *,
         try:
             est = estimate_clock_offset(t_dut, dut, t_ref, ref, prior_s=offset_prior_s,
                                         search_halfwidth_s=offset_search_halfwidth_s, max_gap_s=max_gap_s,
-                                        temp_c=temp_c)
+                                        temp_c=temp_c, progress=progress)
             offset = est.offset_s
             meta["clock_offset_method"] = "estimated (min residual of ref ~ A dut + b)"
             meta["clock_offset_model"] = est.model

@@ -145,3 +145,38 @@ def test_import_mageval_cli_exits_3_on_1e300_and_warns_on_fallback(tmp_path, cap
     assert main(["import-mageval", str(DATA / "data3.csv"), str(DATA / "ref4.csv"), "--out",
                  str(tmp_path / "p.csv")]) == 0
     assert "warning: clock offset NOT estimated" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ item 6: progress
+def test_alignment_reports_progress_per_stage():
+    s = _raw(n=2000, seed=2)
+    d, r = np.all(np.isfinite(s.dut_uT), axis=1), np.all(np.isfinite(s.ref_uT), axis=1)
+    seen: list[tuple[str, float]] = []
+    align_streams(s.t_s[d], s.dut_uT[d], s.t_s[r] - 0.2, s.ref_uT[r], prior_s=0.0, search_halfwidth_s=2.0,
+                  progress=lambda stage, f: seen.append((stage, f)))
+    stages = list(dict.fromkeys(st for st, _ in seen))
+    assert stages[0] == "clock offset: coarse search" and "clock offset: fine search" in stages
+    assert stages[-1] == "per-axis skew"
+    for st in stages:
+        fr = [f for s_, f in seen if s_ == st]
+        assert fr == sorted(fr) and fr[-1] == pytest.approx(1.0) and all(0 < f <= 1 for f in fr)
+
+
+def test_stage_progress_prints_only_on_a_terminal():
+    import io as _io
+
+    from magstack.cli.stage_progress import stage_progress
+
+    class Tty(_io.StringIO):
+        def isatty(self):
+            return True
+
+    assert stage_progress(stream=_io.StringIO()) is None            # not a terminal: silent
+    assert stage_progress(False, stream=Tty()) is None              # --json: silent
+    out = Tty()
+    p = stage_progress(stream=out)
+    p("clock offset: coarse search", 0.5)
+    p("clock offset: coarse search", 1.0)
+    p("per-axis skew", 1.0)
+    text = out.getvalue()
+    assert "\rclock offset: coarse search 100%\n\rper-axis skew 100%" in text

@@ -2,9 +2,11 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 import numpy as np
 
+from magstack.cli.stage_progress import stage_progress
 from magstack.data.io import to_json
 from magstack.data.pairing import split_streams
 from magstack.data.session import read_session, refuse_overwriting_inputs, write_session
@@ -65,9 +67,14 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         refuse_overwriting_inputs(args.out, args.inputs)
     t_dut, dut, t_ref, ref, prior, halfwidth, temp_c = _load(args.inputs, args.prior_s, args.halfwidth_s)
-    rep = align_streams(t_dut, dut, t_ref, ref, prior_s=prior, search_halfwidth_s=halfwidth,
-                        max_gap_s=args.max_gap_s, min_r2=args.min_r2, temp_c=temp_c, temp_model=args.temp_model,
-                        min_temp_span_c=args.min_temp_span_c, temp_order=args.temp_order)
+    progress = stage_progress(not args.json)
+    try:
+        rep = align_streams(t_dut, dut, t_ref, ref, prior_s=prior, search_halfwidth_s=halfwidth,
+                            max_gap_s=args.max_gap_s, min_r2=args.min_r2, temp_c=temp_c, temp_model=args.temp_model,
+                            min_temp_span_c=args.min_temp_span_c, temp_order=args.temp_order, progress=progress)
+    finally:
+        if progress is not None:
+            print(file=sys.stderr)   # end the progress line
     if args.json:
         print(to_json(rep.as_dict(), indent=2))   # strict JSON: inf / nan (e.g. no runner-up) -> null
         return 0

@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from magstack.cli.stage_progress import stage_progress
 from magstack.data.session import refuse_overwriting_inputs, write_session
 from magstack.drivers.errors import ConfigurationError
 from magstack.ground.mageval_import import AUTHORS_OFFSET_S, import_mageval
@@ -41,10 +42,16 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigurationError(f"--onto must be 'dut', 'ref' or a grid step in s, got {args.onto!r}") from None
     refuse_overwriting_inputs(args.out, [args.data_csv, args.ref_csv])
     offset = AUTHORS_OFFSET_S if args.authors_offset else args.clock_offset_s
-    s = import_mageval(args.data_csv, args.ref_csv, temp_column=args.temp_column, clock_offset_s=offset,
-                       on_undetermined="raise" if args.strict_offset else "prior", onto=onto,
-                       max_gap_s=args.max_gap_s, gaps="drop" if args.drop_gaps else "nan",
-                       bad_lines="skip" if args.skip_bad_lines else "raise", session_id=args.session_id)
+    progress = stage_progress()
+    try:
+        s = import_mageval(args.data_csv, args.ref_csv, temp_column=args.temp_column, clock_offset_s=offset,
+                           on_undetermined="raise" if args.strict_offset else "prior", onto=onto,
+                           max_gap_s=args.max_gap_s, gaps="drop" if args.drop_gaps else "nan",
+                           bad_lines="skip" if args.skip_bad_lines else "raise", session_id=args.session_id,
+                           progress=progress)
+    finally:
+        if progress is not None:
+            print(file=sys.stderr)   # end the progress line
     write_session(args.out, s)
     m = s.metadata
     if m["clock_offset_method"].startswith("prior"):
