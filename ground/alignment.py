@@ -44,6 +44,8 @@ AXES = "xyz"
 #: Coarse offset search limits (keep a long session's search to a few seconds).
 MAX_COARSE_CANDIDATES = 4000
 MAX_COARSE_ROWS = 1000
+#: Offsets per pass of the medium stage (all rows): long searches are refined in several passes.
+MAX_MEDIUM_CANDIDATES = 81
 #: Candidate offsets x rows x design columns evaluated at once: bounds the memory of every search
 #: stage (~8 MB per intermediate array) independently of the session length.
 MAX_CHUNK_ELEMENTS = 1_000_000
@@ -572,10 +574,19 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
     ratio = runner / best_u if best_u > 0 else math.inf
     center = float(grid[k])
     if h_coarse > h or sub.size < t_dut.size:
-        mid = center + np.arange(-2 * h_coarse, 2 * h_coarse + h / 2, h)
-        ssr_m, sst_m, _ = cost(mid, None, "clock offset: medium search")
-        if np.any(np.isfinite(ssr_m / sst_m)):
-            center = float(mid[int(np.nanargmin(ssr_m / sst_m))])
+        # medium stage on all rows: +-2 coarse steps around the best, refined in passes of at most
+        # MAX_MEDIUM_CANDIDATES offsets down to step h (one pass at step h for all but long searches;
+        # a single pass at step h over +-2 coarse steps grew with the searched range x rows)
+        half = 2 * h_coarse
+        while True:
+            step = max(h, 2 * half / (MAX_MEDIUM_CANDIDATES - 1))
+            mid = center + np.arange(-half, half + step / 2, step)
+            ssr_m, sst_m, _ = cost(mid, None, "clock offset: medium search")
+            if np.any(np.isfinite(ssr_m / sst_m)):
+                center = float(mid[int(np.nanargmin(ssr_m / sst_m))])
+            if step <= h:
+                break
+            half = 2 * step
 
     # Fine stage on a 5 ms grid; the curve is computed once, then once per deleted block.
     fine = center + np.arange(-max(2 * h, 0.25), max(2 * h, 0.25) + 0.0025, 0.005)
