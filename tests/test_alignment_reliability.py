@@ -180,3 +180,29 @@ def test_stage_progress_prints_only_on_a_terminal():
     p("per-axis skew", 1.0)
     text = out.getvalue()
     assert "\rclock offset: coarse search 100%\n\rper-axis skew 100%" in text
+
+
+def test_long_search_work_grows_with_rows_not_with_range_times_rows(monkeypatch):
+    """A wide search on a long session: the medium stage used to evaluate 4 x (range/4000)/h offsets on
+    every row (800 here, ~900 x rows interpolations in all); now passes of at most 81 offsets."""
+    rng = np.random.default_rng(5)
+    freqs, phases = rng.uniform(0.0003, 0.003, (3, 8)), rng.uniform(0, 6.3, (3, 8))   # coarse step 25 s resolves it
+
+    def field(t):
+        return np.stack([np.sin(2 * np.pi * freqs[i] * t[:, None] + phases[i]).sum(axis=1) for i in range(3)], 1)
+
+    t_dut = np.arange(0, 100_000, 2.0)
+    t_ref = np.arange(0, 100_000, 0.25)
+    dut = field(t_dut - 3.7) + rng.normal(0, 0.01, (t_dut.size, 3))
+    ref = field(t_ref)
+    queries = []
+    real = alignment._interp_batch
+
+    def counting(t_src, y_src, tq, gap):
+        queries.append(tq.size)
+        return real(t_src, y_src, tq, gap)
+
+    monkeypatch.setattr(alignment, "_interp_batch", counting)
+    est = estimate_clock_offset(t_dut, dut, t_ref, ref, prior_s=0.0, search_halfwidth_s=50_000.0)
+    assert est.offset_s == pytest.approx(3.7, abs=0.05)
+    assert sum(queries) < 450 * t_dut.size, sum(queries) / t_dut.size
