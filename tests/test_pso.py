@@ -1,0 +1,124 @@
+"""Riwanto PSO (firmware_py/calibration/pso.py): schedule, plane fit sign, mirror fix, determinism, model 1."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from magstack.firmware.calibration import pso
+from magstack.firmware.errors import FitError
+from magstack.ground.studies.riwanto import (
+    PAPER_MODELS,
+    TRUTH_OFF_NT,
+    TRUTH_S_MC,
+    _generators,
+    run_paper_model,
+    simulate,
+)
+
+TRUTH_P = np.r_[np.linalg.inv(TRUTH_S_MC).ravel(), TRUTH_OFF_NT]
+
+
+def _problem(model=1, seed=0, sign_rule="area"):
+    rng, _ = _generators(seed)
+    d = simulate(PAPER_MODELS[model], rng)
+    return pso.Problem.build(d.b_meas_nT, d.b_ref_norm_nT, d.locus, d.omega, sign_rule)
+
+
+def test_table_i_defaults_and_velocity_limit():
+    o = pso.PsoOptions()
+    assert (o.n_particles, o.k_max, o.v_lim, o.cf1, o.cf2) == (35, 500, 50.0, 1.0, 4e4)
+    np.testing.assert_allclose(o.vmax, np.r_[np.full(9, 2 / 50), np.full(3, 10000 / 50)])   # eq. (6)
+
+
+def test_schedule_reading_of_fig2():
+    o = pso.PsoOptions(k_max=100, w_v_frac=0.1, c_v_frac=0.1, n_cycles=3)
+    w, c1, c2 = pso.schedule(o)
+    assert len(w) == len(c1) == len(c2) == 100
+    for start in (0, 20, 40):                      # three cycles of 10 + 10 iterations
+        assert (w[start], c1[start], c2[start]) == (5.0, 4.0, 0.0)
+        assert w[start + 9] == pytest.approx(0.5)  # w ramp ends at w_f ...
+        assert np.all(np.diff(w[start:start + 10]) < 0)
+        assert (c1[start + 9], c2[start + 9]) == (4.0, 0.0)          # ... before c1, c2 move
+        assert c1[start + 19] == pytest.approx(2.0) and c2[start + 19] == pytest.approx(2.0)
+    assert np.all(w[60:] == 0.382) and np.all(c1[60:] == 2.5) and np.all(c2[60:] == 2.5)
+
+
+@pytest.mark.parametrize("sign_rule", pso.SIGN_RULES)
+def test_plane_normal_sign_follows_right_hand_rule(sign_rule):
+    """A locus traversed counter-clockwise about +z (seen from +z) has normal +z; reversed, -z.
+    Off-origin centre, partial arc and noise; batched over particles."""
+    rng = np.random.default_rng(3)
+    t = np.linspace(0.0, 2.0, 30)                  # 115 degrees
+    ring = np.c_[np.cos(t), np.sin(t), np.zeros_like(t)] * 30000 + [2000.0, -500.0, 8000.0]
+    pts = np.stack([ring + rng.normal(0, 300, ring.shape) for _ in range(4)])
+    n = pso.plane_normals(pts, sign_rule, 10)
+    assert np.all(n[:, 2] > 0.99)
+    n_rev = pso.plane_normals(pts[:, ::-1], sign_rule, 10)
+    assert np.all(n_rev[:, 2] < -0.99)
+
+
+def test_locus_normal_is_minus_omega_at_truth():
+    """Body turning positively about omega: the field turns the other way, normal = -omega (eq. 9)."""
+    prob = _problem(1, 0)
+    K, k = pso.unpack(TRUTH_P)
+    b_hat = prob.b_meas_nT @ K.T - k
+    for idx, om in zip(prob.groups, prob.omega_hat, strict=True):
+        n = pso.plane_normals(b_hat[idx][None], "area")[0]
+        assert n @ om < -0.999
+
+
+def test_mirror_pair_has_equal_fitness_and_fix_flips_matrix_and_offset():
+    prob = _problem(1, 0)
+    o = pso.PsoOptions()
+    f = pso.fitness(np.stack([TRUTH_P, -TRUTH_P]), prob, o)
+    assert f[0] == pytest.approx(f[1], rel=1e-12)
+    K, k = pso.unpack(-TRUTH_P)
+    K2, k2, flipped = pso.mirror_fix(K, k)
+    assert flipped
+    np.testing.assert_allclose(K2, np.linalg.inv(TRUTH_S_MC))
+    np.testing.assert_allclose(k2, TRUTH_OFF_NT)                  # eq. (11) alone would leave -off
+    K3, k3, flipped3 = pso.mirror_fix(K2, k2)
+    assert not flipped3 and K3 is K2 and k3 is k2
+
+
+def test_seeded_runs_are_bit_identical_and_seed_matters():
+    prob = _problem(1, 0)
+    o = pso.PsoOptions(k_max=60)
+    a = pso.run_pso(prob, seed=11, options=o)
+    b = pso.run_pso(prob, seed=11, options=o)
+    c = pso.run_pso(prob, seed=12, options=o)
+    np.testing.assert_array_equal(a.K, b.K)
+    np.testing.assert_array_equal(a.k_nT, b.k_nT)
+    np.testing.assert_array_equal(a.history, b.history)
+    assert not np.array_equal(a.history, c.history)
+    assert np.all(np.diff(a.history) <= 0)                        # global best never gets worse
+    assert a.n_evaluations == 35 * 61
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_model1_reaches_noise_floor(seed):
+    """Model 1 (3 circles, delta 2000 nT, 100 samples): the fitness noise floor is
+    delta / sqrt(n) = 200 with a sampling spread of about 200 / sqrt(200) = 14; measured over
+    seeds 0-19 (docs/refit-pso.md) the PSO gave 159-228 and ended below the fitness of the true
+    parameters in 19 of 20 runs (worst +11). Bounds: 200 +- 50 (3.5 sigma) and at most 15 above
+    the truth's fitness on the same data."""
+    r = run_paper_model(1, seed).to_dict()
+    assert 150.0 < r["fitness"] < 250.0
+    assert r["fitness"] < r["fitness_at_truth"] + 15.0
+    assert r["dS_fro"] < 0.15 and r["doff_nT"] < 2500.0          # paper M1: 0.073, 720 nT
+    assert np.linalg.det(np.array(r["K_m"])) > 0
+
+
+def test_problem_input_checks():
+    prob = _problem(1, 0)
+    b, r = prob.b_meas_nT, prob.b_ref_norm_nT
+    with pytest.raises(FitError, match="two loci"):
+        pso.Problem.build(b, r, np.zeros(len(b), int), np.eye(3))
+    with pytest.raises(FitError, match="integer"):
+        pso.Problem.build(b, r, np.zeros(len(b)), np.eye(3))
+    with pytest.raises(FitError, match="omega"):
+        pso.Problem.build(b, r, np.arange(len(b)) % 3, np.eye(2))
+    with pytest.raises(FitError, match="sign_rule"):
+        pso.PsoOptions(sign_rule="left")
+    with pytest.raises(FitError, match="sign_rule"):
+        pso.run_pso(prob, options=pso.PsoOptions(sign_rule="pair"))

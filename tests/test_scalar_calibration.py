@@ -1,0 +1,121 @@
+"""Attitude-independent scalar calibration (firmware_py/calibration/scalar.py) and the refit entry point."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from magstack.firmware.cal_table import load_table, save_table, validate
+from magstack.firmware.calibration.scalar import fit_scalar, oriented_normal, refit_scalar
+from magstack.firmware.errors import FitError
+from magstack.ground.studies.riwanto import TRUTH_OFF_NT, TRUTH_S_MC, PaperModel, simulate
+
+S_TRUE = np.array([[1.08, 0.04, -0.03], [-0.05, 0.93, 0.06], [0.02, -0.07, 1.12]])
+OFF_TRUE_UT = np.array([3.2, -1.5, 7.9])
+
+
+def _sphere(n: int, seed: int, varying: bool):
+    """Noiseless data: uniform directions, |b| constant 45 uT or 20..60 uT; b_meas = S (b + off)."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    mag = rng.uniform(20.0, 60.0, n) if varying else np.full(n, 45.0)
+    b = d * mag[:, None]
+    return (b + OFF_TRUE_UT) @ S_TRUE.T, b
+
+
+@pytest.mark.parametrize("varying", [False, True])
+def test_noiseless_reference_gauge_recovers_truth(varying):
+    b_meas, b = _sphere(400, 1, varying)
+    fit = fit_scalar(b_meas, b, gauge="reference")
+    assert fit.rms_residual < 1e-9
+    np.testing.assert_allclose(fit.K, np.linalg.inv(S_TRUE), atol=1e-9)
+    np.testing.assert_allclose(fit.k, OFF_TRUE_UT, atol=1e-8)
+
+
+def test_symmetric_gauge_fixes_shape_and_centre_only():
+    b_meas, b = _sphere(300, 2, False)
+    fit = fit_scalar(b_meas, np.linalg.norm(b, axis=1))
+    K = np.linalg.inv(S_TRUE)
+    np.testing.assert_allclose(fit.K, fit.K.T, atol=1e-12)
+    assert np.linalg.eigvalsh(fit.K).min() > 0
+    np.testing.assert_allclose(fit.K.T @ fit.K, K.T @ K, atol=1e-9)                  # A = K^T K
+    np.testing.assert_allclose(np.linalg.solve(fit.K, fit.k), S_TRUE @ OFF_TRUE_UT, atol=1e-8)  # centre K^-1 k
+    # the answer is the truth up to a rotation: Q = K_fit K_true^-1 is proper orthogonal
+    Q = fit.K @ S_TRUE
+    np.testing.assert_allclose(Q @ Q.T, np.eye(3), atol=1e-9)
+    assert np.linalg.det(Q) == pytest.approx(1.0, abs=1e-9)
+
+
+def test_lower_triangular_and_prior_gauges():
+    Kt = np.array([[0.95, 0.0, 0.0], [0.04, 1.06, 0.0], [-0.03, 0.05, 0.9]])
+    b_meas, b = _sphere(300, 3, True)
+    b_meas = b @ np.linalg.inv(Kt).T + 1.0      # K b_meas - k = b with k = K @ [1, 1, 1]
+    k_true = Kt @ np.ones(3)
+    r = np.linalg.norm(b, axis=1)
+    tri = fit_scalar(b_meas, r, gauge="lower_triangular")
+    np.testing.assert_allclose(tri.K, Kt, atol=1e-9)
+    np.testing.assert_allclose(tri.k, k_true, atol=1e-8)
+    R = Rotation.from_euler("xyz", [3.0, -2.0, 5.0], degrees=True).as_matrix()
+    pri = fit_scalar(b_meas, r, gauge="prior", K_prior=R @ Kt)
+    np.testing.assert_allclose(pri.K, R @ Kt, atol=1e-9)
+
+
+def test_axes_gauge_two_great_circles_noiseless():
+    """Two great circles do not determine an ellipsoid from magnitudes alone (every quadric
+    sphere + mu x y contains both); the axis residuals must fix it."""
+    d = simulate(PaperModel(3, 2, (35000.0, 35000.0), 0.0), np.random.default_rng(0))
+    fit = fit_scalar(d.b_meas_nT, d.b_ref_norm_nT, gauge="axes", locus=d.locus, omega=d.omega)
+    np.testing.assert_allclose(np.linalg.inv(fit.K), TRUTH_S_MC, atol=1e-6)
+    np.testing.assert_allclose(fit.k, TRUTH_OFF_NT, atol=1e-3)
+
+
+def test_oriented_normal_follows_sample_order():
+    t = np.linspace(0, 1.5 * np.pi, 40)
+    ring = np.c_[np.cos(t), np.sin(t), np.full_like(t, 0.3)] * 50 + [5.0, -2.0, 1.0]
+    np.testing.assert_allclose(oriented_normal(ring), [0, 0, 1], atol=1e-12)
+    np.testing.assert_allclose(oriented_normal(ring[::-1]), [0, 0, -1], atol=1e-12)
+
+
+@pytest.mark.parametrize("kw, msg", [
+    ({"b_meas": np.zeros((20, 2))}, "shape"),
+    ({"b_meas": np.ones((5, 3)), "b_ref": np.ones(5)}, "at least 12"),
+    ({"b_ref": -np.ones(30)}, "positive"),
+    ({"gauge": "bogus"}, "unknown gauge"),
+    ({"gauge": "reference"}, "vectors"),
+    ({"gauge": "prior"}, "K_prior"),
+    ({"gauge": "axes"}, "locus"),
+])
+def test_bad_inputs_raise_fit_error(kw, msg):
+    b_meas, b = _sphere(30, 4, False)
+    args = {"b_meas": b_meas, "b_ref": np.linalg.norm(b, axis=1), **kw}
+    with pytest.raises(FitError, match=msg):
+        fit_scalar(args.pop("b_meas"), args.pop("b_ref"), **args)
+
+
+def test_refit_scalar_table_round_trip(tmp_path):
+    rng = np.random.default_rng(7)
+    b_meas, b = _sphere(500, 5, True)
+    b_meas = b_meas + rng.normal(0, 0.05, b_meas.shape)
+    res = refit_scalar(b_meas, b, gauge="reference")
+    assert res.method == "scalar" and res.gauge == "reference"
+    assert res.rms_residual_uT < 0.1 < res.rms_raw_uT
+    table = res.to_table("dut-1", created_utc="2026-01-01T00:00:00Z")
+    assert validate(table).ok, validate(table).problems
+    back = load_table(save_table(table, tmp_path / "cand.json"))
+    np.testing.assert_allclose(back.S, res.S)
+    np.testing.assert_allclose(back.O, res.O_uT)
+    b_cal = b_meas @ back.S.T + back.O
+    assert np.sqrt(np.mean(np.sum((b_cal - b) ** 2, axis=1))) < 0.2
+    assert back.fit_stats["method"] == "attitude-independent scalar"
+
+
+def test_refit_scalar_default_gauge_and_method_errors():
+    b_meas, b = _sphere(60, 6, False)
+    r = np.linalg.norm(b, axis=1)
+    assert refit_scalar(b_meas, r).gauge == "symmetric"
+    assert refit_scalar(b_meas, r, K_prior=np.eye(3)).gauge == "prior"
+    with pytest.raises(FitError, match="method"):
+        refit_scalar(b_meas, r, method="ekf")
+    with pytest.raises(FitError, match="locus"):
+        refit_scalar(b_meas, r, method="pso")
