@@ -119,3 +119,17 @@ def test_refit_scalar_default_gauge_and_method_errors():
         refit_scalar(b_meas, r, method="ekf")
     with pytest.raises(FitError, match="locus"):
         refit_scalar(b_meas, r, method="pso")
+
+
+def test_refit_pso_method_works_in_uT():
+    """The PSO runs in nT internally (the paper's weights); refit_scalar takes and returns uT."""
+    d = simulate(PaperModel(1, 3, (35000.0, 35000.0), 200.0), np.random.default_rng(5))
+    res = refit_scalar(d.b_meas_nT / 1e3, d.b_ref_norm_nT / 1e3, method="pso", locus=d.locus,
+                       omega_body=d.omega, seed=3)
+    assert res.method == "pso" and res.gauge == "axes" and np.isfinite(res.fitness)
+    assert np.linalg.norm(np.linalg.inv(res.S) - TRUTH_S_MC) < 0.05
+    assert np.linalg.norm(res.O_uT + TRUTH_OFF_NT / 1e3) < 0.5
+    assert res.rms_residual_uT < 0.5 < res.rms_raw_uT
+    with pytest.raises(FitError, match="gauge"):
+        refit_scalar(d.b_meas_nT / 1e3, d.b_ref_norm_nT / 1e3, method="pso", locus=d.locus, omega_body=d.omega,
+                     gauge="symmetric")

@@ -109,6 +109,13 @@ def schedule(opt: PsoOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return w, c1, c2
 
 
+def area_vector(u: np.ndarray) -> np.ndarray:
+    """``sum_s u_s x u_s+1`` over the sample axis of ``u`` (..., n, 3): twice the oriented area of
+    the polygon (from the antisymmetric part of ``u[:-1]^T u[1:]``, one matrix product)."""
+    m = np.swapaxes(u[..., :-1, :], -1, -2) @ u[..., 1:, :]
+    return np.stack([m[..., 1, 2] - m[..., 2, 1], m[..., 2, 0] - m[..., 0, 2], m[..., 0, 1] - m[..., 1, 0]], axis=-1)
+
+
 def plane_normals(points: np.ndarray, sign_rule: str = "area", pair_index: int | None = None) -> np.ndarray:
     """Algorithm 3 for a batch: ``points`` (P, n, 3) -> oriented unit normals (P, 3).
 
@@ -121,11 +128,11 @@ def plane_normals(points: np.ndarray, sign_rule: str = "area", pair_index: int |
     """
     pts = np.asarray(points, dtype=float)
     u = pts - pts.mean(axis=1, keepdims=True)
-    scatter = np.einsum("pni,pnj->pij", u, u)
-    _, vecs = np.linalg.eigh(scatter)
+    ut = u.transpose(0, 2, 1)
+    _, vecs = np.linalg.eigh(ut @ u)
     n = vecs[:, :, 0]
     if sign_rule == "area":
-        ref = np.cross(u[:, :-1], u[:, 1:]).sum(axis=1)
+        ref = area_vector(u)
     elif sign_rule == "pair":
         q = pts.shape[1] // 4 if pair_index is None else pair_index
         ref = np.cross(pts[:, 0], pts[:, q])
@@ -199,7 +206,7 @@ def unpack(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def fitness_terms(P: np.ndarray, prob: Problem) -> tuple[np.ndarray, np.ndarray]:
     """``F1``, ``F2`` (eqs. 8b, 9) for particles ``P`` (n_p, 12)."""
     K, k = unpack(P)
-    b_hat = np.einsum("pij,nj->pni", K, prob.b_meas_nT) - k[:, None, :]
+    b_hat = prob.b_meas_nT @ K.transpose(0, 2, 1) - k[:, None, :]          # (P, N, 3)
     f1 = np.sum((prob.b_ref_norm_nT - np.linalg.norm(b_hat, axis=2)) ** 2, axis=1)
     f2 = np.zeros(len(P))
     for l, idx in enumerate(prob.groups):

@@ -50,6 +50,7 @@ from scipy.linalg import cholesky, polar, sqrtm
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from magstack.firmware.calibration.pso import area_vector
 from magstack.firmware.errors import FitError
 
 GAUGES = ("symmetric", "lower_triangular", "prior", "reference", "axes")
@@ -210,8 +211,7 @@ def oriented_normal(points: np.ndarray) -> np.ndarray:
     u = points - points.mean(axis=0)
     _, vecs = np.linalg.eigh(u.T @ u)
     n = vecs[:, 0]
-    area = np.cross(u[:-1], u[1:]).sum(axis=0)
-    return n if n @ area >= 0 else -n
+    return n if n @ area_vector(u) >= 0 else -n
 
 
 def rotation_from_axes(b_cal: np.ndarray, groups, omega_hat: np.ndarray) -> np.ndarray:
@@ -289,7 +289,7 @@ def fit_scalar(b_meas, b_ref, *, gauge: str = "symmetric", K_prior=None, locus=N
     if gauge == "reference" and vec is None:
         raise FitError("gauge 'reference' needs b_ref as (N, 3) vectors")
     groups, axes = _check_loci(locus, omega, len(b)) if gauge == "axes" else ((), np.zeros((0, 3)))
-    starts = closed_form_start(b, r, n_pencil=60 if gauge == "axes" else 0)
+    starts = closed_form_start(b, r, n_pencil=24 if gauge == "axes" else 0)
     best = None
     for name, A, c in starts:
         K0 = np.real(sqrtm(A))

@@ -198,8 +198,8 @@ def summary_markdown(rows: list[dict]) -> str:
         v = np.asarray(v, float)
         return f"{np.median(v):.4g} ({v.min():.4g}-{v.max():.4g})"
     out = ["| model | seeds | PSO F_g | F at truth | paper F_g | PSO ‖ΔS‖_F | LS ‖ΔS‖_F | paper ‖ΔS‖_F | "
-           "PSO ‖Δoff‖ nT | LS ‖Δoff‖ nT | paper ‖Δoff‖ nT | LS F (eq. 10) | PSO s | LS s |",
-           "|" + "---|" * 14]
+           "PSO ‖Δoff‖ nT | LS ‖Δoff‖ nT | paper ‖Δoff‖ nT | LS F (eq. 10) | PSO s | LS s | mirror fixed |",
+           "|" + "---|" * 15]
     for m in sorted({r["model"] for r in rows}):
         rs = [r for r in rows if r["model"] == m]
         ls = [r["least_squares"] for r in rs]
@@ -209,7 +209,8 @@ def summary_markdown(rows: list[dict]) -> str:
                    f" | {p['dS_fro']:.3f} | {mm([r['doff_nT'] for r in rs])} | {mm([x['doff_nT'] for x in ls])}"
                    f" | {p['doff_nT']:.0f} | {mm([x['fitness'] for x in ls])}"
                    f" | {np.median([r['runtime_s'] for r in rs]):.3f}"
-                   f" | {np.median([x['runtime_s'] for x in ls]):.4f} |")
+                   f" | {np.median([x['runtime_s'] for x in ls]):.4f}"
+                   f" | {sum(r['mirrored'] for r in rs)}/{len(rs)} |")
     return "\n".join(out)
 
 
