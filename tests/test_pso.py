@@ -122,3 +122,27 @@ def test_problem_input_checks():
         pso.PsoOptions(sign_rule="left")
     with pytest.raises(FitError, match="sign_rule"):
         pso.run_pso(prob, options=pso.PsoOptions(sign_rule="pair"))
+
+
+def test_paper_pair_rule_fails_off_centre_area_rule_does_not():
+    """The paper's step 6 uses uncentred vectors: when the circle's in-plane centre is far from
+    the origin (large offset, small circle) b_1 x b_q can point the wrong way. Documented in
+    docs/refit-pso.md; the default area rule uses the centred polygon."""
+    t = np.linspace(np.pi / 2, np.pi, 20)          # quarter arc, counter-clockwise about +z
+    arc = np.c_[np.cos(t), np.sin(t), np.zeros_like(t)] * 1000 + [5000.0, 0.0, 300.0]
+    assert pso.plane_normals(arc[None], "area")[0, 2] > 0.99
+    assert pso.plane_normals(arc[None], "pair", 19)[0, 2] < -0.99
+
+
+def test_pair_index_stays_within_half_a_turn_for_anisotropic_sensors():
+    """The automatic q of the paper's pair rule must lie between 0 and 180 degrees of true turn
+    (a q at 270 degrees reverses the sign; an anisotropic S can make it look like the best pair)."""
+    ang = np.deg2rad(np.arange(0, 360, 10.0))
+    ring = np.c_[np.cos(ang), np.sin(ang), np.zeros_like(ang)] * 35000
+    for S in (np.diag([3.0, 0.4, 1.0]), TRUTH_S_MC, np.array([[0.3, 2.0, 0], [-1.5, 0.2, 0], [0, 0, 1.0]])):
+        b = (ring + [12600.0, -200.0, 1800.0]) @ S.T
+        (q,) = pso.pair_indices(b, [np.arange(len(b))])
+        assert 0 < np.rad2deg(ang[q]) < 180
+        # the oriented normal of the mapped circle is along det(S) S^-T e_z (cofactor of S)
+        cof_z = np.linalg.det(S) * np.linalg.solve(S.T, [0.0, 0.0, 1.0])
+        assert pso.plane_normals(b[None], "pair", q)[0] @ cof_z > 0

@@ -143,12 +143,18 @@ def plane_normals(points: np.ndarray, sign_rule: str = "area", pair_index: int |
 
 
 def pair_indices(b_meas: np.ndarray, groups: list[np.ndarray]) -> list[int]:
-    """For the paper's pair rule: per locus, the sample whose centred raw vector is closest to
-    90 degrees around the locus from the first one (largest |u_1 x u_q|)."""
+    """For the paper's pair rule: per locus, the first sample at which the centred raw vector has
+    turned 90 degrees from the first one (summing the angles between consecutive samples), or
+    the last sample of a shorter arc. The paper asks for a hand-picked point between 0 and 180
+    degrees; a linear map with det > 0 keeps that half-turn, so the choice on raw data holds
+    after calibration. (Picking the largest |u_1 x u_q| instead can land at 270 degrees, where
+    the sign is reversed.)"""
     out = []
     for idx in groups:
         u = b_meas[idx] - b_meas[idx].mean(axis=0)
-        out.append(int(np.argmax(np.linalg.norm(np.cross(u[0], u), axis=1))))
+        u = u / np.linalg.norm(u, axis=1, keepdims=True)
+        turn = np.cumsum(np.arccos(np.clip(np.sum(u[:-1] * u[1:], axis=1), -1.0, 1.0)))
+        out.append(int(min(np.searchsorted(turn, np.pi / 2) + 1, len(idx) - 1)))
     return out
 
 

@@ -29,6 +29,7 @@ generator, so a result is a function of ``(model, seed)`` alone.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -181,7 +182,7 @@ def run_paper_model(model: int, seed: int = 0, options: _pso.PsoOptions | None =
     ls = fit_scalar(data.b_meas_nT, data.b_ref_norm_nT, gauge="axes", locus=data.locus, omega=data.omega)
     t_ls = time.perf_counter() - t0
     f_ls = float(_pso.fitness(np.r_[ls.K.ravel(), ls.k], prob, opt)[0])
-    pso_res = _pso.PsoResult(**{**res.__dict__, "seed": int(seed)})
+    pso_res = dataclasses.replace(res, seed=int(seed))
     return PaperModelResult(model=model, seed=int(seed), pso=pso_res,
                             fitness_at_truth=float(_pso.fitness(truth, prob, opt)[0]),
                             scalar_K=ls.K, scalar_k_nT=ls.k, scalar_fitness=f_ls, scalar_runtime_s=t_ls)
@@ -241,11 +242,48 @@ def parameter_markdown(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
+#: Alternative readings of Table I / Fig. 2 compared in docs/refit-pso.md.
+VARIANTS: dict[str, _pso.PsoOptions] = {
+    "default (3 cycles of 0.1 k_max, v_lim 50, area sign rule)": _pso.PsoOptions(),
+    "k_max = 1000": _pso.PsoOptions(k_max=1000),
+    "5 cycles of 0.05 k_max": _pso.PsoOptions(w_v_frac=0.05, c_v_frac=0.05, n_cycles=5),
+    "2 cycles of 0.2 k_max": _pso.PsoOptions(w_v_frac=0.2, c_v_frac=0.2, n_cycles=2),
+    "1 cycle of 0.4 k_max": _pso.PsoOptions(w_v_frac=0.4, c_v_frac=0.4, n_cycles=1),
+    "constriction reading of the end phase (c_e = 0.382 x 2.5)": _pso.PsoOptions(c_e=0.382 * 2.5),
+    "v_lim = 10": _pso.PsoOptions(v_lim=10.0),
+    "v_lim = 2 (the text's starting point)": _pso.PsoOptions(v_lim=2.0),
+    "paper's pair sign rule (automatic q)": _pso.PsoOptions(sign_rule="pair"),
+}
+
+
+def variants_markdown(model: int = 1, seeds=range(10), variants: dict | None = None) -> str:
+    """Eq.-(10) fitness of the PSO minus that of the least-squares answer on the same data
+    (same sign rule), median / worst over ``seeds``, per PSO variant."""
+    data = []
+    for seed in seeds:
+        rng, pso_ss = _generators(seed)
+        d = simulate(PAPER_MODELS[model], rng)
+        ls = fit_scalar(d.b_meas_nT, d.b_ref_norm_nT, gauge="axes", locus=d.locus, omega=d.omega)
+        data.append((d, pso_ss, np.r_[ls.K.ravel(), ls.k]))
+    out = ["| variant | median | worst |", "|---|---|---|"]
+    for name, opt in (variants or VARIANTS).items():
+        diff = []
+        for d, pso_ss, x_ls in data:
+            prob = _pso.Problem.build(d.b_meas_nT, d.b_ref_norm_nT, d.locus, d.omega, opt.sign_rule)
+            diff.append(_pso.run_pso(prob, seed=pso_ss, options=opt).fitness - _pso.fitness(x_ls, prob, opt)[0])
+        out.append(f"| {name} | {np.median(diff):+.1f} | {np.max(diff):+.1f} |")
+    return "\n".join(out)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description="riwanto PSO simulation study (docs/refit-pso.md)")
     ap.add_argument("--models", default="1,2,3,4,5")
     ap.add_argument("--seeds", type=int, default=10, help="seeds 0..N-1")
+    ap.add_argument("--variants", action="store_true", help="compare PSO readings on model 1 instead")
     a = ap.parse_args(argv)
+    if a.variants:
+        print(variants_markdown(1, range(a.seeds)))
+        return 0
     rows = study([int(x) for x in a.models.split(",")], range(a.seeds))
     print(summary_markdown(rows))
     print()
