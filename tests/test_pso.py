@@ -137,9 +137,12 @@ def test_paper_pair_rule_fails_off_centre_area_rule_does_not():
 def test_pair_index_stays_within_half_a_turn_for_anisotropic_sensors():
     """The automatic q of the paper's pair rule must lie between 0 and 180 degrees of true turn
     (a q at 270 degrees reverses the sign; an anisotropic S can make it look like the best pair)."""
-    ang = np.deg2rad(np.arange(0, 360, 10.0))
+    # uneven steps: the sample at 270 deg is further from the first one's line than any in the
+    # first half-turn (sin 80 deg < sin 270 deg in size), which fooled a largest-|u_1 x u_q| choice
+    ang = np.deg2rad([0, 40, 80, 120, 160, 200, 230, 270, 300, 330.0])
     ring = np.c_[np.cos(ang), np.sin(ang), np.zeros_like(ang)] * 35000
-    for S in (np.diag([3.0, 0.4, 1.0]), TRUTH_S_MC, np.array([[0.3, 2.0, 0], [-1.5, 0.2, 0], [0, 0, 1.0]])):
+    for S in (np.eye(3), np.diag([3.0, 0.4, 1.0]), TRUTH_S_MC,
+              np.array([[0.3, 2.0, 0], [-1.5, 0.2, 0], [0, 0, 1.0]])):
         b = (ring + [12600.0, -200.0, 1800.0]) @ S.T
         (q,) = pso.pair_indices(b, [np.arange(len(b))])
         assert 0 < np.rad2deg(ang[q]) < 180

@@ -133,3 +133,24 @@ def test_refit_pso_method_works_in_uT():
     with pytest.raises(FitError, match="gauge"):
         refit_scalar(d.b_meas_nT / 1e3, d.b_ref_norm_nT / 1e3, method="pso", locus=d.locus, omega_body=d.omega,
                      gauge="symmetric")
+
+
+def test_single_rotation_plane_is_refused():
+    """Points on one circle fit many ellipsoids exactly: refuse rather than return one of them."""
+    t = np.linspace(0, 2 * np.pi, 200, endpoint=False)
+    b = np.c_[np.cos(t), np.sin(t), 0 * t] * 40
+    b_meas = b @ np.diag([1.1, 0.9, 1.0]).T + [2.0, 3.0, 4.0]
+    with pytest.raises(FitError, match="determine|ellipsoid"):
+        fit_scalar(b_meas, 40.0)
+    noisy = b_meas + np.random.default_rng(0).normal(0, 0.5, b_meas.shape)
+    with pytest.raises(FitError, match="determine|ellipsoid"):
+        fit_scalar(noisy, 40.0)
+
+
+def test_standard_errors_scale_with_noise_where_determined():
+    b_meas, b = _sphere(400, 8, False)
+    r = np.linalg.norm(b, axis=1)
+    rng = np.random.default_rng(1)
+    se = [fit_scalar(b_meas + rng.normal(0, s, b_meas.shape), r).se_params for s in (0.01, 0.1)]
+    assert np.all(np.isfinite(se[0])) and se[0].shape == (9,)
+    np.testing.assert_allclose(se[1] / se[0], 10.0, rtol=0.3)

@@ -64,6 +64,10 @@ class ScalarFit:
 
     ``rms_residual`` = RMS of ``|K b_meas - k| - |b_ref|`` after the fit, ``rms_raw`` the same
     for the raw data (K = I, k = 0); ``start`` names the closed-form variant that won.
+    ``se_params``: 1-sigma standard errors in the fit's own parametrisation, before the gauge
+    rotation: ``[K11 K12 K13 K22 K23 K33 k1 k2 k3]`` (symmetric fit) or ``[K row-major, k]``
+    (gauge ``axes``). A direction the data cannot see gets an error that does not shrink with
+    the noise (two great circles, magnitudes only: about 0.04 on K at any noise level).
     """
 
     K: np.ndarray
@@ -75,6 +79,7 @@ class ScalarFit:
     start: str
     nfev: int
     runtime_s: float
+    se_params: np.ndarray = field(default_factory=lambda: np.full(9, np.nan))
     extra: dict[str, Any] = field(default_factory=dict)
 
     def apply(self, b_meas: np.ndarray) -> np.ndarray:
@@ -319,6 +324,10 @@ def fit_scalar(b_meas, b_ref, *, gauge: str = "symmetric", K_prior=None, locus=N
         K, k = P, U.T @ k
     if np.linalg.svd(K, compute_uv=False)[-1] <= 1e-9 * np.abs(K).max():
         raise FitError("scalar fit is singular: the data do not determine all three axes")
+    se = _standard_errors(res)
+    if not np.isfinite(se).all():
+        raise FitError("the data do not determine the calibration (singular Jacobian at the solution): "
+                       "too little attitude coverage (e.g. a single rotation plane)")
     Q = np.eye(3)
     if gauge == "lower_triangular":
         A = K.T @ K
@@ -339,7 +348,19 @@ def fit_scalar(b_meas, b_ref, *, gauge: str = "symmetric", K_prior=None, locus=N
     rms = float(np.sqrt(np.mean(scalar_residual(K, k, b, r) ** 2)))
     raw = float(np.sqrt(np.mean(scalar_residual(np.eye(3), np.zeros(3), b, r) ** 2)))
     return ScalarFit(K=K, k=k, gauge=gauge, rms_residual=rms, rms_raw=raw, n_used=len(b), start=start_name,
-                     nfev=int(res.nfev), runtime_s=time.perf_counter() - t0)
+                     nfev=int(res.nfev), runtime_s=time.perf_counter() - t0, se_params=se)
+
+
+def _standard_errors(res) -> np.ndarray:
+    """1-sigma standard errors of the fitted parameters from the Jacobian at the solution,
+    ``s^2 (J^T J)^-1`` with ``s^2 = sum r^2 / (m - n)`` (inf where J^T J is singular)."""
+    J = np.asarray(res.jac, dtype=float)
+    m, n = J.shape
+    s2 = float(np.sum(res.fun ** 2)) / max(m - n, 1)
+    sv = np.linalg.svd(J, compute_uv=False)
+    if sv[-1] <= sv[0] * 1e-12:
+        return np.full(n, np.inf)
+    return np.sqrt(s2 * np.diag(np.linalg.pinv(J.T @ J)))
 
 
 # ---------------------------------------------------------------------- on-orbit refit entry point
@@ -366,12 +387,15 @@ class ScalarRefit:
     field_max_uT: float
     fitness: float = float("nan")
     seed: int | None = None
+    se_params: np.ndarray | None = None
 
     def fit_stats(self) -> dict[str, Any]:
         """Statistics for the table's ``fit`` block (informational)."""
         st: dict[str, Any] = {"method": f"attitude-independent {self.method}", "gauge": self.gauge,
                               "n_used": self.n_used, "raw_rmse_scalar_uT": self.rms_raw_uT,
                               "rmse_scalar_uT": self.rms_residual_uT, "runtime_s": self.runtime_s}
+        if self.se_params is not None:
+            st["se_params"] = [float(x) for x in self.se_params]
         if self.method == "pso":
             st["pso_fitness_nT"] = self.fitness
             st["pso_seed"] = self.seed
@@ -415,7 +439,7 @@ def refit_scalar(b_meas_uT, b_ref_uT, *, method: str = "scalar", locus=None, ome
         fit = fit_scalar(b, vec if vec is not None else r, gauge=g, K_prior=K_prior, locus=locus, omega=omega_body,
                          loss=loss, f_scale=f_scale_uT)
         return ScalarRefit("scalar", g, fit.K, -fit.k, fit.rms_residual, fit.rms_raw, fit.n_used, fit.runtime_s,
-                           field_max)
+                           field_max, se_params=fit.se_params)
     from magstack.firmware.calibration import pso as _pso
 
     if gauge not in (None, "axes"):
