@@ -149,3 +149,15 @@ def test_pair_index_stays_within_half_a_turn_for_anisotropic_sensors():
         # the oriented normal of the mapped circle is along det(S) S^-T e_z (cofactor of S)
         cof_z = np.linalg.det(S) * np.linalg.solve(S.T, [0.0, 0.0, 1.0])
         assert pso.plane_normals(b[None], "pair", q)[0] @ cof_z > 0
+
+
+def test_plane_normal_equals_algorithm_3_svd():
+    """Our batched eigh of the scatter matrix gives the paper's U[:, argmin S] of A = [b_s - b_mean]."""
+    rng = np.random.default_rng(9)
+    pts = rng.normal(size=(5, 40, 3)) * [30000.0, 20000.0, 3000.0] + rng.normal(size=(5, 1, 3)) * 10000
+    ours = pso.plane_normals(pts, "area")
+    for p, n in zip(pts, ours, strict=True):
+        A = (p - p.mean(axis=0)).T                         # 3 x n, Algorithm 3 step 2
+        U, s, _ = np.linalg.svd(A)                         # step 3
+        ref = U[:, np.argmin(s)]                           # steps 4-5
+        assert abs(abs(ref @ n) - 1.0) < 1e-12

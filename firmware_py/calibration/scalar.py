@@ -56,6 +56,10 @@ from magstack.firmware.errors import FitError
 GAUGES = ("symmetric", "lower_triangular", "prior", "reference", "axes")
 
 _IU = np.triu_indices(3)          # the 6 free entries of a symmetric K
+#: Candidate starts along the least-determined quadric direction (gauge "axes", degenerate loci).
+N_PENCIL = 24
+#: Best starts refined by the joint least squares (gauge "axes").
+N_AXES_STARTS = 2
 
 
 @dataclass(frozen=True)
@@ -133,40 +137,48 @@ def _from_quadric(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | N
     return A, c, float(theta[9])
 
 
-def _quadric_candidates(b: np.ndarray, r: np.ndarray, n_pencil: int) -> list[tuple[str, np.ndarray]]:
-    """Quadric coefficient vectors (scaled units) of both closed-form variants, plus, for each,
-    ``n_pencil`` points along its least-determined direction (see :func:`closed_form_start`)."""
+def _quadric_candidates(b: np.ndarray, r: np.ndarray, ts, phis) -> list[tuple[str, float, np.ndarray]]:
+    """Quadric coefficient vectors (scaled units) ``(name, pencil parameter, theta)`` of both
+    closed-form variants, plus points ``ts`` / ``phis`` along each one's least-determined
+    direction (see :func:`closed_form_start`)."""
     D = _quad_design(b)
     col = np.linalg.norm(D, axis=0)
     Dn = D / col
     out = []
     # 1. magnitude quadric (TWOSTEP-like relaxation: d free), plus particular + t * null direction
     theta, *_ = np.linalg.lstsq(D, r ** 2, rcond=None)
-    out.append(("magnitude_quadric", theta))
+    out.append(("magnitude_quadric", 0.0, theta))
     _, _, vt = np.linalg.svd(Dn, full_matrices=False)
     v = vt[-1] / col
     scale = np.linalg.norm(theta[:6]) / max(np.linalg.norm(v[:6]), 1e-300)
-    for t in np.linspace(-1.0, 1.0, n_pencil) if n_pencil else ():
-        out.append(("magnitude_quadric_pencil", theta + t * scale * v))
+    for t in ts:
+        out.append(("magnitude_quadric_pencil", t, theta + t * scale * v))
     # 2. shape quadric (algebraic ellipsoid, unit norm), plus the pencil of the two smallest directions
-    out.append(("shape_quadric", vt[-1] / col))
-    for phi in np.linspace(0.0, np.pi, n_pencil, endpoint=False) if n_pencil else ():
-        out.append(("shape_quadric_pencil", (np.cos(phi) * vt[-1] + np.sin(phi) * vt[-2]) / col))
+    out.append(("shape_quadric", 0.0, vt[-1] / col))
+    for phi in phis:
+        out.append(("shape_quadric_pencil", phi, (np.cos(phi) * vt[-1] + np.sin(phi) * vt[-2]) / col))
     return out
 
 
-def closed_form_start(b: np.ndarray, r: np.ndarray, n_pencil: int = 0) -> list[tuple[str, np.ndarray, np.ndarray]]:
-    """Closed-form candidates ``(name, A, c)`` with ``|K(b - c)| ~ r`` for ``K^T K = A``.
+def closed_form_start(b: np.ndarray, r: np.ndarray, n_pencil: int = 0, *, ts=None, phis=None
+                      ) -> list[tuple[str, np.ndarray, np.ndarray, float]]:
+    """Closed-form candidates ``(name, A, c, pencil parameter)`` with ``|K(b - c)| ~ r`` for ``K^T K = A``.
 
-    When the loci do not determine an ellipsoid (e.g. two great circles: every quadric
+    When the loci do not determine an ellipsoid (e.g. two circles: every quadric
     ``sphere + mu * plane_1 * plane_2`` contains both), the design has a (near) null direction;
-    ``n_pencil > 0`` adds candidates along it, to be chosen by a cost that sees more than the
-    magnitude (the rotation-axis residual)."""
+    ``n_pencil > 0`` adds candidates along it (``t`` in [-1, 1] for the magnitude variant, angle
+    ``phi`` in [0, pi) between the two smallest singular directions for the shape variant), or
+    explicit ``ts`` / ``phis``; they are to be chosen by a cost that sees more than the magnitude
+    (the rotation-axis residual)."""
+    if ts is None:
+        ts = np.linspace(-1.0, 1.0, n_pencil) if n_pencil else ()
+    if phis is None:
+        phis = np.linspace(0.0, np.pi, n_pencil, endpoint=False) if n_pencil else ()
     # scale data and reference to O(1) for conditioning: A is scale-free, c scales by s
     s = float(np.median(r))
     bs, rs = b / s, r / s
     out = []
-    for name, theta in _quadric_candidates(bs, rs, n_pencil):
+    for name, param, theta in _quadric_candidates(bs, rs, ts, phis):
         q = _from_quadric(theta)
         if q is None:
             continue
@@ -179,7 +191,7 @@ def closed_form_start(b: np.ndarray, r: np.ndarray, n_pencil: int = 0) -> list[t
             if not (np.isfinite(lam) and lam > 0):
                 continue
             A = lam * A
-        out.append((name, A, c * s))
+        out.append((name, A, c * s, float(param)))
     return out
 
 
@@ -294,9 +306,7 @@ def fit_scalar(b_meas, b_ref, *, gauge: str = "symmetric", K_prior=None, locus=N
     if gauge == "reference" and vec is None:
         raise FitError("gauge 'reference' needs b_ref as (N, 3) vectors")
     groups, axes = _check_loci(locus, omega, len(b)) if gauge == "axes" else ((), np.zeros((0, 3)))
-    starts = closed_form_start(b, r, n_pencil=24 if gauge == "axes" else 0)
-    best = None
-    for name, A, c in starts:
+    def start_cost(A, c):
         K0 = np.real(sqrtm(A))
         K0 = (K0 + K0.T) / 2
         k0 = K0 @ c
@@ -305,17 +315,29 @@ def fit_scalar(b_meas, b_ref, *, gauge: str = "symmetric", K_prior=None, locus=N
             Q = rotation_from_axes(b @ K0.T - k0, groups, axes)
             K0, k0 = Q @ K0, Q @ k0
             res0 = np.r_[res0, axis_residuals(b @ K0.T - k0, groups, axes)]
-        cost = float(np.sum(res0 ** 2))
-        if np.isfinite(cost) and (best is None or cost < best[0]):
-            best = (cost, name, K0, k0)
-    if best is None:
+        return float(np.sum(res0 ** 2)), K0, k0
+
+    scored = []
+    for name, A, c, _ in closed_form_start(b, r, n_pencil=N_PENCIL if gauge == "axes" else 0):
+        cost, K0, k0 = start_cost(A, c)
+        if np.isfinite(cost):
+            scored.append((cost, name, K0, k0))
+    if not scored:
         raise FitError("closed-form start failed: the data do not lie on an ellipsoid (too little attitude "
                        "coverage or degenerate loci)")
-    _, start_name, K0, k0 = best
+    scored.sort(key=lambda x: x[0])
+    _, start_name, K0, k0 = scored[0]
     if gauge == "axes":
-        K, k, res = _refine_axes(b, r, K0, k0, groups, axes, loss, f_scale)
-        if np.linalg.det(K) <= 0:
+        # the joint cost can have a narrow valley along the pencil of degenerate loci: refine the
+        # best few starts and keep the best proper (det > 0) answer
+        best = None
+        for _, name, K0, k0 in scored[:N_AXES_STARTS]:
+            Ki, ki, ri = _refine_axes(b, r, K0, k0, groups, axes, loss, f_scale)
+            if np.linalg.det(Ki) > 0 and (best is None or ri.cost < best[2].cost):
+                best = (Ki, ki, ri, name)
+        if best is None:
             raise FitError("rotation-axis fit converged to a reflection (loci do not fix the handedness)")
+        K, k, res, start_name = best
     else:
         K, k, res = _refine(b, r, K0, k0, loss, f_scale)
         # The magnitude is blind to any orthogonal factor: K = U P (polar) fits exactly like
