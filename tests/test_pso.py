@@ -107,6 +107,9 @@ def test_model1_reaches_noise_floor(seed):
     assert r["fitness"] < r["fitness_at_truth"] + 15.0
     assert r["dS_fro"] < 0.15 and r["doff_nT"] < 2500.0          # paper M1: 0.073, 720 nT
     assert np.linalg.det(np.array(r["K_m"])) > 0
+    # seed 2's swarm converged on the mirror twin (-K, -k): the offset bound above holds only
+    # because the fix flips k with K (flipping K alone would leave |d off| ~ 25 000 nT)
+    assert r["mirrored"] == (seed == 2)
 
 
 def test_problem_input_checks():
