@@ -89,3 +89,13 @@ def test_cli_helper_usage_errors(tmp_path):
                                           str(tmp_path / "no" / "x.json")]))
     with pytest.raises(ConfigurationError, match="seed"):
         run_paper_model_cli(p.parse_args(["--method", "pso", "--paper-model", "1", "--seed", "-3"]))
+
+
+def test_general_geometry_loci_are_cones_about_their_axes():
+    d = riwanto.simulate_general(np.random.default_rng(4))
+    assert d.b_meas_nT.shape == (100, 3) and len(d.omega) in (2, 3)
+    for l, om in enumerate(d.omega):
+        along = d.b_true_nT[d.locus == l] @ om           # constant along the axis: a circle on a cone
+        assert np.ptp(along) < 1e-6 * 35000
+        assert 0.0 <= along[0] <= np.cos(np.deg2rad(40.0)) * 35000 + 1e-6
+    np.testing.assert_allclose(d.b_meas_nT, (d.b_true_nT + riwanto.TRUTH_OFF_NT + d.noise_nT) @ riwanto.TRUTH_S_MC.T)
