@@ -84,6 +84,7 @@ def test_oriented_normal_follows_sample_order():
     ({"gauge": "bogus"}, "unknown gauge"),
     ({"gauge": "reference"}, "vectors"),
     ({"gauge": "prior"}, "K_prior"),
+    ({"gauge": "prior", "K_prior": np.eye(2)}, "3x3"),
     ({"gauge": "axes"}, "locus"),
 ])
 def test_bad_inputs_raise_fit_error(kw, msg):

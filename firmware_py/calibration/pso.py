@@ -172,6 +172,8 @@ class Problem:
 
     @classmethod
     def build(cls, b_meas_nT, b_ref_nT, locus, omega, sign_rule: str = "area") -> Problem:
+        if sign_rule not in SIGN_RULES:
+            raise FitError(f"unknown sign_rule {sign_rule!r}; valid: {', '.join(SIGN_RULES)}")
         b = np.asarray(b_meas_nT, dtype=float)
         if b.ndim != 2 or b.shape[1] != 3 or len(b) < 12:
             raise FitError(f"b_meas must have shape (N >= 12, 3), got {b.shape}")

@@ -84,7 +84,6 @@ class ScalarFit:
     nfev: int
     runtime_s: float
     se_params: np.ndarray = field(default_factory=lambda: np.full(9, np.nan))
-    extra: dict[str, Any] = field(default_factory=dict)
 
     def apply(self, b_meas: np.ndarray) -> np.ndarray:
         """Calibrated vectors ``K b - k`` for (N, 3) input."""
@@ -301,11 +300,15 @@ def fit_scalar(b_meas, b_ref, *, gauge: str = "symmetric", K_prior=None, locus=N
         raise FitError(f"unknown gauge {gauge!r}; valid: {', '.join(GAUGES)}")
     t0 = time.perf_counter()
     b, r, vec = _as_inputs(b_meas, b_ref)
-    if gauge == "prior" and K_prior is None:
-        raise FitError("gauge 'prior' needs K_prior")
+    if gauge == "prior":
+        if K_prior is None:
+            raise FitError("gauge 'prior' needs K_prior")
+        if np.shape(K_prior) != (3, 3) or not np.isfinite(np.asarray(K_prior, dtype=float)).all():
+            raise FitError(f"K_prior must be a finite 3x3 matrix, got shape {np.shape(K_prior)}")
     if gauge == "reference" and vec is None:
         raise FitError("gauge 'reference' needs b_ref as (N, 3) vectors")
     groups, axes = _check_loci(locus, omega, len(b)) if gauge == "axes" else ((), np.zeros((0, 3)))
+
     def start_cost(A, c):
         K0 = np.real(sqrtm(A))
         K0 = (K0 + K0.T) / 2
