@@ -164,3 +164,14 @@ def test_plane_normal_equals_algorithm_3_svd():
         U, s, _ = np.linalg.svd(A)                         # step 3
         ref = U[:, np.argmin(s)]                           # steps 4-5
         assert abs(abs(ref @ n) - 1.0) < 1e-12
+
+
+def test_center_seeds_one_particle_algorithm_2():
+    """With ``center`` (Algorithm 2 initialisation) one particle starts on it, so even one
+    iteration ends no worse than the centre's fitness."""
+    prob = _problem(1, 0)
+    o = pso.PsoOptions(k_max=1)
+    r = pso.run_pso(prob, seed=5, options=o, center=TRUTH_P)
+    assert r.fitness <= pso.fitness(TRUTH_P, prob, o)[0]
+    far = pso.run_pso(prob, seed=5, options=o)                     # paper box around 0: far from truth
+    assert far.fitness > 10 * r.fitness
