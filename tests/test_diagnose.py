@@ -253,3 +253,20 @@ def test_cli_bad_input_is_one_clean_line_with_the_documented_exit_code(tmp_path,
     assert text in r.stderr and "Traceback" not in r.stderr
     errors = [line for line in r.stderr.strip().splitlines() if line.startswith("magstack ")]
     assert len(errors) == 1 and text in errors[0]   # argparse usage errors add the usage lines above it
+
+
+def test_block_grouping_follows_the_correlation_of_block_means():
+    from magstack.ground.diagnose.search import block_group, grouped
+    rng = np.random.default_rng(3)
+    nb, per = 60, 50
+    blocks = np.repeat(np.arange(nb), per)
+    bsess = np.repeat([0, 1], nb // 2)
+    white = rng.standard_normal((nb * per, 3))
+    assert block_group(white, blocks, bsess) == 1
+    slow = np.zeros((nb, 3))
+    for k in range(1, nb):   # AR(1) block means, rho = 0.8
+        slow[k] = 0.8 * slow[k - 1] + rng.standard_normal(3)
+    g = block_group(np.repeat(slow, per, axis=0) + 0.01 * white, blocks, bsess)
+    assert 5 <= g <= 15   # (1 + 0.8) / (1 - 0.8) = 9
+    d = np.arange(nb, dtype=float)
+    assert grouped(d, bsess, 4).sum() == d.sum() and grouped(d, bsess, 4).size == 16   # 8 units per session

@@ -54,7 +54,7 @@ class Diagnosis:
             "noise_floor_nT": nf,
             "ranking": [{"effect": t.effect, "rmse_nT": float(t.rmse_norm_uT * 1e3), "shrink": float(t.shrink),
                          "significant": bool(t.significant), "p_value": float(t.p_value),
-                         "p_holm": float(t.p_holm), "kind": t.kind,
+                         "p_holm": float(t.p_holm), "kind": t.kind, "test_unit_blocks": int(t.extra.get("group", 1)),
                          "rmse_axes_nT": [float(v * 1e3) for v in t.rmse_uT]} for t in r.trials],
             "not_testable": r.not_testable,
             "where": self.where,

@@ -143,6 +143,47 @@ def sign_flip_p(d: np.ndarray, seed: int = 0) -> float:
     return (1 + hits) / (1 + N_RESAMPLES)
 
 
+def block_group(r: np.ndarray, blocks: np.ndarray, block_session: np.ndarray) -> int:
+    """Blocks per test unit: ``ceil((1 + rho) / (1 - rho))`` from the lag-1 correlation ``rho`` of the
+    block means of residual ``r`` (consecutive blocks of one session, averaged over axes), the inverse
+    of the effective-sample-size factor of an AR(1) series. 1 when the block means are uncorrelated
+    (white residual); larger when slow noise (1/f, random walk) makes neighbouring blocks alike."""
+    nb = block_session.size
+    if nb < 10 or r is None:
+        return 1
+    x = np.asarray(r, dtype=float)
+    ok = np.all(np.isfinite(x), axis=1)
+    cnt = np.bincount(blocks[ok], minlength=nb)
+    m = np.column_stack([np.bincount(blocks[ok], weights=x[ok, j], minlength=nb) for j in range(3)])
+    m = m / np.maximum(cnt, 1)[:, None]
+    pair = (block_session[1:] == block_session[:-1]) & (cnt[1:] > 0) & (cnt[:-1] > 0)
+    if pair.sum() < 8:
+        return 1
+    rhos = []
+    for j in range(3):
+        a, b = m[:-1, j][pair], m[1:, j][pair]
+        if np.std(a) > 0 and np.std(b) > 0:
+            rhos.append(float(np.corrcoef(a, b)[0, 1]))
+    rho = float(np.mean(rhos)) if rhos else 0.0
+    if rho <= 2.0 / np.sqrt(pair.sum()):   # not distinguishable from independence
+        return 1
+    rho = min(rho, 0.95)
+    return int(np.ceil((1 + rho) / (1 - rho)))
+
+
+def grouped(d: np.ndarray, block_session: np.ndarray, g: int) -> np.ndarray:
+    """Sums of ``d`` over runs of ``g`` consecutive blocks of one session (the test units)."""
+    if g <= 1:
+        return d
+    gid = np.zeros(d.size, dtype=np.int64)
+    nxt = 0
+    for k in np.unique(block_session):
+        idx = np.flatnonzero(block_session == k)
+        gid[idx] = nxt + np.arange(idx.size) // g
+        nxt = int(gid[idx].max()) + 1
+    return np.bincount(gid, weights=d)
+
+
 def holm(p: list[float]) -> list[float]:
     """Holm step-down adjusted p-values."""
     m = len(p)
@@ -360,7 +401,9 @@ def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: n
     elif cand.kind == "hysteresis":
         t.extra["fold_thresholds_uT"] = fold_thr
         t.extra["n_params"] = 2 * sum(1 for c in cand.thresholds if c) + (0 if "offset" in gap.base_terms else 3)
-    t.p_value = sign_flip_p(base_trial.block_sse - sse, opts.seed)
+    bs = base_trial.extra["block_session"]
+    t.extra["group"] = block_group(r, blocks, bs)
+    t.p_value = sign_flip_p(grouped(base_trial.block_sse - sse, bs, t.extra["group"]), opts.seed)
     b = base_trial.rmse_norm_uT
     t.shrink = float(1.0 - t.rmse_norm_uT / b) if b > 0 else 0.0
     return t
@@ -374,6 +417,9 @@ def search(gap: Gap, blocks: np.ndarray, fold: np.ndarray, opts: Options) -> Sea
     else:
         r0 = gap.target.copy()
     baseline = Trial("baseline", "base", rms3(r0), r0, block_sse(r0, blocks, nb))
+    bs = np.zeros(nb, dtype=np.int64)
+    bs[blocks] = gap.session.session
+    baseline.extra["block_session"] = bs
     cands, not_testable, modelled = build_candidates(gap, base)
     trials = [evaluate(gap, c, base, fold, blocks, nb, baseline, opts) for c in cands]
     res = SearchResult(baseline, trials, not_testable, modelled)
@@ -391,7 +437,9 @@ def search(gap: Gap, blocks: np.ndarray, fold: np.ndarray, opts: Options) -> Sea
         v = sig[0]
         # parsimony: a significant effect with fewer parameters that the data cannot tell from the best
         for t in sorted(sig[1:], key=lambda t: (t.n_params, t.rmse_norm_uT)):
-            if t.n_params < v.n_params and sign_flip_p(t.block_sse - v.block_sse, opts.seed) >= opts.alpha:
+            g = max(t.extra["group"], v.extra["group"])
+            if t.n_params < v.n_params and sign_flip_p(grouped(t.block_sse - v.block_sse, bs, g),
+                                                       opts.seed) >= opts.alpha:
                 res.notes.append(f"{t.effect} ({t.n_params} parameters) explains the gap as well as {v.effect} "
                                  f"({v.n_params}) on held-out blocks: the simpler one is named")
                 v = t
@@ -403,7 +451,8 @@ def search(gap: Gap, blocks: np.ndarray, fold: np.ndarray, opts: Options) -> Sea
         if others:
             ru = others[0]
             res.runner_up = ru.effect
-            res.p_vs_runner_up = sign_flip_p(ru.block_sse - v.block_sse, opts.seed)
+            g = max(ru.extra.get("group", 1), v.extra.get("group", 1))
+            res.p_vs_runner_up = sign_flip_p(grouped(ru.block_sse - v.block_sse, bs, g), opts.seed)
             bx = base.X[SUB(gap.n)]
             corr = canonical_corr(orth_part(v.columns, bx), orth_part(ru.columns, bx))
             res.distinguishable = bool(res.p_vs_runner_up < opts.alpha and corr < CONFOUNDED_CORR)
