@@ -220,3 +220,12 @@ def test_fuzz_mutated_valid_files_raise_only_session_file_error(tmp_path_factory
         pos = min(pos, len(data))
         data[pos:pos + 1] = repl
     _read_bytes(tmp_path_factory, bytes(data), suffix)
+
+
+def test_reader_warnings_are_logged(tmp_path, caplog):
+    p = write_session(tmp_path / "s.csv", _session(4))
+    cut = tmp_path / "cut.csv"
+    cut.write_text("\n".join(p.read_text().splitlines()[:-1]) + "\n")
+    with caplog.at_level("WARNING", logger="magstack.data.session"):
+        read_session(cut)
+    assert any("cut.csv: no closing" in r.getMessage() for r in caplog.records)
