@@ -585,6 +585,8 @@ def read_session(source: str | os.PathLike | io.TextIOBase) -> Session:
         elif closing is not None:
             n_said, crc_said = int(closing.group(1)), int(closing.group(2), 16)
             crc = zlib.crc32(memoryview(raw)[b0:b1])
+            if crc != crc_said and raw.find(b"\r", b0, b1) >= 0:
+                crc = zlib.crc32(raw[b0:b1].replace(b"\r\n", b"\n"))   # line endings converted (CRLF): same data
             if n_said != arr.shape[0] or crc_said != crc or tail.strip():
                 warnings.append(f"closing line says {n_said} rows, crc32 0x{crc_said:08x}, but the file has "
                                 f"{arr.shape[0]} rows, crc32 0x{crc:08x}: the file was cut or changed after it "
