@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 
 from magstack.data.session import refuse_overwriting_inputs, write_session
+from magstack.data.windows import add_window_options, describe, select_rows
 from magstack.drivers.errors import ConfigurationError
 from magstack.ground.mageval_import import AUTHORS_OFFSET_S, import_mageval
 
@@ -30,6 +31,7 @@ def register(subparsers) -> None:
     p.add_argument("--drop-gaps", action="store_true", help="drop rows without a partner instead of NaN + flag")
     p.add_argument("--skip-bad-lines", action="store_true", help="skip (and count) unparsable lines")
     p.add_argument("--session-id", type=int, default=0, help="integer run id for the session column")
+    add_window_options(p)
     p.set_defaults(func=run)
 
 
@@ -44,6 +46,12 @@ def run(args: argparse.Namespace) -> int:
                        on_undetermined="raise" if args.strict_offset else "prior", onto=onto,
                        max_gap_s=args.max_gap_s, gaps="drop" if args.drop_gaps else "nan",
                        bad_lines="skip" if args.skip_bad_lines else "raise", session_id=args.session_id)
+    if args.window or args.drop_window:
+        keep = select_rows(s.t_s, s.session, args.window, args.drop_window)
+        if not keep.any():
+            raise ConfigurationError("the time windows select no rows")
+        s.metadata["rows_selected"] = describe(args.window, args.drop_window, int(keep.sum()), len(s))
+        s = s.select(keep)
     write_session(args.out, s)
     m = s.metadata
     print(f"wrote {args.out}: {len(s)} rows; clock offset {m['clock_offset_s']} s "

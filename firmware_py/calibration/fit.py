@@ -19,7 +19,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
+from magstack.firmware.calibration.degeneracy import GROUP_CORR, VIF_LIMIT, degenerate_groups
+from magstack.firmware.calibration.linalg import qr_r
 from magstack.firmware.calibration.model import AXES, MODELS, CalModel, resolve_terms
+from magstack.firmware.calibration.reference import SATURATION_MARGIN, saturated_rows
 from magstack.firmware.errors import FitError
 
 #: Rank tolerance: a column whose part orthogonal to the columns accepted before it is
@@ -97,6 +100,11 @@ class FitOptions:
     ``temperature_gain`` on input axis j counts only samples with ``|B_j| >=
     field_present_uT`` (field and temperature must vary together), ``temperature_offset``
     counts every sample. ``priors``: parameter name (e.g. ``"K_S[y,y]"``) -> held value.
+
+    ``max_vif`` / ``group_corr``: the degeneracy rule (module degeneracy). ``ref_range_uT``: the
+    reference's range (uT, :func:`reference.reference_range` from the session metadata; None = no
+    saturation guard): rows with a reference component at or beyond it are counted and excluded
+    unless ``include_saturated``.
     """
 
     robust: bool = False
@@ -113,6 +121,10 @@ class FitOptions:
     n_folds: int = 5
     noise_lag_s: float = 1.0
     exclude_ref_steps_uT: float | None = None
+    max_vif: float = VIF_LIMIT
+    group_corr: float = GROUP_CORR
+    ref_range_uT: float | None = None
+    include_saturated: bool = False
 
     def __post_init__(self) -> None:
         if self.on_unidentifiable not in ("hold", "refuse"):
@@ -125,6 +137,12 @@ class FitOptions:
             raise FitError("exclude_ref_steps_uT must be > 0 or None")
         if self.n_folds < 2:
             raise FitError("n_folds must be >= 2")
+        if not self.max_vif > 1:
+            raise FitError(f"max_vif must be > 1, got {self.max_vif!r}")
+        if not 0 < self.group_corr <= 1:
+            raise FitError(f"group_corr must be in (0, 1], got {self.group_corr!r}")
+        if self.ref_range_uT is not None and not (np.isfinite(self.ref_range_uT) and self.ref_range_uT > 0):
+            raise FitError(f"ref_range_uT must be finite and > 0 or None, got {self.ref_range_uT!r}")
 
 
 @dataclass
@@ -271,10 +289,18 @@ class FitResult:
     notes: list[str] = field(default_factory=list)
     n_excluded_steps: int = 0                          # rows excluded by exclude_ref_steps_uT
     steps: StepDiagnosis | None = None                 # residual at reference steps vs elsewhere
+    n_saturated: int = 0                               # usable rows at/beyond the reference range
+    saturated_excluded: bool = True                    # ... and whether they were left out
+    ref_range_uT: float | None = None
+    selection: dict = field(default_factory=dict)      # how rows were chosen (windows), for the table
 
     @property
     def rmse_norm_uT(self) -> float:
         return float(np.linalg.norm(self.rmse_uT))
+
+    @property
+    def _n_sat_out(self) -> int:
+        return self.n_saturated if self.saturated_excluded else 0
 
     @property
     def params(self) -> dict:
@@ -299,6 +325,9 @@ class FitResult:
             "cond_scaled": lst(self.cond_scaled), "cond_raw": lst(self.cond_raw),
             "held": [{"param": h.name, "value": h.value, "reason": h.reason} for h in self.held],
             "n_excluded_steps": self.n_excluded_steps,
+            "ref_range_uT": self.ref_range_uT, "saturated_rows": self.n_saturated,
+            "saturated_rows_excluded": bool(self.saturated_excluded and self.n_saturated),
+            **({"selection": dict(self.selection)} if self.selection else {}),
             **({} if self.steps is None else {
                 "step_threshold_uT": self.steps.threshold_uT, "step_rows": self.steps.n_step,
                 "step_rms_uT": lst(self.steps.step_rms_uT), "steady_rms_uT": lst(self.steps.steady_rms_uT),
@@ -309,9 +338,10 @@ class FitResult:
         m = self.model
         L = [f"model {m.name}: terms {', '.join(m.terms)}" + (f"; currents {', '.join(m.currents)}"
                                                              if m.currents else "") + f"; t0 = {m.t0_c:g} degC",
-             f"rows used {self.n_used}, excluded {self.n_excluded - self.n_excluded_steps} "
+             f"rows used {self.n_used}, excluded {self.n_excluded - self.n_excluded_steps - self._n_sat_out} "
              "(NaN / flagged / zero weight)"
              + (f" + {self.n_excluded_steps} at reference steps" if self.n_excluded_steps else "")
+             + (f" + {self._n_sat_out} with the reference saturated" if self._n_sat_out else "")
              + ("; robust Huber IRLS" if self.robust else ""),
              f"coverage: T {self.coverage.temp_min_c:.2f}..{self.coverage.temp_max_c:.2f} degC, "
              f"|B| max per axis {np.array2string(self.coverage.field_max_uT, precision=1)} uT, "
@@ -359,17 +389,6 @@ class FitResult:
 
 
 # ---------------------------------------------------------------------- numerics
-def qr_r(A: np.ndarray) -> np.ndarray:
-    """Square upper-triangular R with R^T R = A^T A (zero-padded if A has few rows)."""
-    m = A.shape[1]
-    if A.shape[0] == 0:
-        return np.zeros((m, m))
-    R = np.linalg.qr(A, mode="r")
-    if R.shape[0] < m:
-        R = np.vstack([R, np.zeros((m - R.shape[0], m))])
-    return R
-
-
 def independent_field_rms(model: CalModel, R: np.ndarray, cov: Coverage, min_rms_uT: float = 0.0) -> np.ndarray:
     """(3,) uT: how much the data excites each input axis on its own.
 
@@ -465,10 +484,40 @@ def identify(model: CalModel, R: np.ndarray, cov: Coverage, options: FitOptions)
                 held[(i, c)] = f"column {model.columns[c].feature} is a combination of [{others}]"
             else:
                 accepted.append(c)
+    _hold_degenerate(model, R, held, options)
     out = [HeldParam(i, c, model.param_name(i, c), float(prior[i, c]), r) for (i, c), r in sorted(held.items())]
     if out and options.on_unidentifiable == "refuse":
         raise FitError("data cannot determine: " + "; ".join(f"{h.name} ({h.reason})" for h in out))
     return out
+
+
+#: Terms never held by the degeneracy rule (the core of every model; rank rules cover them).
+CORE_TERMS = ("gain_matrix", "offset")
+
+
+def _hold_degenerate(model: CalModel, R: np.ndarray, held: dict, options: FitOptions) -> None:
+    """Add the degenerate groups of each output axis to ``held`` (module degeneracy)."""
+    p = model.n_columns
+    mask = model.axis_mask()
+    off = [c for c, col in enumerate(model.columns) if col.term == "offset"]
+    for i in range(3):
+        act = [c for c in range(p) if mask[i, c] and (i, c) not in held and c not in off]
+        if not act:
+            continue
+        o = R[:, off[0]] if off and (i, off[0]) not in held else None
+        groups = degenerate_groups(R[:, act], [model.columns[c].term not in CORE_TERMS for c in act], o,
+                                   options.max_vif, options.group_corr)
+        for g in groups:
+            names = [model.param_name(i, act[a]) for a in g.members]
+            partner = "" if g.partner is None else (
+                f" its estimate correlates at {g.corr:+.4f} with {model.param_name(i, act[g.partner])};")
+            for a in g.members:
+                others = [n for n in names if n != model.param_name(i, act[a])]
+                held[(i, act[a])] = (
+                    f"degenerate: variance inflation {g.vif:.3g} >= {options.max_vif:g} for "
+                    f"{model.param_name(i, act[g.worst])};{partner} the data determine only a combination"
+                    + (f" (held with {', '.join(others)})" if others else "")
+                    + " -- e.g. temperature varied at one field level only; needs two or more")
 
 
 def solve_axis(R: np.ndarray, p: int, i: int, mask_i: np.ndarray, held: Mapping[int, float],
@@ -596,6 +645,12 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
     name = model if all_terms == MODELS.get(model) else f"{model}+" + "+".join(
         t for t in all_terms if t not in MODELS[model])
     ok = data.usable(all_terms, currents)
+    n_sat = 0
+    if options.ref_range_uT is not None:
+        sat = ok & saturated_rows(data.b_ref_uT, options.ref_range_uT)
+        n_sat = int(sat.sum())
+        if not options.include_saturated:
+            ok &= ~sat
     n_steps = 0
     if options.exclude_ref_steps_uT is not None:
         at_step = ok & reference_steps(data.b_ref_uT, data.session, options.exclude_ref_steps_uT)
@@ -621,6 +676,14 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
     res = FitResult(cm, theta, se, held, len(d), int((~ok).sum()), rmse, raw, conds[0], conds[1],
                     noise_floor(resid, d.t_s, d.session, options.noise_lag_s), cov, options.robust)
     res.n_excluded_steps = n_steps
+    res.n_saturated, res.saturated_excluded, res.ref_range_uT = n_sat, not options.include_saturated, \
+        options.ref_range_uT
+    if n_sat:
+        lim = (1 - SATURATION_MARGIN) * options.ref_range_uT
+        res.notes.insert(0, (f"WARNING: {n_sat} rows have a reference component at or beyond {lim:.4g} uT "
+                             f"(range +-{options.ref_range_uT:g} uT): reference possibly saturated; " + (
+                                 "excluded (include them with --include-saturated)" if not options.include_saturated
+                                 else "INCLUDED as requested (--include-saturated)")))
     if options.exclude_ref_steps_uT is None:
         res.steps = diagnose_steps(resid, d.b_ref_uT, d.session)
     if options.holdout:

@@ -1,0 +1,15 @@
+"""Small linear-algebra helpers shared by the batch, streaming and mount solvers."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def qr_r(A: np.ndarray) -> np.ndarray:
+    """Square upper-triangular R with R^T R = A^T A (zero-padded if A has few rows)."""
+    m = A.shape[1]
+    if A.shape[0] == 0:
+        return np.zeros((m, m))
+    R = np.linalg.qr(A, mode="r")
+    if R.shape[0] < m:
+        R = np.vstack([R, np.zeros((m - R.shape[0], m))])
+    return R
