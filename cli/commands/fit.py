@@ -44,6 +44,9 @@ def register(subparsers) -> None:
     p.add_argument("--max-vif", type=float, default=FitOptions.max_vif, metavar="VIF",
                    help=f"hold degenerate parameter groups above this variance inflation "
                         f"(default {FitOptions.max_vif:g})")
+    p.add_argument("--mount-frame", type=int, default=None, metavar="SESSION",
+                   help="with --terms mount_rotation: the session whose mount defines the sensor frame "
+                        "(default: the first session in which rotations about every axis are observable)")
     add_window_options(p)
     p.add_argument("--refuse-unidentifiable", action="store_true",
                    help="fail instead of holding undetermined parameters at their prior")
@@ -93,6 +96,9 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigurationError(f"the time windows select no rows ({selection['windows']})")
         session = session.select(keep)
         notes.append(f"time windows: {selection['windows']}")
+    if args.mount_frame is not None and args.mount_frame not in set(session.session.tolist()):
+        raise ConfigurationError(f"--mount-frame {args.mount_frame}: no such session (have "
+                                 f"{sorted(set(session.session.tolist()))})")
     ref_name, ref_range, ref_note = reference_range(session.metadata)
     if ref_note:
         notes.append(ref_note)
@@ -103,7 +109,8 @@ def run(args: argparse.Namespace) -> int:
     opts = FitOptions(robust=args.robust, on_unidentifiable="refuse" if args.refuse_unidentifiable else "hold",
                       min_temp_span_c=args.min_temp_span, field_present_uT=args.field_present,
                       holdout=not args.no_holdout, block_s=args.block_s, exclude_ref_steps_uT=args.exclude_steps,
-                      max_vif=args.max_vif, ref_range_uT=ref_range, include_saturated=args.include_saturated)
+                      max_vif=args.max_vif, ref_range_uT=ref_range, include_saturated=args.include_saturated,
+                      mount_frame=args.mount_frame)
     result = fit(FitData.from_session(session), args.model, _split(args.terms), _split([args.currents]),
                  args.t0, opts)
     result.selection.update(selection)

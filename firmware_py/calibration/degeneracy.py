@@ -12,8 +12,8 @@ and are scaled to unit norm. For that correlation matrix ``C``:
 
 * variance inflation ``VIF_j = (C^-1)_jj = 1 / (1 - R_j^2)``, where ``R_j^2`` is how well the
   other columns explain column ``j`` (1 = orthogonal, inf = collinear);
-* parameter correlations ``corr = -(C^-1)_jk / sqrt((C^-1)_jj (C^-1)_kk)`` (those of the
-  least-squares estimates).
+* parameter correlations ``corr = (C^-1)_jk / sqrt((C^-1)_jj (C^-1)_kk)`` (those of the
+  least-squares estimates: near-copy columns give estimates correlated near -1).
 
 Rule: while some *holdable* parameter (a nuisance or secondary term, never ``gain_matrix`` or
 ``offset``) has ``VIF >= VIF_LIMIT``, take the worst one and hold it **together with** every
@@ -77,7 +77,7 @@ def correlation_stats(cols_R: np.ndarray, offset: np.ndarray | None = None) -> t
     vif = np.where(d > 0, d, np.inf)
     with np.errstate(invalid="ignore", divide="ignore"):
         s = np.sqrt(np.where(np.isfinite(vif), vif, np.nan))
-        corr = -Ginv / np.outer(s, s)
+        corr = Ginv / np.outer(s, s)
     np.fill_diagonal(corr, 1.0)
     return vif, np.nan_to_num(corr, nan=1.0)
 

@@ -22,7 +22,9 @@ import scipy.linalg
 from magstack.firmware.calibration.degeneracy import GROUP_CORR, VIF_LIMIT, degenerate_groups
 from magstack.firmware.calibration.linalg import qr_r
 from magstack.firmware.calibration.model import AXES, MODELS, CalModel, resolve_terms
+from magstack.firmware.calibration.mount import MountSolution, solve_mount
 from magstack.firmware.calibration.reference import SATURATION_MARGIN, saturated_rows
+from magstack.firmware.calibration.session_map import compare, comparison_lines
 from magstack.firmware.errors import FitError
 
 #: Rank tolerance: a column whose part orthogonal to the columns accepted before it is
@@ -125,6 +127,7 @@ class FitOptions:
     group_corr: float = GROUP_CORR
     ref_range_uT: float | None = None
     include_saturated: bool = False
+    mount_frame: int | None = None
 
     def __post_init__(self) -> None:
         if self.on_unidentifiable not in ("hold", "refuse"):
@@ -293,6 +296,8 @@ class FitResult:
     saturated_excluded: bool = True                    # ... and whether they were left out
     ref_range_uT: float | None = None
     selection: dict = field(default_factory=dict)      # how rows were chosen (windows), for the table
+    mount: MountSolution | None = None                 # per-session mount rotations (nuisance)
+    comparison: dict = field(default_factory=dict)     # mount rotation vs a general per-session map
 
     @property
     def rmse_norm_uT(self) -> float:
@@ -328,6 +333,8 @@ class FitResult:
             "ref_range_uT": self.ref_range_uT, "saturated_rows": self.n_saturated,
             "saturated_rows_excluded": bool(self.saturated_excluded and self.n_saturated),
             **({"selection": dict(self.selection)} if self.selection else {}),
+            **({"mount_rotation": self.mount.stats()} if self.mount is not None else {}),
+            **({"mount_vs_session_map": dict(self.comparison)} if self.comparison else {}),
             **({} if self.steps is None else {
                 "step_threshold_uT": self.steps.threshold_uT, "step_rows": self.steps.n_step,
                 "step_rms_uT": lst(self.steps.step_rms_uT), "steady_rms_uT": lst(self.steps.steady_rms_uT),
@@ -375,6 +382,10 @@ class FitResult:
                     continue
                 se = "held" if (i, c) in held else f"{self.se[i, c]:12.3g}"
                 L.append(f"{m.param_name(i, c):18s}{self.theta[i, c]:14.6g}{se:>12s}  {col.unit}")
+        if self.mount is not None:
+            L += [""] + self.mount.report_lines()
+        if self.comparison:
+            L += [""] + comparison_lines(self.comparison)
         if self.held:
             L += ["", "identifiability: parameters the data cannot determine (held at prior):"]
             L += [f"  {h.name} = {h.value:g}: {h.reason}" for h in self.held]
@@ -634,7 +645,18 @@ def _fit_core(data: FitData, model: CalModel, options: FitOptions):
                 if change < 1e-10:
                     break
         theta[i], se[i], conds[0, i], conds[1, i] = sol.theta, sol.se, sol.cond_scaled, sol.cond_raw
-    return X, theta, se, held, conds, cov
+    mount = None
+    if "mount_rotation" in model.terms:
+        if options.robust:
+            raise FitError("robust IRLS is not available with mount_rotation")
+        theta, se, mount = solve_mount(X, Y, data.session, data.weights, model,
+                                       {(h.axis, h.column): h.value for h in held}, theta, options)
+    return X, theta, se, held, conds, cov, mount
+
+
+def frame_reference(data: FitData, mount: MountSolution | None) -> np.ndarray:
+    """The reference field in the frame session's mount (unchanged without mount rotations)."""
+    return data.b_ref_uT if mount is None else mount.rotate_to_frame(data.b_ref_uT, data.session)
 
 
 def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, currents: Sequence[str] = (),
@@ -668,14 +690,18 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
                 why.append(f"{label} missing/flagged on {int(bad.sum())} rows")
         raise FitError(f"{len(d)} usable rows of {len(data)} for {cm.n_columns} columns: not enough data"
                        + (f" ({'; '.join(why)})" if why else ""))
-    X, theta, se, held, conds, cov = _fit_core(d, cm, options)
-    resid = d.b_ref_uT - cm.predict(theta, X)
+    X, theta, se, held, conds, cov, mount = _fit_core(d, cm, options)
+    resid = frame_reference(d, mount) - cm.predict(theta, X)
     p_i = cm.axis_mask().sum(axis=1) - np.array([sum(1 for h in held if h.axis == i) for i in range(3)])
+    if mount is not None:   # the angles are shared by the three axes: a third of them to each
+        p_i = p_i + sum(1 for k in mount.se_rad for a in range(3)
+                        if k != mount.frame and np.isfinite(mount.se_rad[k][a])) / 3
     rmse = np.sqrt(np.sum(resid ** 2, axis=0) / np.maximum(len(d) - p_i, 1))
     raw = np.sqrt(np.mean((d.b_ref_uT - d.b_meas_uT) ** 2, axis=0))
     res = FitResult(cm, theta, se, held, len(d), int((~ok).sum()), rmse, raw, conds[0], conds[1],
                     noise_floor(resid, d.t_s, d.session, options.noise_lag_s), cov, options.robust)
     res.n_excluded_steps = n_steps
+    res.mount = mount
     res.n_saturated, res.saturated_excluded, res.ref_range_uT = n_sat, not options.include_saturated, \
         options.ref_range_uT
     if n_sat:
@@ -690,7 +716,23 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
         res.holdout_blocks_uT = _holdout_blocks(d, all_terms, currents, t0_c, name, options, res.notes)
         res.holdout_sessions_uT, res.holdout_per_session_uT = _holdout_sessions(
             d, all_terms, currents, t0_c, name, options, res.notes, [h.name for h in held])
+    if mount is not None and len(np.unique(d.session)) > 1:
+        res.comparison = compare(X, d.b_ref_uT, d.b_meas_uT, d.session, d.t_s, d.weights, cm, held, theta, mount,
+                                 d.b_ref_uT - _rotate_from_frame(cm.predict(theta, X), d.session, mount),
+                                 options, block_folds(d, options) if options.holdout else None,
+                                 res.holdout_blocks_uT)
     return res
+
+
+def _rotate_from_frame(b_uT: np.ndarray, session: np.ndarray, mount: MountSolution) -> np.ndarray:
+    """``R_s b`` per row: the frame-mount model field as the session's reference would see it."""
+    from scipy.spatial.transform import Rotation
+    out = np.array(b_uT, dtype=float, copy=True)
+    for k, rv in mount.rotvec_rad.items():
+        m = session == k
+        if m.any():
+            out[m] = Rotation.from_rotvec(rv).apply(out[m])
+    return out
 
 
 def _predict_out(train: FitData, test: FitData, terms, currents, t0_c, name, options,
@@ -698,18 +740,25 @@ def _predict_out(train: FitData, test: FitData, terms, currents, t0_c, name, opt
     """Residual of ``test`` under a fit on ``train``; the names of the parameters that fit held
     are appended to ``held_names`` when given."""
     cm = build_model(train, terms, currents, t0_c, name)
-    _, theta, _, held, *_ = _fit_core(train, cm, options)
+    _, theta, _, held, _, _, mount = _fit_core(train, cm, options)
     if held_names is not None:
         held_names += [h.name for h in held]
     Xt = cm.design(test.b_meas_uT, test.temp_c, test.currents_A, test.session, test.t_s)
-    return test.b_ref_uT - cm.predict(theta, Xt)
+    # a session the training rows saw keeps its mount; an unseen one gets the frame's (identity)
+    return frame_reference(test, mount) - cm.predict(theta, Xt)
 
 
-def _holdout_blocks(d: FitData, terms, currents, t0_c, name, options, notes) -> np.ndarray | None:
+def block_folds(d: FitData, options: FitOptions) -> np.ndarray:
+    """(N,) fold of each row: ``block_s`` blocks from each session's start, block k -> fold k mod n_folds."""
     fold = np.zeros(len(d), dtype=np.int64)
     for s in np.unique(d.session):
         m = d.session == s
         fold[m] = np.floor((d.t_s[m] - d.t_s[m].min()) / options.block_s).astype(np.int64) % options.n_folds
+    return fold
+
+
+def _holdout_blocks(d: FitData, terms, currents, t0_c, name, options, notes) -> np.ndarray | None:
+    fold = block_folds(d, options)
     sq, cnt = np.zeros(3), 0
     for f in np.unique(fold):
         test = fold == f
