@@ -32,17 +32,17 @@ _EFFECTS = (
            "Sequential conversion (one multiplexed ADC) samples X, Y, Z at different times; "
            "for a changing field the axis reading is B_i(t + dt_i). Residual ~ dB/dt * dt_i.",
            "dt_i in s", "belsten 2.1 (sequential axes, 0.4 s vector period); hardware-facts 8.3", "time_skew"),
-    Effect("mount_rotation", 15, "the sensor is mounted slightly rotated, differently each session",
+    Effect("interference", 20, "field proportional to named currents",
+           "A current loop of fixed geometry adds D_i * I_i at the sensor (Eq. 4 of belsten, sec. 3.4.2).",
+           "D_i in uT/A", "belsten sec. 3.4.2", "currents"),
+    Effect("mount_rotation", 25, "the sensor is mounted slightly rotated, differently each session",
            "A bench remount turns the sensor by a small rotation R_s per session s: it senses R_s^T B_true "
-           "(R_s = I for the frame session). Acts on the external field, so before interference (board "
-           "currents are fixed to the sensor); time skew only shifts the instant at which it is evaluated. "
+           "(R_s = I for the frame session). Acts on the body-frame field (after interference, whose "
+           "coefficients are body frame) before the sensor's own misalignment. "
            "A property of the bench, not of the sensor: calibration fits the angles as per-session "
            "nuisance parameters and never writes them into the table.",
            "rad (rotation vector per session)", "issue 13 (real bench: X->Z slope changes sign between "
            "sessions); belsten sec. 3.2 (power cycles, remounts)", "mount_rotation"),
-    Effect("interference", 20, "field proportional to named currents",
-           "A current loop of fixed geometry adds D_i * I_i at the sensor (Eq. 4 of belsten, sec. 3.4.2).",
-           "D_i in uT/A", "belsten sec. 3.4.2", "currents"),
     Effect("misalignment", 30, "sensor axes rotated / non-orthogonal w.r.t. the body frame",
            "Small rotation and non-orthogonality angles mixing the true field into each axis.",
            "rad", "lab study (misalignment); belsten Eq. 1 matrix C", "gain_matrix"),

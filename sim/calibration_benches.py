@@ -6,10 +6,11 @@
   calibration model (Eq. 3) with known parameters.
 * :func:`remount_bench`: the HMC1053 error model (gain, misalignment, offset, noise from its
   preset) sensing a field that tumbles over the sphere in every session, the DUT remounted with
-  a known small rotation per session (:class:`magstack.sim.mount.MountedTruth`).
+  a known small rotation per session (the error model's ``mount_rotation`` stage).
 """
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -18,7 +19,6 @@ from magstack.firmware.calibration.fit import FitData
 from magstack.firmware.calibration.model import CalModel, resolve_terms
 from magstack.sim.coil_programs import ProgramTruth, rotation_profile
 from magstack.sim.error_model import ErrorModel
-from magstack.sim.mount import MountedTruth
 from magstack.sim.presets import preset
 
 #: Eq. 3 parameters of the thermal bench (rows: output axis). K_S diagonal = the HMC1053's
@@ -81,8 +81,9 @@ def remount_bench(rotvec_rad: Mapping[int, Sequence[float]], *, sessions: int = 
     truth = ProgramTruth("remount", seg * sessions, lambda t: tumble(np.mod(np.asarray(t, dtype=float), seg)),
                          sessions=sessions)
     t = np.arange(0.0, seg * sessions, 1.0 / rate_hz)
-    dut = ErrorModel(preset("hmc1053"), seed=seed, effects=("misalignment", "gain", "offset", "noise")) \
-        .sense_series(t, MountedTruth(truth, rotvec_rad))
+    params = dataclasses.replace(preset("hmc1053"), mount_rotation_rad=dict(rotvec_rad))
+    dut = ErrorModel(params, seed=seed, effects=("mount_rotation", "misalignment", "gain", "offset", "noise")) \
+        .sense_series(t, truth)
     rng = np.random.default_rng(seed + 1)
     ref = truth.field_series_uT(t) + rng.normal(0, ref_noise_uT, (t.size, 3))
     return FitData(dut, ref, np.full(t.size, 25.0), 1.6e9 + t, truth.session_series(t))

@@ -16,7 +16,8 @@ from magstack.firmware.effects import EFFECTS
 from magstack.firmware.errors import FitError
 from magstack.sim.calibration_benches import remount_bench
 from magstack.sim.coil_programs import ProgramTruth, rotation_profile
-from magstack.sim.mount import MountedTruth
+from magstack.sim.error_model import ErrorModel
+from magstack.sim.error_params import ErrorParams
 
 ROT = {1: (2e-3, -4e-3, 3e-3), 2: (-5e-3, 1e-3, 6e-3), 3: (1e-3, 3e-3, -2e-3)}    # rad, session 0 = frame
 
@@ -30,21 +31,24 @@ def remounted():
 def test_the_catalogue_names_the_effect_and_the_calibration_term():
     e = EFFECTS["mount_rotation"]
     assert e.cal_term == "mount_rotation" and "mount_rotation" in CAL_TERMS
-    names = list(EFFECTS)                                # acts on the external field, before any sensor effect
-    assert names.index("mount_rotation") < names.index("interference") < names.index("misalignment")
+    names = list(EFFECTS)             # acts on the body-frame field (after interference), before the sensor's own
+    assert names.index("interference") < names.index("mount_rotation") < names.index("misalignment")
 
 
-def test_mounted_truth_rotates_each_session_and_passes_the_rest_through():
+def test_error_model_stage_rotates_each_session_single_equals_vector():
     truth = ProgramTruth("t", 40.0, rotation_profile(40.0), sessions=2)
-    m = MountedTruth(truth, {1: (0.0, 0.0, np.pi / 2)})
+    p = ErrorParams(mount_rotation_rad={1: (0.0, 0.0, np.pi / 8)})
     t = np.array([5.0, 25.0, 30.0])
-    b, bm = truth.field_series_uT(t), m.field_series_uT(t)
-    np.testing.assert_array_equal(bm[0], b[0])                                   # session 0: no entry
-    np.testing.assert_allclose(bm[1:], Rotation.from_rotvec([0, 0, np.pi / 2]).inv().apply(b[1:]), atol=1e-12)
-    np.testing.assert_allclose(m.field_uT(25.0), bm[1], atol=1e-12)              # scalar = vectorised
-    assert m.session(25.0) == 1 and m.temp_c(25.0) == truth.temp_c(25.0)
-    with pytest.raises(ValueError, match="3 finite angles"):
-        MountedTruth(truth, {0: (1.0, np.nan, 0.0)})
+    b = truth.field_series_uT(t)
+    out = ErrorModel(p, effects=["mount_rotation"]).sense_series(t, truth)
+    np.testing.assert_array_equal(out[0], b[0])                                  # session 0: not listed
+    np.testing.assert_allclose(out[1:], Rotation.from_rotvec([0, 0, np.pi / 8]).inv().apply(b[1:]), atol=1e-12)
+    m = ErrorModel(p, effects=["mount_rotation"])
+    np.testing.assert_array_equal(np.array([m.sense(x, truth) for x in t]), out)  # single = vector, bit for bit
+    assert ErrorParams.from_dict(p.to_dict()) == p                               # session ids survive JSON
+    for bad in ({0: (1.0, np.nan, 0.0)}, {"a": (0, 0, 0)}, {0: (1.0, 0.0, 0.0)}):
+        with pytest.raises(ValueError, match="mount_rotation_rad"):
+            ErrorParams(mount_rotation_rad=bad)
 
 
 def test_simulated_remounts_are_recovered_within_their_standard_errors(remounted):
