@@ -17,7 +17,7 @@ import numpy as np
 
 from magstack.firmware.calibration.fit import FitData
 from magstack.firmware.calibration.model import CalModel, resolve_terms
-from magstack.sim.coil_programs import ProgramTruth, rotation_profile
+from magstack.sim.coil_programs import ProgramTruth, rotation_profile, sweep_profile
 from magstack.sim.error_model import ErrorModel
 from magstack.sim.presets import preset
 
@@ -81,6 +81,38 @@ def remount_bench(rotvec_rad: Mapping[int, Sequence[float]], *, sessions: int = 
     truth = ProgramTruth("remount", seg * sessions, lambda t: tumble(np.mod(np.asarray(t, dtype=float), seg)),
                          sessions=sessions)
     t = np.arange(0.0, seg * sessions, 1.0 / rate_hz)
+    params = dataclasses.replace(preset("hmc1053"), mount_rotation_rad=dict(rotvec_rad))
+    dut = ErrorModel(params, seed=seed, effects=("mount_rotation", "misalignment", "gain", "offset", "noise")) \
+        .sense_series(t, truth)
+    rng = np.random.default_rng(seed + 1)
+    ref = truth.field_series_uT(t) + rng.normal(0, ref_noise_uT, (t.size, 3))
+    return FitData(dut, ref, np.full(t.size, 25.0), 1.6e9 + t, truth.session_series(t))
+
+
+def sweep_sessions_bench(axes: Sequence[str], rotvec_rad: Mapping[int, Sequence[float]], *,
+                         seconds_per_session: float = 200.0, amplitude_uT: float = 50.0,
+                         ambient_uT: Sequence[float] = (0.3, 0.4, -0.2), rate_hz: float = 4.0,
+                         ref_noise_uT: float = 0.01, seed: int = 0) -> FitData:
+    """A bench like AV-MagEval's: session k sweeps the single axis ``axes[k]`` (``""``: near-zero
+    field) to +-``amplitude_uT`` over a small ambient field; the DUT (HMC1053 preset) is remounted
+    with ``rotvec_rad[k]`` (rad). Repeating an axis in several sessions is what makes the
+    remounts determinable (relative to one another)."""
+    seg = float(seconds_per_session)
+    profiles = [sweep_profile(a, seg, amplitude_uT) if a else None for a in axes]
+    amb = np.asarray(ambient_uT, dtype=float)
+
+    def field(t):
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        k = np.clip((t // seg).astype(int), 0, len(axes) - 1)
+        out = np.tile(amb, (t.size, 1))
+        for j, prof in enumerate(profiles):
+            m = k == j
+            if prof is not None and m.any():
+                out[m] += np.asarray(prof(t[m] - j * seg)).reshape(-1, 3)
+        return out
+
+    truth = ProgramTruth("sweeps", seg * len(axes), field, sessions=len(axes))
+    t = np.arange(0.0, seg * len(axes), 1.0 / rate_hz)
     params = dataclasses.replace(preset("hmc1053"), mount_rotation_rad=dict(rotvec_rad))
     dut = ErrorModel(params, seed=seed, effects=("mount_rotation", "misalignment", "gain", "offset", "noise")) \
         .sense_series(t, truth)

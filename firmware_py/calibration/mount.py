@@ -107,6 +107,8 @@ def choose_frame(Y: np.ndarray, session: np.ndarray, w: np.ndarray, requested: i
     ids = sorted(int(k) for k in np.unique(session))
     if not ids:
         raise FitError("mount_rotation: no sessions")
+    if len(ids) == 1 and requested in (None, ids[0]):
+        return ids[0], "one session: no mount rotation to fit (the frame is the session itself)"
     if requested is not None:
         if int(requested) not in ids:
             raise FitError(f"mount frame session {requested} is not in the data (sessions {ids})")
