@@ -32,10 +32,11 @@ from magstack.sim.truth_source import StaticTruth
 
 
 def _best_pair(fn_now, fn_before, repeat: int) -> tuple[float, float]:
-    """Best-of-``repeat`` wall times (s) of two functions, run alternately."""
+    """Best-of-``repeat`` wall times (s) of two functions, run alternately (order swapped every round)."""
     best = [float("inf"), float("inf")]
-    for _ in range(repeat):
-        for i, fn in enumerate((fn_now, fn_before)):
+    for r in range(repeat):
+        for i in ((0, 1) if r % 2 == 0 else (1, 0)):
+            fn = (fn_now, fn_before)[i]
             t0 = time.perf_counter()
             fn()
             best[i] = min(best[i], time.perf_counter() - t0)
@@ -70,7 +71,7 @@ def main() -> None:
         s_now, s_before = _best_pair(_loop(ErrorModel, p, t_loop, static),
                                      _loop(before.ErrorModel, p_before, t_loop, static), args.repeat)
         p_now, p_bef = _best_pair(_loop(ErrorModel, p, t_loop, truth),
-                                  _loop(before.ErrorModel, p_before, t_loop, truth), max(1, args.repeat // 2))
+                                  _loop(before.ErrorModel, p_before, t_loop, truth), args.repeat)
         v_now, v_before = _best_pair(lambda p=p, t=t_vec: ErrorModel(p, seed=0).sense_series(t, truth),
                                      lambda p=p_before, t=t_vec: before.ErrorModel(p, seed=0).sense_series(t, truth),
                                      args.repeat)

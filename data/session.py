@@ -114,11 +114,12 @@ def _fmt(x: float, decimals: int) -> str:
     return f"{x:.{decimals}f}"
 
 
-def _row_text(t_s, ref, dut, temp_c, session, currents: Iterable[float], flag) -> str:
+def _row_text(t_s, ref, dut, temp_c, session, currents: Iterable[float], flag, extra: Iterable[float] = ()) -> str:
     cells = [_fmt(float(t_s), 6), *(_fmt(float(v), 6) for v in ref), *(_fmt(float(v), 6) for v in dut),
              _fmt(float(temp_c), 4), str(int(session)), *(_fmt(float(c), 6) for c in currents)]
     if flag is not None:
         cells.append(str(int(flag)))
+    cells += [_fmt(float(v), 6) for v in extra]
     return ",".join(cells) + "\n"
 
 
@@ -138,7 +139,8 @@ class SessionWriter:
     """
 
     def __init__(self, path: str | os.PathLike, metadata: Mapping[str, str] | None = None, *,
-                 current_names: Sequence[str] = (), with_flag: bool = False, block_rows: int = 50) -> None:
+                 current_names: Sequence[str] = (), with_flag: bool = False, block_rows: int = 50,
+                 extra_columns: Sequence[str] = ()) -> None:
         self.path = Path(path)
         if not self.path.name or self.path.is_dir():
             raise SessionFileError(f"{path}: is a directory, not a session file name")
@@ -147,6 +149,11 @@ class SessionWriter:
         self.part_path = self.path.with_name(self.path.name + ".part")
         self.current_names = list(current_names)
         self.with_flag = with_flag
+        self.extra_columns = list(extra_columns)
+        clash = set(self.extra_columns) & (set(REQUIRED_COLUMNS) | set(OPTIONAL_COLUMNS))
+        if clash or not all(re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", c) for c in self.extra_columns) \
+                or any(_CURRENT_RE.match(c) for c in self.extra_columns):
+            raise ValueError(f"extra columns must be new [A-Za-z][A-Za-z0-9_]* names: {self.extra_columns}")
         self.block_rows = max(1, int(block_rows))
         meta = {FORMAT_KEY: FORMAT_VERSION, **{k: v for k, v in (metadata or {}).items() if k != FORMAT_KEY}}
         _check_metadata(meta)
@@ -162,6 +169,7 @@ class SessionWriter:
         cols = list(REQUIRED_COLUMNS) + [f"current_{n}_A" for n in self.current_names]
         if with_flag:
             cols.append("flag")
+        cols += self.extra_columns
         self._fh.write(header + ",".join(cols) + "\n")
         self._sync()
 
@@ -170,13 +178,17 @@ class SessionWriter:
         os.fsync(self._fh.fileno())
 
     def write_row(self, t_s: float, ref_uT, dut_uT, temp_c: float, session: int,
-                  currents_A: Mapping[str, float] | None = None, flag: int | None = None) -> None:
+                  currents_A: Mapping[str, float] | None = None, flag: int | None = None,
+                  extra: Mapping[str, float] | None = None) -> None:
+        """One row; ``extra`` gives the values of ``extra_columns`` (missing ones are written empty)."""
         cur = currents_A or {}
         missing = [n for n in self.current_names if n not in cur]
         if missing:
             raise ValueError(f"row lacks currents {missing}")
+        ex = extra or {}
         self._buf.append(_row_text(t_s, ref_uT, dut_uT, temp_c, session,
-                                   (cur[n] for n in self.current_names), flag if self.with_flag else None))
+                                   (cur[n] for n in self.current_names), flag if self.with_flag else None,
+                                   (ex.get(c, math.nan) for c in self.extra_columns)))
         if len(self._buf) >= self.block_rows:
             self.flush()
 

@@ -56,6 +56,20 @@ class SamplingLoop:
         self.health = HealthCounters()
         self._next_s: float | None = None
 
+    def _count(self, exc: MagError) -> str:
+        """Count ``exc`` in its fault class (the same classes for reads and re-initialisations)."""
+        if isinstance(exc, BusTimeout):
+            self.health.timeouts += 1
+            return "timeout"
+        if isinstance(exc, StaleData):
+            self.health.stale += 1
+            return "stale"
+        if isinstance(exc, BusError):
+            self.health.bus_errors += 1
+            return "bus"
+        self.health.other_errors += 1
+        return type(exc).__name__
+
     def _fault(self, t_s: float, kind: str, exc: Exception | None) -> PublishedSample:
         self.health.consecutive_faults += 1
         if self.health.consecutive_faults >= self.reinit_after and hasattr(self.mag, "reinit"):
@@ -63,34 +77,34 @@ class SamplingLoop:
                 self.mag.reinit()
                 self.health.reinits += 1
                 self.health.consecutive_faults = 0
-            except MagError:
-                self.health.other_errors += 1
+            except MagError as rexc:   # e.g. a NACK during the re-initialisation: a bus error
+                self.health.reinit_failures += 1
+                self._count(rexc)
         return PublishedSample(t_s, None, None, None, False, self.health.error_count,
                                f"{kind}: {exc}" if exc else kind)
 
     def step(self) -> PublishedSample:
         """Wait for the next cycle boundary, read, correct, publish. Never raises MagError."""
         now = self.clock.monotonic_s()
-        if self._next_s is None:
-            self._next_s = now
+        if self._next_s is None or now < self._next_s - self.period_s:
+            self._next_s = now        # first cycle, or the clock went back: re-anchor, never stall
         if self._next_s > now:
             self.clock.sleep_s(self._next_s - now)
+        elif now - self._next_s >= self.period_s:
+            # slots passed while the last read blocked: skip them (counted), no catch-up burst
+            k = int((now - self._next_s) // self.period_s)
+            self.health.missed_slots += k
+            self._next_s += k * self.period_s
+            if self._next_s < now:
+                self._next_s += self.period_s
+                self.health.missed_slots += 1
+                self.clock.sleep_s(self._next_s - now)
         self._next_s += self.period_s
         t_s = self.clock.monotonic_s()
         try:
             sample = self.mag.read()
-        except BusTimeout as exc:
-            self.health.timeouts += 1
-            out = self._fault(t_s, "timeout", exc)
-        except StaleData as exc:
-            self.health.stale += 1
-            out = self._fault(t_s, "stale", exc)
-        except BusError as exc:
-            self.health.bus_errors += 1
-            out = self._fault(t_s, "bus", exc)
         except MagError as exc:
-            self.health.other_errors += 1
-            out = self._fault(t_s, type(exc).__name__, exc)
+            out = self._fault(t_s, self._count(exc), exc)
         else:
             out = self._publish(sample)
         if self.sink is not None:

@@ -21,7 +21,7 @@ __all__ = ["TruthSamples", "sample_truth", "sample_truth_floats"]
 
 @dataclass
 class TruthSamples:
-    """Truth sampled at N instants: b_uT (N,3), temp_c (N,), currents_A name->(N,), session (N,) int."""
+    """Truth sampled at N instants: b_uT (N,3) body frame, temp_c (N,), currents_A name->(N,), session (N,) int."""
 
     b_uT: np.ndarray
     temp_c: np.ndarray

@@ -1,4 +1,4 @@
-"""``magstack demo``: the end-to-end run on the simulated bench (cli/demo.py, cli/commands/demo.py).
+"""``magstack demo``: the end-to-end run on the simulated bench (cli/demo/, cli/commands/demo.py).
 
 One demo run (600 s calibration session, 300 s held-out session) is shared by the figure
 tests; bounds come from the simulated sensor, not from a previous run: the HMC1053 preset's
@@ -12,12 +12,13 @@ import math
 import numpy as np
 import pytest
 
-from magstack.cli.demo import ARTEFACTS, DEVICE_ID, DemoConfig, FixedPointCorrector, run_demo
+from magstack.cli.demo import ARTEFACTS, DEVICE_ID, DemoConfig, run_demo
 from magstack.cli.main import main
 from magstack.data.session import read_session
 from magstack.drivers.clock import VirtualClock
 from magstack.drivers.errors import ConfigurationError, MagError
 from magstack.firmware.cal_table import CalTableStore, load_table
+from magstack.firmware.corrector import FixedPointCorrector
 from magstack.firmware.fixed_point import to_fixed_inputs
 from magstack.firmware.float_applier import apply_float
 from magstack.ground.errors import AlignmentError
@@ -49,9 +50,10 @@ def _sim_axis_spacing_s() -> tuple[float, float]:
 def test_probe_identifies_every_chip_and_reads_them(demo):
     res, lines = demo
     p = res.probe
-    assert sorted(d["chip"] for d in p.devices) == ["hmc5983", "lis3mdl", "lsm303dlhc"]
+    # a freshly powered HMC5983 reads like an HMC5883L at 0x31/0x32: the probe says so (issue 12.4)
+    assert sorted(d["chip"] for d in p.devices) == ["hmc5883l_or_hmc5983", "lis3mdl", "lsm303dlhc"]
     # the shared 0x1E address resolved to different chips on the two buses
-    assert p.shared_address_chips == {"sim-i2c-1": "hmc5983", "sim-i2c-2": "lsm303dlhc"}
+    assert p.shared_address_chips == {"sim-i2c-1": "hmc5883l_or_hmc5983", "sim-i2c-2": "lsm303dlhc"}
     assert set(p.samples) == {"lis3mdl", "hmc5983", "lsm303dlhc", "hmc1053"}
     for chip, rows in p.samples.items():
         assert len(rows) == 3
@@ -197,15 +199,31 @@ def test_cli_demo_runs_and_is_deterministic(tmp_path, capsys):
     for n in range(1, 8):
         assert f"[{n}/7]" in text
     assert "summary" in text and "files written" in text
-    assert main(["demo", "--out-dir", str(b), "--seconds", "300", "--seed", "1"]) == 0
+    # the same run with --json: stdout holds only the summary figures as strict JSON
+    assert main(["demo", "--out-dir", str(b), "--seconds", "300", "--seed", "1", "--json"]) == 0
+    cap = capsys.readouterr()
+
+    def refuse(c):
+        raise ValueError(f"non-standard JSON constant {c}")
+
+    doc = json.loads(cap.out, parse_constant=refuse)
+    assert doc["command"] == "demo" and doc["exit_code"] == 0 and doc["out_dir"] == str(b)
+    assert {"probe", "bench", "align", "fit", "table", "holdout", "loop", "wall_s", "files"} <= set(doc)
+    assert doc["loop"]["health"]["error_count"] == 2 and cap.err == ""
     for name in ("session.csv", "session-paired.csv", "cal.json", "holdout-calibrated.csv", "flight-loop.csv"):
         assert (a / name).read_bytes() == (b / name).read_bytes(), name
 
 
 def test_cli_rejects_bad_parameters(tmp_path, capsys):
     assert main(["demo", "--out-dir", str(tmp_path), "--seconds", "10"]) == 2
-    assert "seconds must be in" in capsys.readouterr().err
+    assert "argument --seconds: must be within [300, 36000] s, got '10'" in capsys.readouterr().err
     assert main(["demo", "--out-dir", str(tmp_path), "--seed", "-1"]) == 2
+    assert "argument --seed: must be within [0, 4294967295], got '-1'" in capsys.readouterr().err
+    assert main(["demo", "--out-dir", ""]) == 2
+    assert "argument --out-dir: expected a directory name" in capsys.readouterr().err
+    (tmp_path / "file").write_text("x")
+    assert main(["demo", "--out-dir", str(tmp_path / "file")]) == 2
+    assert "exists and is not a directory" in capsys.readouterr().err
     with pytest.raises(ConfigurationError):
         DemoConfig(seconds=math.nan)
 

@@ -5,6 +5,9 @@ import argparse
 
 import numpy as np
 
+from magstack.cli.options import finite_float, nonempty_path
+from magstack.cli.output import CommandResult
+from magstack.cli.progress import stages
 from magstack.data.errors import SessionFileError
 from magstack.data.session import read_session, refuse_overwriting_inputs, write_session
 from magstack.data.windows import add_window_options, describe, select_rows
@@ -23,57 +26,67 @@ def register(subparsers) -> None:
                                           "Rows that cannot be calibrated are kept (NaN) and flagged.")
     p.add_argument("table", metavar="cal.json")
     p.add_argument("session", metavar="SESSION.csv")
-    p.add_argument("--out", required=True, metavar="calibrated.csv")
+    p.add_argument("--out", required=True, metavar="calibrated.csv", type=nonempty_path)
     p.add_argument("--applier", choices=("float", "fixed"), default="float",
                    help="float64 reference (default) or the on-board integer applier")
-    p.add_argument("--exclude-steps", type=float, default=None, metavar="UT",
+    p.add_argument("--exclude-steps", type=finite_float(0, 1e4, lo_open=True, unit="uT"), default=None, metavar="UT",
                    help="score 'away from steps' without rows next to a reference change above UT (as fit); "
                         "default: the automatic threshold of fit's step diagnosis")
     add_window_options(p)
     p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    table = load_table(args.table)
-    validate(table).raise_if_bad(str(args.table))
-    refuse_overwriting_inputs(args.out, [args.session, args.table])
-    s = read_session(args.session)
-    if s.metadata.get("calibrated") == "true":
-        raise SessionFileError(f"{args.session} is already calibrated (table {s.metadata.get('cal_table_crc32')}); "
-                               "apply the table to the raw session")
-    for w in s.warnings:
-        print(f"note: {args.session}: {w}")
-    if args.exclude_steps is not None and not args.exclude_steps > 0:
-        raise ConfigurationError(f"--exclude-steps must be > 0 uT, got {args.exclude_steps}")
-    if args.window or args.drop_window:
-        keep = select_rows(s.t_s, s.session, args.window, args.drop_window)
-        if not keep.any():
-            raise ConfigurationError("the time windows select no rows")
-        how = describe(args.window, args.drop_window, int(keep.sum()), len(s))
-        s = s.select(keep)
-        s.metadata["rows_selected"] = how
-        print(f"note: time windows: {how}")
-    dev = s.metadata.get("device_id")
-    if dev is not None and dev != table.device_id:
-        raise CalTableInvalid(f"table is for device {table.device_id!r}, session is from {dev!r}")
-    out = calibrate_session(table, s, args.applier)
-    write_session(args.out, out)
+def run(args: argparse.Namespace) -> CommandResult:
+    with stages("apply", ["read table", "read session", "apply", "write"]) as st:
+        st.next()
+        table = load_table(args.table)
+        validate(table).raise_if_bad(str(args.table))
+        refuse_overwriting_inputs(args.out, [args.session, args.table])
+        st.next()
+        s = read_session(args.session)
+        if s.metadata.get("calibrated") == "true":
+            raise SessionFileError(f"{args.session} is already calibrated (table "
+                                   f"{s.metadata.get('cal_table_crc32')}); apply the table to the raw session")
+        notes = [f"{args.session}: {w}" for w in s.warnings]
+        if args.window or args.drop_window:
+            keep = select_rows(s.t_s, s.session, args.window, args.drop_window)
+            if not keep.any():
+                raise ConfigurationError("the time windows select no rows")
+            how = describe(args.window, args.drop_window, int(keep.sum()), len(s))
+            s = s.select(keep)
+            s.metadata["rows_selected"] = how
+            notes.append(f"time windows: {how}")
+        dev = s.metadata.get("device_id")
+        if dev is not None and dev != table.device_id:
+            raise CalTableInvalid(f"table is for device {table.device_id!r}, session is from {dev!r}")
+        st.next()
+        out = calibrate_session(table, s, args.applier)
+        st.next()
+        write_session(args.out, out)
     f = out.flag >> FLAG_SHIFT
-    n_missing = int(np.count_nonzero(f & ApplyFlag.MISSING_INPUT))
-    n_oov = int(np.count_nonzero(f & ApplyFlag.OUT_OF_VALIDITY))
-    n_sat = int(np.count_nonzero(f & ApplyFlag.SATURATED))
-    print(f"wrote {args.out}: {len(out)} rows ({args.applier} applier); not calibrated (missing input) "
-          f"{n_missing}, outside validity {n_oov}, saturated {n_sat}")
-    for line in score_lines(out, args.exclude_steps):
-        print(line)
-    return 0
+    counts = {"missing_input": int(np.count_nonzero(f & ApplyFlag.MISSING_INPUT)),
+              "out_of_validity": int(np.count_nonzero(f & ApplyFlag.OUT_OF_VALIDITY)),
+              "saturated": int(np.count_nonzero(f & ApplyFlag.SATURATED))}
+    lines = [f"note: {n}" for n in notes]
+    lines.append(f"wrote {args.out}: {len(out)} rows ({args.applier} applier); not calibrated (missing input) "
+                 f"{counts['missing_input']}, outside validity {counts['out_of_validity']}, saturated "
+                 f"{counts['saturated']}")
+    score = scores(out, args.exclude_steps)
+    lines += score.pop("lines")
+    data = {"out": str(args.out), "rows": len(out), "applier": args.applier,
+            "table_crc32": table.to_document()["crc32"], "flag_counts": counts,
+            "calibrated_vs_ref_rms_nT": score["all_rows"],
+            "calibrated_vs_ref_rms_away_from_steps_nT": score["away_from_steps"],
+            "rows_selected": out.metadata.get("rows_selected"), "notes": notes}
+    return CommandResult("apply", data, lines)
 
 
-def score_lines(out, exclude_steps_uT: float | None) -> list[str]:
-    """Calibrated-vs-reference RMS over all rows and away from reference steps (as ``fit`` scores)."""
+def scores(out, exclude_steps_uT: float | None) -> dict:
+    """Calibrated-vs-reference RMS (nT) over all rows and away from reference steps, as ``fit`` scores:
+    ``{"all_rows", "away_from_steps", "lines"}`` (the figures None when no row has both values)."""
     ok = np.all(np.isfinite(out.ref_uT), axis=1) & np.all(np.isfinite(out.dut_uT), axis=1)
     if not ok.any():
-        return ["calibrated vs ref: no row has both values"]
+        return {"all_rows": None, "away_from_steps": None, "lines": ["calibrated vs ref: no row has both values"]}
     name, rng, note = reference_range(out.metadata)
     sat = ok & saturated_rows(out.ref_uT, rng)
     thr = step_threshold_uT(out.ref_uT[ok], out.session[ok]) if exclude_steps_uT is None else exclude_steps_uT
@@ -81,16 +94,23 @@ def score_lines(out, exclude_steps_uT: float | None) -> list[str]:
     if np.isfinite(thr) and thr > 0:
         at[ok] = reference_steps(out.ref_uT[ok], out.session[ok], thr)
 
-    def fmt(label, m):
+    def rms(m):
         if not m.any():
+            return None
+        r = np.sqrt(np.mean((out.ref_uT[m] - out.dut_uT[m]) ** 2, axis=0)) * 1e3
+        return {"x": r[0], "y": r[1], "z": r[2], "norm": np.linalg.norm(r), "n": int(m.sum())}
+
+    def fmt(label, r):
+        if r is None:
             return f"{label}: no rows"
-        rms = np.sqrt(np.mean((out.ref_uT[m] - out.dut_uT[m]) ** 2, axis=0)) * 1e3
-        return (f"{label} ({int(m.sum())} rows): x {rms[0]:.1f} y {rms[1]:.1f} z {rms[2]:.1f} "
-                f"norm {np.linalg.norm(rms):.1f}")
-    how = ("--exclude-steps" if exclude_steps_uT is not None else "automatic threshold")
-    lines = ["calibrated vs ref RMS (nT):", fmt("  all rows", ok),
-             fmt(f"  away from steps (reference change > {thr:.2g} uT, {how})", ok & ~at)]
+        return f"{label} ({r['n']} rows): x {r['x']:.1f} y {r['y']:.1f} z {r['z']:.1f} norm {r['norm']:.1f}"
+    how = "--exclude-steps" if exclude_steps_uT is not None else "automatic threshold"
+    all_rows, away = rms(ok), rms(ok & ~at)
+    if away is not None:
+        away.update({"threshold_uT": thr, "threshold_source": how})
+    lines = ["calibrated vs ref RMS (nT):", fmt("  all rows", all_rows),
+             fmt(f"  away from steps (reference change > {thr:.2g} uT, {how})", away)]
     if sat.any():
         lines.append(f"note: {int(sat.sum())} rows have the reference at/beyond its range ({name} +-{rng:g} uT)"
                      + (f"; {note}" if note else "") + "; they are in both figures")
-    return lines
+    return {"all_rows": all_rows, "away_from_steps": away, "lines": lines}
