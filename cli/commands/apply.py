@@ -13,8 +13,8 @@ from magstack.data.session import read_session, refuse_overwriting_inputs, write
 from magstack.data.windows import add_window_options, describe, select_rows
 from magstack.drivers.errors import ConfigurationError
 from magstack.firmware.cal_table import load_table, validate
-from magstack.firmware.calibration.fit import reference_steps, step_threshold_uT
 from magstack.firmware.calibration.reference import reference_range, saturated_rows
+from magstack.firmware.calibration.steps import reference_steps, step_threshold_uT
 from magstack.firmware.errors import CalTableInvalid
 from magstack.firmware.float_applier import ApplyFlag
 from magstack.ground.apply_session import FLAG_SHIFT, calibrate_session

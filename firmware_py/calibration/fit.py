@@ -12,24 +12,35 @@ scalar figure is the vector norm of the three per-axis values.
 """
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg
 
-from magstack.firmware.calibration.degeneracy import GROUP_CORR, VIF_LIMIT, degenerate_groups
-from magstack.firmware.calibration.linalg import qr_r
+from magstack.firmware.calibration.degeneracy import GROUP_CORR, VIF_LIMIT
+from magstack.firmware.calibration.identify import CORE_TERMS, HeldParam, identify, independent_field_rms
+from magstack.firmware.calibration.linalg import RANK_RTOL, qr_r
 from magstack.firmware.calibration.model import AXES, MODELS, CalModel, resolve_terms
 from magstack.firmware.calibration.mount import MountSolution, solve_mount
 from magstack.firmware.calibration.reference import SATURATION_MARGIN, saturated_rows
 from magstack.firmware.calibration.session_map import compare, comparison_lines
+from magstack.firmware.calibration.steps import (
+    STEP_NOISE_FACTOR,
+    STEP_RATIO,
+    STEP_SHARE,
+    StepDiagnosis,
+    diagnose_steps,
+    reference_steps,
+    step_threshold_uT,
+)
 from magstack.firmware.errors import FitError
 
-#: Rank tolerance: a column whose part orthogonal to the columns accepted before it is
-#: below this fraction of its own norm is numerically undetermined.
-RANK_RTOL = 1e-9
+#: Names other modules import from here (the pieces now live in steps, identify, linalg).
+__all__ = ["FitData", "FitOptions", "FitResult", "Coverage", "HeldParam", "AxisSolution", "StepDiagnosis",
+           "fit", "identify", "independent_field_rms", "solve_axis", "noise_floor", "qr_r", "reference_steps",
+           "diagnose_steps", "step_threshold_uT", "build_model", "block_folds", "frame_reference", "comparison_lines",
+           "RANK_RTOL", "CORE_TERMS", "STEP_RATIO", "STEP_SHARE", "STEP_NOISE_FACTOR"]
 
 
 @dataclass
@@ -197,15 +208,6 @@ class Coverage:
 
 
 @dataclass
-class HeldParam:
-    axis: int
-    column: int
-    name: str
-    value: float
-    reason: str
-
-
-@dataclass
 class AxisSolution:
     theta: np.ndarray     # (p,) coefficients (held ones at their prior, unused 0)
     se: np.ndarray        # (p,) standard errors (NaN for held / unused)
@@ -213,60 +215,6 @@ class AxisSolution:
     dof: int
     cond_scaled: float    # condition number of the column-equilibrated active design
     cond_raw: float
-
-
-@dataclass
-class StepDiagnosis:
-    """In-sample residual split between rows at reference steps and the rest (plain RMS, uT).
-
-    ``threshold_uT``: a row is "at a step" when the reference changes by more than this between it
-    and a neighbouring row of its session (:func:`reference_steps`)."""
-
-    threshold_uT: float
-    n_step: int
-    n_steady: int
-    step_rms_uT: np.ndarray     # (3,)
-    steady_rms_uT: np.ndarray   # (3,)
-    step_share: float           # fraction of the total squared residual on step rows
-
-    @property
-    def dominant(self) -> bool:
-        """Step rows carry a disproportionate share of the misfit (worth excluding or modelling)."""
-        ratio = np.linalg.norm(self.step_rms_uT) / max(float(np.linalg.norm(self.steady_rms_uT)), 1e-300)
-        return ratio >= STEP_RATIO and self.step_share >= STEP_SHARE
-
-
-#: The step diagnosis reports step rows as dominant when their residual RMS is at least STEP_RATIO
-#: times that of the other rows and they carry at least STEP_SHARE of the squared residual.
-STEP_RATIO = 2.0
-STEP_SHARE = 0.5
-#: Automatic step threshold: this many times the median non-zero row-to-row reference change
-#: (the reference's own sample-to-sample noise while the field is steady).
-STEP_NOISE_FACTOR = 10.0
-
-
-def step_threshold_uT(b_ref_uT: np.ndarray, session: np.ndarray) -> float:
-    """Reference change between consecutive rows (uT, max over axes) that counts as a step:
-    STEP_NOISE_FACTOR x the median non-zero change within sessions; NaN if there is none."""
-    d = np.abs(np.diff(b_ref_uT, axis=0)).max(axis=1)
-    d = d[(session[1:] == session[:-1]) & np.isfinite(d) & (d > 0)]
-    return float(STEP_NOISE_FACTOR * np.median(d)) if d.size else math.nan
-
-
-def diagnose_steps(resid_uT: np.ndarray, b_ref_uT: np.ndarray, session: np.ndarray,
-                   threshold_uT: float | None = None) -> StepDiagnosis | None:
-    """Split the residual between rows at reference steps and the rest; None when the data has
-    no steps (fewer than 10 step or 10 other rows, or no usable threshold)."""
-    thr = step_threshold_uT(b_ref_uT, session) if threshold_uT is None else float(threshold_uT)
-    if not (math.isfinite(thr) and thr > 0):
-        return None
-    at = reference_steps(b_ref_uT, session, thr)
-    if at.sum() < 10 or (~at).sum() < 10:
-        return None
-    sq = resid_uT ** 2
-    total = float(sq.sum())
-    return StepDiagnosis(thr, int(at.sum()), int((~at).sum()), np.sqrt(sq[at].mean(axis=0)),
-                         np.sqrt(sq[~at].mean(axis=0)), float(sq[at].sum()) / total if total > 0 else 0.0)
 
 
 @dataclass
@@ -400,137 +348,6 @@ class FitResult:
 
 
 # ---------------------------------------------------------------------- numerics
-def independent_field_rms(model: CalModel, R: np.ndarray, cov: Coverage, min_rms_uT: float = 0.0) -> np.ndarray:
-    """(3,) uT: how much the data excites each input axis on its own.
-
-    Axes are taken in order of decreasing field RMS (about the offset); each gets the RMS of its
-    component not explained (least squares) by a constant and the axes accepted before it, and is
-    accepted when that is at least ``min_rms_uT``. A single-axis sweep thus determines its own axis
-    even though the DUT's cross-axis coupling makes the other channels scaled copies of it: only
-    those copies are reported as not excited on their own."""
-    cols = {c.index: k for k, c in enumerate(model.columns) if c.term == "gain_matrix"}
-    off = [k for k, c in enumerate(model.columns) if c.term == "offset"]
-    n = max(cov.sum_w, 1e-300)
-
-    def orth_rms(j: int, others: list[int]) -> float:
-        A = R[:, [cols[k] for k in others] + off]
-        v = R[:, cols[j]]
-        if A.shape[1] == 0:
-            return float(np.linalg.norm(v) / np.sqrt(n))
-        coef, *_ = np.linalg.lstsq(A, v, rcond=None)
-        return float(np.linalg.norm(v - A @ coef) / np.sqrt(n))
-
-    own = [orth_rms(j, []) for j in range(3)]
-    out = np.zeros(3)
-    accepted: list[int] = []
-    for j in sorted(range(3), key=lambda k: -own[k]):
-        out[j] = orth_rms(j, accepted)
-        if out[j] >= min_rms_uT:
-            accepted.append(j)
-    return out
-
-
-def identify(model: CalModel, R: np.ndarray, cov: Coverage, options: FitOptions) -> list[HeldParam]:
-    """Parameters the data cannot determine. ``R``: R factor of the weighted [X | Y].
-
-    Coverage rules (temperature terms, sessions) first, then numerical rank: columns
-    are accepted in order (gain and offset first, nuisance terms last) and a column
-    whose component orthogonal to the accepted ones is below RANK_RTOL of its norm is held.
-    """
-    p = model.n_columns
-    mask = model.axis_mask()
-    prior = model.prior()
-    names = {model.param_name(i, c): (i, c) for i in range(3) for c in range(p) if mask[i, c]}
-    for k, v in options.priors.items():
-        if k not in names:
-            raise FitError(f"prior for unknown parameter {k!r}")
-        prior[names[k]] = float(v)
-    held: dict[tuple[int, int], str] = {}
-    orth = independent_field_rms(model, R, cov, options.min_field_rms_uT)
-    for c, col in enumerate(model.columns):
-        reason = None
-        if col.term == "temperature_gain":
-            span = cov.temp_span_with_field(col.index)
-            if span < options.min_temp_span_c:
-                reason = (f"temperature spans only {span:.2f} degC while |B_{AXES[col.index]}| >= "
-                          f"{options.field_present_uT:g} uT (need {options.min_temp_span_c:g} degC)")
-        elif col.term == "temperature_offset":
-            if cov.temp_span_c < options.min_temp_span_c:
-                reason = (f"temperature spans only {cov.temp_span_c:.2f} degC "
-                          f"(need {options.min_temp_span_c:g} degC)")
-        elif col.term in ("gain_matrix", "cubic") and orth[col.index] < options.min_field_rms_uT:
-            reason = (f"field on {AXES[col.index]} not explained by the more excited axes has RMS "
-                      f"{orth[col.index]:.3g} uT (need {options.min_field_rms_uT:g} uT)")
-        elif col.term == "cross_products":
-            jj, kk = ((0, 1), (0, 2), (1, 2))[col.index]
-            if min(orth[jj], orth[kk]) < options.min_field_rms_uT:
-                reason = (f"{col.feature}: both axes need independent field RMS >= "
-                          f"{options.min_field_rms_uT:g} uT")
-        elif col.term == "session_offset" and len(cov.sessions) < options.min_sessions:
-            reason = f"only {len(cov.sessions)} session(s)"
-        if reason:
-            for i in range(3):
-                if mask[i, c]:
-                    held[(i, c)] = reason
-    norms = np.linalg.norm(R[:, :p], axis=0)
-    priority = {"gain_matrix": 0, "offset": 1}
-    order = sorted(range(p), key=lambda c: (priority.get(model.columns[c].term, 2), c))
-    for i in range(3):
-        accepted: list[int] = []
-        for c in order:
-            if not mask[i, c] or (i, c) in held:
-                continue
-            if norms[c] == 0:
-                held[(i, c)] = "column is zero in the data (never excited)"
-                continue
-            if accepted:
-                A = R[:, accepted] / norms[accepted]
-                v = R[:, c] / norms[c]
-                coef, *_ = np.linalg.lstsq(A, v, rcond=None)
-                resid = np.linalg.norm(v - A @ coef)
-            else:
-                resid = 1.0
-            if resid < RANK_RTOL * 1e3 * np.sqrt(p):
-                others = ", ".join(model.columns[a].feature for a in accepted)
-                held[(i, c)] = f"column {model.columns[c].feature} is a combination of [{others}]"
-            else:
-                accepted.append(c)
-    _hold_degenerate(model, R, held, options)
-    out = [HeldParam(i, c, model.param_name(i, c), float(prior[i, c]), r) for (i, c), r in sorted(held.items())]
-    if out and options.on_unidentifiable == "refuse":
-        raise FitError("data cannot determine: " + "; ".join(f"{h.name} ({h.reason})" for h in out))
-    return out
-
-
-#: Terms never held by the degeneracy rule (the core of every model; rank rules cover them).
-CORE_TERMS = ("gain_matrix", "offset")
-
-
-def _hold_degenerate(model: CalModel, R: np.ndarray, held: dict, options: FitOptions) -> None:
-    """Add the degenerate groups of each output axis to ``held`` (module degeneracy)."""
-    p = model.n_columns
-    mask = model.axis_mask()
-    off = [c for c, col in enumerate(model.columns) if col.term == "offset"]
-    for i in range(3):
-        act = [c for c in range(p) if mask[i, c] and (i, c) not in held and c not in off]
-        if not act:
-            continue
-        o = R[:, off[0]] if off and (i, off[0]) not in held else None
-        groups = degenerate_groups(R[:, act], [model.columns[c].term not in CORE_TERMS for c in act], o,
-                                   options.max_vif, options.group_corr)
-        for g in groups:
-            names = [model.param_name(i, act[a]) for a in g.members]
-            partner = "" if g.partner is None else (
-                f" its estimate correlates at {g.corr:+.4f} with {model.param_name(i, act[g.partner])};")
-            for a in g.members:
-                others = [n for n in names if n != model.param_name(i, act[a])]
-                held[(i, act[a])] = (
-                    f"degenerate: variance inflation {g.vif:.3g} >= {options.max_vif:g} for "
-                    f"{model.param_name(i, act[g.worst])};{partner} the data determine only a combination"
-                    + (f" (held with {', '.join(others)})" if others else "")
-                    + " -- e.g. temperature varied at one field level only; needs two or more")
-
-
 def solve_axis(R: np.ndarray, p: int, i: int, mask_i: np.ndarray, held: Mapping[int, float],
                n: int) -> AxisSolution:
     """Solve output axis ``i`` from the R factor of weighted [X | Y] (p + 3 columns)."""
@@ -592,18 +409,6 @@ def noise_floor(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, lag_
 
 
 # ---------------------------------------------------------------------- the fit
-def reference_steps(b_ref_uT: np.ndarray, session: np.ndarray, step_uT: float) -> np.ndarray:
-    """Rows on either side of a reference change above ``step_uT`` (any axis) between
-    consecutive rows of one session: field transitions, where interpolating two
-    asynchronous streams is least trustworthy (the authors' step 4)."""
-    d = np.abs(np.diff(b_ref_uT, axis=0))
-    big = np.any(d > step_uT, axis=1) & (session[1:] == session[:-1])   # NaN compares False
-    out = np.zeros(len(session), dtype=bool)
-    out[1:] |= big
-    out[:-1] |= big
-    return out
-
-
 def build_model(data: FitData, terms: Sequence[str], currents: Sequence[str], t0_c: float,
                 name: str) -> CalModel:
     sessions = tuple(int(s) for s in np.unique(data.session)) if "session_offset" in terms else ()

@@ -3,6 +3,10 @@ from __future__ import annotations
 
 import numpy as np
 
+#: Rank tolerance: a column whose part orthogonal to the columns accepted before it is
+#: below this fraction of its own norm is numerically undetermined.
+RANK_RTOL = 1e-9
+
 
 def qr_r(A: np.ndarray) -> np.ndarray:
     """Square upper-triangular R with R^T R = A^T A (zero-padded if A has few rows)."""
