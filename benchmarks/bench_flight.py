@@ -28,8 +28,8 @@ import numpy as np
 from magstack.drivers.clock import VirtualClock
 from magstack.drivers.registry import open_chip
 from magstack.firmware import cal_table as ct
+from magstack.firmware.corrector import TableCorrector
 from magstack.firmware.flight.channel import MagChannel
-from magstack.firmware.flight.corrector import TableCorrector
 from magstack.firmware.flight.events import EventLog
 from magstack.firmware.flight.telemetry import ChannelTelemetry
 from magstack.sim.i2c_bench import default_bench

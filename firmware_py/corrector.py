@@ -1,84 +1,70 @@
-"""On-board corrector: the sampling loop's calibration step, backed by the active fixed-point table.
+"""On-board corrector: the active calibration table applied by the integer (fixed-point) applier.
 
-:class:`FixedPointCorrector` implements :class:`magstack.firmware.sampling_loop.Corrector`. Each
-call takes the table that is active *now* in a :class:`~magstack.firmware.cal_table.CalTableStore`
-(so a table swapped in at ``cycle_boundary()`` applies from the next cycle), converts the float
-reading once at the boundary (uT -> int nT, degC -> int centi-degC), runs the integer applier
-(:meth:`~magstack.firmware.fixed_point.FixedPointTable.apply_sample`) and returns its Q.8 nT
-output in uT.
-
-It returns None - the loop then publishes the sample as uncalibrated - and counts why in
-``status`` when: no table is active or the table needs current inputs this loop does not measure
-(``not_applied``); the reading or temperature is not finite once scaled (``bad_input``: e.g.
-NaN, or 1e308 uT, which overflows to inf in nT); the table needs a temperature and the sample
-has none (``no_temperature``); the
-sample lies outside the table's validity box (``out_of_validity``: a table is never applied
-where it was not fitted); the applier saturated (``saturated``). ``ok`` counts calibrated samples.
-It never raises on a reading.
+The float reading crosses into integers once, at the boundary (uT -> int nT, degC -> int
+centi-degC, A -> int mA), the applier runs on integers only, and its Q23.8 nT output is
+published in uT. A sample is published as calibrated only when every input is finite and
+inside the table's validity box (field per axis, temperature range, current ranges) and the
+output did not saturate; otherwise :class:`Correction` says why and carries no field.
 """
 from __future__ import annotations
 
 import math
 from collections import Counter
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
-from magstack.firmware.fixed_point import OUT_FRAC
+from magstack.firmware.cal_table import CalTableStore
+from magstack.firmware.fixed_point import OUT_FRAC, B_LIMIT_nT, I_LIMIT_mA, T_LIMIT_cdeg
 from magstack.firmware.float_applier import ApplyFlag
 
-__all__ = ["FixedPointCorrector", "STATUS_KEYS"]
-
-#: Keys of :attr:`FixedPointCorrector.status` (every key is present, starting at 0).
-STATUS_KEYS = ("ok", "not_applied", "bad_input", "no_temperature", "out_of_validity", "saturated")
-_OUT_SCALE = float(2 ** OUT_FRAC) * 1e3   # Q.8 nT -> uT
+#: Why a sample was not calibrated (the ``status`` of a :class:`Correction`).
+STATUSES = ("ok", "no_table", "bad_input", "no_temperature", "no_currents", "out_of_validity", "saturated")
+_OUT_SCALE = float(2 ** OUT_FRAC) * 1e3     # Q23.8 nT -> uT
 
 
-class FixedPointCorrector:
-    """Sampling-loop corrector using ``store.active_fixed`` (see the module docstring)."""
+@dataclass(frozen=True)
+class Correction:
+    b_uT: tuple[float, float, float] | None     # None unless status == "ok"
+    status: str
+    table_crc32: int | None = None
 
-    def __init__(self, store) -> None:
+
+class TableCorrector:
+    """Corrects samples with ``store``'s active fixed-point table; ``status`` counts each outcome."""
+
+    def __init__(self, store: CalTableStore, current_names: Sequence[str] = ()) -> None:
         self.store = store
-        self.status: Counter = Counter({k: 0 for k in STATUS_KEYS})
+        self.current_names = tuple(current_names)
+        self.status: Counter = Counter()
 
-    def __call__(self, sample) -> tuple[float, float, float] | None:
-        fx = self.store.active_fixed
-        if fx is None or fx.D:
-            self.status["not_applied"] += 1
-            return None
-        b_nT = _to_int(sample.b_uT, 1e3)
-        if b_nT is None:
-            self.status["bad_input"] += 1
-            return None
-        if sample.temp_c is None or not math.isfinite(sample.temp_c):
+    def _result(self, status: str, crc: int | None, b=None) -> Correction:
+        self.status[status] += 1
+        return Correction(b, status, crc)
+
+    def correct(self, b_uT: Sequence[float], temp_c: float | None,
+                currents_A: Mapping[str, float] | None = None) -> Correction:
+        table, fx = self.store.active, self.store.active_fixed
+        if table is None or fx is None:
+            return self._result("no_table", None)
+        crc = table.crc32
+        # bound every input before converting (1e308 or NaN must not reach int())
+        if len(b_uT) != 3 or not all(math.isfinite(v) and abs(v) * 1e3 < B_LIMIT_nT for v in b_uT):
+            return self._result("bad_input", crc)
+        if temp_c is None or not math.isfinite(temp_c) or abs(temp_c) * 100.0 >= T_LIMIT_cdeg:
             if fx.temp_range_cdeg is not None:
-                self.status["no_temperature"] += 1
-                return None
+                return self._result("no_temperature", crc)
             t_cdeg = fx.t0_cdeg
         else:
-            t = _to_int((sample.temp_c,), 100.0)
-            if t is None:
-                self.status["bad_input"] += 1
-                return None
-            t_cdeg = t[0]
-        q, flags = fx.apply_sample(b_nT, t_cdeg)
+            t_cdeg = int(round(temp_c * 100.0))
+        cur_mA = []
+        for name in table.currents:
+            v = (currents_A or {}).get(name)
+            if v is None or not math.isfinite(v) or abs(v) * 1e3 >= I_LIMIT_mA:
+                return self._result("no_currents", crc)
+            cur_mA.append(int(round(v * 1e3)))
+        q, flags = fx.apply_sample([int(round(v * 1e3)) for v in b_uT], t_cdeg, cur_mA)
         if flags & ApplyFlag.SATURATED:
-            self.status["saturated"] += 1
-            return None
+            return self._result("saturated", crc)
         if flags & ApplyFlag.OUT_OF_VALIDITY:
-            self.status["out_of_validity"] += 1
-            return None
-        self.status["ok"] += 1
-        return (q[0] / _OUT_SCALE, q[1] / _OUT_SCALE, q[2] / _OUT_SCALE)
-
-
-def _to_int(values, scale: float) -> list[int] | None:
-    """``round(v * scale)`` for each value, or None when one is not finite after scaling (finite
-    values beyond the applier's input range are clipped and flagged SATURATED by the applier)."""
-    out = []
-    for v in values:
-        try:
-            x = float(v) * scale
-        except (TypeError, ValueError):
-            return None
-        if not math.isfinite(x):
-            return None
-        out.append(int(round(x)))
-    return out
+            return self._result("out_of_validity", crc)
+        return self._result("ok", crc, (q[0] / _OUT_SCALE, q[1] / _OUT_SCALE, q[2] / _OUT_SCALE))

@@ -18,7 +18,7 @@ from magstack.data.session import read_session
 from magstack.drivers.clock import VirtualClock
 from magstack.drivers.errors import ConfigurationError, MagError
 from magstack.firmware.cal_table import CalTableStore, load_table
-from magstack.firmware.corrector import FixedPointCorrector
+from magstack.firmware.corrector import TableCorrector
 from magstack.firmware.fixed_point import to_fixed_inputs
 from magstack.firmware.float_applier import apply_float
 from magstack.ground.errors import AlignmentError
@@ -155,27 +155,29 @@ def test_flight_loop_counts_injected_faults_and_keeps_running(demo):
     assert lp.health["error_count"] == 2 and lp.health["samples_ok"] == lp.cycles - 2
     assert lp.health["uncalibrated"] == 0
     faults = [p for p in lp.published if p["fault"]]
-    assert [p["fault"].split(":")[0] for p in faults] == ["bus", "timeout"]
+    assert [p["fault"].split(":")[0] for p in faults] == ["BusError", "BusTimeout"]
     after = [p for p in lp.published if p["cycle"] > faults[-1]["cycle"]]
     assert after and all(p["calibrated"] for p in after)
     assert lp.cal_error_norm_uT < RESIDUAL_BOUND_uT < lp.raw_error_norm_uT
-    rows = lp.path.read_text().splitlines()
-    assert len(rows) == lp.cycles + 1
+    tlm = read_session(lp.path)                  # the channel's telemetry is a session file
+    assert len(tlm) == lp.cycles and int(np.count_nonzero(tlm.flag)) == 2
+    assert lp.events["CHAN_BUS_ERROR/hmc1053"] == 1 and lp.events["CHAN_TIMEOUT/hmc1053"] == 1
+    assert lp.events_path.read_text().count('"CHAN_') == 2
 
 
 def test_corrector_matches_float_applier_and_needs_an_active_table(demo):
     res, _ = demo
     from magstack.drivers.magnetometer import MagSample
 
-    empty = FixedPointCorrector(CalTableStore(DEVICE_ID))
+    empty = TableCorrector(CalTableStore(DEVICE_ID))
     s = MagSample(0.0, (10.0, -20.0, 30.0), 30.0)
-    assert empty(s) is None
-    corr = FixedPointCorrector(res.table.store)
-    b = corr(s)
+    assert empty.correct(s.b_uT, s.temp_c).b_uT is None
+    corr = TableCorrector(res.table.store)
+    b = corr.correct(s.b_uT, s.temp_c).b_uT
     bi, ti, _, _ = to_fixed_inputs([s.b_uT], [s.temp_c])
     ref, _ = apply_float(res.table.table, bi / 1e3, ti / 1e2)
     assert np.max(np.abs(np.array(b) - ref[0])) * 1e3 < 0.5
-    assert corr(MagSample(0.0, (10.0, -20.0, 30.0), None)) is None  # the table needs temperature
+    assert corr.correct((10.0, -20.0, 30.0), None).b_uT is None  # the table needs temperature
 
 
 def test_files_exist_and_parse(demo):

@@ -12,8 +12,8 @@ from magstack.drivers.errors import BusError, BusTimeout
 from magstack.drivers.magnetometer import MagSample
 from magstack.drivers.registry import open_chip
 from magstack.firmware import cal_table as ct
+from magstack.firmware.corrector import TableCorrector
 from magstack.firmware.flight.channel import ChannelLimits, MagChannel, TlmFlag
-from magstack.firmware.flight.corrector import TableCorrector
 from magstack.firmware.flight.events import EventId, EventLog
 from magstack.sim.i2c_bench import default_bench
 from magstack.sim.truth_source import StaticTruth

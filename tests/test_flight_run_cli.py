@@ -44,6 +44,7 @@ def test_simulated_run_in_virtual_time(tmp_path, capsys):
     assert main(["run", "--config", str(cfg), "--duration", "120", "--out", str(tmp_path / "tlm"), "--json"]) == 0
     wall = time.perf_counter() - t0
     out = json.loads(capsys.readouterr().out)
+    assert out["command"] == "run" and out["exit_code"] == 0 and out["virtual_time"] is True
     assert out["rate_groups"]["slow"]["runs"] == 120 and out["rate_groups"]["fast"]["runs"] == 1200
     assert out["channels"]["hmc1053"]["samples_ok"] == 120 and out["channels"]["hmc1053"]["corrector"]["ok"] == 120
     assert wall < 60     # virtual time: two simulated minutes take seconds
@@ -86,8 +87,8 @@ def test_sigterm_stops_cleanly_and_kill_loses_nothing_flushed(tmp_path):
     proc = _start(cfg, out)
     _wait_rows(out, 40)
     proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=30)
-    assert proc.returncode == 0 and "stopping" in err
+    stdout, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 143 and "SIGTERM: stopped after the cycles under way" in stdout
     assert not list(out.glob("*.part")) and read_session(next(out.glob("lis3mdl-*.csv")))
     # SIGKILL: every flushed block stays readable in the .part file
     out = tmp_path / "b"

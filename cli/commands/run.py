@@ -8,12 +8,11 @@ With ``--sim`` (or a config whose buses are all ``sim``) the sensors are simulat
 from __future__ import annotations
 
 import argparse
-import json
-import math
-import signal
-import sys
 from pathlib import Path
 
+from magstack.cli.interrupt import EXIT_FOR_SIGNAL, graceful_stop
+from magstack.cli.options import finite_float, int_range, nonempty_dir
+from magstack.cli.output import CommandResult
 from magstack.drivers.errors import ConfigurationError
 from magstack.firmware.flight.app import FlightApp
 from magstack.firmware.flight.config import example_config_text, load_config
@@ -25,14 +24,14 @@ def register(subparsers) -> None:
     p.add_argument("--config", metavar="flight.toml", help="flight configuration (see --example-config)")
     p.add_argument("--example-config", action="store_true", help="print the shipped example flight.toml and exit")
     p.add_argument("--sim", action="store_true", help="simulated sensors instead of the configured buses")
-    p.add_argument("--duration", type=float, default=None, metavar="S",
-                   help="stop after S seconds (virtual time with --sim)")
-    p.add_argument("--out", default=None, metavar="DIR", help="telemetry directory (overrides the config)")
+    p.add_argument("--duration", type=finite_float(0.0, 366 * 86400.0, lo_open=True, unit="s"), default=None,
+                   metavar="S", help="stop after S seconds (virtual time with --sim)")
+    p.add_argument("--out", type=nonempty_dir, default=None, metavar="DIR",
+                   help="telemetry directory (overrides the config)")
     p.add_argument("--sim-program", default="rotation", metavar="NAME",
                    help="with --sim: coil program giving the simulated field (default rotation; see magstack "
                         "simulate --help)")
-    p.add_argument("--seed", type=int, default=0, help="with --sim: simulation seed (default 0)")
-    p.add_argument("--json", action="store_true", help="print the end-of-run counters as JSON")
+    p.add_argument("--seed", type=int_range(0, 2**32 - 1), default=0, help="with --sim: simulation seed (default 0)")
     p.set_defaults(func=run)
 
 
@@ -56,54 +55,40 @@ def _sim_options(program_name: str, duration_s: float, seed: int):
     return options
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> CommandResult:
     if args.example_config:
-        sys.stdout.write(example_config_text())
-        return 0
+        return CommandResult("run", {"example_config": example_config_text()}, [example_config_text().rstrip()])
     if not args.config:
         raise ConfigurationError("--config is required (or --example-config)")
-    if args.duration is not None and not (math.isfinite(args.duration) and 0 < args.duration <= 366 * 86400):
-        raise ConfigurationError(f"--duration must be a number of seconds in (0, 366 days], got {args.duration}")
-    if args.seed < 0:
-        raise ConfigurationError(f"--seed must be >= 0, got {args.seed}")
     cfg = load_config(args.config)
     simulate = args.sim or cfg.simulated
     virtual = simulate and args.duration is not None
     options = _sim_options(args.sim_program, args.duration or 3600.0, args.seed) if simulate else None
-    app = FlightApp(cfg, virtual=virtual, simulate=simulate, telemetry_dir=args.out, chip_options=options)
-    previous = {}
-
-    def _stop(signum, _frame):
-        print(f"magstack run: signal {signum}: stopping after the cycles under way", file=sys.stderr)
-        app.stop()
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    with graceful_stop() as stop:
+        app = FlightApp(cfg, virtual=virtual, simulate=simulate, telemetry_dir=args.out, chip_options=options,
+                        stop=stop)
         try:
-            previous[sig] = signal.signal(sig, _stop)
-        except ValueError:   # not the main thread (tests calling main() from a thread)
-            pass
-    try:
-        app.run(args.duration)
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-        app.close()
-        summary = app.write_summary(Path(app.telemetry_dir) / f"summary-{app.run_id:04d}.json")
+            app.run(args.duration)
+        finally:
+            app.close()
+            summary = app.write_summary(Path(app.telemetry_dir) / f"summary-{app.run_id:04d}.json")
     counters = app.counters()
-    if args.json:
-        print(json.dumps(counters, indent=1, sort_keys=True, default=str))
-        return 0
     mode = "virtual time" if virtual else "real time"
-    print(f"flight run {app.run_id} ({'simulated sensors, ' if simulate else ''}{mode}); telemetry in "
-          f"{app.telemetry_dir}; summary {summary}")
+    lines = [f"flight run {app.run_id} ({'simulated sensors, ' if simulate else ''}{mode}); telemetry in "
+             f"{app.telemetry_dir}; summary {summary}"]
+    if stop.signal_name:
+        lines.insert(0, f"{stop.signal_name}: stopped after the cycles under way; every telemetry file closed")
     for g in app.executive.groups:
         st = g.stats
-        print(f"  rate group {g.name:<8} {g.rate_hz:7.3f} Hz: {st.runs} runs, {st.overruns} overruns, "
-              f"{st.missed_slots} skipped slots, max execution {st.exec_max_s * 1e3:.1f} ms")
+        lines.append(f"  rate group {g.name:<8} {g.rate_hz:7.3f} Hz: {st.runs} runs, {st.overruns} overruns, "
+                     f"{st.missed_slots} skipped slots, max execution {st.exec_max_s * 1e3:.1f} ms")
     for name, slot in app.slots.items():
         c = slot.channel.counters()
         cal = slot.channel.corrector.status.get("ok", 0)
         table = f"0x{slot.store.active.crc32:08x}" if slot.store.active else "none"
-        print(f"  {name:<12} {c['cycles']} cycles: {c['samples_ok']} good, {cal} calibrated, "
-              f"{c['error_count']} faults{' (DEGRADED)' if c['degraded'] else ''}; table {table}")
-    return 0
+        lines.append(f"  {name:<12} {c['cycles']} cycles: {c['samples_ok']} good, {cal} calibrated, "
+                     f"{c['error_count']} faults{' (DEGRADED)' if c['degraded'] else ''}; table {table}")
+    data = {"run_id": app.run_id, "telemetry_dir": str(app.telemetry_dir), "summary": str(summary),
+            "virtual_time": virtual, "simulated": simulate, "stopped_by": stop.signal_name, **counters}
+    code = EXIT_FOR_SIGNAL.get(stop.signal_name, 130) if stop.signal_name else 0
+    return CommandResult("run", data, lines, code)

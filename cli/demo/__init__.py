@@ -19,9 +19,9 @@ What another command needs lives in the library layers, not here:
    corrupted copies are refused while the active table stays in force.
 6. ``holdout.py`` - an independent session calibrated with the fixed-point applier
    (:func:`magstack.ground.apply_session.calibrate_session`, as ``magstack apply``).
-7. ``loop.py`` - :class:`~magstack.firmware.sampling_loop.SamplingLoop` with the on-board
-   :class:`~magstack.firmware.corrector.FixedPointCorrector`; an SPI fault and a stuck DRDY are
-   injected and must show up in the health counters.
+7. ``loop.py`` - the flight executive (:mod:`magstack.firmware.flight`) running a channel with the
+   on-board :class:`~magstack.firmware.corrector.TableCorrector`; an SPI fault and a stuck DRDY are
+   injected and must show up once each in the health counters and the event log.
 
 ``summary.py`` renders the closing table and summary.json. Everything runs in virtual time and
 is deterministic for a seed (wall times aside). Units: field uT, temperature degC, time s.

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,11 +19,11 @@ from typing import Any
 from magstack.drivers.clock import SystemClock, VirtualClock
 from magstack.drivers.registry import open_chip
 from magstack.firmware.cal_table import CalTableStore, load_table, validate
+from magstack.firmware.corrector import TableCorrector
 from magstack.firmware.errors import CalTableInvalid
 from magstack.firmware.flight.channel import ChannelLimits, MagChannel
 from magstack.firmware.flight.commands import Command, CommandSpool
 from magstack.firmware.flight.config import FlightConfig, SensorConfig
-from magstack.firmware.flight.corrector import TableCorrector
 from magstack.firmware.flight.events import EventFileSink, EventId, EventLog
 from magstack.firmware.flight.executive import Executive, RateGroup
 from magstack.firmware.flight.telemetry import ChannelTelemetry
@@ -48,7 +49,8 @@ class FlightApp:
 
     def __init__(self, cfg: FlightConfig, *, virtual: bool = False, simulate: bool = False,
                  telemetry_dir: str | Path | None = None, run_id: int | None = None,
-                 chip_options: ChipOptions | None = None, start_epoch_s: float | None = None) -> None:
+                 chip_options: ChipOptions | None = None, start_epoch_s: float | None = None,
+                 stop: threading.Event | None = None) -> None:
         self.cfg = cfg
         self.virtual = virtual
         self.simulate = simulate
@@ -68,7 +70,7 @@ class FlightApp:
         any_clock = next(iter(self.clocks.values()))
         offset = any_clock.epoch_s() - any_clock.monotonic_s()
         self.epoch_of = (lambda t: t + offset) if virtual else (lambda t: t - shared.monotonic_s() + shared.epoch_s())
-        self.executive = Executive(groups, self.events, self.epoch_of)
+        self.executive = Executive(groups, self.events, self.epoch_of, stop)
         self.slots: dict[str, ChannelSlot] = {}
         try:
             for s in cfg.sensors:

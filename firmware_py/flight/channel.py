@@ -30,7 +30,7 @@ import numpy as np
 
 from magstack.drivers.errors import BusError, BusTimeout, MagError, SelfTestFailed, StaleData
 from magstack.drivers.magnetometer import Magnetometer, MagSample
-from magstack.firmware.flight.corrector import Correction, TableCorrector
+from magstack.firmware.corrector import Correction, TableCorrector
 from magstack.firmware.flight.events import EventId, EventLog
 from magstack.firmware.health import HealthCounters
 
@@ -89,6 +89,15 @@ class ChannelLimits:
     max_rate_uT_per_s: float = 2000.0     # fastest physical change (rotation + torquer switching)
     reinit_after: int = 3                 # consecutive faults before re-initialising the driver
     degrade_after: int = 3                # re-initialisations without a good sample before "degraded"
+
+    def __post_init__(self) -> None:
+        for name in ("max_field_uT", "max_rate_uT_per_s"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+        for name in ("reinit_after", "degrade_after"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)!r}")
 
 
 @dataclass

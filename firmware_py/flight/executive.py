@@ -131,14 +131,14 @@ class Executive:
     """Rate groups + the event log; ``run_virtual`` (simulation) or ``run_threads`` (hardware)."""
 
     def __init__(self, groups: Sequence[RateGroup], events: EventLog,
-                 epoch_of: Callable[[float], float] | None = None) -> None:
+                 epoch_of: Callable[[float], float] | None = None, stop: threading.Event | None = None) -> None:
         names = [g.name for g in groups]
         if len(set(names)) != len(names):
             raise ValueError(f"rate group names must be unique: {names}")
         self.groups = list(groups)
         self.events = events
         self.epoch_of = epoch_of or (lambda t: t)
-        self._stop = threading.Event()
+        self._stop = stop if stop is not None else threading.Event()   # set by stop() or a signal handler
 
     def group(self, name: str) -> RateGroup:
         for g in self.groups:
