@@ -522,7 +522,7 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
         res.holdout_sessions_uT, res.holdout_per_session_uT = _holdout_sessions(
             d, all_terms, currents, t0_c, name, options, res.notes, [h.name for h in held])
     if mount is not None and len(np.unique(d.session)) > 1:
-        res.comparison = compare(X, d.b_ref_uT, d.b_meas_uT, d.session, d.t_s, d.weights, cm, held, theta, mount,
+        res.comparison = compare(X, d.b_ref_uT, d.b_meas_uT, d.session, d.weights, cm, held, mount,
                                  d.b_ref_uT - _rotate_from_frame(cm.predict(theta, X), d.session, mount),
                                  options, block_folds(d, options) if options.holdout else None,
                                  res.holdout_blocks_uT)

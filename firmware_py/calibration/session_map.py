@@ -82,7 +82,7 @@ def _predict_map(X, b, s, act, hv, extras, coefs) -> np.ndarray:
     return P
 
 
-def compare(X, Y, b_meas, session, t_s, weights, model, held, theta, mount, resid_mount, options,
+def compare(X, Y, b_meas, session, weights, model, held, mount, resid_mount, options,
             folds: np.ndarray | None = None, holdout_mount_uT: np.ndarray | None = None) -> dict:
     """Nested comparison (module docstring). ``resid_mount``: (N, 3) in-sample residual of the mount
     model; ``folds``: fold index per row (the fit's time blocks) for the held-out figures."""
