@@ -99,6 +99,8 @@ def test_threads_on_the_system_clock_keep_their_rates():
     a, b = Recorder("a", clk), Recorder("b", clk, 0.12)
     ex, _ = _exec(RateGroup("fast", 0.02, clk, [a]), RateGroup("slow", 0.25, clk, [b]))
     ex.run_threads(0.6)
-    # the slow group's blocking does not hold up the fast one (its own thread)
-    assert len(a.starts) >= 20 and ex.group("fast").stats.min_interval_s >= 0.02 - 0.005
+    # the slow group's blocking (0.12 s, six fast periods) does not hold up the fast one (its own thread):
+    # on a single shared timeline the fast group could run at most ~18 times in 0.6 s; allow for a loaded host
+    # slots stay on their grid: OS jitter can shorten one interval a little, a catch-up burst would be ~0 s
+    assert len(a.starts) >= 19 and ex.group("fast").stats.min_interval_s >= 0.5 * 0.02
     assert 2 <= len(b.starts) <= 4
