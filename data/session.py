@@ -24,6 +24,7 @@ line-by-line parser, which is the reference and names file, line and column of a
 from __future__ import annotations
 
 import io
+import logging
 import math
 import os
 import re
@@ -37,6 +38,8 @@ import numpy as np
 from magstack.data.errors import SessionFileError
 from magstack.data.io import fsync_dir, write_error
 from magstack.drivers.errors import ConfigurationError
+
+_log = logging.getLogger(__name__)
 
 FORMAT_KEY = "magstack-session"
 FORMAT_VERSION = "1"
@@ -505,8 +508,8 @@ def read_session(source: str | os.PathLike | io.TextIOBase) -> Session:
     A final line without newline that does not parse (a write cut short) is dropped with a
     warning in ``Session.warnings`` (in a ``.part`` file always); any other bad line raises
     :class:`SessionFileError` naming file, line and column. A finished file (not ``.part``) whose
-    closing line is missing or disagrees with the rows read gets a warning. A UTF-8 byte-order
-    mark is accepted.
+    closing line is missing or disagrees with the rows read gets a warning. Each warning is also
+    logged (logger ``magstack.data.session``, level WARNING). A UTF-8 byte-order mark is accepted.
     """
     raw, name = _read_bytes(source)
     if raw.startswith(_BOM):
@@ -582,12 +585,17 @@ def read_session(source: str | os.PathLike | io.TextIOBase) -> Session:
         elif closing is not None:
             n_said, crc_said = int(closing.group(1)), int(closing.group(2), 16)
             crc = zlib.crc32(memoryview(raw)[b0:b1])
+            if crc != crc_said and raw.find(b"\r", b0, b1) >= 0:
+                crc = zlib.crc32(raw[b0:b1].replace(b"\r\n", b"\n"))   # line endings converted (CRLF): same data
             if n_said != arr.shape[0] or crc_said != crc or tail.strip():
                 warnings.append(f"closing line says {n_said} rows, crc32 0x{crc_said:08x}, but the file has "
                                 f"{arr.shape[0]} rows, crc32 0x{crc:08x}: the file was cut or changed after it "
                                 "was written")
     def locate(k: int) -> int:
         return data_row_line(raw[b0:b1], first_lineno, k)
+
+    for w in warnings:
+        _log.warning("%s: %s", name, w)
 
     return _session_from_table(arr, header, current_cols, extra_cols, metadata, warnings, name, header_line, locate)
 

@@ -208,3 +208,13 @@ def test_long_search_work_grows_with_rows_not_with_range_times_rows(monkeypatch)
     est = estimate_clock_offset(t_dut, dut, t_ref, ref, prior_s=0.0, search_halfwidth_s=50_000.0)
     assert est.offset_s == pytest.approx(3.7, abs=0.05)
     assert sum(queries) < 450 * t_dut.size, sum(queries) / t_dut.size
+
+
+def test_mageval_files_with_a_utf8_bom_are_read(tmp_path):
+    d = tmp_path / "data5.csv"
+    d.write_bytes(b"\xef\xbb\xbf" + (DATA / "data5.csv").read_bytes())
+    r = tmp_path / "ref5.csv"
+    r.write_bytes(b"\xef\xbb\xbf" + (DATA / "ref5.csv").read_bytes())
+    a = import_mageval(d, r, clock_offset_s=AUTHORS_OFFSET_S)
+    b = import_mageval(DATA / "data5.csv", DATA / "ref5.csv", clock_offset_s=AUTHORS_OFFSET_S)
+    assert len(a) == len(b) and np.array_equal(a.t_s, b.t_s)

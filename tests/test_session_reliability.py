@@ -67,6 +67,10 @@ def test_finished_file_has_closing_line_and_a_cut_file_is_flagged(tmp_path):
     changed = tmp_path / "changed.csv"
     changed.write_text(p.read_text().replace(lines[5], lines[5].replace("21.5000", "21.5001")))
     assert any("crc32" in x for x in read_session(changed).warnings)
+    # line endings converted to CRLF (a Windows checkout): the same data, no warning
+    crlf = tmp_path / "crlf.csv"
+    crlf.write_bytes(p.read_bytes().replace(b"\n", b"\r\n"))
+    assert read_session(crlf).warnings == [] and len(read_session(crlf)) == 10
 
 
 def test_part_file_stays_readable_without_closing_line(tmp_path):
@@ -220,3 +224,12 @@ def test_fuzz_mutated_valid_files_raise_only_session_file_error(tmp_path_factory
         pos = min(pos, len(data))
         data[pos:pos + 1] = repl
     _read_bytes(tmp_path_factory, bytes(data), suffix)
+
+
+def test_reader_warnings_are_logged(tmp_path, caplog):
+    p = write_session(tmp_path / "s.csv", _session(4))
+    cut = tmp_path / "cut.csv"
+    cut.write_text("\n".join(p.read_text().splitlines()[:-1]) + "\n")
+    with caplog.at_level("WARNING", logger="magstack.data.session"):
+        read_session(cut)
+    assert any("cut.csv: no closing" in r.getMessage() for r in caplog.records)

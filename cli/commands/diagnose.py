@@ -10,6 +10,7 @@ from magstack.cli.options import finite_float, int_range, nonempty_dir, nonempty
 from magstack.cli.output import CommandResult, dumps
 from magstack.cli.progress import stages
 from magstack.data.session import load_sessions, refuse_overwriting_inputs
+from magstack.data.windows import add_window_options, describe, select_rows
 from magstack.ground.diagnose import Options, check_rows, diagnose, model_gap, parse_model, shift_source
 from magstack.ground.diagnose.spec import hysteresis_base, table_gap
 
@@ -41,6 +42,7 @@ def register(subparsers) -> None:
                    help="keep the rows at sharp bends of the reference field (default: left out)")
     p.add_argument("--t0", type=finite_float(-60, 150, unit="degC"), default=25.0,
                    help="temperature reference for --model, degC (default 25)")
+    add_window_options(p)
     p.set_defaults(func=run)
 
 
@@ -54,6 +56,10 @@ def run(args: argparse.Namespace) -> CommandResult:
     with stages("diagnose", ["read", "predict", "rank effects", "write"]) as st:
         st.next()
         session, notes = load_sessions(args.sessions)
+        if args.window or args.drop_window:
+            sel = select_rows(session.t_s, session.session, args.window, args.drop_window)
+            notes.append("time windows: " + describe(args.window, args.drop_window, int(sel.sum()), len(session)))
+            session = session.select(sel)
         full, keep, more = check_rows(session, exclude_bends=opts.exclude_bends)
         s = full.select(keep)
         st.next()
@@ -74,6 +80,8 @@ def run(args: argparse.Namespace) -> CommandResult:
         d = diagnose(gap, opts)
         st.next()
         doc = d.to_dict()
+        doc["windows"] = describe(args.window, args.drop_window, len(session), len(session) if not (
+            args.window or args.drop_window) else int(sel.size))
         lines = d.text().splitlines()
         if args.json_out:
             _write_json(args.json_out, doc)

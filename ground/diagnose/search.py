@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from magstack.firmware.calibration.model import JOINT_TERMS
 from magstack.firmware.effects import EFFECT_NAMES, EFFECTS
 from magstack.firmware.errors import FitError
 from magstack.ground.diagnose import nonlinear as nl
@@ -260,6 +261,11 @@ def build_candidates(gap: Gap, base: Block) -> tuple[list[Candidate], list[dict]
         if e.cal_term == "temperature_gain" and "temperature_offset" not in base_terms:
             # a gain applied before the offset, inverted, leaves K_S dT O: a dT column
             terms = ("temperature_gain", "temperature_offset")
+        if e.cal_term in JOINT_TERMS:
+            not_testable.append({"effect": name, "reason": f"calibration term {e.cal_term!r} has no design columns "
+                                                           "(its parameters couple the output axes; fitted by its "
+                                                           "own joint solver): no diagnosis estimator yet"})
+            continue
         if e.cal_term == "currents" and not s.currents_A:
             not_testable.append({"effect": name, "reason": "the session has no current columns"})
             continue

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from magstack.drivers.errors import ConfigurationError
-from magstack.firmware.calibration.model import MODELS
+from magstack.firmware.calibration.model import JOINT_TERMS, MODELS
 from magstack.firmware.effects import EFFECT_NAMES, EFFECTS
 from magstack.ground.diagnose import nonlinear as nl
 from magstack.ground.diagnose.gap import Block
@@ -33,6 +33,9 @@ def parse_model(spec: str) -> tuple[tuple[str, ...], tuple[str, ...], bool]:
             e = EFFECTS[tok]
             if e.cal_term is None:
                 raise ConfigurationError(f"--model: effect {tok!r} has no calibration term (cannot be modelled)")
+            if e.cal_term in JOINT_TERMS:
+                raise ConfigurationError(f"--model: effect {tok!r} is fitted by its own joint solver; diagnose "
+                                         "cannot model it yet")
             named.append(tok)
             if tok not in OWN_ESTIMATOR:
                 terms.append(e.cal_term)
