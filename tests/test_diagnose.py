@@ -270,3 +270,18 @@ def test_block_grouping_follows_the_correlation_of_block_means():
     assert 5 <= g <= 15   # (1 + 0.8) / (1 - 0.8) = 9
     d = np.arange(nb, dtype=float)
     assert grouped(d, bsess, 4).sum() == d.sum() and grouped(d, bsess, 4).size == 16   # 8 units per session
+
+
+def test_windows_select_rows_and_mount_rotation_is_listed_not_testable(tmp_path):
+    s = tmp_path / "s.csv"
+    write_session(s, make("temperature_offset", seconds=1200))
+    out = tmp_path / "d.json"
+    r = _cli("diagnose", str(s), "--window", "0:250", "--json", str(out), "--block-s", "30")
+    assert r.returncode == 0, r.stderr
+    j = json.loads(out.read_text())
+    assert j["n_rows"] <= 3 * (250 * RATE_HZ + 1) and "keep 0:250" in j["windows"]   # relative to each session
+    assert j["verdict"] == "temperature_offset"
+    nt = {n["effect"]: n["reason"] for n in j["not_testable"]}
+    assert "mount_rotation" in nt and "joint solver" in nt["mount_rotation"]
+    r = _cli("diagnose", str(s), "--model", "gain+offset+mount_rotation")
+    assert r.returncode == 2 and "joint solver" in r.stderr
