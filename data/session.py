@@ -35,6 +35,14 @@ REQUIRED_COLUMNS = ("t_s", "ref_x_uT", "ref_y_uT", "ref_z_uT", "dut_x_uT", "dut_
 _CURRENT_RE = re.compile(r"^current_([A-Za-z0-9_]+)_A$")
 #: Optional non-current columns that v1 readers understand.
 OPTIONAL_COLUMNS = ("flag",)
+#: Extra numeric columns (name -> meaning) registered by other data modules (e.g. data/telemetry.py):
+#: read into ``Session.extra``, written after the currents, absent = not in ``extra``.
+EXTRA_COLUMNS: dict[str, str] = {}
+
+
+def register_extra_columns(columns: Mapping[str, str]) -> None:
+    """Make v1 readers and writers carry these numeric columns (name -> one-line meaning)."""
+    EXTRA_COLUMNS.update(columns)
 
 
 @dataclass
@@ -54,6 +62,7 @@ class Session:
     metadata: dict[str, str] = field(default_factory=dict)
     flag: np.ndarray | None = None
     warnings: list[str] = field(default_factory=list)
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.t_s = np.asarray(self.t_s, dtype=float).reshape(-1)
@@ -69,13 +78,17 @@ class Session:
         if self.flag is not None:
             self.flag = np.asarray(self.flag).astype(np.int64).reshape(n)
         self.metadata = {str(k): str(v) for k, v in self.metadata.items()}
+        self.extra = {k: np.asarray(v, dtype=float).reshape(n) for k, v in self.extra.items()}
+        unknown = [k for k in self.extra if k not in EXTRA_COLUMNS]
+        if unknown:
+            raise ValueError(f"extra columns {unknown} not registered (register_extra_columns)")
 
     def __len__(self) -> int:
         return self.t_s.size
 
     @property
     def columns(self) -> list[str]:
-        cols = list(REQUIRED_COLUMNS) + [f"current_{k}_A" for k in self.currents_A]
+        cols = list(REQUIRED_COLUMNS) + [f"current_{k}_A" for k in self.currents_A] + list(self.extra)
         if self.flag is not None:
             cols.append("flag")
         return cols
@@ -84,7 +97,8 @@ class Session:
         """A new Session with the rows where ``mask`` is true."""
         return Session(self.t_s[mask], self.ref_uT[mask], self.dut_uT[mask], self.temp_c[mask],
                        self.session[mask], {k: v[mask] for k, v in self.currents_A.items()},
-                       dict(self.metadata), None if self.flag is None else self.flag[mask], list(self.warnings))
+                       dict(self.metadata), None if self.flag is None else self.flag[mask], list(self.warnings),
+                       {k: v[mask] for k, v in self.extra.items()})
 
     @staticmethod
     def concatenate(parts: Sequence[Session]) -> Session:
@@ -102,7 +116,9 @@ class Session:
                        np.vstack([p.dut_uT for p in parts]), np.concatenate([p.temp_c for p in parts]),
                        np.concatenate([p.session for p in parts]),
                        {k: np.concatenate([p.currents_A[k] for p in parts]) for k in names},
-                       dict(parts[0].metadata), flags)
+                       dict(parts[0].metadata), flags,
+                       extra={k: np.concatenate([p.extra[k] for p in parts]) for k in parts[0].extra
+                              if all(k in p.extra for p in parts)})
 
 
 def _fmt(x: float, decimals: int) -> str:
@@ -138,7 +154,8 @@ class SessionWriter:
     """
 
     def __init__(self, path: str | os.PathLike, metadata: Mapping[str, str] | None = None, *,
-                 current_names: Sequence[str] = (), with_flag: bool = False, block_rows: int = 50) -> None:
+                 current_names: Sequence[str] = (), with_flag: bool = False, block_rows: int = 50,
+                 extra_names: Sequence[str] = ()) -> None:
         self.path = Path(path)
         if not self.path.name or self.path.is_dir():
             raise SessionFileError(f"{path}: is a directory, not a session file name")
@@ -147,6 +164,10 @@ class SessionWriter:
         self.part_path = self.path.with_name(self.path.name + ".part")
         self.current_names = list(current_names)
         self.with_flag = with_flag
+        self.extra_names = list(extra_names)
+        unknown = [k for k in self.extra_names if k not in EXTRA_COLUMNS]
+        if unknown:
+            raise ValueError(f"extra columns {unknown} not registered (register_extra_columns)")
         self.block_rows = max(1, int(block_rows))
         meta = {FORMAT_KEY: FORMAT_VERSION, **{k: v for k, v in (metadata or {}).items() if k != FORMAT_KEY}}
         _check_metadata(meta)
@@ -159,7 +180,7 @@ class SessionWriter:
             raise SessionFileError(f"{self.part_path} exists (left by an interrupted session?): "
                                    "read, rename or remove it first") from None
         header = "".join(f"# {k}: {v}\n" for k, v in meta.items())
-        cols = list(REQUIRED_COLUMNS) + [f"current_{n}_A" for n in self.current_names]
+        cols = list(REQUIRED_COLUMNS) + [f"current_{n}_A" for n in self.current_names] + self.extra_names
         if with_flag:
             cols.append("flag")
         self._fh.write(header + ",".join(cols) + "\n")
@@ -170,13 +191,15 @@ class SessionWriter:
         os.fsync(self._fh.fileno())
 
     def write_row(self, t_s: float, ref_uT, dut_uT, temp_c: float, session: int,
-                  currents_A: Mapping[str, float] | None = None, flag: int | None = None) -> None:
+                  currents_A: Mapping[str, float] | None = None, flag: int | None = None,
+                  extra: Mapping[str, float] | None = None) -> None:
         cur = currents_A or {}
+        ext = extra or {}
         missing = [n for n in self.current_names if n not in cur]
         if missing:
             raise ValueError(f"row lacks currents {missing}")
-        self._buf.append(_row_text(t_s, ref_uT, dut_uT, temp_c, session,
-                                   (cur[n] for n in self.current_names), flag if self.with_flag else None))
+        cells = [cur[n] for n in self.current_names] + [ext.get(k, math.nan) for k in self.extra_names]
+        self._buf.append(_row_text(t_s, ref_uT, dut_uT, temp_c, session, cells, flag if self.with_flag else None))
         if len(self._buf) >= self.block_rows:
             self.flush()
 
@@ -229,10 +252,11 @@ def write_session(path: str | os.PathLike, s: Session, *, block_rows: int = 5000
     """Write a whole :class:`Session` crash-safely."""
     names = list(s.currents_A)
     with SessionWriter(path, s.metadata, current_names=names, with_flag=s.flag is not None,
-                       block_rows=block_rows) as w:
+                       block_rows=block_rows, extra_names=list(s.extra)) as w:
         for i in range(len(s)):
             w.write_row(s.t_s[i], s.ref_uT[i], s.dut_uT[i], s.temp_c[i], s.session[i],
-                        {n: s.currents_A[n][i] for n in names}, None if s.flag is None else s.flag[i])
+                        {n: s.currents_A[n][i] for n in names}, None if s.flag is None else s.flag[i],
+                        {k: v[i] for k, v in s.extra.items()})
     return Path(path)
 
 
@@ -308,7 +332,8 @@ def read_session(source: str | os.PathLike | io.TextIOBase) -> Session:
     if len(set(header)) != len(header):
         raise SessionFileError(f"{name}: duplicate column names in header")
     current_cols = [c for c in header if _CURRENT_RE.match(c)]
-    unknown = [c for c in header if c not in REQUIRED_COLUMNS and c not in current_cols and c not in OPTIONAL_COLUMNS]
+    unknown = [c for c in header if c not in REQUIRED_COLUMNS and c not in current_cols and c not in OPTIONAL_COLUMNS
+               and c not in EXTRA_COLUMNS]
     warnings: list[str] = []
     if unknown:
         warnings.append(f"ignored unknown columns {unknown}")
@@ -349,7 +374,8 @@ def read_session(source: str | os.PathLike | io.TextIOBase) -> Session:
         flag = np.where(np.isfinite(fl), fl, 0).astype(np.int64)   # an empty flag cell means 0 (ok)
     s = Session(col("t_s"), np.column_stack([col(f"ref_{a}_uT") for a in "xyz"]),
                 np.column_stack([col(f"dut_{a}_uT") for a in "xyz"]), col("temp_c"), sess.astype(np.int64),
-                {_CURRENT_RE.match(c).group(1): col(c) for c in current_cols}, metadata, flag)
+                {_CURRENT_RE.match(c).group(1): col(c) for c in current_cols}, metadata, flag,
+                extra={c: col(c) for c in header if c in EXTRA_COLUMNS})
     s.warnings.extend(warnings)
     return s
 

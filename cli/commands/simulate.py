@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 
+import magstack.sim.orbit_truth  # noqa: F401  (registers the orbit_* programs)
 from magstack.data.session import Session, write_session
 from magstack.drivers.errors import ConfigurationError
 from magstack.firmware.effects import EFFECT_NAMES, effect
@@ -89,12 +90,15 @@ def run(args) -> int:
     else:
         effects = list(EFFECT_NAMES)
     params = preset(args.chip)
-    extra = _interference(args.interference)
+    truth = program(args.program, args.seconds, sessions=args.sessions)
+    orbit = hasattr(truth, "q_body_eci_series")
+    if orbit:   # an orbit programme: its own epoch, currents and their field at the sensor
+        truth = truth.at_epoch(args.t0)
+    extra = {**(truth.default_interference_uT_per_A if orbit else {}), **_interference(args.interference)}
     if extra:
         d = params.to_dict()
         d["interference_uT_per_A"] = {**d["interference_uT_per_A"], **extra}
         params = ErrorParams.from_dict(d)
-    truth = program(args.program, args.seconds, sessions=args.sessions)
     info = preset_info(args.chip)
     rate = info.rate_hz if args.rate_hz is None else args.rate_hz
     if not (rate > 0 and math.isfinite(rate)):
@@ -125,9 +129,36 @@ def run(args) -> int:
         "error_params": json.dumps(params.to_dict(), separators=(",", ":"), sort_keys=True),
     }
     currents = {k: v for k, v in run_.currents_A.items()}
-    session = Session(t_s=args.t0 + run_.t_s, ref_uT=run_.ref_uT, dut_uT=run_.dut_uT, temp_c=run_.temp_c,
-                      session=run_.session.astype(np.int64), currents_A=currents, metadata=metadata)
+    ref, extra_cols = run_.ref_uT, {}
+    if orbit:
+        ref, extra_cols = _orbit_columns(truth, run_, currents, metadata)
+    session = Session(t_s=args.t0 + run_.t_s, ref_uT=ref, dut_uT=run_.dut_uT, temp_c=run_.temp_c,
+                      session=run_.session.astype(np.int64), currents_A=currents, metadata=metadata,
+                      extra=extra_cols)
     path = write_session(args.out, session)
     print(f"wrote {path}: {len(session)} rows, chip {args.chip}, program {args.program}, "
           f"{len(run_.effects)} effects, seed {args.seed}")
     return 0
+
+
+def _orbit_columns(truth, run_, currents: dict, metadata: dict):
+    """Telemetry columns of an orbit programme (data/telemetry.py): true field as ``ref``, position,
+    attitude; housekeeping currents kept only at their own sampling instants (others empty)."""
+    from magstack.data.telemetry import POS_COLUMNS, QUAT_COLUMNS
+
+    t = run_.t_s
+    pos = truth.pos_ecef_series_km(t)
+    q = truth.q_body_eci_series(t)
+    for name, period in truth.housekeeping_period_s.items():
+        if name in currents and period > 0:
+            k = np.floor(t / period)
+            keep = np.concatenate([[True], k[1:] != k[:-1]])
+            currents[name] = np.where(keep, currents[name], np.nan)
+    metadata.update({"ref_instrument": "none: ref columns hold the true field (for scoring)",
+                     "orbit_attitude": truth.attitude, "orbit_altitude_km": f"{truth.altitude_km:g}",
+                     "housekeeping_period_s": json.dumps(truth.housekeeping_period_s, sort_keys=True)})
+    metadata.pop("ref_noise_uT", None)
+    metadata.pop("ref_lsb_uT", None)
+    cols = {c: pos[:, k] for k, c in enumerate(POS_COLUMNS)}
+    cols.update({c: q[:, k] for k, c in enumerate(QUAT_COLUMNS)})
+    return run_.truth_uT, cols
