@@ -13,8 +13,11 @@ Per block of telemetry rows (memory flat in the number of rows; :mod:`.streaming
 
 Passes: pass 1 is ordinary least squares. Each robust pass (``robust_passes``) re-reads the data
 and weights fit rows by Huber (k = ``huber_k``) on their residual under the previous pass's
-solution, the scale being 1.4826 MAD of the block's fit-row residuals per axis (blocks with fewer
-than ``MIN_SCALE_ROWS`` fit rows use the previous pass's RMSE). The held-out RMS of any parameter
+solution. The scale is 1.4826 x the median |residual| per axis, taken from a histogram of
+|residual| (log bins, 0.9 % wide) accumulated in the previous robust pass, so it is global and
+independent of how rows fall into blocks or files; the first robust pass, which has no histogram
+yet, uses the OLS RMSE (inflated by outliers, so it down-weights only gross ones). A row's weight
+is the smallest of its three axes' Huber weights. The held-out RMS of any parameter
 set follows from the held-out R factor (``||R_h [theta; -1]||``), so the candidate and the active
 table are compared on exactly the same rows without another pass.
 
@@ -52,8 +55,8 @@ from magstack.firmware.calibration.streaming import StreamingFit
 from magstack.firmware.errors import FitError
 from magstack.firmware.reference import frames, geomag
 
-#: Blocks with fewer fit rows than this take the robust scale from the previous pass.
-MIN_SCALE_ROWS = 50
+#: Histogram of |residual| per axis (robust scale without keeping residuals): log bins, uT.
+HIST_EDGES_uT = np.geomspace(1e-5, 1e4, 2401)
 ECLIPSE_MODES = ("any", "sunlit", "eclipse")
 
 
@@ -82,7 +85,8 @@ class RefitOptions:
     selection: Selection = field(default_factory=Selection)
     robust: bool = True
     huber_k: float = 1.345
-    robust_passes: int = 2
+    robust_passes: int = 4
+    cache_mb: float = 256.0                      # fit rows kept in memory for the robust passes
     holdout_block_s: float = 600.0
     holdout_every: int = 5
     max_current_gap_s: float = MAX_GAP_S
@@ -152,6 +156,19 @@ class PassStats:
     counts: dict[str, int]
     eclipse_rows: int = 0
     rows: int = 0
+    abs_resid_hist: np.ndarray = field(default_factory=lambda: np.zeros((3, HIST_EDGES_uT.size + 1), np.int64))
+
+    def robust_scale_uT(self) -> np.ndarray | None:
+        """1.4826 x the median |residual| per axis from the histogram (None if empty)."""
+        c = self.abs_resid_hist
+        if c.sum() == 0:
+            return None
+        out = np.zeros(3)
+        mids = np.r_[HIST_EDGES_uT[0], np.sqrt(HIST_EDGES_uT[1:] * HIST_EDGES_uT[:-1]), HIST_EDGES_uT[-1]]
+        for i in range(3):
+            cum = np.cumsum(c[i])
+            out[i] = 1.4826 * mids[int(np.searchsorted(cum, 0.5 * cum[-1]))]
+        return out
 
     def merge(self, other: PassStats) -> PassStats:
         self.fit.merge(other.fit)
@@ -162,6 +179,7 @@ class PassStats:
             self.counts[k] = self.counts.get(k, 0) + v
         self.eclipse_rows += other.eclipse_rows
         self.rows += other.rows
+        self.abs_resid_hist = self.abs_resid_hist + other.abs_resid_hist
         return self
 
 
@@ -196,22 +214,85 @@ def reference_block(blk: telemetry.TelemetryBlock, dut1_s: float = 0.0):
     return b, lat, ecl
 
 
+def _nbytes(arrays: tuple) -> int:
+    bm, y, tc, cc, ss, tt = arrays
+    return bm.nbytes + y.nbytes + tc.nbytes + ss.nbytes + tt.nbytes + sum(v.nbytes for v in cc.values())
+
+
+class FitRowCache:
+    """In-process store of each file's fit rows (design inputs and reference) from pass 1, so the
+    robust passes need not re-read files and re-evaluate IGRF; a file whose rows would exceed the
+    budget is not kept (its passes re-read it), so memory stays below ``budget_mb``."""
+
+    def __init__(self, budget_mb: float) -> None:
+        self.left = int(budget_mb * 1e6)
+        self.files: dict[str, list[tuple]] = {}
+        self.complete: set[str] = set()
+        self._open: set[str] = set()
+
+    def start(self, path: str) -> None:
+        self.files[path] = []
+        self._open.add(path)
+
+    def add(self, path: str, arrays: tuple) -> None:
+        if path not in self._open:
+            return
+        size = _nbytes(arrays)
+        if size > self.left:   # does not fit: give this file's rows back, re-read it later
+            self.left += sum(_nbytes(x) for x in self.files.pop(path))
+            self._open.discard(path)
+            return
+        self.left -= size
+        self.files[path].append(arrays)
+
+    def finish(self, path: str) -> None:
+        if path in self._open:
+            self._open.discard(path)
+            self.complete.add(path)
+
+
 def file_pass(path: str, plan: Plan, theta: np.ndarray | None = None, sigma_uT: np.ndarray | None = None,
-              progress: Callable[[int], None] | None = None) -> PassStats:
+              progress: Callable[[int], None] | None = None, cache: FitRowCache | None = None) -> PassStats:
     """One pass over one file: the map step. ``theta`` None = OLS pass (also accumulates the
     held-out rows and coverage); otherwise Huber weights on residuals under ``theta``."""
     opt, model = plan.options, plan.model
     st = _new_stats(plan, theta is None)
+    if theta is not None and cache is not None and path in cache.complete:
+        for arrays in cache.files[path]:
+            _robust_add(st, arrays, plan, theta, sigma_uT)
+            if progress is not None:
+                progress(arrays[0].shape[0])
+        return st
+    if theta is None and cache is not None:
+        cache.start(path)
     blocks = interpolate_currents(telemetry.iter_telemetry(path, opt.block_rows), model.currents,
                                   opt.max_current_gap_s)
     for blk in blocks:
-        _block_pass(st, blk, plan, theta, sigma_uT)
+        _block_pass(st, blk, plan, theta, sigma_uT, cache)
         if progress is not None:
             progress(len(blk))
+    if theta is None and cache is not None:
+        cache.finish(path)
     return st
 
 
-def _block_pass(st: PassStats, blk: telemetry.TelemetryBlock, plan: Plan, theta, sigma_uT) -> None:
+def _robust_add(st: PassStats, arrays: tuple, plan: Plan, theta, sigma_uT) -> None:
+    """Huber-weighted accumulation of fit rows (b_meas, b_ref, temp, currents, session, t)."""
+    bm, y, tc, cc, ss, tt = arrays
+    if bm.shape[0] == 0:
+        return
+    model = plan.model
+    r = y - model.predict(theta, model.design(bm, tc, cc, ss, tt))
+    for i in range(3):
+        st.abs_resid_hist[i] += np.bincount(np.searchsorted(HIST_EDGES_uT, np.abs(r[:, i])),
+                                            minlength=HIST_EDGES_uT.size + 1)
+    u = np.abs(r) / (plan.options.huber_k * np.maximum(sigma_uT, 1e-12))
+    w = np.min(np.where(u <= 1, 1.0, 1.0 / np.maximum(u, 1e-300)), axis=1)
+    st.fit.add(bm, y, tc, cc, ss, tt, weights=w)
+
+
+def _block_pass(st: PassStats, blk: telemetry.TelemetryBlock, plan: Plan, theta, sigma_uT,
+                cache: FitRowCache | None = None) -> None:
     opt, model = plan.options, plan.model
     sel = opt.selection
     cnt = st.counts
@@ -249,19 +330,14 @@ def _block_pass(st: PassStats, blk: telemetry.TelemetryBlock, plan: Plan, theta,
         return (blk.dut_uT[mask], b_ref[mask], blk.temp_c[mask], {k: v[mask] for k, v in cur.items()},
                 blk.session[mask], blk.t_s[mask])
     if theta is None:
-        st.fit.add(*rows(fit_rows))
+        arrays = rows(fit_rows)
+        st.fit.add(*arrays)
         st.bins.update(b_ref[fit_rows], blk.temp_c[fit_rows])
         st.hold.add(*rows(use & held_out))
-    elif fit_rows.any():
-        bm, y, tc, cc, ss, tt = rows(fit_rows)
-        r = y - model.predict(theta, model.design(bm, tc, cc, ss, tt))
-        scale = sigma_uT
-        if r.shape[0] >= MIN_SCALE_ROWS:
-            scale = 1.4826 * np.median(np.abs(r - np.median(r, axis=0)), axis=0)
-        scale = np.where(scale > 0, scale, sigma_uT)
-        u = np.abs(r) / (opt.huber_k * scale)
-        w = np.min(np.where(u <= 1, 1.0, 1.0 / np.maximum(u, 1e-300)), axis=1)
-        st.fit.add(bm, y, tc, cc, ss, tt, weights=w)
+        if cache is not None:
+            cache.add(blk.path, arrays)
+    else:
+        _robust_add(st, rows(fit_rows), plan, theta, sigma_uT)
 
 
 def holdout_rms(R: np.ndarray, theta: np.ndarray, model: CalModel, n: int) -> np.ndarray:
@@ -292,9 +368,8 @@ def solve(stats: PassStats, plan: Plan, extra_holds: Mapping[tuple[int, int], st
     fo = FitOptions(holdout=False, priors=priors, min_temp_span_c=opt.min_temp_span_c,
                     min_field_rms_uT=opt.min_field_rms_uT)
     held = {(h.axis, h.column): h for h in identify(model, sf.R, sf.coverage, fo)}
-    for (i, c), reason in extra_holds.items():
-        if (i, c) not in held:
-            held[(i, c)] = HeldParam(i, c, model.param_name(i, c), float(plan.theta_active[i, c]), reason)
+    for (i, c), reason in extra_holds.items():   # the coverage reason is the root cause: it wins
+        held[(i, c)] = HeldParam(i, c, model.param_name(i, c), float(plan.theta_active[i, c]), reason)
     held_list = [held[k] for k in sorted(held)]
     theta = np.zeros((3, p))
     se = np.full((3, p), np.nan)
@@ -475,17 +550,22 @@ def refit(paths: Sequence[str], active: cal_table.CalTable | None = None, option
     mapper = mapper or local_mapper
     n_pass = 1 + (options.robust_passes if options.robust else 0)
 
+    cache = FitRowCache(options.cache_mb) if mapper is local_mapper and options.cache_mb > 0 else None
+
     def run(theta, sigma, k):
         cb = None if progress is None else (lambda n: progress(n, f"pass {k}/{n_pass}"))
-        return mapper(paths, lambda p: file_pass(p, plan, theta, sigma, cb))
+        return mapper(paths, lambda p: file_pass(p, plan, theta, sigma, cb, cache))
 
     first = run(None, None, 1)
     holds = coverage_holds(plan.model, first, options)
     res = solve(first, plan, holds)
-    stats = first
+    scale = res.rmse_uT
     for k in range(2, n_pass + 1):
-        stats = run(res.theta, res.rmse_uT, k)
+        stats = run(res.theta, scale, k)
         stats.fit.coverage = first.fit.coverage   # coverage rules use the data seen, not the weights
+        scale = stats.robust_scale_uT()
+        if scale is None:
+            break
         res = solve(stats, plan, holds)
         res.robust = True
     hold = first.hold

@@ -18,7 +18,6 @@ import functools
 import math
 
 import numpy as np
-import ppigrf
 from scipy.spatial.transform import Rotation
 
 from magstack.firmware.errors import InputDataError
@@ -35,8 +34,15 @@ POLE_EPS_RAD = 1e-9
 @functools.cache
 def igrf_epochs_s() -> np.ndarray:
     """Epochs of the coefficient file as Unix seconds (1900, 1905, ..., 2030)."""
-    g, _ = ppigrf.ppigrf.read_shc(ppigrf.ppigrf.shc_fn)
+    g, _ = _ppigrf().ppigrf.read_shc(_ppigrf().ppigrf.shc_fn)
     return np.array([_dt.datetime(d.year, d.month, d.day, tzinfo=_dt.UTC).timestamp() for d in g.index])
+
+
+def _ppigrf():
+    """ppigrf, imported on first use (it imports pandas: keeps ``magstack --help`` fast)."""
+    import ppigrf
+
+    return ppigrf
 
 
 def _date(t_s: float) -> _dt.datetime:
@@ -64,6 +70,7 @@ def igrf_ecef_nT(t_s, pos_ecef_km) -> np.ndarray:
     if np.any(r < 6300.0) or np.any(r > 100_000.0):
         raise InputDataError(f"|position| must be 6300..100000 km (ECEF km), got {r.min():.1f}..{r.max():.1f}")
     ep = igrf_epochs_s()
+    igrf_gc = _ppigrf().igrf_gc
     if t.size and (t.min() < ep[0] or t.max() > ep[-1]):
         raise InputDataError(f"IGRF-14 covers {_date(ep[0]).date()}..{_date(ep[-1]).date()}; "
                              f"data spans {_date(t.min())}..{_date(t.max())}")
@@ -78,7 +85,7 @@ def igrf_ecef_nT(t_s, pos_ecef_km) -> np.ndarray:
         w = (t[idx] - ta) / (tb - ta)
         for k in range(0, idx.size, CHUNK):
             j = idx[k:k + CHUNK]
-            br, bt, bp = ppigrf.igrf_gc(r[j], np.degrees(theta[j]), np.degrees(phi[j]),
+            br, bt, bp = igrf_gc(r[j], np.degrees(theta[j]), np.degrees(phi[j]),
                                         [_date(ta), _date(tb)], max_degree=MAX_DEGREE)
             wj = w[k:k + CHUNK]
             comb = [(1.0 - wj) * c[0] + wj * c[1] for c in (br, bt, bp)]
