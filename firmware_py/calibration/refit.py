@@ -539,6 +539,8 @@ def refit(paths: Sequence[str], active: cal_table.CalTable | None = None, option
     t_start = time.perf_counter()
     options = options or RefitOptions()
     paths = [str(p) for p in paths]
+    if len(set(paths)) != len(paths):
+        raise FitError("a telemetry file is given more than once")
     active_name = "identity" if active is None else (active.description or active.table_name or "active")
     meta = dict(metadata or telemetry.read_header(paths[0]).metadata if paths else {})
     device = options.device_id or (active.device_id if active is not None else None) \
