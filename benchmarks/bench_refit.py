@@ -4,6 +4,7 @@ Run: ``python benchmarks/bench_refit.py [--workdir DIR]``. Simulates one day of 
 (86,400 rows, ``orbit_tumbling``, hmc1053 preset, every effect) with ``magstack simulate``, then
 measures in this process (perf_counter, tracemalloc peak of Python/numpy allocations):
 
+* IGRF-14 with one ppigrf call per sample (the naive baseline, on ``--naive`` samples);
 * the reference field alone over the file (read + IGRF-14 + ITRS->GCRS + attitude + eclipse);
 * IGRF-14 alone on the same positions (ppigrf through geomag.igrf_ecef_nT);
 * the full refit (1 OLS + 4 robust passes, fit rows cached) and without the cache (every pass
@@ -52,6 +53,8 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--workdir", default=None)
     ap.add_argument("--days", type=int, nargs="*", default=[1, 10, 30], help="plain streaming runs")
+    ap.add_argument("--naive", type=int, default=100, help="samples for the one-call-per-sample baseline")
+    ap.add_argument("--naive-only", action="store_true")
     ap.add_argument("--default-days", type=int, nargs="*", default=[1, 10], help="default (robust, cache) runs")
     args = ap.parse_args()
     work = Path(args.workdir or tempfile.mkdtemp(prefix="bench-refit-"))
@@ -64,11 +67,19 @@ def main() -> None:
     pos = np.vstack([b.pos_ecef_km for b in iter_telemetry(day)])
     t = np.concatenate([b.t_s for b in iter_telemetry(day)])
     n = t.size
+    print(f"rows {n}; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs", flush=True)
+    k = args.naive
+    _, dt_naive, _ = _measure(lambda: [geomag.igrf_ecef_nT(t[j:j + 1], pos[j:j + 1]) for j in range(k)])
+    _, dt_batch_k, _ = _measure(lambda: geomag.igrf_ecef_nT(t[:k], pos[:k]))
+    print(f"one ppigrf call per sample ({k} samples): {dt_naive / k * 1e3:.1f} ms/sample "
+          f"-> {dt_naive / k * n:.0f} s projected for {n} rows; the batched path on the same {k}: "
+          f"{dt_batch_k * 1e3:.0f} ms", flush=True)
+    if args.naive_only:
+        return
     _, dt_igrf, pk_igrf = _measure(lambda: geomag.igrf_ecef_nT(t, pos))
     _, dt_ref, pk_ref = _measure(lambda: _reference_only(day))
     res, dt_fit, pk_fit = _measure(lambda: refit([day]))
     res0, dt_fit0, pk_fit0 = _measure(lambda: refit([day], options=RefitOptions(cache_mb=0)))
-    print(f"rows {n}; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs", flush=True)
     print(f"IGRF-14 alone (ppigrf, in-memory positions): {dt_igrf:.2f} s, peak {pk_igrf:.1f} MiB")
     print(f"reference field over the file (read + IGRF + frames + attitude + eclipse): {dt_ref:.2f} s, "
           f"peak {pk_ref:.1f} MiB")

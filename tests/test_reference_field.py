@@ -155,3 +155,12 @@ def test_geodetic_round_trip():
     p = frames.geodetic_to_ecef_km([10.0, -45.0], [20.0, 170.0], [500.0, 0.0])
     lat, lon, h = frames.ecef_to_geodetic(p)
     assert np.allclose(lat, [10.0, -45.0]) and np.allclose(lon, [20.0, 170.0]) and np.allclose(h, [500.0, 0.0])
+
+
+def test_sparse_samples_years_apart_use_a_grid_around_each_sample():
+    t = np.array([dt.datetime(2021, 5, 1, tzinfo=dt.UTC).timestamp(), T2026, T2026 + 1800.0,
+                  dt.datetime(2029, 9, 1, tzinfo=dt.UTC).timestamp()])
+    m = frames.gcrs_to_itrs_matrix(t)
+    exact = erfa.c2t06a(*frames.tt_jd(t), *frames.ut1_jd(t), 0.0, 0.0)
+    assert Rotation.from_matrix(np.einsum("nij,nkj->nik", m, exact)).magnitude().max() < 1e-9
+    assert frames._grid_around(t, frames.Q_GRID_S).size <= 2 * t.size

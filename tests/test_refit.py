@@ -234,3 +234,16 @@ def test_same_file_twice_is_refused(tumbling):
     from magstack.firmware.errors import FitError
     with pytest.raises(FitError, match="more than once"):
         refit([tumbling, str(tumbling)])
+
+
+def test_rows_without_gps_fix_or_with_a_corrupt_quaternion_are_excluded_not_fatal(tmp_path, tumbling):
+    s = read_session(tumbling)
+    s.extra["pos_ecef_x_km"][:30] = 0.0
+    s.extra["pos_ecef_y_km"][:30] = 0.0
+    s.extra["pos_ecef_z_km"][:30] = 0.0            # receiver without fix reports zeros
+    s.extra["q_body_eci_w"][30:40] = 2.0            # corrupted quaternion
+    s.extra["q_body_eci_x"][40:45] = np.nan
+    from magstack.data.session import write_session
+    path = write_session(tmp_path / "nofix.csv", s)
+    r = refit([path], options=RefitOptions(robust=False))
+    assert r.counts["no or implausible position/attitude"] == 45

@@ -197,10 +197,14 @@ def _new_stats(plan: Plan, first_pass: bool) -> PassStats:
 
 
 def reference_block(blk: telemetry.TelemetryBlock, dut1_s: float = 0.0):
-    """(b_ref_body_uT (N,3), geodetic latitude deg (N,), eclipse (N,) bool) for rows with finite
-    time, position and attitude; other rows NaN / False."""
+    """(b_ref_body_uT (N,3), geodetic latitude deg (N,), eclipse (N,) bool) for rows with finite time,
+    |position| 6300..100000 km and a unit quaternion (+-1e-3); other rows NaN / False."""
     n = len(blk)
-    ok = np.isfinite(blk.t_s) & np.all(np.isfinite(blk.pos_ecef_km), 1) & np.all(np.isfinite(blk.q_body_eci), 1)
+    with np.errstate(invalid="ignore"):
+        r = np.linalg.norm(blk.pos_ecef_km, axis=1)
+        qn = np.linalg.norm(blk.q_body_eci, axis=1)
+        # a GPS without fix (zeros) or a corrupted quaternion loses its row, not the whole refit
+        ok = np.isfinite(blk.t_s) & (r >= 6300.0) & (r <= 100_000.0) & (np.abs(qn - 1.0) <= 1e-3)
     b = np.full((n, 3), np.nan)
     lat = np.full(n, np.nan)
     ecl = np.zeros(n, dtype=bool)
@@ -305,7 +309,7 @@ def _block_pass(st: PassStats, blk: telemetry.TelemetryBlock, plan: Plan, theta,
     if blk.flag is not None:
         checks.append((blk.flag != 0, "flag != 0"))
     checks += [(~np.all(np.isfinite(blk.dut_uT), 1), "no sensor sample"),
-               (~np.all(np.isfinite(b_ref), 1), "no position/attitude"),
+               (~np.all(np.isfinite(b_ref), 1), "no or implausible position/attitude"),
                (~np.isfinite(blk.temp_c), "no temperature")]
     checks += [(~np.isfinite(blk.currents_A[k]), f"current {k} not interpolable") for k in model.currents]
     if sel.lat_band_deg is not None:
@@ -542,7 +546,9 @@ def refit(paths: Sequence[str], active: cal_table.CalTable | None = None, option
     if len(set(paths)) != len(paths):
         raise FitError("a telemetry file is given more than once")
     active_name = "identity" if active is None else (active.description or active.table_name or "active")
-    meta = dict(metadata or telemetry.read_header(paths[0]).metadata if paths else {})
+    if not paths:
+        raise FitError("no telemetry files")
+    meta = dict(metadata) if metadata is not None else telemetry.read_header(paths[0]).metadata
     device = options.device_id or (active.device_id if active is not None else None) \
         or meta.get("device_id") or meta.get("dut_serial") or meta.get("dut_chip")
     if not device:

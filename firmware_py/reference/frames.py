@@ -20,6 +20,8 @@ second is not representable; every other instant maps exactly.
 """
 from __future__ import annotations
 
+import warnings
+
 import erfa
 import numpy as np
 
@@ -40,6 +42,15 @@ def _t(t_s) -> np.ndarray:
     return t
 
 
+def _grid_around(t: np.ndarray, step_s: float) -> np.ndarray:
+    """Grid nodes (s) bracketing every sample: for each sample the nodes just below and above it on a
+    ``step_s`` grid (so sparse data spanning years costs no more nodes than it has samples)."""
+    lo = float(t.min())
+    k = np.floor((t - lo) / step_s)
+    nodes = np.unique(np.concatenate([k, k + 1]))
+    return lo + nodes * step_s
+
+
 def utc_jd(t_s) -> tuple[np.ndarray, np.ndarray]:
     """Unix seconds -> ERFA UTC two-part quasi Julian date (day number, fraction of day)."""
     t = _t(t_s)
@@ -48,16 +59,22 @@ def utc_jd(t_s) -> tuple[np.ndarray, np.ndarray]:
 
 
 def tt_jd(t_s) -> tuple[np.ndarray, np.ndarray]:
-    """Unix seconds (UTC) -> TT two-part Julian date (leap seconds from ERFA's table)."""
+    """Unix seconds (UTC) -> TT two-part Julian date (leap seconds from ERFA's table; past the
+    table's end ERFA holds the last TAI-UTC and flags a "dubious year", which is silenced here:
+    correct unless a new leap second is announced)."""
     u1, u2 = utc_jd(t_s)
-    a1, a2 = erfa.utctai(u1, u2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", erfa.ErfaWarning)
+        a1, a2 = erfa.utctai(u1, u2)
     return erfa.taitt(a1, a2)
 
 
 def ut1_jd(t_s, dut1_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Unix seconds (UTC) -> UT1 two-part Julian date, UT1 = UTC + dut1_s."""
     u1, u2 = utc_jd(t_s)
-    return erfa.utcut1(u1, u2, float(dut1_s))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", erfa.ErfaWarning)
+        return erfa.utcut1(u1, u2, float(dut1_s))
 
 
 def earth_rotation_angle_rad(t_s, dut1_s: float = 0.0) -> np.ndarray:
@@ -70,10 +87,8 @@ def gcrs_to_itrs_matrix(t_s, dut1_s: float = 0.0, q_grid_s: float = Q_GRID_S) ->
     t = _t(t_s)
     if t.size == 0:
         return np.zeros((0, 3, 3))
-    lo, hi = float(t.min()), float(t.max())
-    n_grid = max(2, int(np.ceil((hi - lo) / q_grid_s)) + 1)
-    grid = lo + np.arange(n_grid) * q_grid_s
-    q_grid = erfa.c2i06a(*tt_jd(grid)).reshape(n_grid, 9)
+    grid = _grid_around(t, q_grid_s)
+    q_grid = erfa.c2i06a(*tt_jd(grid)).reshape(grid.size, 9)
     q = np.empty((t.size, 9))
     for k in range(9):
         q[:, k] = np.interp(t, grid, q_grid[:, k])
@@ -122,8 +137,7 @@ def sun_direction_gcrs(t_s, grid_s: float = SUN_GRID_S) -> np.ndarray:
     t = _t(t_s)
     if t.size == 0:
         return np.zeros((0, 3))
-    lo = float(t.min())
-    grid = lo + np.arange(max(2, int(np.ceil((float(t.max()) - lo) / grid_s)) + 1)) * grid_s
+    grid = _grid_around(t, grid_s)
     pvh, _ = erfa.epv00(*tt_jd(grid))
     sg = -np.asarray(pvh["p"]).reshape(-1, 3)
     s = np.column_stack([np.interp(t, grid, sg[:, k]) for k in range(3)])
