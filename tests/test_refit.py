@@ -196,6 +196,50 @@ def test_cli_dask_engine_equals_in_process(tmp_path, tumbling):
     assert docs[0]["rows"] == docs[1]["rows"] and docs[0]["rows_holdout"] == docs[1]["rows_holdout"]
 
 
+def test_candidate_failing_validation_is_never_proposed(tumbling, monkeypatch):
+    from magstack.firmware import cal_table
+    from magstack.firmware.calibration import refit as refit_mod
+    monkeypatch.setattr(refit_mod.cal_table, "validate",
+                        lambda table: cal_table.ValidationResult(False, ("S diagonal outside [0.1, 10]",)))
+    r = refit([tumbling], options=RefitOptions(robust=False))
+    assert not r.proposed and any("fails validation" in x for x in r.reasons)
+
+
+def test_cli_dispatches_scalar_and_pso_to_their_hooks(tumbling, tmp_path, monkeypatch, capsys):
+    import sys
+    import types
+    calls = []
+
+    class Result:
+        proposed = True
+        candidate = load_identity()
+
+        def report(self):
+            return "fake report"
+
+        def to_dict(self):
+            return {"fitness": 199.0, "S_mc": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "offset_nT": [0, 0, 0],
+                    "runtime_s": 0.1}
+
+    def hook(paths, *, active, options, progress):
+        calls.append((paths, active, options))
+        return Result()
+    for mod, name in (("magstack.firmware.calibration.scalar", "refit_scalar"),
+                      ("magstack.firmware.calibration.pso", "refit_pso")):
+        m = types.ModuleType(mod)
+        setattr(m, name, hook)
+        monkeypatch.setitem(sys.modules, mod, m)
+    out = tmp_path / "s.json"
+    assert main(["refit", str(tumbling), "--method", "scalar", "--out", str(out), "--no-progress"]) == 0
+    assert load_table(out).device_id == "hmc1053" and "fake report" in capsys.readouterr().out
+    rep = tmp_path / "pso.json"
+    assert main(["refit", "--method", "pso", "--paper-model", "1", "--seed", "7", "--json", str(rep)]) == 0
+    assert json.loads(rep.read_text())["fitness"] == 199.0
+    (p1, a1, o1), (p2, a2, o2) = calls
+    assert p1 == [str(tumbling)] and a1 is None and o1["method"] == "scalar" and o1["currents"] is None
+    assert p2 == [] and o2["paper_model"] == 1 and o2["seed"] == 7
+
+
 def test_cli_other_methods_dispatch_or_say_unavailable(tumbling, tmp_path, capsys, monkeypatch):
     import importlib
     try:
@@ -247,3 +291,13 @@ def test_rows_without_gps_fix_or_with_a_corrupt_quaternion_are_excluded_not_fata
     path = write_session(tmp_path / "nofix.csv", s)
     r = refit([path], options=RefitOptions(robust=False))
     assert r.counts["no or implausible position/attitude"] == 45
+
+
+def test_cli_defaults_are_the_refit_defaults():
+    from magstack.cli.main import build_parser
+    args = build_parser().parse_args(["refit", "t.csv", "--out", "c.json"])
+    d = RefitOptions()
+    assert (args.robust_passes, args.holdout_block_s, args.holdout_every, args.max_current_gap_s, args.dut1,
+            args.min_improvement, args.eclipse, args.model) == \
+        (d.robust_passes, d.holdout_block_s, d.holdout_every, d.max_current_gap_s, d.dut1_s, d.min_improvement,
+         d.selection.eclipse, d.model)

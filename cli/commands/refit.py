@@ -44,7 +44,7 @@ def register(subparsers) -> None:
     p.add_argument("--temp-band", metavar="LO,HI", help="temperature band to use, degC")
     p.add_argument("--eclipse", choices=("any", "sunlit", "eclipse"), default="any")
     p.add_argument("--no-robust", action="store_true", help="plain least squares (no Huber passes)")
-    p.add_argument("--robust-passes", type=int, default=2)
+    p.add_argument("--robust-passes", type=int, default=4, help="Huber passes after the OLS pass (default 4)")
     p.add_argument("--holdout-block-s", type=float, default=600.0, help="held-out time block length (s)")
     p.add_argument("--holdout-every", type=int, default=5, help="every N-th time block is held out (default 5)")
     p.add_argument("--max-current-gap-s", type=float, default=60.0,
@@ -153,6 +153,10 @@ def run(args: argparse.Namespace) -> int:
         _write_json_atomic(args.json, _jsonable(result.to_dict()))
         print(f"wrote {args.json}")
     if result.proposed and result.candidate is not None and args.out:
+        v = validate(result.candidate)   # whatever the method: an invalid table is never written
+        if not v.ok:
+            print(f"{args.out} not written: candidate fails validation: " + "; ".join(v.problems))
+            return 1
         save_table(result.candidate, args.out)
         print(f"wrote {args.out} (device {result.candidate.device_id}, "
               f"crc32 {result.candidate.to_document()['crc32']})")

@@ -569,8 +569,7 @@ def refit(paths: Sequence[str], active: cal_table.CalTable | None = None, option
     res = solve(first, plan, holds)
     scale = res.rmse_uT
     for k in range(2, n_pass + 1):
-        stats = run(res.theta, scale, k)
-        stats.fit.coverage = first.fit.coverage   # coverage rules use the data seen, not the weights
+        stats = run(res.theta, scale, k)   # same rows as pass 1 (Huber weights are never 0)
         scale = stats.robust_scale_uT()
         if scale is None:
             break
