@@ -87,6 +87,9 @@ def test_block_size_and_file_split_do_not_change_the_candidate(tumbling, tumblin
     small = refit([tumbling], options=RefitOptions(robust_passes=1, block_rows=777, cache_mb=0))   # re-read
     assert np.allclose(small.fit.theta, big.fit.theta, rtol=1e-7, atol=1e-10)
     assert small.n_holdout == big.n_holdout == tumbling_result.n_holdout
+    # a cache budget smaller than the file's fit rows (about 1 MB here): the file is dropped and re-read
+    evicted = refit([tumbling], options=RefitOptions(robust_passes=1, cache_mb=0.3))
+    assert np.allclose(evicted.fit.theta, big.fit.theta, rtol=1e-7, atol=1e-10)
 
 
 def test_robust_passes_resist_outliers(tmp_path, tumbling):
