@@ -1,8 +1,17 @@
 """``magstack`` command line.
 
 Each sub-command lives in its own module under :mod:`magstack.cli.commands` and exposes
-``register(subparsers)``, which adds its parser and sets ``func(args) -> int``.
-Modules are discovered, so adding a command never edits this file.
+``register(subparsers)``, which adds its parser and sets ``func(args)``. Modules are discovered,
+so adding a command never edits this file. Conventions every command follows (docs/cli.md):
+
+* ``func(args)`` returns a :class:`magstack.cli.output.CommandResult` (text lines, ``to_dict()``
+  for ``--json``, exit code); an int is still accepted as a bare exit code;
+* the common flags ``--json``, ``-v/--verbose``, ``-q/--quiet`` come from one parent parser
+  (:class:`magstack.cli.options.CommandParser`); option values are validated at parse time by
+  the types in :mod:`magstack.cli.options` (usage error, exit 2, option named);
+* errors: a :class:`~magstack.errors.MagError` becomes one line ``magstack <command>: error: ...``
+  on stderr and its ``exit_code`` (table in docs/architecture.md), never a traceback; under
+  ``--json`` stdout also gets ``{"command", "exit_code", "error"}``.
 """
 from __future__ import annotations
 
@@ -12,15 +21,21 @@ import os
 import pkgutil
 import sys
 
-from magstack.errors import EXIT_DEVICE, MagError
+from magstack.cli.options import CommandParser, common_flags
+from magstack.cli.output import CommandResult, configure_logging, dumps, set_json_mode
+from magstack.cli.progress import set_progress_policy
+from magstack.errors import EXIT_DEVICE, EXIT_USAGE, MagError
 
 
 def build_parser() -> argparse.ArgumentParser:
     import magstack.cli.commands as commands
 
-    parser = argparse.ArgumentParser(prog="magstack", description="magstack: AMR magnetometer sensor stack")
+    parser = argparse.ArgumentParser(prog="magstack", description="magstack: AMR magnetometer sensor stack",
+                                     epilog="exit status: 0 ok, 1 ran but the answer is negative, 2 usage error, "
+                                            "3 bad input data, 4 device or system error, 130/143 interrupted "
+                                            "(SIGINT/SIGTERM). Every command takes --json, -v/--verbose, -q/--quiet.")
     parser.add_argument("--version", action="version", version=f"magstack {version()}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=CommandParser)
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
         if info.name.startswith("_"):
             continue
@@ -35,17 +50,50 @@ def version() -> str:
     return __version__
 
 
+def _emit(result, args: argparse.Namespace, json_mode: bool) -> int:
+    if isinstance(result, CommandResult) or hasattr(result, "to_dict"):
+        if json_mode:
+            print(dumps(result.to_dict()))
+        else:
+            text = result.text() if hasattr(result, "text") else ""
+            if text:
+                print(text)
+        return int(getattr(result, "exit_code", 0))
+    return int(result or 0)
+
+
+def _error(args: argparse.Namespace, json_mode: bool, message: str, code: int, kind: str = "error") -> int:
+    print(f"magstack {args.command}: {kind}: {message}" if kind else f"magstack {args.command}: {message}",
+          file=sys.stderr)
+    if json_mode:
+        print(dumps({"command": args.command, "exit_code": code, "error": message}))
+    return code
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
-    if not getattr(args, "func", None):
-        parser.print_help()
-        return 2
+    argv = sys.argv[1:] if argv is None else list(argv)
+    CommandParser.last_error = None
     try:
-        return int(args.func(args) or 0)
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # usage error (2) or --help / --version (0)
+        if exc.code in (0, None):
+            return 0
+        if "--json" in argv and CommandParser.last_error is not None:
+            command = next((a for a in argv if not a.startswith("-")), None)
+            print(dumps({"command": command, "exit_code": EXIT_USAGE, "error": CommandParser.last_error}))
+        return EXIT_USAGE
+    if not getattr(args, "func", None):
+        parser.print_help(sys.stderr)
+        return EXIT_USAGE
+    json_mode, verbose, quiet = common_flags(args)
+    set_json_mode(json_mode, quiet)
+    set_progress_policy(json_mode, quiet)
+    configure_logging(verbose, quiet)
+    try:
+        return _emit(args.func(args), args, json_mode)
     except MagError as exc:
-        print(f"magstack {args.command}: error: {exc}", file=sys.stderr)
-        return exc.exit_code
+        return _error(args, json_mode, str(exc), exc.exit_code)
     except BrokenPipeError:
         # output piped into a reader that stopped (``| head``): files are already written
         devnull = os.open(os.devnull, os.O_WRONLY)
@@ -54,11 +102,9 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         # a file-system problem outside the typed tree (missing output directory, permissions)
         where = f" ({exc.filename})" if exc.filename else ""
-        print(f"magstack {args.command}: error: {exc.strerror or exc}{where}", file=sys.stderr)
-        return EXIT_DEVICE
+        return _error(args, json_mode, f"{exc.strerror or exc}{where}", EXIT_DEVICE)
     except KeyboardInterrupt:
-        print(f"magstack {args.command}: interrupted", file=sys.stderr)
-        return 130
+        return _error(args, json_mode, "interrupted", 130, kind="")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -36,7 +36,8 @@ _CURRENT_RE = re.compile(r"^current_([A-Za-z0-9_]+)_A$")
 #: Optional non-current columns that v1 readers understand.
 OPTIONAL_COLUMNS = ("flag",)
 #: Extra numeric columns (name -> meaning) registered by other data modules (e.g. data/telemetry.py):
-#: read into ``Session.extra``, written after the currents, absent = not in ``extra``.
+#: read into ``Session.extra`` (other unknown columns are ignored with a warning); ``write_session``
+#: writes ``Session.extra`` as the writer's ``extra_columns`` (after the flag column).
 EXTRA_COLUMNS: dict[str, str] = {}
 
 
@@ -88,10 +89,10 @@ class Session:
 
     @property
     def columns(self) -> list[str]:
-        cols = list(REQUIRED_COLUMNS) + [f"current_{k}_A" for k in self.currents_A] + list(self.extra)
+        cols = list(REQUIRED_COLUMNS) + [f"current_{k}_A" for k in self.currents_A]
         if self.flag is not None:
             cols.append("flag")
-        return cols
+        return cols + list(self.extra)
 
     def select(self, mask: np.ndarray) -> Session:
         """A new Session with the rows where ``mask`` is true."""
@@ -130,11 +131,12 @@ def _fmt(x: float, decimals: int) -> str:
     return f"{x:.{decimals}f}"
 
 
-def _row_text(t_s, ref, dut, temp_c, session, currents: Iterable[float], flag) -> str:
+def _row_text(t_s, ref, dut, temp_c, session, currents: Iterable[float], flag, extra: Iterable[float] = ()) -> str:
     cells = [_fmt(float(t_s), 6), *(_fmt(float(v), 6) for v in ref), *(_fmt(float(v), 6) for v in dut),
              _fmt(float(temp_c), 4), str(int(session)), *(_fmt(float(c), 6) for c in currents)]
     if flag is not None:
         cells.append(str(int(flag)))
+    cells += [_fmt(float(v), 6) for v in extra]
     return ",".join(cells) + "\n"
 
 
@@ -155,7 +157,7 @@ class SessionWriter:
 
     def __init__(self, path: str | os.PathLike, metadata: Mapping[str, str] | None = None, *,
                  current_names: Sequence[str] = (), with_flag: bool = False, block_rows: int = 50,
-                 extra_names: Sequence[str] = ()) -> None:
+                 extra_columns: Sequence[str] = ()) -> None:
         self.path = Path(path)
         if not self.path.name or self.path.is_dir():
             raise SessionFileError(f"{path}: is a directory, not a session file name")
@@ -164,10 +166,11 @@ class SessionWriter:
         self.part_path = self.path.with_name(self.path.name + ".part")
         self.current_names = list(current_names)
         self.with_flag = with_flag
-        self.extra_names = list(extra_names)
-        unknown = [k for k in self.extra_names if k not in EXTRA_COLUMNS]
-        if unknown:
-            raise ValueError(f"extra columns {unknown} not registered (register_extra_columns)")
+        self.extra_columns = list(extra_columns)
+        clash = set(self.extra_columns) & (set(REQUIRED_COLUMNS) | set(OPTIONAL_COLUMNS))
+        if clash or not all(re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", c) for c in self.extra_columns) \
+                or any(_CURRENT_RE.match(c) for c in self.extra_columns):
+            raise ValueError(f"extra columns must be new [A-Za-z][A-Za-z0-9_]* names: {self.extra_columns}")
         self.block_rows = max(1, int(block_rows))
         meta = {FORMAT_KEY: FORMAT_VERSION, **{k: v for k, v in (metadata or {}).items() if k != FORMAT_KEY}}
         _check_metadata(meta)
@@ -180,9 +183,10 @@ class SessionWriter:
             raise SessionFileError(f"{self.part_path} exists (left by an interrupted session?): "
                                    "read, rename or remove it first") from None
         header = "".join(f"# {k}: {v}\n" for k, v in meta.items())
-        cols = list(REQUIRED_COLUMNS) + [f"current_{n}_A" for n in self.current_names] + self.extra_names
+        cols = list(REQUIRED_COLUMNS) + [f"current_{n}_A" for n in self.current_names]
         if with_flag:
             cols.append("flag")
+        cols += self.extra_columns
         self._fh.write(header + ",".join(cols) + "\n")
         self._sync()
 
@@ -193,13 +197,15 @@ class SessionWriter:
     def write_row(self, t_s: float, ref_uT, dut_uT, temp_c: float, session: int,
                   currents_A: Mapping[str, float] | None = None, flag: int | None = None,
                   extra: Mapping[str, float] | None = None) -> None:
+        """One row; ``extra`` gives the values of ``extra_columns`` (missing ones are written empty)."""
         cur = currents_A or {}
-        ext = extra or {}
         missing = [n for n in self.current_names if n not in cur]
         if missing:
             raise ValueError(f"row lacks currents {missing}")
-        cells = [cur[n] for n in self.current_names] + [ext.get(k, math.nan) for k in self.extra_names]
-        self._buf.append(_row_text(t_s, ref_uT, dut_uT, temp_c, session, cells, flag if self.with_flag else None))
+        ex = extra or {}
+        self._buf.append(_row_text(t_s, ref_uT, dut_uT, temp_c, session,
+                                   (cur[n] for n in self.current_names), flag if self.with_flag else None,
+                                   (ex.get(c, math.nan) for c in self.extra_columns)))
         if len(self._buf) >= self.block_rows:
             self.flush()
 
@@ -252,7 +258,7 @@ def write_session(path: str | os.PathLike, s: Session, *, block_rows: int = 5000
     """Write a whole :class:`Session` crash-safely."""
     names = list(s.currents_A)
     with SessionWriter(path, s.metadata, current_names=names, with_flag=s.flag is not None,
-                       block_rows=block_rows, extra_names=list(s.extra)) as w:
+                       block_rows=block_rows, extra_columns=list(s.extra)) as w:
         for i in range(len(s)):
             w.write_row(s.t_s[i], s.ref_uT[i], s.dut_uT[i], s.temp_c[i], s.session[i],
                         {n: s.currents_A[n][i] for n in names}, None if s.flag is None else s.flag[i],

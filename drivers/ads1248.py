@@ -38,9 +38,19 @@ INTERNAL_REF_V = 2.048
 CODE_POS_FS = 0x7FFFFF
 CODE_NEG_FS = -0x800000
 FS_DIVISOR = 2**23 - 1
-#: Internal temperature diode (MUXCAL=011): ~118 mV at 25 degC, ~405 uV/degC [F2:E2E-249199].
+#: Internal temperature diode (MUXCAL=011): ~118 mV at 25 degC, ~405 uV/degC. **Unverified** [F2:E2E-249199]:
+#: the poster who quoted them measured ~732 mV, rising when cooled, which contradicts them. Calibrate
+#: the temperature channel per board (:class:`magstack.drivers.hmc1053.TempCalibration`).
 TEMP_DIODE_V_AT_25C = 0.118
 TEMP_DIODE_V_PER_C = 405e-6
+TEMP_DIODE_VERIFIED = False
+#: Duration of SELFOCAL / SYSOCAL / SYSGCAL in first-conversion times. No datasheet figure was found;
+#: users measure about 16 conversion periods (200 ms at 80 SPS, E2E 1158284; > 401 ms at 40 SPS,
+#: E2E 164126) [F2].
+CALIBRATION_PERIODS = 16
+#: The driver's default bound on a calibration, in first-conversion times: twice the measured figure,
+#: so a part 2x slower than the forum reports still completes (plus ``timeout_margin_s``).
+CALIBRATION_TIMEOUT_PERIODS = 2 * CALIBRATION_PERIODS
 
 
 class Command:
@@ -451,10 +461,13 @@ class ADS1248:
         ofc = self.read_registers(REGISTERS["OFC0"].address, 3)
         return signed24(bytes((ofc[2], ofc[1], ofc[0])))
 
-    def self_offset_calibration(self, channel: ChannelConfig, *, max_conversions: float = 16) -> int:
-        """SELFOCAL; wait for DRDY (bounded); return the new OFC value (counts)."""
+    def self_offset_calibration(self, channel: ChannelConfig, *,
+                                max_conversions: float = CALIBRATION_TIMEOUT_PERIODS) -> int:
+        """SELFOCAL; wait for DRDY (bounded by ``max_conversions`` first-conversion times + margin; the
+        measured duration is :data:`CALIBRATION_PERIODS`); return the new OFC value (counts)."""
         return self._calibrate(Command.SELFOCAL, channel, max_conversions)
 
-    def system_offset_calibration(self, channel: ChannelConfig, *, max_conversions: float = 16) -> int:
+    def system_offset_calibration(self, channel: ChannelConfig, *,
+                                  max_conversions: float = CALIBRATION_TIMEOUT_PERIODS) -> int:
         """SYSOCAL with the inputs externally shorted; return the new OFC value (counts)."""
         return self._calibrate(Command.SYSOCAL, channel, max_conversions)

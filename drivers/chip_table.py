@@ -203,13 +203,18 @@ def write_checked(dev: I2CDevice, reg: int, value: int, *, verify: bool = True) 
                                    f"read back {back:#04x}")
 
 
-def check_identity(dev: I2CDevice, table: ChipTable) -> bytes:
-    """Read every identity register of ``table``; DeviceIdMismatch if any differs. Returns the bytes."""
+def check_identity(dev: I2CDevice, table: ChipTable, *, known_present: bool = False) -> bytes:
+    """Read every identity register of ``table``; DeviceIdMismatch if any differs. Returns the bytes.
+
+    A NACK on the first register means DeviceNotFound at open; with ``known_present`` (a
+    re-initialisation of a device that answered before) it stays the BusError it is."""
     got = b""
     for reg, expected in table.id_checks:
         try:
             data = dev.read_registers(reg, len(expected))
         except BusError as exc:
+            if known_present:
+                raise
             if not got:
                 raise DeviceNotFound(f"{table.name}: no answer at {dev.address:#04x} ({exc})") from exc
             raise DeviceIdMismatch(f"{table.name}: device at {dev.address:#04x} answered {got!r} but not "

@@ -14,10 +14,27 @@ Robust reading: each query's reply is checked and, if bad, counted under a reaso
 nT), ``polar`` (not three rectangular components), ``out_of_range`` (a component beyond
 ``max_abs_nT``). A query with no reply raises :class:`BusTimeout`; too many bad replies in a row
 raise :class:`ProtocolError`. Each sample is host-timestamped through the injected clock.
+
+Bounded everywhere: a reply is read up to :data:`MAX_REPLY_BYTES` and each field is at most
+:data:`MAX_FIELD_CHARS` characters before any number conversion (a multi-thousand-digit integer is a
+``garbled`` reply, never a plain ValueError); only typed errors (:class:`RecordError` is a
+:class:`ProtocolError`) leave the driver.
+
+Unsettled protocol points (the manual body was not read; docs/fvm400.md):
+
+- what ``GM`` answers in absolute mode: the project assumes 0, the only public driver's header implies
+  1 (its setter sends ``SM0``). :meth:`FVM400.configure` accepts either digit after ``SM0``, warns
+  (:class:`ProtocolAssumptionWarning`, also in :attr:`FVM400.notes`) when it is 1, and from then on
+  checks the settings against the digit the instrument gave.
+- whether set / get replies end in EOT: after ``A`` (and the digit) the driver waits at most
+  ``eot_wait_s`` for an EOT and accepts its absence (noted once); it never waits for a terminator
+  that does not come longer than that, and a reply that does not start with ``A`` is a ProtocolError.
 """
 from __future__ import annotations
 
+import math
 import re
+import warnings
 from collections import Counter
 from dataclasses import dataclass
 from types import MappingProxyType
@@ -68,12 +85,23 @@ COMMANDS = MappingProxyType({c.name: c for c in (
 #: accepts up to 2x nominal and rejects only values that cannot be a field reading.
 DEFAULT_MAX_ABS_NT = 200_000
 
-_INT_RE = re.compile(r"^[+-]?\d+$")
-_DEC_RE = re.compile(r"^[+-]?(\d+\.\d*|\.\d+)([eE][+-]?\d+)?$")
+#: Longest reply accepted for one frame (a record of three 7-digit values is ~30 bytes).
+MAX_REPLY_BYTES = 64
+#: Longest field of a record (sign + digits, or a decimal); longer is ``garbled`` before conversion.
+MAX_FIELD_CHARS = 12
+#: Default wait for the optional EOT after a set / get reply, s (about 100 byte times at 9600 baud).
+DEFAULT_EOT_WAIT_S = 0.1
+
+_INT_RE = re.compile(r"^[+-]?[0-9]+$")
+_DEC_RE = re.compile(r"^[+-]?([0-9]+\.[0-9]*|\.[0-9]+)([eE][+-]?[0-9]+)?$")
 
 
-class RecordError(ValueError):
-    """A reply that cannot be used; ``reason`` is one of the skip reasons."""
+class ProtocolAssumptionWarning(UserWarning):
+    """The instrument answered in a way the project's (unverified) protocol assumptions did not expect."""
+
+
+class RecordError(ProtocolError):
+    """A reply that cannot be used; ``reason`` is one of the skip reasons (a typed ProtocolError)."""
 
     def __init__(self, reason: str, detail: str) -> None:
         self.reason = reason
@@ -82,12 +110,16 @@ class RecordError(ValueError):
 
 def parse_record(text: str, *, max_abs_nT: float = DEFAULT_MAX_ABS_NT) -> tuple[int, int, int]:
     """Parse a data record (without CR/'D'/EOT) into three integer nT values or raise RecordError."""
+    if len(text) > MAX_REPLY_BYTES:
+        raise RecordError("garbled", f"record of {len(text)} characters (limit {MAX_REPLY_BYTES})")
     body = text.strip()
     if not body:
         raise RecordError("partial", "empty record")
     if not all(32 <= ord(c) < 127 for c in body):
         raise RecordError("garbled", f"non-printable bytes in {body!r}")
     cells = [c.strip() for c in body.split(",")]
+    if any(len(c) > MAX_FIELD_CHARS for c in cells):
+        raise RecordError("garbled", f"a field longer than {MAX_FIELD_CHARS} characters in {body[:40]!r}...")
     if any(_DEC_RE.match(c) for c in cells) and all(_INT_RE.match(c) or _DEC_RE.match(c) for c in cells):
         raise RecordError("wrong_units", f"decimal values {body!r}: instrument not set to integer nT")
     if not all(_INT_RE.match(c) for c in cells):
@@ -112,19 +144,30 @@ class FVM400:
     name = "fvm400"
 
     def __init__(self, port, clock: Clock | None = None, *, max_abs_nT: float = DEFAULT_MAX_ABS_NT,
-                 max_attempts: int = 3, configure: bool = True, verify_every: int = 50) -> None:
+                 max_attempts: int = 3, configure: bool = True, verify_every: int = 50,
+                 eot_wait_s: float = DEFAULT_EOT_WAIT_S) -> None:
         if max_attempts < 1:
             raise ConfigurationError(f"max_attempts must be >= 1, got {max_attempts}")
         if not (max_abs_nT > 0):
             raise ConfigurationError(f"max_abs_nT must be > 0, got {max_abs_nT}")
+        if not (isinstance(eot_wait_s, (int, float)) and math.isfinite(eot_wait_s) and 0 < eot_wait_s <= 2.0):
+            raise ConfigurationError(f"eot_wait_s must be in (0, 2] s, got {eot_wait_s!r}")
+        timeout = getattr(port, "timeout", 0.0)
+        if timeout is None or not math.isfinite(timeout):
+            raise ConfigurationError("the FVM400 port needs a finite read timeout (pyserial timeout=None blocks "
+                                     "forever on a missing reply); open it with timeout_s")
         self.port = port
         self.clock = clock if clock is not None else SystemClock()
         self.max_abs_nT = float(max_abs_nT)
         self.max_attempts = int(max_attempts)
         self.verify_every = int(verify_every)
+        self.eot_wait_s = float(eot_wait_s)
         self.skipped: Counter[str] = Counter()
         self.last_skip: str = ""
         self.samples = 0
+        self.notes: list[str] = []             # protocol assumptions the instrument contradicted
+        self.absolute_mode_digit: int | None = None   # what GM answered after SM0 (0 assumed)
+        self.set_replies_end_with_eot: bool | None = None
         self.port_name = str(getattr(port, "port", None) or getattr(port, "name", "serial"))
         if configure:
             self.configure()
@@ -149,12 +192,32 @@ class FVM400:
             raise BusError(f"FVM400 write failed: {exc}", address=self.port_name, operation="write") from exc
 
     def _read_frame(self, what: str) -> bytes:
-        """Bytes up to and including EOT; b'' on timeout without data; partial bytes on timeout."""
+        """Bytes up to and including EOT, at most :data:`MAX_REPLY_BYTES`; b'' on timeout without data;
+        partial bytes on timeout or when the limit was reached without EOT."""
         try:
-            return bytes(self.port.read_until(EOT))
+            return bytes(self.port.read_until(EOT, MAX_REPLY_BYTES))
         except (OSError, ValueError) as exc:
             raise BusError(f"FVM400 read failed ({what}): {exc}", address=self.port_name,
                            operation="read") from exc
+
+    def _read_bytes(self, n: int, what: str, timeout_s: float | None = None) -> bytes:
+        """Up to ``n`` bytes within the port timeout (or ``timeout_s``)."""
+        old = self.port.timeout
+        try:
+            if timeout_s is not None:
+                self.port.timeout = timeout_s
+            return bytes(self.port.read(n))
+        except (OSError, ValueError) as exc:
+            raise BusError(f"FVM400 read failed ({what}): {exc}", address=self.port_name,
+                           operation="read") from exc
+        finally:
+            if timeout_s is not None:
+                self.port.timeout = old
+
+    def _note(self, text: str) -> None:
+        if text not in self.notes:
+            self.notes.append(text)
+            warnings.warn(f"FVM400 on {self.port_name}: {text}", ProtocolAssumptionWarning, stacklevel=3)
 
     def _discard_input(self) -> None:
         try:
@@ -163,7 +226,11 @@ class FVM400:
             raise BusError(f"FVM400 flush failed: {exc}", address=self.port_name, operation="flush") from exc
 
     def command(self, name: str) -> int | None:
-        """Send a non-query command from :data:`COMMANDS`; returns the digit for ``digit`` replies."""
+        """Send a non-query command from :data:`COMMANDS`; returns the digit for ``digit`` replies.
+
+        Reply: ``A`` (+ one digit), then an optional EOT awaited at most ``eot_wait_s``. No answer
+        within the port timeout raises BusTimeout; anything else unexpected ProtocolError.
+        """
         try:
             cmd = COMMANDS[name]
         except KeyError:
@@ -172,24 +239,45 @@ class FVM400:
             raise ConfigurationError("use read() for the query command")
         self._discard_input()
         self._write(cmd.send)
-        frame = self._read_frame(name)
-        if not frame:
+        head = self._read_bytes(1, name)
+        if not head:
             raise BusTimeout(f"FVM400 did not answer {cmd.send!r}", address=self.port_name, operation=name)
-        if not frame.endswith(EOT) or not frame.startswith(ACK):
-            raise ProtocolError(f"FVM400 {name}: unexpected reply {frame!r}")
-        payload = frame[len(ACK):-len(EOT)].strip()
+        if head != ACK:
+            rest = self._read_bytes(MAX_REPLY_BYTES, name, timeout_s=self.eot_wait_s)
+            raise ProtocolError(f"FVM400 {name}: unexpected reply {(head + rest)[:MAX_REPLY_BYTES]!r}")
+        digit = None
         if cmd.reply == "digit":
-            if len(payload) != 1 or not payload.isdigit():
-                raise ProtocolError(f"FVM400 {name}: expected one digit, got {frame!r}")
-            return int(payload)
-        if payload:
-            raise ProtocolError(f"FVM400 {name}: unexpected payload {frame!r}")
-        return None
+            d = self._read_bytes(1, name)
+            if len(d) != 1 or not d.isdigit():
+                raise ProtocolError(f"FVM400 {name}: expected one digit after 'A', got {d!r}")
+            digit = int(d)
+        tail = self._read_bytes(1, name, timeout_s=self.eot_wait_s)
+        if tail == EOT:
+            self.set_replies_end_with_eot = True
+        elif not tail:
+            if self.set_replies_end_with_eot is not False:
+                self._note(f"no EOT after the reply to {cmd.send!r} within {self.eot_wait_s:g} s; accepted "
+                           "(the EOT after set/get replies is an unverified assumption)")
+            self.set_replies_end_with_eot = False
+        else:
+            got = head + (str(digit).encode() if digit is not None else b"")
+            raise ProtocolError(f"FVM400 {name}: unexpected byte {tail!r} after {got!r}")
+        return digit
 
     def configure(self) -> None:
-        """Rectangular, absolute output, verified by read-back (ReadbackMismatch otherwise)."""
+        """Rectangular, absolute output, verified by read-back (ReadbackMismatch otherwise).
+
+        ``GM`` after ``SM0`` may answer 0 (project assumption) or 1 (the public driver's header): either
+        is accepted, 1 with a :class:`ProtocolAssumptionWarning`, and becomes the expected value."""
         self.command("set_rectangular")
         self.command("set_absolute")
+        got = self.command("get_mode")
+        if got not in (0, 1):
+            raise ReadbackMismatch(f"FVM400 get_mode = {got} after SM0, expected 0 or 1")
+        if got == 1:
+            self._note("GM answers 1 after SM0 (absolute); the project assumed 0 - accepting 1 as 'absolute' "
+                       "(the public C++ driver's header defines ABSOLUTE = 1)")
+        self.absolute_mode_digit = got
         self.verify_settings()
 
     # ------------------------------------------------------------------ sampling
@@ -208,6 +296,8 @@ class FVM400:
             raise RecordError("no_ack", f"reply does not start with an acknowledge: {ack!r}")
         data = self._read_frame("record")
         t1 = self.clock.monotonic_s()
+        if len(data) >= MAX_REPLY_BYTES and not data.endswith(EOT):
+            raise RecordError("garbled", f"record longer than {MAX_REPLY_BYTES} bytes: {data[:40]!r}...")
         if not data.endswith(DATA_TRAILER + EOT):
             raise RecordError("partial", f"record cut short: {data!r}")
         try:
@@ -218,11 +308,14 @@ class FVM400:
         return parse_record(text, max_abs_nT=self.max_abs_nT), 0.5 * (t0 + t1), text
 
     def verify_settings(self) -> None:
-        """Raise ReadbackMismatch unless the instrument is in rectangular, absolute mode."""
-        for getter in ("get_representation", "get_mode"):
+        """Raise ReadbackMismatch unless the instrument is in rectangular, absolute mode (the absolute-mode
+        digit is the one GM gave after SM0 in :meth:`configure`, 0 if never configured)."""
+        expected = {"get_representation": 0,
+                    "get_mode": 0 if self.absolute_mode_digit is None else self.absolute_mode_digit}
+        for getter, want in expected.items():
             got = self.command(getter)
-            if got != 0:
-                raise ReadbackMismatch(f"FVM400 settings changed (front panel?): {getter} = {got}, expected 0")
+            if got != want:
+                raise ReadbackMismatch(f"FVM400 settings changed (front panel?): {getter} = {got}, expected {want}")
 
     def read(self) -> MagSample:
         """Query one vector. Bad replies are counted in :attr:`skipped` and re-queried."""

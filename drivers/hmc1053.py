@@ -16,15 +16,34 @@ instants are kept in ``extra["axis_t_set_s"]`` / ``extra["axis_t_reset_s"]``.
 
 Channel layout, excitation, sensitivity and gains come from a frozen :class:`FrontEndTable`
 (:data:`FRONT_ENDS`); hardware-facts 8.2 is only the default layout.
+
+Temperature: the table's :class:`TempChannel` is the ADS1248 internal diode (its coefficients are
+unverified forum figures, ``verified=False``) or an external sensor with its own linear transfer
+function on a mux pair (the belsten bench read an external sensor). :class:`TempCalibration` fits
+the reported temperature against a reference thermometer (two points or a linear least-squares
+fit over a bench session) and :meth:`HMC1053.calibrate_temperature` folds it into the board
+table; every sample says whether its temperature is calibrated (``extra["temp_verified"]``).
 """
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 
-from magstack.drivers.ads1248 import ADS1248, DATA_RATES, PGA_CODES, ChannelConfig, Conversion, diode_temp_c, lookup
+import numpy as np
+
+from magstack.drivers.ads1248 import (
+    ADS1248,
+    DATA_RATES,
+    PGA_CODES,
+    TEMP_DIODE_V_AT_25C,
+    TEMP_DIODE_V_PER_C,
+    ChannelConfig,
+    Conversion,
+    diode_temp_c,
+    lookup,
+)
 from magstack.drivers.bus.gpio import OutputLine
 from magstack.drivers.clock import Clock
 from magstack.drivers.errors import ConfigurationError
@@ -37,8 +56,11 @@ TEMP_KINDS = ("adc_diode", "linear")
 @dataclass(frozen=True)
 class TempChannel:
     """``linear``: T = 25 + (V - v_at_25c_V) / V_per_c on AIN ``pos``/``neg``; ``adc_diode``: the ADS1248
-    diode, by the same formula with the forum coefficients (118 mV, 405 uV/degC [F2]) while both constants
-    are 0.0 (default), or with a per-board calibration when both are given."""
+    diode, by the same formula with the forum coefficients (118 mV, 405 uV/degC [F2], unverified) while
+    both constants are 0.0 (default), or with a per-board calibration when both are given.
+
+    ``verified``: the transfer function was calibrated against a reference on this board;
+    ``source``: where the coefficients come from (shown in sample metadata)."""
 
     kind: str = "adc_diode"
     pos: int = 6
@@ -46,6 +68,104 @@ class TempChannel:
     pga: int = 1
     v_at_25c_V: float = 0.0
     V_per_c: float = 0.0
+    verified: bool = False
+    source: str = "ADS1248 internal diode, forum coefficients (E2E 249199), unverified"
+
+    def coefficients(self) -> tuple[float, float]:
+        """(volts at 25 degC, volts per degC) in use."""
+        if self.kind == "adc_diode" and (self.v_at_25c_V, self.V_per_c) == (0.0, 0.0):
+            return TEMP_DIODE_V_AT_25C, TEMP_DIODE_V_PER_C
+        return self.v_at_25c_V, self.V_per_c
+
+    def temp_c(self, volts: float) -> float:
+        v25, slope = self.coefficients()
+        if self.kind == "adc_diode":
+            return diode_temp_c(volts, v25, slope)
+        return 25.0 + (volts - v25) / slope
+
+
+@dataclass(frozen=True)
+class TempCalibration:
+    """A linear correction of a temperature channel: ``T_ref = gain * T_reported + offset_c`` (degC).
+
+    Fitted from pairs of reported and reference temperatures: two points give the line through
+    them, more a least-squares line (``rms_c`` its residual). :meth:`fit_session` pairs a bench
+    session's temperature column with reference readings taken at other instants.
+    """
+
+    gain: float
+    offset_c: float
+    n_points: int
+    rms_c: float
+    span_c: float
+    source: str = ""
+
+    @classmethod
+    def fit(cls, reported_c: Sequence[float], reference_c: Sequence[float], *, source: str = "",
+            min_span_c: float = 1.0) -> TempCalibration:
+        """Least-squares line through (reported, reference); ConfigurationError when the data cannot
+        determine it (fewer than two finite pairs, or a reported span below ``min_span_c``)."""
+        x = np.asarray(reported_c, dtype=float).ravel()
+        y = np.asarray(reference_c, dtype=float).ravel()
+        if x.shape != y.shape:
+            raise ConfigurationError(f"temperature calibration: {x.size} reported vs {y.size} reference values")
+        ok = np.isfinite(x) & np.isfinite(y)
+        x, y = x[ok], y[ok]
+        if x.size < 2:
+            raise ConfigurationError(f"temperature calibration needs at least 2 finite pairs, got {x.size}")
+        span = float(np.ptp(x))
+        if not span >= min_span_c:
+            raise ConfigurationError(f"temperature calibration: reported temperatures span {span:.3g} degC, "
+                                     f"need at least {min_span_c:g} degC to determine a slope")
+        gain, offset = np.polyfit(x, y, 1)
+        # a negative gain is legitimate: a diode read with a slope of the wrong sign (the forum's own
+        # measurement fell when the board warmed) reports temperatures that fall as the truth rises
+        if not (math.isfinite(gain) and abs(gain) > 1e-9):
+            raise ConfigurationError(f"temperature calibration: fitted gain {gain!r} cannot be inverted")
+        rms = float(np.sqrt(np.mean((gain * x + offset - y) ** 2)))
+        return cls(float(gain), float(offset), int(x.size), rms, span, source)
+
+    @classmethod
+    def fit_session(cls, t_s: Sequence[float], temp_c: Sequence[float], ref_t_s: Sequence[float],
+                    ref_temp_c: Sequence[float], *, source: str = "", **kw) -> TempCalibration:
+        """Fit from a bench session's ``(t_s, temp_c)`` rows and reference readings ``(ref_t_s, ref_temp_c)``
+        (same clock): the session temperature is interpolated at each reference instant inside it."""
+        t = np.asarray(t_s, dtype=float)
+        tc = np.asarray(temp_c, dtype=float)
+        ok = np.isfinite(t) & np.isfinite(tc)
+        t, tc = t[ok], tc[ok]
+        if t.size < 2:
+            raise ConfigurationError("temperature calibration: the session has fewer than 2 rows with a temperature")
+        order = np.argsort(t)
+        t, tc = t[order], tc[order]
+        rt = np.asarray(ref_t_s, dtype=float)
+        rc = np.asarray(ref_temp_c, dtype=float)
+        if rt.shape != rc.shape:
+            raise ConfigurationError(f"temperature calibration: {rt.size} reference times vs {rc.size} values")
+        inside = np.isfinite(rt) & (rt >= t[0]) & (rt <= t[-1])
+        return cls.fit(np.interp(rt[inside], t, tc), rc[inside], source=source, **kw)
+
+    def apply(self, temp_c: float | None) -> float | None:
+        """Corrected degC (None stays None)."""
+        return None if temp_c is None else self.gain * temp_c + self.offset_c
+
+    def apply_to_channel(self, ch: TempChannel) -> TempChannel:
+        """The channel whose transfer function reports ``apply(old reported)``: same volts, new coefficients.
+
+        Reported T = 25 + (V - v25) / k; calibrated T' = g T + o. Then k' = k / g, and v25' is the
+        voltage at which T' = 25, i.e. where the old channel reported (25 - o) / g.
+        """
+        v25, k = ch.coefficients()
+        k_new = k / self.gain
+        t_rep_at_25 = (25.0 - self.offset_c) / self.gain
+        v25_new = v25 + k * (t_rep_at_25 - 25.0)
+        return replace(ch, v_at_25c_V=float(v25_new), V_per_c=float(k_new), verified=True,
+                       source=self.describe())
+
+    def describe(self) -> str:
+        return (f"calibrated T = {self.gain:.6g} * T_reported + {self.offset_c:.6g} degC from {self.n_points} "
+                f"points over {self.span_c:.3g} degC (rms {self.rms_c:.3g} degC)"
+                + (f"; {self.source}" if self.source else ""))
 
 
 @dataclass(frozen=True)
@@ -142,6 +262,12 @@ class FrontEndTable:
 FRONT_ENDS: Mapping[str, FrontEndTable] = MappingProxyType({
     "hf8.2": FrontEndTable("hf8.2").validate(),
     "hf8.2-8conv": FrontEndTable("hf8.2-8conv", temp_in_both_states=True).validate(),
+    # an external linear sensor on AIN6/AIN7, as the belsten bench read its temperature on a mux
+    # channel; the coefficients are placeholders of a typical analog sensor (0.75 V at 25 degC,
+    # 10 mV/degC) [I]: calibrate them on the bench (TempCalibration) before trusting the reading
+    "hf8.2-ext-temp": FrontEndTable("hf8.2-ext-temp", temperature=TempChannel(
+        "linear", pos=6, neg=7, pga=1, v_at_25c_V=0.75, V_per_c=0.010, verified=False,
+        source="external linear sensor on AIN6/AIN7, placeholder coefficients, unverified")).validate(),
 })
 DEFAULT_FRONT_END = "hf8.2"
 
@@ -172,6 +298,14 @@ class HMC1053:
         if reset_adc:
             self.adc.reset()
 
+    def reinit(self) -> None:
+        """Recover after persistent faults (the sampling loop calls this): reset and bring up the ADC
+        again, and return the strap line to its idle level so the next cycle's SET edge is clean.
+        The ADC's bus errors propagate (typed) so the caller can count them."""
+        self.strap.set(self._idle_level)
+        self._strap_level = self._idle_level
+        self.adc.reset()
+
     def with_table(self, **changes) -> FrontEndTable:
         """A validated copy of the current table with ``changes`` (does not apply it)."""
         return replace(self.table, **changes).validate()
@@ -193,12 +327,13 @@ class HMC1053:
     def _temperature(self, conv: Conversion) -> float:
         if conv.clipped:
             return math.nan
-        t = self.table.temperature
-        if t.kind == "adc_diode":
-            if (t.v_at_25c_V, t.V_per_c) == (0.0, 0.0):
-                return diode_temp_c(conv.volts)
-            return diode_temp_c(conv.volts, t.v_at_25c_V, t.V_per_c)
-        return 25.0 + (conv.volts - t.v_at_25c_V) / t.V_per_c
+        return self.table.temperature.temp_c(conv.volts)
+
+    def calibrate_temperature(self, cal: TempCalibration) -> FrontEndTable:
+        """Fold ``cal`` into the board table's temperature channel (same conversions, new transfer
+        function, ``verified=True``); returns the new table."""
+        self.table = replace(self.table, temperature=cal.apply_to_channel(self.table.temperature)).validate()
+        return self.table
 
     def acquire(self) -> tuple[list[Conversion], list[Conversion], list[Conversion]]:
         """Run one cycle; return (set X/Y/Z, reset X/Y/Z, temperature conversions)."""
@@ -245,6 +380,8 @@ class HMC1053:
             "bridge_offset_V": tuple(offset_V),
             "bridge_offset_mV_per_V": tuple(v / scale for v in offset_V),
             "temp_t_s": tuple(c.t_s for c in temps),
+            "temp_V": tuple(c.volts for c in temps),
+            "temp_verified": self.table.temperature.verified,
             "temp_overflow": temp_c is None,
             "cycle_start_s": t_cycle0,
             "cycle_end_s": self.clock.monotonic_s(),

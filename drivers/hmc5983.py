@@ -15,6 +15,13 @@ Register semantics only; the bus is injected. Field in uT, temperature in degC.
 - temperature: (MSB*256 + LSB)/128 + 25 degC (TS bit), read as two single-byte reads.
 - self-test: positive-bias measurement (hardware-facts 3.4), pass window 243..575 counts at gain 5.
 - no soft-reset register: :meth:`HMC5983.soft_reset` writes the power-on values.
+- LOCK: reading the mode register locks the output registers until all six data bytes are read
+  (HMC5883L datasheet p.16; hardware-facts 3.2). Every MR read-back (``verify``) is therefore
+  followed by one discarded six-byte read, so the first :meth:`read` after open, configure,
+  soft reset or reinit returns a fresh set, not the frozen pre-configure block.
+- HMC5883L: same register interface without temperature (0x31/0x32 read 0, CRA7 must stay 0) and
+  without 220 Hz; use ``temperature=False`` on such a part. :mod:`magstack.drivers.i2c_probe`
+  cannot always tell the two apart and says so.
 """
 from __future__ import annotations
 
@@ -163,13 +170,20 @@ class HoneywellStyleMagnetometer(TableMagnetometer):
         self._range, self._rate, self._temp_on = rng, rate, temp_on
         self._mode = md.name
         if md.name != "single":
-            write_checked(self.dev, MR, t.mode_field.encode(md.code), verify=self.verify)
+            self._write_mode(t.mode_field.encode(md.code))
         else:
-            write_checked(self.dev, MR, t.mode_field.encode(t.mode_option("idle").code), verify=self.verify)
+            self._write_mode(t.mode_field.encode(t.mode_option("idle").code))
         # the first measurement after a gain change still uses the old gain [F2]
         self._discard_next = 1 if gain_changed else 0
         self._config.update(range_uT=rng.range_uT, odr_hz=rate.odr_hz, mode=md.name, temperature=temp_on)
         self._mark_restart()
+
+    def _write_mode(self, value: int) -> None:
+        """Write MR; after a read-back (which sets LOCK on the HMC5883L family) read the six data
+        bytes once to release the outputs. The discarded bytes are the pre-write set."""
+        write_checked(self.dev, MR, value, verify=self.verify)
+        if self.verify:
+            self.dev.read_registers(self.table.data_reg, 6)
 
     def _configure_chip(self, **chip) -> None:
         if chip:
@@ -189,8 +203,9 @@ class HoneywellStyleMagnetometer(TableMagnetometer):
         """No reset register: write the power-on values of CRA/CRB/MR (device idle)."""
         for reg, value in self.table.reset_values:
             if reg == MR:
-                value = self.table.mode_field.encode(self.table.mode_option("idle").code)
-            write_checked(self.dev, reg, value, verify=self.verify)
+                self._write_mode(self.table.mode_field.encode(self.table.mode_option("idle").code))
+            else:
+                write_checked(self.dev, reg, value, verify=self.verify)
         crb = dict(self.table.reset_values)[self.table.range_field.reg]
         self._range = lookup(self.table.ranges, "code", self.table.range_field.decode(crb), f"{self.name} range code")
         self._mode = "idle"
@@ -199,7 +214,7 @@ class HoneywellStyleMagnetometer(TableMagnetometer):
 
     def reinit(self) -> None:
         """Identity check, power-on values, then the last configuration again."""
-        self.identity = check_identity(self.dev, self.table)
+        self.identity = check_identity(self.dev, self.table, known_present=True)
         self.soft_reset()
         self.configure(**self._config)
 

@@ -6,8 +6,14 @@ magnetometer. Identification, in this order:
 1. register 0x0F = 0x3D -> LIS3MDL (WHO_AM_I);
 2. registers 0x0A..0x0C = 'H','4','3' and 0x0F = 0x3C -> LSM303DLHC (undocumented WHO_AM_I;
    the accelerometer at 0x19 is reported as supporting evidence);
-3. 'H','4','3' without 0x3C at 0x0F -> HMC5983 when the temperature register 0x31 answers,
-   else HMC5883L (not supported by a driver here).
+3. 'H','4','3' without 0x3C at 0x0F: an HMC5983 or an HMC5883L. The HMC5883L datasheet (p.11)
+   says an invalid address reads as 0 (the part acknowledges), so the temperature registers
+   0x31/0x32 tell them apart only one way: a **nonzero** temperature word can only come from an
+   HMC5983 -> ``"hmc5983"``. A zero word is what an HMC5883L returns, and also what an HMC5983
+   may hold before its temperature sensor (CRA bit 7, off at power-on) has converted, or at
+   exactly 25.00 degC -> ``"hmc5883l_or_hmc5983"`` (reported honestly, never guessed). A NACK at
+   0x31 (not datasheet behaviour for either part) -> ``"hmc5883l"``. The probe only reads: it
+   never sets CRA bit 7, which the HMC5883L requires to stay 0.
 
 A register that a part does not implement may NACK; that counts as "no match", never as a
 crash. Only bus-level failures of the scan itself propagate.
@@ -21,16 +27,42 @@ from magstack.drivers.errors import BusError, DeviceNotFound
 
 MAGNETOMETER_ADDRESSES = (0x1C, 0x1E)
 LSM303DLHC_ACCEL_ADDRESS = 0x19
+#: Probe answer for an 'H43' part that is an HMC5883L or an HMC5983 (cannot tell by reading).
+HMC5883L_OR_HMC5983 = "hmc5883l_or_hmc5983"
+#: Probe answer -> the driver that can open it (an HMC5883L: the hmc5983 driver, temperature=False).
+DRIVER_FOR = {"lis3mdl": "lis3mdl", "lsm303dlhc": "lsm303dlhc", "hmc5983": "hmc5983",
+              HMC5883L_OR_HMC5983: "hmc5983"}
+
+
+def driver_for(chip: str | None) -> str | None:
+    """Driver name for a probe answer (None: no driver here, e.g. a known HMC5883L or unknown device)."""
+    return DRIVER_FOR.get(chip) if chip is not None else None
 
 
 @dataclass(frozen=True)
 class ProbeResult:
-    """One device found: ``chip`` is a driver name, "hmc5883l", or None (unknown device)."""
+    """One device found: ``chip`` is a driver name, "hmc5883l", "hmc5883l_or_hmc5983" (see module
+    docstring), or None (unknown device)."""
 
     address: int
     chip: str | None
     identity: bytes
     notes: str = ""
+
+
+#: Column header matching :func:`format_probe_result` lines.
+PROBE_TABLE_HEADER = f"{'bus':<12} {'addr':<5} {'type':<11} {'identity':<22} notes"
+
+
+def identity_text(r: ProbeResult) -> str:
+    """Identity bytes as hex and printable ASCII, e.g. ``48 34 33 'H43'``."""
+    text = "".join(chr(b) if 0x20 <= b < 0x7F else "." for b in r.identity)
+    return f"{r.identity.hex(' ')} '{text}'"
+
+
+def format_probe_result(bus_name: str, r: ProbeResult) -> str:
+    """One fixed-width line: bus, address, chip, identity, notes (columns of PROBE_TABLE_HEADER)."""
+    return f"{bus_name:<12} {r.address:#04x}  {(r.chip or 'unknown'):<11} {identity_text(r):<22} {r.notes}"
 
 
 def scan(bus: I2CBus, addresses=range(0x08, 0x78)) -> list[int]:
@@ -72,11 +104,18 @@ def identify(bus: I2CBus, address: int, *, present: set[int] | None = None) -> P
             if present is not None:
                 notes += "; accelerometer at 0x19 " + ("present" if LSM303DLHC_ACCEL_ADDRESS in present else "absent")
             return ProbeResult(address, "lsm303dlhc", ids + who, notes)
-        temp = _read(dev, 0x31)
-        if temp is not None:
-            return ProbeResult(address, "hmc5983", ids, "ID A..C = 'H43', temperature register 0x31 answers")
-        return ProbeResult(address, "hmc5883l", ids, "ID A..C = 'H43', no temperature register: HMC5883L "
-                                                     "(no driver)")
+        # two single-byte reads: at or above 0x0C the pointer returns to 0x00 on this family
+        msb, lsb = _read(dev, 0x31), _read(dev, 0x32)
+        if msb is None or lsb is None:
+            return ProbeResult(address, "hmc5883l", ids, "ID A..C = 'H43', temperature register 0x31/0x32 "
+                                                         "NACKed: not an HMC5983")
+        if msb + lsb != b"\x00\x00":
+            return ProbeResult(address, "hmc5983", ids + msb + lsb, "ID A..C = 'H43', temperature word "
+                               f"{(msb + lsb).hex()} nonzero (an HMC5883L reads 0 there)")
+        return ProbeResult(address, HMC5883L_OR_HMC5983, ids + msb + lsb,
+                           "ID A..C = 'H43', temperature word 0: an HMC5883L, or an HMC5983 whose temperature "
+                           "sensor has not converted; use the hmc5983 driver with temperature=False unless "
+                           "the part is known")
     ident = (who or b"") + (ids or b"")
     return ProbeResult(address, None, ident, "unknown device")
 

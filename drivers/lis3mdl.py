@@ -222,7 +222,7 @@ class LIS3MDL(TableMagnetometer):
     def reinit(self) -> None:
         """Soft reset, identity check and re-apply the last configuration."""
         self.soft_reset()
-        self.identity = check_identity(self.dev, self.table)
+        self.identity = check_identity(self.dev, self.table, known_present=True)
         self.configure(**self._config)
 
     # -- self-test -------------------------------------------------------------------

@@ -32,6 +32,7 @@ import numpy as np
 from magstack.firmware import fixed_point
 from magstack.firmware.calibration.model import CAL_TERMS, GROUND_ONLY_TERMS
 from magstack.firmware.errors import CalTableInvalid
+from magstack.firmware.table_schema import check_document, parse_table_json
 
 SCHEMA = "magstack-cal-table"
 SCHEMA_VERSION = 1
@@ -177,8 +178,9 @@ def table_from_document(doc: Any, source: str = "<table>") -> CalTable:
         raise bad("not a JSON object")
     if doc.get("schema") != SCHEMA:
         raise bad(f"foreign file: schema {doc.get('schema')!r}, expected {SCHEMA!r}")
-    if doc.get("schema_version") != SCHEMA_VERSION:
-        raise bad(f"unsupported schema_version {doc.get('schema_version')!r} (supported: {SCHEMA_VERSION})")
+    # strict structure first: no unknown/missing keys, no wrong types, no undeclared coefficients
+    check_document(doc, source, term_params=_TERM_PARAMS, units=_UNITS, known_terms=CAL_TERMS,
+                   schema=SCHEMA, schema_version=SCHEMA_VERSION)
     crc = doc.get("crc32")
     if not isinstance(crc, str):
         raise bad("missing crc32")
@@ -256,12 +258,7 @@ def load_table(path: str | os.PathLike) -> CalTable:
         raw = p.read_bytes()
     except OSError as exc:
         raise CalTableInvalid(f"{p}: cannot read ({exc.strerror or exc})") from None
-    try:
-        doc = json.loads(raw.decode("utf-8"), parse_constant=lambda c: (_ for _ in ()).throw(
-            ValueError(f"non-finite constant {c}")))
-    except (UnicodeDecodeError, ValueError) as exc:
-        raise CalTableInvalid(f"{p}: not a valid JSON table (corrupt or truncated: {exc})") from None
-    return table_from_document(doc, str(p))
+    return table_from_document(parse_table_json(raw, str(p)), str(p))
 
 
 def save_table(table: CalTable, path: str | os.PathLike) -> Path:

@@ -10,3 +10,7 @@ class CalTableInvalid(InputDataError):
 
 class FitError(InputDataError):
     """A calibration fit cannot be done with the given data / model."""
+
+
+class FlightConfigError(InputDataError):
+    """The flight configuration file is invalid (names the file and the key)."""

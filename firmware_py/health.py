@@ -18,14 +18,21 @@ class HealthCounters:
     overflows: int = 0           # samples with at least one saturated axis
     stale: int = 0               # StaleData: no new sample when one was due
     other_errors: int = 0        # any other MagError
+    implausible: int = 0         # beyond the sensor range or an impossible rate of change (corrupt data)
+    exceptions: int = 0          # non-magstack exceptions caught at the component boundary
     uncalibrated: int = 0        # samples published without an active calibration table
+    out_of_validity: int = 0     # samples outside the active table's validity (published uncalibrated)
     reinits: int = 0             # driver re-initialisations after persistent faults
+    reinit_failures: int = 0     # re-initialisations that failed (the error is also counted in its class)
+    telemetry_errors: int = 0    # records the telemetry sink could not write
+    missed_slots: int = 0        # schedule slots skipped because a read blocked past them
     consecutive_faults: int = 0  # resets on every good sample
 
     @property
     def error_count(self) -> int:
         """Total faults (the PX4 ``error_count`` published in each sample)."""
-        return self.bus_errors + self.timeouts + self.overflows + self.stale + self.other_errors
+        return (self.bus_errors + self.timeouts + self.overflows + self.stale + self.other_errors
+                + self.implausible + self.exceptions)
 
     def snapshot(self) -> dict[str, int]:
         d = asdict(self)

@@ -18,15 +18,23 @@ Fault responses: a reference reply that is garbled, partial, out of range or in 
 is skipped by the driver and counted; a reference timeout or DUT bus error is counted and the
 session continues; ``max_consecutive_errors`` failures in a row on one instrument abort the
 session, leaving the crash-safe ``.part`` file with every row so far.
+
+Stopping early: ``stop`` (anything with ``is_set()``, e.g. a ``threading.Event`` set by a SIGTERM
+handler) ends the session at the next sample; the rows so far are written and the file is closed
+and renamed as usual (a complete, shorter session; ``BenchResult.stopped_early``).
+
+The simulated bench (:func:`record_sim_session`) is the one recipe for "a session on simulated
+hardware": ``magstack bench --bus sim`` and the demo both call it. Progress goes to a callback
+(``progress(elapsed_s, result, final=False)``); the CLI draws it with tqdm. Events are logged
+on the ``magstack.hil.bench`` logger.
 """
 from __future__ import annotations
 
 import heapq
+import logging
 import math
 import queue
-import sys
 import threading
-import time
 from collections import Counter
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -40,6 +48,7 @@ from magstack.drivers.errors import ConfigurationError, MagError
 from magstack.drivers.magnetometer import Magnetometer, MagSample
 
 NAN3 = (math.nan, math.nan, math.nan)
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -56,6 +65,8 @@ class BenchResult:
     dut_overflows: int = 0
     duration_s: float = 0.0
     completed: bool = False
+    #: True when ``stop`` ended the session before ``seconds`` (the file is still complete and closed)
+    stopped_early: bool = False
 
     def summary(self) -> str:
         err = lambda c: ", ".join(f"{k} {v}" for k, v in sorted(c.items())) or "none"  # noqa: E731
@@ -64,7 +75,16 @@ class BenchResult:
                 f"({rate(self.dut_samples):.2f} Hz, overflow {self.dut_overflows}, errors: {err(self.dut_errors)}); "
                 f"reference {self.ref_samples} samples ({rate(self.ref_samples):.2f} Hz, errors: "
                 f"{err(self.ref_errors)}, skipped replies: {err(self.ref_skipped)})"
-                + ("" if self.completed else "; INCOMPLETE (.part file kept)"))
+                + ("" if self.completed else "; INCOMPLETE (.part file kept)")
+                + ("; stopped early on request" if self.stopped_early else ""))
+
+    def to_dict(self) -> dict:
+        """Stable keys for ``magstack bench --json``."""
+        return {"path": str(self.path), "rows": self.rows, "dut_samples": self.dut_samples,
+                "ref_samples": self.ref_samples, "dut_errors": dict(self.dut_errors),
+                "ref_errors": dict(self.ref_errors), "ref_skipped": dict(self.ref_skipped),
+                "dut_overflows": self.dut_overflows, "duration_s": self.duration_s, "completed": self.completed,
+                "stopped_early": self.stopped_early}
 
 
 def _epoch_of(clock: Clock, sample: MagSample) -> float:
@@ -72,35 +92,13 @@ def _epoch_of(clock: Clock, sample: MagSample) -> float:
     return clock.epoch_s() - (clock.monotonic_s() - sample.t_s)
 
 
-class ProgressLine:
-    """A one-line text progress display on a stream (throttled in wall time)."""
-
-    def __init__(self, total_s: float, stream=None, min_interval_s: float = 0.2) -> None:
-        self.total_s = total_s
-        self.stream = stream if stream is not None else sys.stderr
-        self.min_interval_s = min_interval_s
-        self._last = -math.inf
-
-    def __call__(self, elapsed_s: float, res: BenchResult, final: bool = False) -> None:
-        now = time.monotonic()
-        if not final and now - self._last < self.min_interval_s:
-            return
-        self._last = now
-        frac = min(1.0, max(0.0, elapsed_s / self.total_s)) if self.total_s > 0 else 1.0
-        bar = "#" * int(frac * 30)
-        errs = sum(res.dut_errors.values()) + sum(res.ref_errors.values())
-        skipped = sum(res.ref_skipped.values())
-        self.stream.write(f"\r[{bar:<30}] {frac:4.0%} {elapsed_s:7.1f}/{self.total_s:.0f} s  dut {res.dut_samples}"
-                          f"  ref {res.ref_samples}  skipped {skipped}  errors {errs}" + ("\n" if final else ""))
-        self.stream.flush()
-
-
 def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Path, *, seconds: float,
               ref_rate_hz: float = 4.0, dut_rate_hz: float | None = None, session_id: int = 0,
               metadata: Mapping[str, str] | None = None,
               currents: Callable[[float], Mapping[str, float]] | None = None, current_names: tuple[str, ...] = (),
               progress: Callable[..., None] | None = None, max_consecutive_errors: int = 10,
-              threaded: bool | None = None, block_rows: int = 20, ref_clock: Clock | None = None) -> BenchResult:
+              threaded: bool | None = None, block_rows: int = 20, ref_clock: Clock | None = None,
+              temp_calibration=None, stop=None) -> BenchResult:
     """Record ``seconds`` of DUT and reference samples into the session file ``out``.
 
     ``clock`` times the DUT, ``ref_clock`` (default: the same) the reference; in simulation two
@@ -109,6 +107,11 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
     time order). ``ref_rate_hz``: reference query rate; ``dut_rate_hz``: None = every new DUT
     sample, else one read per period. ``currents(t_monotonic_s)`` (optional) gives the named
     currents recorded on every row (a current monitor; the simulated bench uses the coil program).
+    ``temp_calibration`` (a :class:`magstack.drivers.hmc1053.TempCalibration` fitted from an earlier
+    session against a reference thermometer) is folded into the DUT's board table when the DUT has
+    ``calibrate_temperature`` (HMC1053 front end), else applied to each DUT row's ``temp_c``; the
+    metadata records it.
+    ``stop`` (optional, has ``is_set()``): ends the session early, file closed and complete.
     """
     if not (seconds > 0 and math.isfinite(seconds)):
         raise ConfigurationError(f"seconds must be > 0, got {seconds}")
@@ -126,6 +129,12 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
             raise ConfigurationError("DUT and reference clocks must share one epoch anchor")
         lag = clock.monotonic_s() - rclock.monotonic_s()  # opening/configuring used different times
         (rclock if lag > 0 else clock).sleep_s(abs(lag))
+    temp_fix = None
+    if temp_calibration is not None:
+        if hasattr(dut, "calibrate_temperature"):
+            dut.calibrate_temperature(temp_calibration)
+        else:
+            temp_fix = temp_calibration.apply
     scheduler = "threads" if threaded else ("discrete-event, one clock per instrument" if rclock is not clock
                                             else "single-thread interleave")
     meta = {"dut_chip": getattr(dut, "name", "unknown"), "dut_serial": str(getattr(dut, "serial", "unknown")),
@@ -133,42 +142,15 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
             "dut_rate_hz": "every new sample" if dut_rate_hz is None else f"{dut_rate_hz:g}",
             "alignment_applied": "none (raw host timestamps; one row per sample of either instrument)",
             "start_utc_epoch_s": f"{clock.epoch_s():.3f}", "requested_s": f"{seconds:g}",
-            "scheduler": scheduler, "software_version": _software_version(), **dict(metadata or {})}
+            "scheduler": scheduler, "software_version": _software_version(),
+            **({"temp_calibration": temp_calibration.describe()} if temp_calibration is not None else {}),
+            **dict(metadata or {})}
     res = BenchResult(Path(out))
     writer = SessionWriter(out, meta, current_names=current_names, block_rows=block_rows)
+    log.info("bench: recording %g s of %s + %s into %s (%s)", seconds, meta["dut_chip"], meta["reference"],
+             writer.part_path, scheduler)
     t0 = clock.monotonic_s()
-    consecutive = {"dut": 0, "ref": 0}
-    pending: list[tuple[float, int, tuple]] = []  # rows not yet written: (t_epoch, seq, row)
-    seq = [0]
-
-    def record(kind: str, sample: MagSample | None, err: Exception | None) -> None:
-        if err is not None:
-            bucket = res.dut_errors if kind == "dut" else res.ref_errors
-            bucket[type(err).__name__] += 1
-            consecutive[kind] += 1
-            if consecutive[kind] >= max_consecutive_errors:
-                raise MagError(f"{kind} failed {consecutive[kind]} times in a row; last: {err}") from err
-            return
-        assert sample is not None
-        consecutive[kind] = 0
-        t_epoch = _epoch_of(clock if kind == "dut" else rclock, sample)
-        cur = dict(currents(sample.t_s)) if currents is not None else {}
-        if kind == "dut":
-            res.dut_samples += 1
-            res.dut_overflows += bool(sample.overflow)
-            temp = math.nan if sample.temp_c is None else float(sample.temp_c)
-            row = (t_epoch, NAN3, sample.b_uT, temp, session_id, cur)
-        else:
-            res.ref_samples += 1
-            row = (t_epoch, sample.b_uT, NAN3, math.nan, session_id, cur)
-        heapq.heappush(pending, (t_epoch, seq[0], row))
-        seq[0] += 1
-        res.rows += 1
-
-    def drain(watermark_epoch: float) -> None:
-        """Write buffered rows stamped at or before the watermark, in time order."""
-        while pending and pending[0][0] <= watermark_epoch:
-            writer.write_row(*heapq.heappop(pending)[2])
+    rec = _Recorder(res, writer, clock, rclock, currents, session_id, max_consecutive_errors, temp_fix)
 
     def finish_durations() -> None:
         res.duration_s = max(clock.monotonic_s(), rclock.monotonic_s()) - t0
@@ -176,25 +158,86 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
 
     try:
         if threaded:
-            _run_threaded(dut, ref, clock, rclock, t0, seconds, ref_rate_hz, dut_rate_hz, record, drain, res,
-                          progress)
+            _run_threaded(dut, ref, clock, rclock, t0, seconds, ref_rate_hz, dut_rate_hz, rec.record, rec.drain,
+                          res, progress, stop)
         else:
-            _run_event_loop(dut, ref, clock, rclock, t0, seconds, ref_rate_hz, dut_rate_hz, record, drain, res,
-                            progress)
-        drain(math.inf)
+            _run_event_loop(dut, ref, clock, rclock, t0, seconds, ref_rate_hz, dut_rate_hz, rec.record, rec.drain,
+                            res, progress, stop)
+        rec.drain(math.inf)
     except BaseException:
         finish_durations()
         try:
-            drain(math.inf)
+            rec.drain(math.inf)
         finally:
             writer.abort()
         raise
     finish_durations()
     writer.close()
     res.completed = True
+    res.stopped_early = stop is not None and stop.is_set()
+    if res.stopped_early:
+        log.warning("bench: stopped on request after %.1f of %g s; %s closed with %d rows", res.duration_s,
+                    seconds, res.path, res.rows)
+    log.info("bench: %s", res.summary())
     if progress is not None:
         progress(res.duration_s, res, final=True)
     return res
+
+
+class _Recorder:
+    """Turns samples and read errors into counted results and time-ordered session rows.
+
+    ``record`` counts an error (aborting after ``max_consecutive`` in a row on one instrument) or
+    buffers a sample as a row stamped with its host epoch; ``drain`` writes the buffered rows up
+    to a watermark in time order (rows of the two instruments interleave correctly).
+    """
+
+    def __init__(self, res: BenchResult, writer: SessionWriter, dut_clock: Clock, ref_clock: Clock,
+                 currents: Callable[[float], Mapping[str, float]] | None, session_id: int,
+                 max_consecutive: int, temp_fix: Callable[[float], float] | None = None) -> None:
+        self.res = res
+        self.writer = writer
+        self.clocks = {"dut": dut_clock, "ref": ref_clock}
+        self.currents = currents
+        self.session_id = session_id
+        self.max_consecutive = max_consecutive
+        self.temp_fix = temp_fix          # a temperature-channel calibration applied to each DUT row
+        self.consecutive = {"dut": 0, "ref": 0}
+        self.pending: list[tuple[float, int, tuple]] = []  # rows not yet written: (t_epoch, seq, row)
+        self.seq = 0
+
+    def record(self, kind: str, sample: MagSample | None, err: Exception | None) -> None:
+        res = self.res
+        if err is not None:
+            (res.dut_errors if kind == "dut" else res.ref_errors)[type(err).__name__] += 1
+            self.consecutive[kind] += 1
+            n = self.consecutive[kind]
+            log.debug("bench: %s read failed (%s in a row): %s", kind, n, err)
+            if n >= self.max_consecutive:
+                log.error("bench: %s failed %d times in a row; aborting, %s kept", kind, n, self.writer.part_path)
+                raise MagError(f"{kind} failed {n} times in a row; last: {err}") from err
+            return
+        assert sample is not None
+        self.consecutive[kind] = 0
+        t_epoch = _epoch_of(self.clocks[kind], sample)
+        cur = dict(self.currents(sample.t_s)) if self.currents is not None else {}
+        if kind == "dut":
+            res.dut_samples += 1
+            res.dut_overflows += bool(sample.overflow)
+            temp = math.nan if sample.temp_c is None else float(
+                sample.temp_c if self.temp_fix is None else self.temp_fix(sample.temp_c))
+            row = (t_epoch, NAN3, sample.b_uT, temp, self.session_id, cur)
+        else:
+            res.ref_samples += 1
+            row = (t_epoch, sample.b_uT, NAN3, math.nan, self.session_id, cur)
+        heapq.heappush(self.pending, (t_epoch, self.seq, row))
+        self.seq += 1
+        res.rows += 1
+
+    def drain(self, watermark_epoch: float) -> None:
+        """Write buffered rows stamped at or before the watermark, in time order."""
+        while self.pending and self.pending[0][0] <= watermark_epoch:
+            self.writer.write_row(*heapq.heappop(self.pending)[2])
 
 
 def _read(dev: Magnetometer) -> tuple[MagSample | None, Exception | None]:
@@ -205,7 +248,7 @@ def _read(dev: Magnetometer) -> tuple[MagSample | None, Exception | None]:
 
 
 def _run_event_loop(dut, ref, dclock, rclock, t0, seconds, ref_rate_hz, dut_rate_hz, record, drain, res,
-                    progress) -> None:
+                    progress, stop=None) -> None:
     """Single-thread scheduler: serve whichever instrument's next action comes first.
 
     With one clock this interleaves (a blocking DUT read delays the reference); with one clock
@@ -216,7 +259,7 @@ def _run_event_loop(dut, ref, dclock, rclock, t0, seconds, ref_rate_hz, dut_rate
     next_ref = t0
     next_dut = t0
     same = rclock is dclock
-    while True:
+    while stop is None or not stop.is_set():
         td, tr = dclock.monotonic_s(), rclock.monotonic_s()
         ref_at = max(tr, next_ref)
         dut_at = max(td, next_dut) if dut_rate_hz is not None else td
@@ -246,7 +289,7 @@ def _run_event_loop(dut, ref, dclock, rclock, t0, seconds, ref_rate_hz, dut_rate
 
 
 def _run_threaded(dut, ref, dclock, rclock, t0, seconds, ref_rate_hz, dut_rate_hz, record, drain, res,
-                  progress) -> None:
+                  progress, stop_request=None) -> None:
     events: queue.Queue = queue.Queue()
     stop = threading.Event()
 
@@ -271,6 +314,8 @@ def _run_threaded(dut, ref, dclock, rclock, t0, seconds, ref_rate_hz, dut_rate_h
     done = 0
     try:
         while done < 2:
+            if stop_request is not None and stop_request.is_set():
+                stop.set()  # workers finish their current read and post their done marker
             try:
                 kind, sample, err = events.get(timeout=0.2)
             except queue.Empty:
@@ -341,6 +386,38 @@ def build_sim_bench(chip: str, *, program: str = "steps_x", seconds: float = 60.
     ref = FVM400.open(url, ref_clock)
     dut = open_chip(chip, "sim", clock, **_sim_dut_kwargs(chip, clock, truth, seed))
     return SimBench(clock, ref_clock, truth, dut, ref, model, url)
+
+
+def record_sim_session(chip: str, out: str | Path, *, program: str, seconds: float, seed: int = 0,
+                       session_id: int = 0, ref_rate_hz: float = 4.0, dut_rate_hz: float | None = None,
+                       ref_faults: Mapping[str, float] | None = None, ref_noise_uT: float = 0.0,
+                       instrument_name: str = "bench", metadata: Mapping[str, str] | None = None,
+                       progress: Callable[..., None] | None = None, stop=None) -> tuple[BenchResult, SimBench]:
+    """A bench session on the simulated bench: :func:`build_sim_bench` + :func:`run_bench` in virtual time.
+
+    The one recipe behind ``magstack bench --bus sim`` and the demo. Metadata records bus, program,
+    seed, reference port and noise, injected reference faults, plus ``metadata``. The simulated
+    instrument is closed and unregistered afterwards, also on failure. Returns the result and the
+    bench (its clocks give the end time).
+    """
+    faults = {k: float(v) for k, v in (ref_faults or {}).items() if v}
+    sb = build_sim_bench(chip, program=program, seconds=seconds, seed=seed, ref_faults=faults or None,
+                         ref_noise_uT=ref_noise_uT, instrument_name=instrument_name)
+    try:
+        names, cur = truth_currents(sb.truth)
+        meta = {"bus": "sim", "program": program, "seed": str(seed), "ref_port": sb.ref_url, "clock": "virtual",
+                "ref_noise_uT": f"{ref_noise_uT:g}",
+                "ref_faults": ",".join(f"{k}={v:g}" for k, v in sorted(faults.items())) or "none",
+                **dict(metadata or {})}
+        res = run_bench(sb.dut, sb.ref, sb.clock, out, seconds=seconds, ref_rate_hz=ref_rate_hz,
+                        dut_rate_hz=dut_rate_hz, ref_clock=sb.ref_clock, session_id=session_id, metadata=meta,
+                        currents=cur, current_names=names, progress=progress, stop=stop)
+    finally:
+        from magstack.sim.fvm400_model import unregister_instrument
+
+        sb.ref.close()
+        unregister_instrument(instrument_name)
+    return res, sb
 
 
 def truth_currents(truth) -> tuple[tuple[str, ...], Callable[[float], Mapping[str, float]] | None]:

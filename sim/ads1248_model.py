@@ -17,7 +17,10 @@ channel changed since the last result, it returns a blend of the old result and 
 channel weighted by the elapsed fraction of the conversion (``blended_reads``).
 
 Codes: raw = V_in * PGA / Vref * (2**23 - 1); output = (raw - OFC) * FSC / 0x400000,
-rounded and clipped to 0x7FFFFF / 0x800000 (PGA input saturation).
+rounded and clipped to 0x7FFFFF / 0x800000 (PGA input saturation). Like the part, the model never
+raises on what its inputs present: a non-finite simulated input (a broken sensor model giving
+NaN or inf) reads at the rail, +inf and NaN at 0x7FFFFF, -inf at 0x800000 [I: a model choice], which
+the driver flags as clipped.
 """
 from __future__ import annotations
 
@@ -27,6 +30,7 @@ from typing import Protocol
 import numpy as np
 
 from magstack.drivers.ads1248 import (
+    CALIBRATION_PERIODS,
     CODE_NEG_FS,
     CODE_POS_FS,
     DATA_RATE_BY_CODE,
@@ -69,7 +73,10 @@ class ADS1248Model:
     input-referred offset; ``noise_V_rms``: input-referred white noise per conversion;
     ``fsc``: factory-trimmed gain word; ``device_id``: IDAC0 ID nibble;
     ``calibration_conversions``: duration of SELFOCAL/SYSOCAL/SYSGCAL in first-conversion
-    times (not found in any source read: an assumption, see docs/hmc1053-front-end.md);
+    times (default :data:`~magstack.drivers.ads1248.CALIBRATION_PERIODS` = 16, the users' measurement;
+    no datasheet figure found, see docs/hmc1053-front-end.md);
+    ``diode_v_at_25c_V`` / ``diode_V_per_c``: the internal temperature diode of this simulated part
+    (default: the unverified forum figures; set others to check that a board calibration recovers them);
     ``power_up_s``: time from construction (power-on) before the first command is accepted
     (users wait ~16 ms [F2]; default 0 = powered long ago).
     """
@@ -78,7 +85,8 @@ class ADS1248Model:
 
     def __init__(self, clock: Clock, inputs: AnalogInputs, *, ref0_V: float | None = None,
                  ref1_V: float | None = None, adc_offset_V: float = 0.0, noise_V_rms: float = 0.0,
-                 fsc: int = _FSC_UNITY, device_id: int = 0x9, calibration_conversions: float = 4.0,
+                 fsc: int = _FSC_UNITY, device_id: int = 0x9, calibration_conversions: float = CALIBRATION_PERIODS,
+                 diode_v_at_25c_V: float = TEMP_DIODE_V_AT_25C, diode_V_per_c: float = TEMP_DIODE_V_PER_C,
                  max_clock_hz: int = 2_000_000, power_up_s: float = 0.0, seed: int = 0) -> None:
         for label, v in (("ref0_V", ref0_V), ("ref1_V", ref1_V)):
             if v is not None and not (_finite(v) and v > 0):
@@ -90,6 +98,9 @@ class ADS1248Model:
         if not (_finite(calibration_conversions) and calibration_conversions > 0):
             raise ConfigurationError("ADS1248Model calibration_conversions must be finite and > 0, "
                                      f"got {calibration_conversions!r}")
+        if not (_finite(diode_v_at_25c_V) and _finite(diode_V_per_c)):
+            raise ConfigurationError("ADS1248Model diode_v_at_25c_V and diode_V_per_c must be finite, got "
+                                     f"{diode_v_at_25c_V!r}, {diode_V_per_c!r}")
         if not (_finite(power_up_s) and power_up_s >= 0):
             raise ConfigurationError(f"ADS1248Model power_up_s must be finite and >= 0, got {power_up_s!r}")
         for label, v, lo, hi in (("fsc", fsc, 0, 0xFFFFFF), ("device_id", device_id, 0, 0xF),
@@ -103,6 +114,8 @@ class ADS1248Model:
         self.noise_V_rms = float(noise_V_rms)
         self.max_clock_hz = max_clock_hz
         self.calibration_conversions = float(calibration_conversions)
+        self.diode_v_at_25c_V = float(diode_v_at_25c_V)
+        self.diode_V_per_c = float(diode_V_per_c)
         self._rng = np.random.default_rng(seed)
         self._fsc_trim = int(fsc)
         self._device_id = int(device_id)
@@ -214,7 +227,7 @@ class ADS1248Model:
         if muxcal == 0b001:  # offset measurement: inputs shorted internally
             return 0.0
         if muxcal == 0b011:
-            return TEMP_DIODE_V_AT_25C + TEMP_DIODE_V_PER_C * (self.inputs.temp_c(t_s) - 25.0)
+            return self.diode_v_at_25c_V + self.diode_V_per_c * (self.inputs.temp_c(t_s) - 25.0)
         raise BusError(f"MUXCAL={muxcal:03b} monitor is not modelled by the simulator",
                        address="sim-ads1248", operation="convert")
 
@@ -249,7 +262,7 @@ class ADS1248Model:
 
     def _code(self, t_s: float, regs: bytes | None = None) -> int:
         regs = bytes(self.regs[0:10]) if regs is None else regs
-        return _clip(round((self._raw(t_s, regs) - self._ofc(regs)) * self._fsc(regs) / _FSC_UNITY))
+        return _to_code((self._raw(t_s, regs) - self._ofc(regs)) * self._fsc(regs) / _FSC_UNITY)
 
     def _output_code(self) -> int:
         if self._out_pending is not None:
@@ -263,6 +276,8 @@ class ADS1248Model:
         regs = bytes(self.regs[0:10])
         if kind == Command.SYSGCAL:
             measured = self._raw(t_end, regs) - self._ofc(regs)
+            if not math.isfinite(measured):
+                measured = float(CODE_POS_FS)   # the input sits at the rail (see _to_code)
             if measured <= 0:
                 raise BusError("SYSGCAL with a non-positive input", address="sim-ads1248", operation="SYSGCAL")
             self._write_word(7, min(round(_FSC_UNITY * CODE_POS_FS / measured), 0xFFFFFF))
@@ -272,7 +287,7 @@ class ADS1248Model:
             raw = self.adc_offset_V * pga / self._vref(regs) * FS_DIVISOR
         else:  # SYSOCAL: whatever the selected input presents is taken as zero
             raw = self._raw(t_end, regs)
-        self._write_word(4, _clip(round(raw)) & 0xFFFFFF)
+        self._write_word(4, _to_code(raw) & 0xFFFFFF)
 
     def _write_word(self, address: int, value: int) -> None:
         self.regs[address:address + 3] = bytes((value & 0xFF, (value >> 8) & 0xFF, (value >> 16) & 0xFF))
@@ -310,7 +325,7 @@ class ADS1248Model:
         if self._conv_start is not None and self._out_cfg != bytes(self.regs[0:4]):
             frac = min(max((now - self._conv_start) / self._conv_len, 0.0), 1.0)
             self.blended_reads += 1
-            return _clip(round((1.0 - frac) * old + frac * self._code(now)))
+            return _to_code((1.0 - frac) * old + frac * self._code(now))
         return old
 
     def spi_transfer(self, tx: bytes) -> bytes:
@@ -438,6 +453,13 @@ class ADS1248Model:
 
 def _clip(code: int) -> int:
     return CODE_POS_FS if code > CODE_POS_FS else CODE_NEG_FS if code < CODE_NEG_FS else code
+
+
+def _to_code(x: float) -> int:
+    """Round and clip to the 24-bit code range; NaN and +inf -> 0x7FFFFF, -inf -> 0x800000."""
+    if not math.isfinite(x):
+        return CODE_NEG_FS if x < 0 else CODE_POS_FS
+    return _clip(round(x))
 
 
 def _to24(code: int) -> bytes:

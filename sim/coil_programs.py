@@ -25,12 +25,13 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from magstack.drivers.errors import ConfigurationError
 
 __all__ = [
     "ProgramTruth", "ProgramSpec", "PROGRAMS", "program", "program_names", "register_program",
-    "steps_profile", "sweep_profile", "rotation_profile", "excursion_profile", "constant_field",
+    "steps_profile", "sweep_profile", "rotation_profile", "spiral_rotation", "excursion_profile", "constant_field",
     "piecewise_linear", "constant_temp", "heating_profile", "cycling_temp", "square_current",
     "pulse_current", "STEP_LEVELS_uT", "STEP_SLEW_S",
 ]
@@ -166,22 +167,42 @@ def sweep_profile(axes: str, duration_s: float, amplitude_uT: float = 50.0,
 def rotation_profile(duration_s: float, magnitude_uT: float = 50.0, turns: float = 4.0) -> Profile:
     """A field of constant magnitude whose direction spirals over the whole sphere.
 
-    Polar angle goes 0 -> pi over the run while the azimuth makes ``turns`` turns, like rotating
-    a sensor in a constant field (or a 3-axis coil tracing the sphere).
+    ``b_body_uT(t) = R(t).apply((0, 0, magnitude_uT))`` with the active rotation
+    ``R(t) = Rz(phi) Ry(theta)`` (:func:`spiral_rotation`): the polar angle theta goes 0 -> pi over
+    the run while the azimuth phi makes ``turns`` turns, like a 3-axis coil tracing the sphere
+    (or a sensor turned through every attitude in a constant field).
     """
     _num("duration_s", duration_s, positive=True)
     _num("magnitude_uT", magnitude_uT)
     _num("turns", turns)
+    rot_body_from_spiral = spiral_rotation(duration_s, turns)
+    b_spiral_uT = np.array([0.0, 0.0, magnitude_uT])  # the field is fixed along z of the turning frame
 
     def f(t_s):
-        t = np.clip(_t(t_s), 0.0, duration_s)
-        u = t / duration_s
-        theta = math.pi * u
-        phi = 2.0 * math.pi * turns * u
-        return magnitude_uT * np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi),
-                                        np.cos(theta)], axis=-1)
+        t = _t(t_s)
+        if t.size == 0:
+            return np.zeros(t.shape + (3,))
+        return rot_body_from_spiral(t).apply(b_spiral_uT).reshape(t.shape + (3,))
 
     return f
+
+
+def spiral_rotation(duration_s: float, turns: float = 4.0) -> Callable[[np.ndarray], Rotation]:
+    """``t_s -> R(t)``: the turning frame of :func:`rotation_profile` relative to the body frame.
+
+    ``R = Rotation.from_euler("ZY", [phi, theta])`` (intrinsic Z then Y, i.e. Rz(phi) @ Ry(theta)),
+    an active rotation: ``R.apply(v_spiral)`` gives body-frame coordinates of a vector fixed in the
+    turning frame. theta = pi * u, phi = 2 pi turns u, u = t / duration_s clipped to [0, 1].
+    As a quaternion (scipy's default scalar-last order x, y, z, w): ``R.as_quat()``.
+    """
+    _num("duration_s", duration_s, positive=True)
+    _num("turns", turns)
+
+    def rot_body_from_spiral(t_s) -> Rotation:
+        u = np.clip(_t(t_s), 0.0, duration_s).reshape(-1) / duration_s
+        return Rotation.from_euler("ZY", np.stack([2.0 * math.pi * turns * u, math.pi * u], axis=-1))
+
+    return rot_body_from_spiral
 
 
 def excursion_profile(axes: str, duration_s: float, peak_uT: float = 150.0, probe_uT: float = 0.0,

@@ -17,7 +17,10 @@ Simulator assumptions where the real protocol is undocumented (marked [U] in the
 commands are sent without terminator; an unknown command is answered ``N`` EOT and recorded in
 :attr:`FVM400Model.protocol_errors`; ``GM``/``GX`` answer ``A`` + digit + EOT; polar records are
 ``|B| nT, inclination, declination`` (centidegrees). The model never clips: an over-range
-field is reported as the number it is, and the driver decides.
+field is reported as the number it is, and the driver decides. Two unsettled points are switches
+so the driver can be tested against both readings: ``absolute_mode_digit`` (what GM answers in
+absolute mode: 0 assumed, 1 per the public driver's header) and ``eot_after_reply`` (whether set and
+get replies end in EOT).
 """
 from __future__ import annotations
 
@@ -64,7 +67,12 @@ class FVM400Model:
 
     def __init__(self, truth: TruthSource | None = None, clock: Clock | None = None, *,
                  probe_from_truth=None, noise_uT: float = 0.0, seed: int = 0,
-                 faults: FVM400Faults | None = None) -> None:
+                 faults: FVM400Faults | None = None, absolute_mode_digit: int = 0,
+                 eot_after_reply: bool = True) -> None:
+        if absolute_mode_digit not in (0, 1):
+            raise ConfigurationError(f"absolute_mode_digit must be 0 or 1, got {absolute_mode_digit!r}")
+        self.absolute_mode_digit = absolute_mode_digit
+        self.eot_after_reply = bool(eot_after_reply)
         self.truth = truth if truth is not None else StaticTruth()
         self.clock = clock if clock is not None else SystemClock()
         self.probe_from_truth = np.eye(3) if probe_from_truth is None else np.asarray(probe_from_truth, float)
@@ -88,8 +96,8 @@ class FVM400Model:
         self._dispatch: dict[bytes, Callable[[], bytes]] = {
             COMMANDS["query"].send: self._query,
             COMMANDS["defaults"].send: self._defaults,
-            COMMANDS["get_mode"].send: lambda: ACK + str(self.mode).encode() + EOT,
-            COMMANDS["get_representation"].send: lambda: ACK + str(self.representation).encode() + EOT,
+            COMMANDS["get_mode"].send: lambda: self._reply(str(self.mode ^ self.absolute_mode_digit).encode()),
+            COMMANDS["get_representation"].send: lambda: self._reply(str(self.representation).encode()),
             COMMANDS["set_absolute"].send: lambda: self._set("mode", 0),
             COMMANDS["set_relative"].send: lambda: self._set("mode", 1),
             COMMANDS["set_rectangular"].send: lambda: self._set("representation", 0),
@@ -101,18 +109,21 @@ class FVM400Model:
         self._prefixes = {c[:k] for c in self._dispatch for k in range(1, len(c))}
 
     # ---------------------------------------------------------------- state changes
+    def _reply(self, payload: bytes = b"") -> bytes:
+        return ACK + payload + (EOT if self.eot_after_reply else b"")
+
     def _set(self, attr: str, value: int) -> bytes:
         setattr(self, attr, value)
         if attr == "mode" and value == 1:  # relative: zero the selected channel at the present field
             self.zero_nT[self.channel] = self._field_nT()[self.channel]
         if attr == "mode" and value == 0:
             self.zero_nT[:] = 0.0
-        return ACK + EOT
+        return self._reply()
 
     def _defaults(self) -> bytes:
         self.mode, self.representation, self.channel = 0, 0, 0
         self.zero_nT[:] = 0.0
-        return ACK + EOT
+        return self._reply()
 
     def _field_nT(self) -> np.ndarray:
         t = self.clock.monotonic_s()

@@ -9,9 +9,13 @@ shared with the LSM303DLHC magnetometer model.
 - RDY: ``drdy_latched=False`` (datasheet reading): low for 250 us while a new set is written,
   high otherwise; True: set by a conversion, cleared once the whole data block has been read.
   DOW when a set overwrote unread data (cleared when a data read starts); LOCK while a data
-  block is part-read (new sets are held until it is complete).
+  block is part-read **or after the mode register was read** (HMC5883L datasheet p.16, status
+  register; ``lock_on_mode_read``, on for the HMC5983): new sets are held until all six data
+  bytes are read, CRA or MR is written.
 - codes = round(B * gain); outside -2048..2047 -> -4096 on that axis (also in bias mode when
-  field + bias saturates). The first set after a gain change still uses the old gain [F2].
+  field + bias saturates). The first set after a gain change still uses the old gain
+  (HMC5883L p.13); later sets use the new one even when nobody read the first (the lazy schedule
+  counts the conversions it skipped, so a read never depends on how often the host polled).
 - self-test (MS=01/10): output = +-``self_test_bias_uT`` x gain; :meth:`break_self_test`.
 - temperature (TS): word/128 + 25 degC from the truth temperature; MS=11 updates only it.
 """
@@ -51,15 +55,18 @@ class HoneywellStyleModel(MagnetometerModel):
     has_bias = True
     temp_update_needs_ts = True
 
-    def __init__(self, regs, *, name: str, clock, truth, sensor, address: int, drdy_latched: bool) -> None:
+    def __init__(self, regs, *, name: str, clock, truth, sensor, address: int, drdy_latched: bool,
+                 lock_on_mode_read: bool, lints=None) -> None:
         self.drdy_latched = drdy_latched
+        self.lock_on_mode_read = bool(lock_on_mode_read)
+        self._mr_lock = False
         self._gain_code_in_use = None
         self._last_conv_s = -1.0
         self._pending: bytes | None = None
         self._read_mask = 0
         self.self_test_bias_uT = np.array([116.0, 116.0, 108.0])
         self.temp_format = self.table.temperature
-        super().__init__(regs, name=name, clock=clock, truth=truth, sensor=sensor, address=address)
+        super().__init__(regs, name=name, clock=clock, truth=truth, sensor=sensor, address=address, lints=lints)
         self._gain_code_in_use = self._gain_code()
 
     def break_self_test(self, bias_uT=(0.0, 0.0, 0.0)) -> None:
@@ -92,7 +99,9 @@ class HoneywellStyleModel(MagnetometerModel):
     def on_write(self, reg: int, value: int, old: int) -> None:
         if reg in (H.CRA, H.MR):
             self._read_mask = 0          # mode/CRA change unlocks the outputs
+            self._mr_lock = False
             self._apply_pending()
+            self._update_lock()
             md = self._md()
             if md == 0:
                 self.restart(2.0 * self.period_s())
@@ -134,7 +143,10 @@ class HoneywellStyleModel(MagnetometerModel):
                 return i
         raise AssertionError(f"{self.name}: gain code {gain_code} not in table")
 
-    def store_sample(self, t_s: float, b_uT: np.ndarray, temp_c: float, overwrote: bool) -> None:
+    def _locked(self) -> bool:
+        return bool(self._read_mask) or self._mr_lock
+
+    def store_sample(self, t_s: float, b_uT: np.ndarray, temp_c: float, overwrote: bool, skipped: int = 0) -> None:
         ms = self.values[H.CRA] & 0x03 if self.has_bias else 0
         self._last_conv_s = t_s
         if self.values[H.CRA] & 0x80 or not self.temp_update_needs_ts:
@@ -143,10 +155,12 @@ class HoneywellStyleModel(MagnetometerModel):
             self.core_set(H.TEMP_LSB, tb[1])
         if ms == 3:
             return
-        gain = self._gain_code_in_use
+        # the first conversion after a gain change still uses the old gain; when the lazy schedule
+        # skipped conversions, one of them already used it up
+        gain = self._gain_code_in_use if skipped == 0 else self._gain_code()
         self._gain_code_in_use = self._gain_code()
         block = encode_axes(self._encode(b_uT, gain, ms), self.table)
-        if self._read_mask:
+        if self._locked():
             self._pending = block          # LOCK: hold until the block is fully read
         else:
             self.core_set_block(H.DATA_X_MSB, block)
@@ -164,12 +178,17 @@ class HoneywellStyleModel(MagnetometerModel):
             self._pending = None
 
     def on_read(self, reg: int) -> None:
+        if reg == H.MR and self.lock_on_mode_read:
+            self._mr_lock = True
+            self._update_lock()
+            return
         if H.DATA_X_MSB <= reg <= 0x08:
             if self._read_mask == 0 and self.table.overrun_mask:
                 self.core_set(H.STATUS, self.values[H.STATUS] & ~self.table.overrun_mask)
             self._read_mask |= 1 << (reg - H.DATA_X_MSB)
             if self._read_mask == 0x3F:
                 self._read_mask = 0
+                self._mr_lock = False
                 self.unread = False
                 if self.drdy_latched:
                     self._set_rdy(False)
@@ -178,7 +197,7 @@ class HoneywellStyleModel(MagnetometerModel):
 
     def _update_lock(self) -> None:
         st = self.values[H.STATUS]
-        self.core_set(H.STATUS, (st | H.LOCK) if self._read_mask else (st & ~H.LOCK))
+        self.core_set(H.STATUS, (st | H.LOCK) if self._locked() else (st & ~H.LOCK))
 
 
 class HMC5983Model(HoneywellStyleModel):
@@ -186,7 +205,28 @@ class HMC5983Model(HoneywellStyleModel):
 
     table = H.HMC5983_TABLE
 
-    def __init__(self, clock, truth, sensor=None, *, address: int = 0x1E, drdy_latched: bool = False) -> None:
+    def __init__(self, clock, truth, sensor=None, *, address: int = 0x1E, drdy_latched: bool = False,
+                 lock_on_mode_read: bool = True, lints=None) -> None:
         super().__init__(hmc5983_registers(), name="hmc5983-sim", clock=clock, truth=truth,
                          sensor=sensor if sensor is not None else default_sensor("hmc5983"), address=address,
-                         drdy_latched=drdy_latched)
+                         drdy_latched=drdy_latched, lock_on_mode_read=lock_on_mode_read, lints=lints)
+
+
+def hmc5883l_registers() -> tuple[Reg, ...]:
+    """HMC5883L: the HMC5983 map without temperature registers; CRA bit 7 must be 0 (p.12)."""
+    return tuple(Reg(r.addr, r.name, r.mode, r.reset, fixed_mask=r.fixed_mask | 0x80, fixed_value=r.fixed_value)
+                 if r.addr == H.CRA else r for r in hmc5983_registers() if r.addr not in (H.TEMP_MSB, H.TEMP_LSB))
+
+
+class HMC5883LModel(HoneywellStyleModel):
+    """Simulated HMC5883L (no temperature sensor): 0x31/0x32 read 0 like every invalid address,
+    a write of CRA bit 7 is ignored (NACKed with the ``nack_illegal_write`` lint). Used to check
+    that nothing identifies it as an HMC5983 or turns its reserved TS bit on."""
+
+    table = H.HMC5983_TABLE
+
+    def __init__(self, clock, truth, sensor=None, *, address: int = 0x1E, drdy_latched: bool = False,
+                 lock_on_mode_read: bool = True, lints=None) -> None:
+        super().__init__(hmc5883l_registers(), name="hmc5883l-sim", clock=clock, truth=truth,
+                         sensor=sensor if sensor is not None else default_sensor("hmc5983"), address=address,
+                         drdy_latched=drdy_latched, lock_on_mode_read=lock_on_mode_read, lints=lints)

@@ -4,10 +4,22 @@
 message sets the register pointer, further bytes are written at the pointer, reads return
 bytes from the pointer; after each byte the pointer moves by the chip's auto-increment rule
 (:meth:`RegisterFileModel.next_pointer`). Registers are declared with :class:`Reg` (RO / RW /
-WO mode, power-on value, bits that must keep a fixed value). Illegal access fails loudly with
-:class:`~magstack.drivers.errors.BusError`: an unmapped register, a write to a read-only register, a
-read of a write-only register, a fixed-bit violation, a multi-byte access the chip's
-auto-increment rule does not allow.
+WO mode, power-on value, bits that must keep a fixed value).
+
+Default: behave as the parts do (HMC5883L datasheet p.11, LSM303DLHC DocID018771 p.21): a
+read of an invalid (unmapped or write-only) address returns 0, a write to an invalid address,
+to a read-only register or to an undefined bit is ignored, and every byte is acknowledged.
+Stricter checks are opt-in **lints** (``lints=...``, names in :data:`LINTS`), which fail the
+transfer with :class:`~magstack.drivers.errors.BusError` (a NACK) so a driver that relies on
+undefined behaviour shows up on the host:
+
+- ``nack_invalid_address``: reads/writes of unmapped registers, reads of write-only ones;
+- ``nack_illegal_write``: writes to read-only registers, fixed-bit violations, invalid codes;
+- ``strict_auto_increment``: multi-byte access without the chip's documented auto-increment
+  flag (LIS3MDL SUB bit 7).
+
+:func:`default_lints` sets the lints of models built without ``lints=`` (tests run the
+project's drivers under both profiles).
 
 Fault injection: :meth:`RegisterFileModel.inject_stuck` freezes registers (the chip core can
 no longer update them), :meth:`RegisterFileModel.inject_bit_flip` XORs a mask into the value
@@ -20,8 +32,9 @@ configured output rate in virtual time, evaluated lazily at the start of each bu
 """
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,6 +42,39 @@ import numpy as np
 from magstack.drivers.errors import BusError, ConfigurationError
 
 RO, RW, WO = "RO", "RW", "WO"
+
+LINT_INVALID_ADDRESS = "nack_invalid_address"
+LINT_ILLEGAL_WRITE = "nack_illegal_write"
+LINT_AUTO_INCREMENT = "strict_auto_increment"
+#: Every opt-in lint (stricter than the parts).
+LINTS = frozenset({LINT_INVALID_ADDRESS, LINT_ILLEGAL_WRITE, LINT_AUTO_INCREMENT})
+#: Profiles: the part's behaviour, and every lint on.
+PART_FAITHFUL: frozenset[str] = frozenset()
+STRICT = LINTS
+
+_default_lints: frozenset[str] = PART_FAITHFUL
+
+
+def check_lints(lints: Iterable[str]) -> frozenset[str]:
+    """``lints`` as a frozenset; ConfigurationError naming the valid ones for an unknown name."""
+    if isinstance(lints, str):
+        lints = (lints,)
+    out = frozenset(lints)
+    bad = out - LINTS
+    if bad:
+        raise ConfigurationError(f"unknown simulator lint(s) {sorted(bad)}; valid: {', '.join(sorted(LINTS))}")
+    return out
+
+
+@contextlib.contextmanager
+def default_lints(lints: Iterable[str]) -> Iterator[frozenset[str]]:
+    """Within the block, models built without ``lints=`` use ``lints`` (tests: strict profile)."""
+    global _default_lints
+    old, _default_lints = _default_lints, check_lints(lints)
+    try:
+        yield _default_lints
+    finally:
+        _default_lints = old
 
 
 @dataclass(frozen=True)
@@ -66,9 +112,11 @@ def default_sensor(chip: str, seed: int = 0):
 class RegisterFileModel:
     """Register file with pointer, auto-increment hook, access checks and fault injection."""
 
-    def __init__(self, regs: Iterable[Reg], *, name: str, address: int | None = None) -> None:
+    def __init__(self, regs: Iterable[Reg], *, name: str, address: int | None = None,
+                 lints: Iterable[str] | None = None) -> None:
         self.name = name
         self.address = address
+        self.lints = check_lints(_default_lints if lints is None else lints)
         self.regs: dict[int, Reg] = {}
         for r in regs:
             if r.addr in self.regs:
@@ -151,37 +199,54 @@ class RegisterFileModel:
             return  # address-only "quick write" (bus scan): acknowledged, no effect
         reg, autoinc = self.decode_subaddress(data[0])
         if len(data) > 2 and not autoinc:
-            raise self._fail(f"multi-byte write at {reg:#04x} without auto-increment", f"write {reg:#04x}")
+            # only reachable with the strict_auto_increment lint (decode_subaddress decides)
+            raise self._fail(f"multi-byte write at {reg:#04x} without auto-increment "
+                             f"[lint {LINT_AUTO_INCREMENT}]", f"write {reg:#04x}")
         self.pointer = reg
         self._autoinc = autoinc
         for value in data[1:]:
-            r = self.regs.get(reg)
-            if r is None:
-                raise self._fail(f"write to unmapped register {reg:#04x}", f"write {reg:#04x}")
-            if r.mode == RO:
-                raise self._fail(f"write to read-only register {r.name} ({reg:#04x})", f"write {reg:#04x}")
-            if (value & r.fixed_mask) != r.fixed_value:
-                raise self._fail(f"write {value:#04x} to {r.name} violates fixed bits (mask {r.fixed_mask:#04x} "
-                                 f"must be {r.fixed_value:#04x})", f"write {reg:#04x}")
-            old = self.values[reg]
-            self.values[reg] = value
-            self.on_write(reg, value, old)
+            self._write_byte(reg, value)
             reg = self.next_pointer(reg)
             self.pointer = reg
 
+    def _write_byte(self, reg: int, value: int) -> None:
+        r = self.regs.get(reg)
+        op = f"write {reg:#04x}"
+        if r is None:
+            if LINT_INVALID_ADDRESS in self.lints:
+                raise self._fail(f"write to unmapped register {reg:#04x} [lint {LINT_INVALID_ADDRESS}]", op)
+            return  # the part ignores writes to invalid addresses
+        if r.mode == RO:
+            if LINT_ILLEGAL_WRITE in self.lints:
+                raise self._fail(f"write to read-only register {r.name} ({reg:#04x}) [lint {LINT_ILLEGAL_WRITE}]",
+                                 op)
+            return  # ignored
+        if (value & r.fixed_mask) != r.fixed_value:
+            if LINT_ILLEGAL_WRITE in self.lints:
+                raise self._fail(f"write {value:#04x} to {r.name} violates fixed bits (mask {r.fixed_mask:#04x} "
+                                 f"must be {r.fixed_value:#04x}) [lint {LINT_ILLEGAL_WRITE}]", op)
+            value = (value & ~r.fixed_mask & 0xFF) | r.fixed_value  # undefined bits: the write is ignored
+        old = self.values[reg]
+        self.values[reg] = value
+        self.on_write(reg, value, old)
+
     def i2c_read(self, length: int) -> bytes:
         if length > 1 and not self._autoinc:
-            raise self._fail(f"{length}-byte read at {self.pointer:#04x} without auto-increment flag",
-                             f"read {self.pointer:#04x}")
+            raise self._fail(f"{length}-byte read at {self.pointer:#04x} without auto-increment flag "
+                             f"[lint {LINT_AUTO_INCREMENT}]", f"read {self.pointer:#04x}")
         out = bytearray(length)
         reg = self.pointer
         values, regs, flips = self.values, self.regs, self._flips
         for i in range(length):
             r = regs.get(reg)
-            if r is None:
-                raise self._fail(f"read of unmapped register {reg:#04x}", f"read {reg:#04x}")
-            if r.mode == WO:
-                raise self._fail(f"read of write-only register {r.name} ({reg:#04x})", f"read {reg:#04x}")
+            if r is None or r.mode == WO:
+                if LINT_INVALID_ADDRESS in self.lints:
+                    what = f"unmapped register {reg:#04x}" if r is None else \
+                        f"write-only register {r.name} ({reg:#04x})"
+                    raise self._fail(f"read of {what} [lint {LINT_INVALID_ADDRESS}]", f"read {reg:#04x}")
+                out[i] = 0  # an invalid address reads as 0
+                reg = self.next_pointer(reg)
+                continue
             v = values[reg]
             if flips and reg in flips:
                 f = flips[reg]
@@ -206,7 +271,8 @@ class MagnetometerModel(RegisterFileModel):
     ``first_delay_s``; :meth:`trigger_single` schedules one conversion.
     """
 
-    def __init__(self, regs: Iterable[Reg], *, name: str, clock, truth, sensor, address: int | None = None):
+    def __init__(self, regs: Iterable[Reg], *, name: str, clock, truth, sensor, address: int | None = None,
+                 lints: Iterable[str] | None = None):
         self.clock = clock
         self.truth = truth
         self.sensor = sensor
@@ -214,7 +280,7 @@ class MagnetometerModel(RegisterFileModel):
         self._single_pending = False
         self.unread = False          # a converted set has not been fully read yet
         self.conversions = 0
-        super().__init__(regs, name=name, address=address)
+        super().__init__(regs, name=name, address=address, lints=lints)
 
     # to override
     def running(self) -> bool:
@@ -223,7 +289,10 @@ class MagnetometerModel(RegisterFileModel):
     def period_s(self) -> float:
         raise NotImplementedError
 
-    def store_sample(self, t_s: float, b_uT: np.ndarray, temp_c: float, overwrote: bool) -> None:
+    def store_sample(self, t_s: float, b_uT: np.ndarray, temp_c: float, overwrote: bool, skipped: int = 0) -> None:
+        """Encode one conversion at ``t_s``. ``skipped``: conversions the chip completed since the last
+        evaluated one (the lazy schedule evaluates only the latest; rules that change state per
+        conversion must account for them, so a read never depends on how often the host polled)."""
         raise NotImplementedError
 
     def after_single(self) -> None:
@@ -274,7 +343,7 @@ class MagnetometerModel(RegisterFileModel):
             raise ConfigurationError(f"{self.name}: truth temperature {temp_c!r} degC at t_s={t_c!r} is not finite")
         overwrote = self.unread or skipped > 0
         self.conversions += 1
-        self.store_sample(t_c, b, temp_c, overwrote)
+        self.store_sample(t_c, b, temp_c, overwrote, skipped)
 
 
 def finite_vec3(name: str, value) -> np.ndarray:

@@ -2,9 +2,12 @@
 
 - registers with power-on values (CTRL_REG1 0x10, CTRL_REG3 0x03 power-down, INT_CFG 0xE8);
   RO registers refuse writes, unmapped registers fail the transfer.
-- I2C auto-increment only with bit 7 of the sub-address (``strict_auto_increment=True``: a
-  multi-byte access without it is a bus error; False: auto-increments anyway, as Adafruit's
-  reads suggest); the output block wraps 0x2D -> 0x28.
+- I2C auto-increment: the part increments on multi-byte I2C reads whether or not bit 7 of the
+  sub-address is set (ArduPilot and PX4 flight drivers and Adafruit read 0x28 without it; PX4
+  issue #12514 logic trace), and the output block wraps 0x2D -> 0x28. ST documents bit 7 as the
+  way to ask for it; the ``strict_auto_increment`` lint (opt-in, ``strict_auto_increment=True``
+  or ``lints=``) refuses a multi-byte access without it.
+- invalid addresses read 0 and ignored writes, as the generic model (lints make them NACK).
 - conversions at the configured ODR (DO / FAST_ODR+OM / LP forces 0.625 Hz) in virtual time;
   STATUS.ZYXDA set per conversion and cleared when OUT_Z_H is read; ZYXOR when unread data is
   overwritten; BDU holds a new set until both bytes of a started axis are read.
@@ -20,7 +23,15 @@ import numpy as np
 
 from magstack.drivers import lis3mdl as L
 from magstack.drivers.chip_table import encode_temperature
-from magstack.sim.i2c_register_model import RO, RW, MagnetometerModel, Reg, default_sensor, finite_vec3
+from magstack.sim.i2c_register_model import (
+    LINT_AUTO_INCREMENT,
+    RO,
+    RW,
+    MagnetometerModel,
+    Reg,
+    default_sensor,
+    finite_vec3,
+)
 
 _DO_HZ = (0.625, 1.25, 2.5, 5.0, 10.0, 20.0, 40.0, 80.0)
 _FAST_HZ = {0: 1000.0, 1: 560.0, 2: 300.0, 3: 155.0}   # by OM
@@ -54,13 +65,21 @@ class LIS3MDLModel(MagnetometerModel):
     #: a model choice, not a measured value)
     DEFAULT_SELF_TEST_DELTA_UT = (200.0, 200.0, 50.0)
 
-    def __init__(self, clock, truth, sensor=None, *, address: int = 0x1C, strict_auto_increment: bool = True):
-        self.strict_auto_increment = strict_auto_increment
+    def __init__(self, clock, truth, sensor=None, *, address: int = 0x1C, strict_auto_increment: bool = False,
+                 lints=None):
         self.self_test_delta_uT = np.asarray(self.DEFAULT_SELF_TEST_DELTA_UT, dtype=float)
         self._pending: bytes | None = None
         self._half_read: set[int] = set()
         super().__init__(lis3mdl_registers(), name="lis3mdl-sim", clock=clock, truth=truth,
-                         sensor=sensor if sensor is not None else default_sensor("lis3mdl"), address=address)
+                         sensor=sensor if sensor is not None else default_sensor("lis3mdl"), address=address,
+                         lints=lints)
+        if strict_auto_increment:
+            self.lints = self.lints | {LINT_AUTO_INCREMENT}
+
+    @property
+    def strict_auto_increment(self) -> bool:
+        """True when the ``strict_auto_increment`` lint is on (datasheet-literal, stricter than the part)."""
+        return LINT_AUTO_INCREMENT in self.lints
 
     def break_self_test(self, delta_uT=(0.0, 0.0, 0.0)) -> None:
         """Make the self-test response ``delta_uT`` (default none: the self-test must fail)."""
@@ -121,7 +140,7 @@ class LIS3MDLModel(MagnetometerModel):
         self.values[L.CTRL_REG3] |= 0x03
 
     # -- data path -------------------------------------------------------------------
-    def store_sample(self, t_s: float, b_uT: np.ndarray, temp_c: float, overwrote: bool) -> None:
+    def store_sample(self, t_s: float, b_uT: np.ndarray, temp_c: float, overwrote: bool, skipped: int = 0) -> None:
         if self.values[L.CTRL_REG1] & L.ST_BIT:
             b_uT = b_uT + self.self_test_delta_uT
         scaled = np.rint(b_uT * self.lsb_per_uT())

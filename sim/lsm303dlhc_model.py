@@ -6,7 +6,10 @@ Same HMC5883L-style core as :mod:`magstack.sim.hmc5983_model` (pointer rule 0x08
 
 - identity 'H','4','3' plus WHO_AM_I 0x0F = 0x3C; no HMC5983 measurement-mode / averaging bits
   (CRA bits 6:5 and 1:0 must be 0), no bias strap (no self-test), no DOW flag;
-- separate Z gain per range (GN 1..7; GN 0 is not a valid range and refused);
+- separate Z gain per range (GN 1..7; GN 0 is not a range in the datasheet table: the write is
+  ignored [I], or NACKed with the ``nack_illegal_write`` lint);
+- LOCK after a mode-register read: not documented for this part [U]; off by default
+  (``lock_on_mode_read=True`` models it as on the HMC5883L);
 - MR power-on value 0x03 (sleep) [U]; CRA 0x10 [U];
 - temperature: 12-bit left-justified at 0x31/0x32, 8 LSB/degC relative to ``temp_offset_c``.
 """
@@ -18,7 +21,7 @@ from magstack.drivers import lsm303dlhc as D
 from magstack.drivers.chip_table import TempFormat
 from magstack.drivers.errors import ConfigurationError
 from magstack.sim.hmc5983_model import HoneywellStyleModel
-from magstack.sim.i2c_register_model import RO, RW, Reg, default_sensor
+from magstack.sim.i2c_register_model import LINT_ILLEGAL_WRITE, RO, RW, Reg, default_sensor
 
 
 def lsm303dlhc_registers() -> tuple[Reg, ...]:
@@ -45,10 +48,11 @@ class LSM303DLHCModel(HoneywellStyleModel):
     has_bias = False
 
     def __init__(self, clock, truth, sensor=None, *, address: int = 0x1E, drdy_latched: bool = False,
-                 temp_offset_c: float = D.DEFAULT_TEMP_OFFSET_C) -> None:
+                 temp_offset_c: float = D.DEFAULT_TEMP_OFFSET_C, lock_on_mode_read: bool = False,
+                 lints=None) -> None:
         super().__init__(lsm303dlhc_registers(), name="lsm303dlhc-sim", clock=clock, truth=truth,
                          sensor=sensor if sensor is not None else default_sensor("lsm303dlhc"), address=address,
-                         drdy_latched=drdy_latched)
+                         drdy_latched=drdy_latched, lock_on_mode_read=lock_on_mode_read, lints=lints)
         if not math.isfinite(temp_offset_c):
             raise ConfigurationError(f"lsm303dlhc-sim temp_offset_c must be finite, got {temp_offset_c!r}")
         fmt = D.LSM303DLHC_TABLE.temperature
@@ -67,5 +71,8 @@ class LSM303DLHCModel(HoneywellStyleModel):
     def on_write(self, reg: int, value: int, old: int) -> None:
         if reg == D.CRB_REG_M and value >> 5 == 0:
             self.values[reg] = old
-            raise self._fail("CRB_REG_M gain code 0 is not a valid LSM303DLHC range", f"write {reg:#04x}")
+            if LINT_ILLEGAL_WRITE in self.lints:
+                raise self._fail(f"CRB_REG_M gain code 0 is not a valid LSM303DLHC range [lint {LINT_ILLEGAL_WRITE}]",
+                                 f"write {reg:#04x}")
+            return
         super().on_write(reg, value, old)

@@ -24,7 +24,7 @@ from types import MappingProxyType
 
 import numpy as np
 
-from magstack.sim.error_model import ErrorParams
+from magstack.sim.error_params import ErrorParams
 
 __all__ = ["PRESET_NAMES", "preset", "preset_info", "PresetInfo", "LAB_STUDY_TABLE1"]
 

@@ -1,7 +1,7 @@
 """What the field, temperature and currents really are, as functions of time.
 
 Truth generators (bench coil programs, orbits) implement :class:`TruthSource`; chip
-models and the error model consume it. Field in uT in the sensor frame, temperature
+models and the error model consume it. Field in uT in the body frame, temperature
 in degC, currents in A, time in seconds of the simulation clock's monotonic time.
 """
 from __future__ import annotations

@@ -41,3 +41,13 @@ def pytest_collection_modifyitems(config, items):
 @pytest.fixture
 def clock() -> VirtualClock:
     return VirtualClock()
+
+
+@pytest.fixture(params=["part", "strict"])
+def sim_profile(request):
+    """Run a test against the part-faithful simulator defaults and again with every opt-in lint on
+    (``magstack.sim.i2c_register_model.STRICT``): the project's drivers must pass both."""
+    from magstack.sim.i2c_register_model import PART_FAITHFUL, STRICT, default_lints
+
+    with default_lints(STRICT if request.param == "strict" else PART_FAITHFUL) as lints:
+        yield lints

@@ -12,7 +12,7 @@ from magstack.drivers.clock import SystemClock
 from magstack.drivers.errors import BusTimeout, ConfigurationError, MagError
 from magstack.drivers.magnetometer import MagSample
 from magstack.ground.alignment import align_streams
-from magstack.hil.bench import ProgressLine, build_sim_bench, paired_view, run_bench
+from magstack.hil.bench import build_sim_bench, paired_view, record_sim_session, run_bench
 
 
 def _run(sb, path, **kw):
@@ -129,14 +129,16 @@ class _FlakyRef:
 
 def test_threaded_real_clock_reference_not_held_up_by_slow_dut(tmp_path):
     clock = SystemClock()
-    buf = io.StringIO()
+    calls = []
     res = run_bench(_SlowDut(clock), _FlakyRef(clock), clock, tmp_path / "t.csv", seconds=1.2, ref_rate_hz=10.0,
-                    progress=ProgressLine(1.2, buf, 0.0))
+                    progress=lambda elapsed_s, r, final=False: calls.append((elapsed_s, r.rows, final)))
     assert res.completed and res.ref_errors["BusTimeout"] == 1
     # 10 Hz reference vs. 0.3 s DUT reads (~11 vs ~4): not held up (relation, robust to machine load)
     assert res.dut_samples >= 2 and res.ref_samples >= 2 * res.dut_samples
     assert read_session(tmp_path / "t.csv").metadata["scheduler"] == "threads"
-    assert "100%" in buf.getvalue().splitlines()[-1]
+    # progress reported while running, then once more (final) with the whole duration
+    assert len(calls) >= 3 and calls[-1][2] and not any(c[2] for c in calls[:-1])
+    assert calls[-1][0] >= 1.2 and calls[-1][1] == res.rows
 
 
 def test_bad_parameters():
@@ -157,7 +159,7 @@ def test_cli_bench_sim(tmp_path, capsys):
                "--program", "currents", "--sim-ref-faults", "garble=0.05"])
     assert rc == 0
     cap = capsys.readouterr()
-    assert "rows in" in cap.out and "100%" in cap.err
+    assert "rows in" in cap.out and cap.err == ""   # stderr is not a terminal: no progress bar
     s = read_session(out)
     assert set(s.currents_A) == {"solar_A", "torquer_A"} and s.metadata["program"] == "currents"
     assert main(["bench", "--dut", "lis3mdl", "--bus", "1", "--seconds", "1", "--out", str(out),
@@ -185,3 +187,117 @@ def test_single_virtual_clock_interleave(tmp_path):
     assert s.metadata["scheduler"] == "single-thread interleave"
     assert res.ref_samples == pytest.approx(40, abs=2) and res.dut_samples == pytest.approx(150, abs=3)
     assert np.all(np.diff(s.t_s) >= 0)
+
+
+def test_stop_request_ends_the_session_with_a_complete_file(tmp_path):
+    import threading
+
+    stop = threading.Event()
+
+    def progress(elapsed_s, res, final=False):
+        if elapsed_s >= 3.0:
+            stop.set()   # what the CLI's SIGTERM handler does
+
+    res, sb = record_sim_session("lis3mdl", tmp_path / "s.csv", program="steps_x", seconds=60.0, seed=1,
+                                 instrument_name="t_stop", progress=progress, stop=stop)
+    assert res.completed and res.stopped_early and 3.0 <= res.duration_s < 4.0
+    assert not (tmp_path / "s.csv.part").exists()
+    s = read_session(tmp_path / "s.csv")
+    assert len(s) == res.rows > 0 and s.metadata["requested_s"] == "60"
+    assert s.metadata["ref_faults"] == "none" and s.metadata["program"] == "steps_x"
+    from magstack.sim.fvm400_model import get_instrument
+
+    with pytest.raises(KeyError):   # the simulated instrument is unregistered afterwards
+        get_instrument("t_stop")
+
+
+def test_cli_bench_sigterm_stops_with_message_and_complete_file(tmp_path):
+    """Issue 17 item 12: SIGTERM used to kill `bench` silently, leaving only the .part file."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "long.csv"
+    proc = subprocess.Popen([sys.executable, "-m", "magstack", "bench", "--dut", "lis3mdl", "--seconds", "86400",
+                             "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    part = tmp_path / "long.csv.part"
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and (not part.exists() or part.stat().st_size < 5000):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 143, stderr
+    assert "stopped by SIGTERM after" in stdout and "is complete with the" in stdout
+    assert "stopped on request" in stderr   # the library's warning on the log
+    assert out.exists() and not part.exists()
+    s = read_session(out)
+    assert len(s) > 50 and s.metadata["requested_s"] == "86400"
+
+
+def test_cli_bench_progress_bar_on_a_terminal(tmp_path, capsys, monkeypatch):
+    import sys
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    err = Tty()
+    monkeypatch.setattr(sys, "stderr", err)
+    assert main(["bench", "--dut", "lis3mdl", "--seconds", "5", "--out", str(tmp_path / "a.csv")]) == 0
+    text = err.getvalue()
+    assert "bench:" in text and "dut=" in text and "ref=" in text   # tqdm bar with the running counts
+    monkeypatch.setattr(sys, "stderr", err := Tty())
+    assert main(["bench", "--dut", "lis3mdl", "--seconds", "5", "--out", str(tmp_path / "b.csv"), "--json"]) == 0
+    assert err.getvalue() == ""   # --json: no bar
+
+
+@pytest.mark.parametrize("args,msg", [
+    (["--ref-rate-hz", "1e9"], "argument --ref-rate-hz: must be within [0.01, 20] Hz"),
+    (["--ref-rate-hz", "nan"], "argument --ref-rate-hz: expected a finite number"),
+    (["--dut-rate-hz", "0"], "argument --dut-rate-hz: must be within [0.01, 1000] Hz"),
+    (["--seconds", "inf"], "argument --seconds: expected a finite number"),
+    (["--sim-ref-faults", "garble=2"], "argument --sim-ref-faults: must be within [0, 1]"),
+    (["--program", "nope"], "argument --program: unknown program 'nope'"),
+    (["--out", ""], "argument --out: expected a file name"),
+])
+def test_cli_bench_validates_options_at_parse_time(tmp_path, capsys, args, msg):
+    base = {"--seconds": "1", "--out": str(tmp_path / "x.csv")}
+    base.update(dict(zip(args[::2], args[1::2], strict=True)))
+    argv = ["bench", "--dut", "lis3mdl"] + [x for kv in base.items() for x in kv]
+    assert main(argv) == 2
+    assert msg in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
+
+
+def test_threaded_session_stops_on_request(tmp_path):
+    import threading
+
+    clock = SystemClock()
+    stop = threading.Event()
+    timer = threading.Timer(0.5, stop.set)
+    timer.start()
+    try:
+        res = run_bench(_SlowDut(clock), _FlakyRef(clock), clock, tmp_path / "t.csv", seconds=30.0, ref_rate_hz=10.0,
+                        stop=stop)
+    finally:
+        timer.cancel()
+    assert res.completed and res.stopped_early and res.duration_s < 5.0
+    assert len(read_session(tmp_path / "t.csv")) == res.rows > 0
+
+
+def test_graceful_stop_turns_sigterm_into_an_event_and_restores_handlers():
+    import os
+    import signal
+    import time
+
+    from magstack.cli.interrupt import graceful_stop
+
+    before = signal.getsignal(signal.SIGTERM)
+    with graceful_stop() as stop:
+        os.kill(os.getpid(), signal.SIGTERM)
+        deadline = time.monotonic() + 5
+        while not stop.is_set() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert stop.is_set() and stop.signal_name == "SIGTERM"
+    assert signal.getsignal(signal.SIGTERM) == before

@@ -128,8 +128,13 @@ def test_cli_refuses_bad_arguments_and_never_overwrites_good_files(tmp_path, cap
     assert main(["fit", str(tmp_path / "a.csv"), "--no-holdout", "--out", str(out)]) == 0
     good = out.read_bytes()
     # wrong arguments: exit 2, typed message, the existing table untouched
-    for extra, msg in ((["--validity-temp", "30,20"], "finite LO < HI"), (["--validity-field", "nan"], "finite field"),
-                       (["--validity-temp=-100,20"], "must lie inside")):
+    for extra, msg in ((["--validity-temp", "30,20"], "argument --validity-temp: expected increasing values"),
+                       (["--validity-field", "nan"], "argument --validity-field: expected a finite number"),
+                       (["--validity-temp=-100,20"], "argument --validity-temp: must be within [-55, 125] degC"),
+                       # issue 17 item 11: an empty --out is a usage error naming the option, not a traceback
+                       (["--out", ""], "argument --out: expected a file name, got an empty string"),
+                       (["--t0", "inf"], "argument --t0: expected a finite number"),
+                       (["--block-s", "0"], "argument --block-s: must be within (0, 10000000] s")):
         capsys.readouterr()
         assert main(["fit", str(tmp_path / "a.csv"), "--no-holdout", "--out", str(out), *extra]) == 2
         assert msg in capsys.readouterr().err
@@ -145,7 +150,7 @@ def test_cli_refuses_bad_arguments_and_never_overwrites_good_files(tmp_path, cap
     bad.write_text(json.dumps(doc))
     for action, code in (("validate", 1), ("show", 3)):
         assert main(["table", action, str(bad)]) == code
-        assert "S has non-finite values" in capsys.readouterr().err
+        assert "parameters.S.value[1][1]: must be a finite number" in capsys.readouterr().err
     # apply: never onto its own input, never twice
     assert main(["apply", str(out), str(tmp_path / "a.csv"), "--out", str(tmp_path / "a.csv")]) == 2
     assert "is the input file" in capsys.readouterr().err

@@ -19,6 +19,7 @@ from magstack.sim.coil_programs import (
     pulse_current,
     register_program,
     rotation_profile,
+    spiral_rotation,
     square_current,
     steps_profile,
     sweep_profile,
@@ -83,6 +84,28 @@ def test_rotation_keeps_magnitude_and_covers_the_sphere():
     assert u[:, 2].max() > 0.99 and u[:, 2].min() < -0.99
     oct_ = {(np.sign(x), np.sign(y)) for x, y in u[:, :2] if abs(x) > 0.1 and abs(y) > 0.1}
     assert len(oct_) == 4
+
+
+def test_rotation_profile_is_the_spiral_rotation_of_z_in_the_stated_convention():
+    d, turns = 600.0, 4.0
+    t = np.linspace(-10.0, 610.0, 3001)
+    u = np.clip(t, 0.0, d) / d
+    theta, phi = np.pi * u, 2.0 * np.pi * turns * u
+    # independent closed form: unit vector at polar angle theta, azimuth phi
+    expected = 50.0 * np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], axis=1)
+    np.testing.assert_allclose(rotation_profile(d, 50.0, turns)(t), expected, rtol=0, atol=1e-12)
+    # R = Rz(phi) @ Ry(theta), active: columns are the turning frame's axes in body coordinates
+    k = 1234
+    c, s_ = np.cos, np.sin
+    rz = np.array([[c(phi[k]), -s_(phi[k]), 0], [s_(phi[k]), c(phi[k]), 0], [0, 0, 1]])
+    ry = np.array([[c(theta[k]), 0, s_(theta[k])], [0, 1, 0], [-s_(theta[k]), 0, c(theta[k])]])
+    rot = spiral_rotation(d, turns)(t[k:k + 1])
+    np.testing.assert_allclose(rot.as_matrix()[0], rz @ ry, atol=1e-14)
+    # scalar-last quaternion (x, y, z, w) of the same rotation
+    q = rot.as_quat()[0]
+    w = np.cos(theta[k] / 2) * np.cos(phi[k] / 2)
+    assert abs(abs(q[3]) - abs(w)) < 1e-14 and abs(np.linalg.norm(q) - 1.0) < 1e-15
+    assert rotation_profile(d)(np.array([])).shape == (0, 3)
 
 
 def test_large_field_reaches_pm150_on_each_axis_then_returns_to_zero():

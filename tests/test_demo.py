@@ -1,4 +1,4 @@
-"""``magstack demo``: the end-to-end run on the simulated bench (cli/demo.py, cli/commands/demo.py).
+"""``magstack demo``: the end-to-end run on the simulated bench (cli/demo/, cli/commands/demo.py).
 
 One demo run (600 s calibration session, 300 s held-out session) is shared by the figure
 tests; bounds come from the simulated sensor, not from a previous run: the HMC1053 preset's
@@ -12,12 +12,13 @@ import math
 import numpy as np
 import pytest
 
-from magstack.cli.demo import ARTEFACTS, DEVICE_ID, DemoConfig, FixedPointCorrector, run_demo
+from magstack.cli.demo import ARTEFACTS, DEVICE_ID, DemoConfig, run_demo
 from magstack.cli.main import main
 from magstack.data.session import read_session
 from magstack.drivers.clock import VirtualClock
 from magstack.drivers.errors import ConfigurationError, MagError
 from magstack.firmware.cal_table import CalTableStore, load_table
+from magstack.firmware.corrector import TableCorrector
 from magstack.firmware.fixed_point import to_fixed_inputs
 from magstack.firmware.float_applier import apply_float
 from magstack.ground.errors import AlignmentError
@@ -49,9 +50,10 @@ def _sim_axis_spacing_s() -> tuple[float, float]:
 def test_probe_identifies_every_chip_and_reads_them(demo):
     res, lines = demo
     p = res.probe
-    assert sorted(d["chip"] for d in p.devices) == ["hmc5983", "lis3mdl", "lsm303dlhc"]
+    # a freshly powered HMC5983 reads like an HMC5883L at 0x31/0x32: the probe says so (issue 12.4)
+    assert sorted(d["chip"] for d in p.devices) == ["hmc5883l_or_hmc5983", "lis3mdl", "lsm303dlhc"]
     # the shared 0x1E address resolved to different chips on the two buses
-    assert p.shared_address_chips == {"sim-i2c-1": "hmc5983", "sim-i2c-2": "lsm303dlhc"}
+    assert p.shared_address_chips == {"sim-i2c-1": "hmc5883l_or_hmc5983", "sim-i2c-2": "lsm303dlhc"}
     assert set(p.samples) == {"lis3mdl", "hmc5983", "lsm303dlhc", "hmc1053"}
     for chip, rows in p.samples.items():
         assert len(rows) == 3
@@ -153,27 +155,29 @@ def test_flight_loop_counts_injected_faults_and_keeps_running(demo):
     assert lp.health["error_count"] == 2 and lp.health["samples_ok"] == lp.cycles - 2
     assert lp.health["uncalibrated"] == 0
     faults = [p for p in lp.published if p["fault"]]
-    assert [p["fault"].split(":")[0] for p in faults] == ["bus", "timeout"]
+    assert [p["fault"].split(":")[0] for p in faults] == ["BusError", "BusTimeout"]
     after = [p for p in lp.published if p["cycle"] > faults[-1]["cycle"]]
     assert after and all(p["calibrated"] for p in after)
     assert lp.cal_error_norm_uT < RESIDUAL_BOUND_uT < lp.raw_error_norm_uT
-    rows = lp.path.read_text().splitlines()
-    assert len(rows) == lp.cycles + 1
+    tlm = read_session(lp.path)                  # the channel's telemetry is a session file
+    assert len(tlm) == lp.cycles and int(np.count_nonzero(tlm.flag)) == 2
+    assert lp.events["CHAN_BUS_ERROR/hmc1053"] == 1 and lp.events["CHAN_TIMEOUT/hmc1053"] == 1
+    assert lp.events_path.read_text().count('"CHAN_') == 2
 
 
 def test_corrector_matches_float_applier_and_needs_an_active_table(demo):
     res, _ = demo
     from magstack.drivers.magnetometer import MagSample
 
-    empty = FixedPointCorrector(CalTableStore(DEVICE_ID))
+    empty = TableCorrector(CalTableStore(DEVICE_ID))
     s = MagSample(0.0, (10.0, -20.0, 30.0), 30.0)
-    assert empty(s) is None
-    corr = FixedPointCorrector(res.table.store)
-    b = corr(s)
+    assert empty.correct(s.b_uT, s.temp_c).b_uT is None
+    corr = TableCorrector(res.table.store)
+    b = corr.correct(s.b_uT, s.temp_c).b_uT
     bi, ti, _, _ = to_fixed_inputs([s.b_uT], [s.temp_c])
     ref, _ = apply_float(res.table.table, bi / 1e3, ti / 1e2)
     assert np.max(np.abs(np.array(b) - ref[0])) * 1e3 < 0.5
-    assert corr(MagSample(0.0, (10.0, -20.0, 30.0), None)) is None  # the table needs temperature
+    assert corr.correct((10.0, -20.0, 30.0), None).b_uT is None  # the table needs temperature
 
 
 def test_files_exist_and_parse(demo):
@@ -197,15 +201,31 @@ def test_cli_demo_runs_and_is_deterministic(tmp_path, capsys):
     for n in range(1, 8):
         assert f"[{n}/7]" in text
     assert "summary" in text and "files written" in text
-    assert main(["demo", "--out-dir", str(b), "--seconds", "300", "--seed", "1"]) == 0
+    # the same run with --json: stdout holds only the summary figures as strict JSON
+    assert main(["demo", "--out-dir", str(b), "--seconds", "300", "--seed", "1", "--json"]) == 0
+    cap = capsys.readouterr()
+
+    def refuse(c):
+        raise ValueError(f"non-standard JSON constant {c}")
+
+    doc = json.loads(cap.out, parse_constant=refuse)
+    assert doc["command"] == "demo" and doc["exit_code"] == 0 and doc["out_dir"] == str(b)
+    assert {"probe", "bench", "align", "fit", "table", "holdout", "loop", "wall_s", "files"} <= set(doc)
+    assert doc["loop"]["health"]["error_count"] == 2 and cap.err == ""
     for name in ("session.csv", "session-paired.csv", "cal.json", "holdout-calibrated.csv", "flight-loop.csv"):
         assert (a / name).read_bytes() == (b / name).read_bytes(), name
 
 
 def test_cli_rejects_bad_parameters(tmp_path, capsys):
     assert main(["demo", "--out-dir", str(tmp_path), "--seconds", "10"]) == 2
-    assert "seconds must be in" in capsys.readouterr().err
+    assert "argument --seconds: must be within [300, 36000] s, got '10'" in capsys.readouterr().err
     assert main(["demo", "--out-dir", str(tmp_path), "--seed", "-1"]) == 2
+    assert "argument --seed: must be within [0, 4294967295], got '-1'" in capsys.readouterr().err
+    assert main(["demo", "--out-dir", ""]) == 2
+    assert "argument --out-dir: expected a directory name" in capsys.readouterr().err
+    (tmp_path / "file").write_text("x")
+    assert main(["demo", "--out-dir", str(tmp_path / "file")]) == 2
+    assert "exists and is not a directory" in capsys.readouterr().err
     with pytest.raises(ConfigurationError):
         DemoConfig(seconds=math.nan)
 

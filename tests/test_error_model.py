@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
 
 from magstack.drivers.errors import ConfigurationError
 from magstack.firmware.effects import EFFECT_NAMES
@@ -128,6 +129,23 @@ def test_misalignment_angles_between_sensor_axes():
     np.testing.assert_allclose(np.linalg.norm(m, axis=1), 1.0)  # pure geometry: no scale
     r = misalignment_matrix(np.zeros(3), np.array([0.0, 0.0, 0.1]))
     np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
+
+
+def test_misalignment_rotation_is_the_active_scipy_rotation_of_the_rotation_vector():
+    th = 0.1
+    r = misalignment_matrix(np.zeros(3), np.array([0.0, 0.0, th]))
+    # b_sensor = R b_body, R active: a field along body x reads (cos th, sin th, 0) on the sensor axes
+    np.testing.assert_allclose(r, [[math.cos(th), -math.sin(th), 0.0], [math.sin(th), math.cos(th), 0.0],
+                                   [0.0, 0.0, 1.0]], atol=1e-15)
+    rv = np.array([0.01, -0.02, 0.03])
+    np.testing.assert_array_equal(misalignment_matrix(np.zeros(3), rv), Rotation.from_rotvec(rv).as_matrix())
+    # the non-orthogonal part multiplies from the left: M = W R
+    a = np.array([0.01, -0.02, 0.015])
+    np.testing.assert_allclose(misalignment_matrix(a, rv), misalignment_matrix(a, np.zeros(3)) @ r_of(rv), atol=1e-15)
+
+
+def r_of(rotvec):
+    return Rotation.from_rotvec(rotvec).as_matrix()
 
 
 def test_gain_is_matrix_product():
@@ -299,16 +317,16 @@ def test_sense_and_sense_series_identical_for_same_seed():
     series = ErrorModel(p, seed=9).sense_series(t, truth)
     m = ErrorModel(p, seed=9)
     single = np.array([m.sense(x, truth) for x in t])
-    np.testing.assert_allclose(single, series, atol=1e-12)
+    np.testing.assert_array_equal(single, series)
     # split series continue the state
     m2 = ErrorModel(p, seed=9)
     split = np.vstack([m2.sense_series(t[:300], truth), m2.sense_series(t[300:], truth)])
-    np.testing.assert_allclose(split, series, atol=1e-12)
+    np.testing.assert_array_equal(split, series)
     # non-uniform spacing uses the general path; same seed, same result both ways
     tn = np.cumsum(np.random.default_rng(0).uniform(0.005, 0.02, 400))
     a = ErrorModel(p, seed=9).sense_series(tn, truth)
     m3 = ErrorModel(p, seed=9)
-    np.testing.assert_allclose(np.array([m3.sense(x, truth) for x in tn]), a, atol=1e-12)
+    np.testing.assert_array_equal(np.array([m3.sense(x, truth) for x in tn]), a)
 
 
 def test_effect_off_removes_exactly_its_contribution_among_all_others():

@@ -7,7 +7,18 @@ from magstack.drivers.bus.i2c import I2CDevice, I2CRead, I2CWrite
 from magstack.drivers.errors import BusError
 from magstack.sim.hmc5983_model import HMC5983Model
 from magstack.sim.i2c_bus import SimI2CBus
-from magstack.sim.i2c_register_model import RO, RW, WO, IdealSensor, Reg, RegisterFileModel
+from magstack.sim.i2c_register_model import (
+    LINTS,
+    PART_FAITHFUL,
+    RO,
+    RW,
+    STRICT,
+    WO,
+    IdealSensor,
+    Reg,
+    RegisterFileModel,
+    default_lints,
+)
 from magstack.sim.lis3mdl_model import LIS3MDLModel
 from magstack.sim.lsm303dlhc_model import LSM303DLHCModel
 from magstack.sim.truth_source import StaticTruth
@@ -19,18 +30,19 @@ def _dev(model, address=0x40):
     return bus, I2CDevice(bus, address)
 
 
-def _model():
+def _model(lints=None):
     return RegisterFileModel([Reg(0x00, "CFG", RW, 0x12, fixed_mask=0x80), Reg(0x01, "ID", RO, 0x5A),
-                              Reg(0x02, "CMD", WO, 0x00)], name="toy", address=0x40)
+                              Reg(0x02, "CMD", WO, 0x00)], name="toy", address=0x40, lints=lints)
 
 
-def test_power_on_values_and_modes():
-    bus, dev = _dev(_model())
+def test_power_on_values_and_strict_lints():
+    """With every lint on, illegal accesses NACK loudly (opt-in, stricter than the parts)."""
+    bus, dev = _dev(_model(lints=STRICT))
     assert dev.read_registers(0x00, 2) == b"\x12\x5a"
     dev.write_register(0x02, 0x33)
-    with pytest.raises(BusError, match="read-only"):
+    with pytest.raises(BusError, match="read-only.*nack_illegal_write"):
         dev.write_register(0x01, 0x00)
-    with pytest.raises(BusError, match="write-only"):
+    with pytest.raises(BusError, match="write-only.*nack_invalid_address"):
         dev.read_register(0x02)
     with pytest.raises(BusError, match="unmapped"):
         dev.read_register(0x07)
@@ -41,8 +53,36 @@ def test_power_on_values_and_modes():
     assert dev.read_register(0x00) == 0x12
 
 
+def test_default_is_the_parts_behaviour_invalid_reads_zero_writes_ignored():
+    """HMC5883L p.11 / LSM303DLHC p.21: an invalid address reads 0's; a write to an invalid address
+    or an undefined bit is ignored (and acknowledged). The models used to NACK."""
+    model = _model()
+    bus, dev = _dev(model)
+    assert model.lints == frozenset()
+    assert dev.read_register(0x07) == 0x00            # unmapped
+    assert dev.read_register(0x02) == 0x00            # write-only
+    assert dev.read_registers(0x00, 4) == b"\x12\x5a\x00\x00"
+    dev.write_register(0x07, 0x55)                    # ignored, no NACK
+    assert dev.read_register(0x07) == 0x00
+    dev.write_register(0x01, 0x00)                    # read-only: ignored
+    assert dev.read_register(0x01) == 0x5A
+    dev.write_register(0x00, 0x93)                    # undefined bit 7 ignored, the rest stored
+    assert dev.read_register(0x00) == 0x13
+
+
+def test_lint_names_are_checked_and_the_default_profile_can_be_switched(clock):
+    from magstack.drivers.errors import ConfigurationError
+
+    with pytest.raises(ConfigurationError, match="nack_invalid_address"):
+        _model(lints=("nack_everything",))
+    with default_lints(STRICT):
+        assert HMC5983Model(clock, StaticTruth(), IdealSensor()).lints == LINTS
+        assert LIS3MDLModel(clock, StaticTruth(), IdealSensor()).strict_auto_increment
+    assert HMC5983Model(clock, StaticTruth(), IdealSensor()).lints == PART_FAITHFUL
+
+
 def test_bus_error_carries_address():
-    bus, dev = _dev(_model())
+    bus, dev = _dev(_model(lints=STRICT))
     with pytest.raises(BusError) as e:
         dev.read_register(0x09)
     assert e.value.address == 0x40
@@ -83,21 +123,28 @@ def test_nack_injection_and_absent_device():
 
 def test_lis3mdl_auto_increment_rules(clock):
     truth = StaticTruth()
-    m = LIS3MDLModel(clock, truth, IdealSensor())
+    strict = LIS3MDLModel(clock, truth, IdealSensor(), strict_auto_increment=True)
     bus = SimI2CBus()
-    bus.attach(0x1C, m)
-    # multi-byte read without the 0x80 flag fails loudly in strict mode
-    with pytest.raises(BusError, match="auto-increment"):
+    bus.attach(0x1C, strict)
+    # opt-in lint: a multi-byte read without the 0x80 flag fails loudly
+    with pytest.raises(BusError, match="auto-increment.*strict_auto_increment"):
         bus.transfer(0x1C, [I2CWrite(b"\x28"), I2CRead(6)])
     # with the flag, the output block wraps 0x2D -> 0x28 (8 bytes = X, Y, Z, X again)
-    m.values[0x28:0x2E] = bytes([1, 2, 3, 4, 5, 6])
+    strict.values[0x28:0x2E] = bytes([1, 2, 3, 4, 5, 6])
     (data,) = bus.transfer(0x1C, [I2CWrite(b"\xa8"), I2CRead(8)])
     assert data == bytes([1, 2, 3, 4, 5, 6, 1, 2])
-    lax = LIS3MDLModel(clock, truth, IdealSensor(), strict_auto_increment=False)
-    bus.attach(0x1E, lax)
-    lax.values[0x28:0x2E] = bytes([1, 2, 3, 4, 5, 6])
-    (data,) = bus.transfer(0x1E, [I2CWrite(b"\x28"), I2CRead(6)])
-    assert data == bytes([1, 2, 3, 4, 5, 6])
+
+
+def test_lis3mdl_default_auto_increments_without_the_flag_like_the_part(clock):
+    """ArduPilot/PX4/Adafruit read 0x28 without SUB bit 7 on I2C; PX4 issue #12514 shows the part
+    incrementing and wrapping 0x2D -> 0x28. The model used to refuse this by default."""
+    m = LIS3MDLModel(clock, StaticTruth(), IdealSensor())
+    bus = SimI2CBus()
+    bus.attach(0x1C, m)
+    assert not m.strict_auto_increment
+    m.values[0x28:0x2E] = bytes([1, 2, 3, 4, 5, 6])
+    (data,) = bus.transfer(0x1C, [I2CWrite(b"\x28"), I2CRead(8)])
+    assert data == bytes([1, 2, 3, 4, 5, 6, 1, 2])
 
 
 @pytest.mark.parametrize("cls", [HMC5983Model, LSM303DLHCModel])

@@ -25,6 +25,9 @@ from magstack.sim.i2c_register_model import IdealSensor, default_sensor
 from magstack.sim.lsm303dlhc_model import LSM303DLHCModel
 from magstack.sim.truth_source import StaticTruth
 
+#: every test runs against the part-faithful simulator and against the strict lints (issue 12)
+pytestmark = pytest.mark.usefixtures("sim_profile")
+
 
 def rig(b_uT=(20.0, -5.0, 40.0), temp_c=25.0, sensor=None, model_temp_offset_c=20.0, **driver_kw):
     clock = VirtualClock()

@@ -70,9 +70,20 @@ def test_effects_option_only_selected_effects(tmp_path):
 @pytest.mark.parametrize("args,msg", [
     (["--effects", "offset,bogus"], "unknown effect 'bogus'"),
     (["--without", "nope"], "unknown effect 'nope'"),
-    (["--program", "nope"], "unknown program 'nope'"),
+    (["--program", "nope"], "invalid choice: 'nope'"),
     (["--seed", "-1"], "--seed"),
-    (["--seconds", "-5"], "duration"),
+    (["--seconds", "-5"], "argument --seconds: must be within (0, 7776000] s, got '-5'"),
+    # issue 17 item 11: every option validated at parse time, the option named
+    (["--t0", "inf"], "argument --t0: expected a finite number"),
+    (["--t0", "nan"], "argument --t0: expected a finite number"),
+    (["--t0", "-1"], "argument --t0: must be within [0, 4102444800] s"),
+    (["--rate-hz", "1e-300"], "argument --rate-hz: must be within [0.001, 10000] Hz"),
+    (["--sessions", "100000"], "argument --sessions: must be within [1, 1000]"),
+    (["--sessions", "200", "--seconds", "60"], "fewer than 5 per session for --sessions 200"),
+    (["--interference", "x=1,2,3"], "--interference: program 'steps_xyz' has no current x (its currents: none)"),
+    (["--program", "currents", "--interference", "x=1,2,3"], "no current x (its currents: solar_A, torquer_A)"),
+    (["--interference", "solar_A=1,2,inf"], "argument --interference: expected finite numbers"),
+    (["--seed", "1.5"], "argument --seed: expected an integer"),
     (["--rate-hz", "0"], "--rate-hz"),
     (["--interference", "solar_A=1,2"], "--interference"),
 ])
@@ -83,9 +94,17 @@ def test_bad_options_give_clean_errors(tmp_path, capsys, args, msg):
     assert not (tmp_path / "x.csv").exists()
 
 
+def test_empty_out_is_a_usage_error(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(["simulate", "--out", ""]) == 2
+    assert "argument --out: expected a file name, got an empty string" in capsys.readouterr().err
+    assert main(["simulate", "--out", str(tmp_path)]) == 2
+    assert "is a directory" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
+
+
 def test_help_lists_programs(capsys):
-    with pytest.raises(SystemExit):
-        main(["simulate", "--help"])
+    assert main(["simulate", "--help"]) == 0
     text = capsys.readouterr().out
     for name in PROGRAMS:
         assert name in text

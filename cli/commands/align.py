@@ -2,10 +2,12 @@
 from __future__ import annotations
 
 import argparse
-import json
 
 import numpy as np
 
+from magstack.cli.options import finite_float, nonempty_path
+from magstack.cli.output import CommandResult
+from magstack.cli.progress import stages
 from magstack.data.session import read_session, refuse_overwriting_inputs, write_session
 from magstack.drivers.errors import ConfigurationError
 from magstack.ground.alignment import align_streams, aligned_session
@@ -16,24 +18,25 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("align", help="estimate clock offset, per-axis time skew and axis map",
                               description="Inputs: one session file (its ref_* columns are aligned against its "
                                           "dut_* columns), or an AV-MagEval pair DATA.csv REF.csv. Exit 2 with "
-                                          "an error when the data cannot determine the clock offset.")
+                                          "an error (exit 3) when the data cannot determine the clock offset.")
     p.add_argument("inputs", nargs="+", help="SESSION.csv | DATA.csv REF.csv")
-    p.add_argument("--prior-s", type=float, default=None,
+    p.add_argument("--prior-s", type=finite_float(-1e7, 1e7, unit="s"), default=None,
                    help="expected offset (s added to reference time); with --halfwidth-s limits the search")
-    p.add_argument("--halfwidth-s", type=float, default=None,
+    p.add_argument("--halfwidth-s", type=finite_float(0, 1e7, lo_open=True, unit="s"), default=None,
                    help="search prior +- this (s). Default for a session file: 0 +- 10 s (both streams carry "
                         "host timestamps); for a DATA/REF pair: every offset with >= 50%% overlap")
-    p.add_argument("--max-gap-s", type=float, default=None, help="never interpolate across a longer gap (s)")
-    p.add_argument("--min-r2", type=float, default=0.9, help="minimum explained variance to accept the offset")
+    p.add_argument("--max-gap-s", type=finite_float(0, 1e6, lo_open=True, unit="s"), default=None,
+                   help="never interpolate across a longer gap (s)")
+    p.add_argument("--min-r2", type=finite_float(0, 1), default=0.9,
+                   help="minimum explained variance to accept the offset, 0..1 (default 0.9)")
     p.add_argument("--temp-model", choices=("auto", "on", "off"), default="auto",
                    help="add the Eq. 3 temperature columns (field*dT, dT) to the regressions: auto = when the "
                         "DUT temperature spans at least --min-temp-span-c (default auto)")
-    p.add_argument("--min-temp-span-c", type=float, default=1.0,
+    p.add_argument("--min-temp-span-c", type=finite_float(0, 200, unit="degC"), default=1.0,
                    help="temperature span (degC, 2..98 %% percentiles) above which auto uses the temperature model")
     p.add_argument("--temp-order", type=int, choices=(1, 2), default=2,
                    help="temperature terms: 1 = belsten Eq. 3 (field*dT, dT); 2 = also field*dT^2, dT^2 (default)")
-    p.add_argument("--json", action="store_true", help="print the report as JSON")
-    p.add_argument("--out", default=None,
+    p.add_argument("--out", default=None, type=nonempty_path,
                    help="write the paired session: reference interpolated onto the DUT timestamps at the "
                         "estimated offset (session input only; for DATA/REF use import-mageval)")
     p.add_argument("--correct-skew", action="store_true", help="with --out: also re-sample determined DUT axes")
@@ -58,41 +61,46 @@ def _load(inputs: list[str], prior: float | None, halfwidth: float | None):
     raise ConfigurationError(f"give one session file or DATA.csv REF.csv, got {len(inputs)} paths")
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> CommandResult:
     if args.out and len(args.inputs) != 1:
         raise ConfigurationError("--out needs a session file input; for DATA.csv REF.csv use import-mageval")
     if args.out:
         refuse_overwriting_inputs(args.out, args.inputs)
-    t_dut, dut, t_ref, ref, prior, halfwidth, temp_c = _load(args.inputs, args.prior_s, args.halfwidth_s)
-    rep = align_streams(t_dut, dut, t_ref, ref, prior_s=prior, search_halfwidth_s=halfwidth,
-                        max_gap_s=args.max_gap_s, min_r2=args.min_r2, temp_c=temp_c, temp_model=args.temp_model,
-                        min_temp_span_c=args.min_temp_span_c, temp_order=args.temp_order)
-    if args.json:
-        print(json.dumps(rep.as_dict(), indent=2))
-        return 0
+    with stages("align", ["read", "estimate offset, skew, axis map", "write paired session"]) as st:
+        st.next()
+        t_dut, dut, t_ref, ref, prior, halfwidth, temp_c = _load(args.inputs, args.prior_s, args.halfwidth_s)
+        st.next()
+        rep = align_streams(t_dut, dut, t_ref, ref, prior_s=prior, search_halfwidth_s=halfwidth,
+                            max_gap_s=args.max_gap_s, min_r2=args.min_r2, temp_c=temp_c, temp_model=args.temp_model,
+                            min_temp_span_c=args.min_temp_span_c, temp_order=args.temp_order)
+        lines = _report_lines(rep)
+        data = {**rep.as_dict(), "out": None, "paired_rows": None, "gap_rows": None}
+        if args.out:
+            st.next()
+            paired = aligned_session(read_session(args.inputs[0]), rep, correct_skew=args.correct_skew,
+                                     max_gap_s=args.max_gap_s, gaps="drop" if args.drop_gaps else "nan")
+            write_session(args.out, paired)
+            gaps = int(paired.metadata["gap_rows"])
+            data.update(out=str(args.out), paired_rows=len(paired), gap_rows=gaps)
+            lines.append(f"wrote {args.out}: {len(paired)} paired rows ({gaps} without reference, "
+                         f"{paired.metadata['gap_policy']})")
+    return CommandResult("align", data, lines)
+
+
+def _report_lines(rep) -> list[str]:
     o = rep.offset
     runner_up = ("no other minimum in the search window" if not np.isfinite(o.runner_up_ratio)
                  else f"next minimum {o.runner_up_ratio:.1f}x worse")
-    print(f"model: {rep.model}")
-    print(f"clock offset: {o.offset_s:.4f} s +- {o.sigma_s:.4f} s (add to reference time); "
-          f"R2 {o.r2:.6f}; {o.n_pairs} pairs; {runner_up}")
+    lines = [f"model: {rep.model}",
+             f"clock offset: {o.offset_s:.4f} s +- {o.sigma_s:.4f} s (add to reference time); "
+             f"R2 {o.r2:.6f}; {o.n_pairs} pairs; {runner_up}"]
     for ax, e in zip("xyz", rep.skew_s, strict=True):
         state = "" if e.determined else f"  UNDETERMINED: {e.reason}"
-        print(f"skew {ax}: {e.value:+.4f} s +- {e.sigma:.4f} s{state}")
-    print(f"axis map: {rep.axis_map.describe()}")
-    r = rep.rmse_uT
-    print(f"linear-fit RMSE after alignment: x {r['x'] * 1e3:.1f} nT, y {r['y'] * 1e3:.1f} nT, "
-          f"z {r['z'] * 1e3:.1f} nT, vector {r['vector'] * 1e3:.1f} nT (n={r['n']})")
-    if rep.rmse_model_uT is not None:
-        r = rep.rmse_model_uT
-        print(f"temperature-model RMSE after alignment: x {r['x'] * 1e3:.1f} nT, y {r['y'] * 1e3:.1f} nT, "
-              f"z {r['z'] * 1e3:.1f} nT, vector {r['vector'] * 1e3:.1f} nT (n={r['n']})")
-    for n in rep.notes:
-        print(f"note: {n}")
-    if args.out:
-        paired = aligned_session(read_session(args.inputs[0]), rep, correct_skew=args.correct_skew,
-                                 max_gap_s=args.max_gap_s, gaps="drop" if args.drop_gaps else "nan")
-        write_session(args.out, paired)
-        print(f"wrote {args.out}: {len(paired)} paired rows ({paired.metadata['gap_rows']} without reference, "
-              f"{paired.metadata['gap_policy']})")
-    return 0
+        lines.append(f"skew {ax}: {e.value:+.4f} s +- {e.sigma:.4f} s{state}")
+    lines.append(f"axis map: {rep.axis_map.describe()}")
+    for name, r in (("linear-fit", rep.rmse_uT), ("temperature-model", rep.rmse_model_uT)):
+        if r is not None:
+            lines.append(f"{name} RMSE after alignment: x {r['x'] * 1e3:.1f} nT, y {r['y'] * 1e3:.1f} nT, "
+                         f"z {r['z'] * 1e3:.1f} nT, vector {r['vector'] * 1e3:.1f} nT (n={r['n']})")
+    lines += [f"note: {n}" for n in rep.notes]
+    return lines

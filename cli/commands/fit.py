@@ -2,8 +2,10 @@
 from __future__ import annotations
 
 import argparse
-import math
 
+from magstack.cli.options import finite_float, float_list, nonempty_path
+from magstack.cli.output import CommandResult, say
+from magstack.cli.progress import stages
 from magstack.data.session import load_sessions, refuse_overwriting_inputs
 from magstack.drivers.errors import ConfigurationError
 from magstack.firmware.cal_table import BOUNDS as TABLE_BOUNDS
@@ -30,72 +32,67 @@ def register(subparsers) -> None:
                    help=f"extra terms (comma or space separated): {', '.join(CAL_TERMS)}")
     p.add_argument("--currents", default="", metavar="NAME,...", help="current columns to fit (D_k terms)")
     p.add_argument("--robust", action="store_true", help="Huber IRLS instead of plain least squares")
-    p.add_argument("--t0", type=float, default=25.0, help="reference temperature t0_c, degC (default 25)")
-    p.add_argument("--exclude-steps", type=float, default=None, metavar="UT",
+    t_lo, t_hi = TABLE_BOUNDS["temp_c"]
+    p.add_argument("--t0", type=finite_float(t_lo, t_hi, unit="degC"), default=25.0,
+                   help=f"reference temperature t0_c, {t_lo:g}..{t_hi:g} degC (default 25)")
+    p.add_argument("--exclude-steps", type=finite_float(0, 1e4, lo_open=True, unit="uT"), default=None, metavar="UT",
                    help="exclude rows next to a reference change above UT between rows (field transitions)")
-    p.add_argument("--min-temp-span", type=float, default=5.0, metavar="DEGC",
+    p.add_argument("--min-temp-span", type=finite_float(0, 500, unit="degC"), default=5.0, metavar="DEGC",
                    help="temperature span needed to fit temperature terms (default 5)")
-    p.add_argument("--field-present", type=float, default=5.0, metavar="UT",
+    p.add_argument("--field-present", type=finite_float(0, 1e4, unit="uT"), default=5.0, metavar="UT",
                    help="|B| counted as field on an axis for coverage rules (default 5)")
     p.add_argument("--refuse-unidentifiable", action="store_true",
                    help="fail instead of holding undetermined parameters at their prior")
     p.add_argument("--no-holdout", action="store_true", help="skip held-out evaluation")
-    p.add_argument("--block-s", type=float, default=60.0, help="time-block length for held-out folds (s)")
+    p.add_argument("--block-s", type=finite_float(0, 1e7, lo_open=True, unit="s"), default=60.0,
+                   help="time-block length for held-out folds (s, default 60)")
     p.add_argument("--device-id", default=None, help="device id for the table (default: session metadata)")
     p.add_argument("--description", default="")
     p.add_argument("--validity-temp", default=None, metavar="LO,HI",
+                   type=float_list(2, t_lo, t_hi, unit="degC", ordered=True),
                    help="table validity temperature range, degC (default: the data's range; write a negative LO as "
                         "--validity-temp=-20,60)")
-    p.add_argument("--validity-field", type=float, default=None, metavar="UT",
+    p.add_argument("--validity-field", type=finite_float(0, 1e4, lo_open=True, unit="uT"), default=None,
+                   metavar="UT",
                    help="table validity |B| per axis, uT (default: the data's maximum)")
-    p.add_argument("--out", required=True, metavar="cal.json")
+    p.add_argument("--out", required=True, metavar="cal.json", type=nonempty_path)
     p.set_defaults(func=run)
 
 
-def _validity_args(args) -> tuple[float, float] | None:
-    """Check --validity-temp / --validity-field before any work (ConfigurationError)."""
-    if args.validity_field is not None and not (math.isfinite(args.validity_field) and args.validity_field > 0):
-        raise ConfigurationError(f"--validity-field must be a finite field > 0 uT, got {args.validity_field}")
-    if not args.validity_temp:
-        return None
-    try:
-        lo, hi = (float(x) for x in args.validity_temp.split(","))
-    except ValueError:
-        raise ConfigurationError(f"--validity-temp wants LO,HI in degC, got {args.validity_temp!r}") from None
-    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-        raise ConfigurationError(f"--validity-temp wants finite LO < HI in degC, got {args.validity_temp!r}")
-    t_lo, t_hi = TABLE_BOUNDS["temp_c"]
-    if not (t_lo <= lo and hi <= t_hi):
-        raise ConfigurationError(f"--validity-temp must lie inside [{t_lo:g}, {t_hi:g}] degC, "
-                                 f"got {args.validity_temp!r}")
-    return lo, hi
-
-
-def run(args: argparse.Namespace) -> int:
-    vt = _validity_args(args)
+def run(args: argparse.Namespace) -> CommandResult:
     unknown = [t for t in _split(args.terms) if t not in CAL_TERMS]
     if unknown:
         raise ConfigurationError(f"--terms: unknown term(s) {unknown}; valid: {', '.join(CAL_TERMS)}")
     refuse_overwriting_inputs(args.out, args.sessions)
-    session, notes = load_sessions(args.sessions)
-    device_id = args.device_id or session.metadata.get("device_id") or session.metadata.get("dut_chip")
-    if not device_id:
-        raise FitError("no device id in the session metadata: pass --device-id")
-    opts = FitOptions(robust=args.robust, on_unidentifiable="refuse" if args.refuse_unidentifiable else "hold",
-                      min_temp_span_c=args.min_temp_span, field_present_uT=args.field_present,
-                      holdout=not args.no_holdout, block_s=args.block_s, exclude_ref_steps_uT=args.exclude_steps)
-    result = fit(FitData.from_session(session), args.model, _split(args.terms), _split([args.currents]),
-                 args.t0, opts)
-    for n in notes:
-        print(f"note: {n}")
-    print(result.report())
-    table = table_from_fit(result, device_id, description=args.description or
-                           f"fit of {', '.join(str(p) for p in args.sessions)}",
-                           validity_temp_c=vt, validity_field_uT=args.validity_field)
-    v = validate(table)
-    if not v.ok:   # never replace a file (perhaps a good table) with one the board would refuse
-        raise CalTableInvalid(f"fitted table fails validation, {args.out} not written: " + "; ".join(v.problems))
-    save_table(table, args.out)
-    print(f"\nwrote {args.out} (device {device_id}, crc32 {table.to_document()['crc32']})")
-    print(f"table validates: worst-case output {v.worst_output_uT:.1f} uT, max cond {v.max_cond:.3g}")
-    return 0
+    fit_stage = "fit" if args.no_holdout else "fit + held-out folds"
+    with stages("fit", ["read sessions", fit_stage, "validate + write table"]) as st:
+        st.next()
+        session, notes = load_sessions(args.sessions)
+        device_id = args.device_id or session.metadata.get("device_id") or session.metadata.get("dut_chip")
+        if not device_id:
+            raise FitError("no device id in the session metadata: pass --device-id")
+        opts = FitOptions(robust=args.robust, on_unidentifiable="refuse" if args.refuse_unidentifiable else "hold",
+                          min_temp_span_c=args.min_temp_span, field_present_uT=args.field_present,
+                          holdout=not args.no_holdout, block_s=args.block_s, exclude_ref_steps_uT=args.exclude_steps)
+        st.next()
+        result = fit(FitData.from_session(session), args.model, _split(args.terms), _split([args.currents]),
+                     args.t0, opts)
+        st.next()
+        report = result.report()
+        table = table_from_fit(result, device_id, description=args.description or
+                               f"fit of {', '.join(str(p) for p in args.sessions)}",
+                               validity_temp_c=args.validity_temp, validity_field_uT=args.validity_field)
+        v = validate(table)
+        if not v.ok:   # never replace a file (perhaps a good table) with one the board would refuse
+            say(report)   # the report explains why; the error itself stays one line
+            raise CalTableInvalid(f"fitted table fails validation, {args.out} not written: " + "; ".join(v.problems))
+        save_table(table, args.out)
+    crc = table.to_document()["crc32"]
+    lines = [f"note: {n}" for n in notes] + [report,
+             f"\nwrote {args.out} (device {device_id}, crc32 {crc})",
+             f"table validates: worst-case output {v.worst_output_uT:.1f} uT, max cond {v.max_cond:.3g}"]
+    data = {"out": str(args.out), "device_id": device_id, "crc32": crc, "model": result.model.name,
+            "terms": _split(args.terms), "currents": _split([args.currents]), "stats": result.stats(),
+            "validation": {"ok": v.ok, "worst_output_uT": v.worst_output_uT, "max_cond": v.max_cond},
+            "notes": notes}
+    return CommandResult("fit", data, lines)

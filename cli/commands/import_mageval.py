@@ -3,6 +3,9 @@ from __future__ import annotations
 
 import argparse
 
+from magstack.cli.options import finite_float, int_range, nonempty_path
+from magstack.cli.output import CommandResult
+from magstack.cli.progress import stages
 from magstack.data.session import refuse_overwriting_inputs, write_session
 from magstack.drivers.errors import ConfigurationError
 from magstack.ground.mageval_import import AUTHORS_OFFSET_S, import_mageval
@@ -15,38 +18,56 @@ def register(subparsers) -> None:
                                           "interpolation without extrapolation, gaps marked or dropped.")
     p.add_argument("data_csv", help="dataN.csv (DUT logger)")
     p.add_argument("ref_csv", help="refN.csv (reference fluxgate)")
-    p.add_argument("--out", required=True, help="session file to write")
+    p.add_argument("--out", required=True, type=nonempty_path, help="session file to write")
     p.add_argument("--temp-column", choices=("temp_pi", "temp_mag"), default="temp_pi",
                    help="kelvin column used as temp_c (default temp_pi, as the authors)")
-    p.add_argument("--clock-offset-s", type=float, default=None,
+    p.add_argument("--clock-offset-s", type=finite_float(-1e6, 1e6, unit="s"), default=None,
                    help="seconds added to the reference clock (default: estimate from the data)")
     p.add_argument("--authors-offset", action="store_true",
                    help=f"use the authors' manual correction {AUTHORS_OFFSET_S} s instead of estimating")
     p.add_argument("--strict-offset", action="store_true",
                    help="fail if the data do not determine the offset (default: fall back to the authors' value)")
     p.add_argument("--onto", default="dut",
-                   help="'dut' (default), 'ref', or a uniform grid step in s (authors: 0.25)")
-    p.add_argument("--max-gap-s", type=float, default=1.0, help="never interpolate across a longer gap (s)")
+                   help="'dut' (default), 'ref', or a uniform grid step in s, 0.001..3600 (authors: 0.25)")
+    p.add_argument("--max-gap-s", type=finite_float(0, 1e6, lo_open=True, unit="s"), default=1.0,
+                   help="never interpolate across a longer gap (s)")
     p.add_argument("--drop-gaps", action="store_true", help="drop rows without a partner instead of NaN + flag")
     p.add_argument("--skip-bad-lines", action="store_true", help="skip (and count) unparsable lines")
-    p.add_argument("--session-id", type=int, default=0, help="integer run id for the session column")
+    p.add_argument("--session-id", type=int_range(0, 2 ** 31 - 1), default=0,
+                   help="integer run id for the session column")
     p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
+#: Accepted uniform grid step for --onto (s).
+ONTO_STEP_RANGE_S = (0.001, 3600.0)
+
+
+def _onto(text: str) -> str | float:
+    if text in ("dut", "ref"):
+        return text
     try:
-        onto: str | float = args.onto if args.onto in ("dut", "ref") else float(args.onto)
-    except ValueError:
-        raise ConfigurationError(f"--onto must be 'dut', 'ref' or a grid step in s, got {args.onto!r}") from None
+        return finite_float(*ONTO_STEP_RANGE_S, unit="s")(text)
+    except argparse.ArgumentTypeError as exc:
+        raise ConfigurationError(f"--onto must be 'dut', 'ref' or a grid step in s: {exc}") from None
+
+
+def run(args: argparse.Namespace) -> CommandResult:
+    onto = _onto(args.onto)
     refuse_overwriting_inputs(args.out, [args.data_csv, args.ref_csv])
     offset = AUTHORS_OFFSET_S if args.authors_offset else args.clock_offset_s
-    s = import_mageval(args.data_csv, args.ref_csv, temp_column=args.temp_column, clock_offset_s=offset,
-                       on_undetermined="raise" if args.strict_offset else "prior", onto=onto,
-                       max_gap_s=args.max_gap_s, gaps="drop" if args.drop_gaps else "nan",
-                       bad_lines="skip" if args.skip_bad_lines else "raise", session_id=args.session_id)
-    write_session(args.out, s)
+    with stages("import-mageval", ["read, estimate offset, pair", "write"]) as st:
+        st.next()
+        s = import_mageval(args.data_csv, args.ref_csv, temp_column=args.temp_column, clock_offset_s=offset,
+                           on_undetermined="raise" if args.strict_offset else "prior", onto=onto,
+                           max_gap_s=args.max_gap_s, gaps="drop" if args.drop_gaps else "nan",
+                           bad_lines="skip" if args.skip_bad_lines else "raise", session_id=args.session_id)
+        st.next()
+        write_session(args.out, s)
     m = s.metadata
-    print(f"wrote {args.out}: {len(s)} rows; clock offset {m['clock_offset_s']} s "
-          f"({m['clock_offset_vs_authors_s']} s vs authors, sigma {m['clock_offset_sigma_s']} s, "
-          f"{m['clock_offset_method']}); gap rows {m['gap_rows']} ({m['gap_policy']})")
-    return 0
+    keys = ("clock_offset_s", "clock_offset_vs_authors_s", "clock_offset_sigma_s", "clock_offset_method", "gap_rows",
+            "gap_policy")
+    data = {"out": str(args.out), "rows": len(s), **{k: m.get(k) for k in keys}}
+    return CommandResult("import-mageval", data, [
+        f"wrote {args.out}: {len(s)} rows; clock offset {m['clock_offset_s']} s "
+        f"({m['clock_offset_vs_authors_s']} s vs authors, sigma {m['clock_offset_sigma_s']} s, "
+        f"{m['clock_offset_method']}); gap rows {m['gap_rows']} ({m['gap_policy']})"])

@@ -6,23 +6,15 @@ Exit status 0 when at least one known magnetometer was found, 1 otherwise.
 """
 from __future__ import annotations
 
-from magstack.drivers.i2c_probe import ProbeResult, probe
+from magstack.cli.output import CommandResult
+from magstack.drivers.i2c_probe import PROBE_TABLE_HEADER, ProbeResult, driver_for, format_probe_result, probe
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("probe", help="scan I2C bus(es) and identify magnetometers",
-                              description=__doc__.split("\n\n")[0])
+                              description=__doc__.split("\n\n")[0].replace("``", ""))
     p.add_argument("--bus", default="sim", help="'sim' (default simulated bench) or an I2C bus: 1 or /dev/i2c-1")
     p.set_defaults(func=run)
-
-
-def _ident(r: ProbeResult) -> str:
-    text = "".join(chr(b) if 0x20 <= b < 0x7F else "." for b in r.identity)
-    return f"{r.identity.hex(' ')} '{text}'"
-
-
-def format_result(bus_name: str, r: ProbeResult) -> str:
-    return f"{bus_name:<12} {r.address:#04x}  {(r.chip or 'unknown'):<11} {_ident(r):<22} {r.notes}"
 
 
 def probe_buses(bus_spec: str) -> list[tuple[str, ProbeResult]]:
@@ -37,13 +29,13 @@ def probe_buses(bus_spec: str) -> list[tuple[str, ProbeResult]]:
             bus.close()
 
 
-def run(args) -> int:
+def run(args) -> CommandResult:
     found = probe_buses(args.bus)
-    print(f"{'bus':<12} {'addr':<5} {'type':<11} {'identity':<22} notes")
-    for name, r in found:
-        print(format_result(name, r))
-    known = [r for _, r in found if r.chip in ("lis3mdl", "hmc5983", "lsm303dlhc")]
+    lines = [PROBE_TABLE_HEADER] + [format_probe_result(name, r) for name, r in found]
+    known = [r for _, r in found if driver_for(r.chip) is not None]   # 'hmc5883l_or_hmc5983' counts
     if not known:
-        print(f"no supported magnetometer found on {args.bus}")
-        return 1
-    return 0
+        lines.append(f"no supported magnetometer found on {args.bus}")
+    devices = [{"bus": name, "address": r.address, "chip": r.chip, "identity_hex": r.identity.hex(),
+                "notes": r.notes} for name, r in found]
+    return CommandResult("probe", {"bus": args.bus, "devices": devices, "supported_found": len(known)}, lines,
+                         0 if known else 1)

@@ -10,11 +10,12 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import os
-import sys
 from pathlib import Path
 
+from magstack.cli.options import finite_float, int_range, nonempty_path
+from magstack.cli.output import CommandResult
+from magstack.cli.progress import bar
 from magstack.drivers.errors import ConfigurationError
 
 METHODS = ("attitude", "scalar", "pso")
@@ -31,8 +32,10 @@ def register(subparsers) -> None:
                     "is better.")
     p.add_argument("telemetry", nargs="*", metavar="TELEMETRY.csv")
     p.add_argument("--active", metavar="cal.json", help="table in force (default: identity, raw output)")
-    p.add_argument("--out", metavar="candidate.json", help="where to write a proposed candidate")
-    p.add_argument("--json", metavar="OUT.json", help="also write the report as JSON")
+    p.add_argument("--out", metavar="candidate.json", type=nonempty_path, help="where to write a proposed candidate")
+    # refit's --json names a file (issue 15: --json OUT.json); it replaces the common stdout flag
+    p.add_argument("--json", dest="json_out", metavar="OUT.json", type=nonempty_path,
+                   help="write the report as JSON to this file (refit's --json takes a file name)")
     p.add_argument("--method", choices=METHODS, default="attitude")
     p.add_argument("--engine", choices=("local", "dask"), default="local",
                    help="local (in process) or dask (optional extra: map files to statistics, reduce)")
@@ -44,17 +47,21 @@ def register(subparsers) -> None:
     p.add_argument("--temp-band", metavar="LO,HI", help="temperature band to use, degC")
     p.add_argument("--eclipse", choices=("any", "sunlit", "eclipse"), default="any")
     p.add_argument("--no-robust", action="store_true", help="plain least squares (no Huber passes)")
-    p.add_argument("--robust-passes", type=int, default=4, help="Huber passes after the OLS pass (default 4)")
-    p.add_argument("--holdout-block-s", type=float, default=600.0, help="held-out time block length (s)")
-    p.add_argument("--holdout-every", type=int, default=5, help="every N-th time block is held out (default 5)")
-    p.add_argument("--max-current-gap-s", type=float, default=60.0,
-                   help="largest gap between housekeeping samples to interpolate across (s)")
-    p.add_argument("--dut1", type=float, default=0.0, metavar="S", help="UT1 - UTC (s, IERS Bulletin A)")
-    p.add_argument("--min-improvement", type=float, default=0.0, metavar="FRAC",
+    p.add_argument("--robust-passes", type=int_range(0, 50), default=4,
+                   help="Huber passes after the OLS pass (default 4)")
+    p.add_argument("--holdout-block-s", type=finite_float(0, None, lo_open=True, unit="s"), default=600.0,
+                   help="held-out time block length (s, default 600)")
+    p.add_argument("--holdout-every", type=int_range(2, 1000), default=5,
+                   help="every N-th time block is held out (default 5)")
+    p.add_argument("--max-current-gap-s", type=finite_float(0, None, lo_open=True, unit="s"), default=60.0,
+                   help="largest gap between housekeeping samples to interpolate across (s, default 60)")
+    p.add_argument("--dut1", type=finite_float(-1.0, 1.0, unit="s"), default=0.0, metavar="S",
+                   help="UT1 - UTC (s, IERS Bulletin A; default 0)")
+    p.add_argument("--min-improvement", type=finite_float(0.0, 1.0, hi_open=True), default=0.0, metavar="FRAC",
                    help="propose only if the held-out RMS improves by this fraction (default 0)")
     p.add_argument("--device-id", help="device id (default: active table, then telemetry metadata)")
-    p.add_argument("--paper-model", type=int, metavar="N", help="(pso) rerun the riwanto paper's model N")
-    p.add_argument("--seed", type=int, default=0, help="(pso) random seed")
+    p.add_argument("--paper-model", type=int_range(1, 5), metavar="N", help="(pso) rerun the riwanto paper's model N")
+    p.add_argument("--seed", type=int_range(0, None), default=0, help="(pso) random seed")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=run)
 
@@ -71,39 +78,27 @@ def _band(text: str | None, name: str):
     return lo, hi
 
 
-def _write_json_atomic(path: str, doc: dict) -> None:
+def _write_json_atomic(path, doc: dict) -> None:
+    from magstack.cli.output import dumps
+
     p = Path(path)
     tmp = p.with_name(p.name + ".part")
     with open(tmp, "w", encoding="utf-8") as fh:
-        json.dump(doc, fh, indent=1, sort_keys=True, allow_nan=False, default=float)
-        fh.write("\n")
+        fh.write(dumps(doc) + "\n")
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, p)
 
 
-def _jsonable(x):
-    import math
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
-
-
-def _progress(disabled: bool):
-    from tqdm import tqdm
-
-    bars: dict[str, tqdm] = {}
+def _progress(enabled: bool):
+    """``progress(rows, label)`` callback: one tqdm bar per pass on stderr (cli.progress policy)."""
+    bars: dict = {}
 
     def cb(n: int, label: str) -> None:
         if label not in bars:
             for b in bars.values():
                 b.close()
-            bars[label] = tqdm(desc=f"refit {label}", unit=" rows", file=sys.stderr, disable=disabled or None,
-                               leave=False, mininterval=0.5)
+            bars[label] = bar(None, f"refit {label}", unit="row", enabled=enabled)
         bars[label].update(n)
 
     def close() -> None:
@@ -132,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
         validate(active).raise_if_bad(str(args.active))
     currents = () if args.no_currents else (None if args.currents is None else
                                             tuple(c for c in args.currents.split(",") if c))
-    progress, close = _progress(args.no_progress)
+    progress, close = _progress(not args.no_progress)
     try:
         if args.method == "attitude":
             result = _attitude(args, paths, active, currents, progress)
@@ -145,25 +140,29 @@ def run(args: argparse.Namespace) -> int:
                                          f"({module}.{name} not found)") from None
             opts = {k: v for k, v in vars(args).items() if k not in ("func", "telemetry", "active")}
             opts["currents"] = currents
+            opts["json"] = opts.pop("json_out", None)
             result = hook(paths, active=active, options=opts, progress=progress)
     finally:
         close()
-    print(result.report())
-    if args.json:
-        _write_json_atomic(args.json, _jsonable(result.to_dict()))
-        print(f"wrote {args.json}")
+    lines = [result.report()]
+    doc = result.to_dict()
+    written = None
     if result.proposed and result.candidate is not None and args.out:
         v = validate(result.candidate)   # whatever the method: an invalid table is never written
-        if not v.ok:
-            print(f"{args.out} not written: candidate fails validation: " + "; ".join(v.problems))
-            return 1
-        save_table(result.candidate, args.out)
-        print(f"wrote {args.out} (device {result.candidate.device_id}, "
-              f"crc32 {result.candidate.to_document()['crc32']})")
-        return 0
-    if args.out:
-        print(f"{args.out} not written: no candidate proposed")
-    return 0 if (result.proposed or not paths) else 1
+        if v.ok:
+            save_table(result.candidate, args.out)
+            written = str(args.out)
+            lines.append(f"wrote {args.out} (device {result.candidate.device_id}, "
+                         f"crc32 {result.candidate.to_document()['crc32']})")
+        else:
+            lines.append(f"{args.out} not written: candidate fails validation: " + "; ".join(v.problems))
+    elif args.out:
+        lines.append(f"{args.out} not written: no candidate proposed")
+    data = {**doc, "out": written, "method": args.method}
+    if args.json_out:
+        _write_json_atomic(args.json_out, data)
+        lines.append(f"wrote {args.json_out}")
+    return CommandResult("refit", data, lines, 0 if (written is not None or not paths) else 1)
 
 
 def _attitude(args, paths, active, currents, progress):

@@ -2,10 +2,12 @@
 from __future__ import annotations
 
 import argparse
-import sys
+import io
+import logging
 
 import numpy as np
 
+from magstack.cli.output import CommandResult
 from magstack.errors import EXIT_NEGATIVE
 from magstack.firmware.cal_table import load_table, validate
 from magstack.firmware.errors import CalTableInvalid
@@ -22,9 +24,15 @@ def register(subparsers) -> None:
         q.set_defaults(func=run, action=name)
 
 
-def run(args: argparse.Namespace) -> int:
+log = logging.getLogger(__name__)
+
+
+def run(args: argparse.Namespace) -> CommandResult:
     """``show``: an unreadable or invalid table is bad input (exit 3). ``validate``: the verdict is the
     answer, so an invalid table prints why and exits 1."""
+    data = {"table": str(args.table), "action": args.action, "valid": False, "problems": [], "crc32": None,
+            "device_id": None, "model": None, "terms": None, "worst_output_uT": None, "max_cond": None,
+            "document": None}
     try:
         t = load_table(args.table)
         if args.device_id is not None and t.device_id != args.device_id:
@@ -32,39 +40,55 @@ def run(args: argparse.Namespace) -> int:
     except CalTableInvalid as exc:
         if args.action != "validate":
             raise
-        print(f"INVALID: {exc}", file=sys.stderr)
-        return EXIT_NEGATIVE
+        log.error("INVALID: %s", exc)
+        return CommandResult("table", {**data, "problems": [str(exc)]}, [f"INVALID: {exc}"], EXIT_NEGATIVE)
     v = validate(t)
-    if args.action == "show":
-        print(f"table {t.table_name} schema v{t.schema_version} device {t.device_id} crc32 0x{t.crc32:08x}")
-        print(f"created {t.created_utc}; {t.description}")
-        print(f"model {t.model_name}: terms {', '.join(t.terms)}; t0 = {t.t0_c:g} degC")
-        np.set_printoptions(precision=6, suppress=False)
-        print(f"S (1) =\n{t.S}\nK_S (1/degC) =\n{t.K_S}\nO (uT) = {t.O}\nK_O (uT/degC) = {t.K_O}")
-        for k, d in t.D:
-            print(f"D_{k} (uT/A) = {d}")
-        if "cubic" in t.terms:
-            print(f"c3 (1/uT^2) = {t.c3}")
-        if "cross_products" in t.terms:
-            print(f"P (1/uT; columns xy, xz, yz) =\n{t.P}")
-        if t.ground_only:
-            print(f"ground-only terms (not applied): {', '.join(t.ground_only)}")
-        print(f"validity: temp_c {t.validity_temp_c}, |B| <= {t.validity_field_uT:g} uT"
-              + "".join(f", I_{k} in {r} A" for k, r in t.validity_currents_A))
-        fs = t.fit_stats
-        for key in ("n_used", "raw_rmse_norm_uT", "rmse_norm_uT", "holdout_blocks_rmse_norm_uT",
-                    "holdout_sessions_rmse_norm_uT", "noise_floor_norm_uT"):
-            if key in fs:
-                print(f"fit {key}: {fs[key]}")
-        for h in fs.get("held", []) if isinstance(fs.get("held"), list) else ():
-            if isinstance(h, dict):
-                print(f"held {h.get('param')} = {h.get('value')}: {h.get('reason')}")
+    data.update(valid=v.ok, problems=list(v.problems), crc32=f"0x{t.crc32:08x}", device_id=t.device_id,
+                model=t.model_name, terms=list(t.terms), worst_output_uT=v.worst_output_uT, max_cond=v.max_cond)
+    lines = _show_lines(t) if args.action == "show" else []
+    if args.action == "show" and v.ok:
+        data["document"] = t.to_document()
     if v.ok:
-        print(f"valid: worst-case output {v.worst_output_uT:.1f} uT, max condition number {v.max_cond:.3g}")
-        return 0
-    print("INVALID: " + "; ".join(v.problems))
+        lines.append(f"valid: worst-case output {v.worst_output_uT:.1f} uT, max condition number {v.max_cond:.3g}")
+        return CommandResult("table", data, lines)
+    lines.append("INVALID: " + "; ".join(v.problems))
     if args.action == "validate":
-        print(f"INVALID: {args.table}: " + "; ".join(v.problems), file=sys.stderr)
-        return EXIT_NEGATIVE
-    v.raise_if_bad(str(args.table))   # typed error, exit 3 (after ``show`` has printed the contents)
-    return EXIT_NEGATIVE
+        log.error("INVALID: %s: %s", args.table, "; ".join(v.problems))
+        return CommandResult("table", data, lines, EXIT_NEGATIVE)
+    from magstack.cli.output import say
+
+    say("\n".join(lines))   # the contents first, then the typed error (exit 3)
+    v.raise_if_bad(str(args.table))
+    return CommandResult("table", data, lines, EXIT_NEGATIVE)
+
+
+def _show_lines(t) -> list[str]:
+    buf = io.StringIO()
+
+    def p(*a) -> None:
+        print(*a, file=buf)
+
+    p(f"table {t.table_name} schema v{t.schema_version} device {t.device_id} crc32 0x{t.crc32:08x}")
+    p(f"created {t.created_utc}; {t.description}")
+    p(f"model {t.model_name}: terms {', '.join(t.terms)}; t0 = {t.t0_c:g} degC")
+    with np.printoptions(precision=6, suppress=False):
+        p(f"S (1) =\n{t.S}\nK_S (1/degC) =\n{t.K_S}\nO (uT) = {t.O}\nK_O (uT/degC) = {t.K_O}")
+        for k, d in t.D:
+            p(f"D_{k} (uT/A) = {d}")
+        if "cubic" in t.terms:
+            p(f"c3 (1/uT^2) = {t.c3}")
+        if "cross_products" in t.terms:
+            p(f"P (1/uT; columns xy, xz, yz) =\n{t.P}")
+    if t.ground_only:
+        p(f"ground-only terms (not applied): {', '.join(t.ground_only)}")
+    p(f"validity: temp_c {t.validity_temp_c}, |B| <= {t.validity_field_uT:g} uT"
+      + "".join(f", I_{k} in {r} A" for k, r in t.validity_currents_A))
+    fs = t.fit_stats
+    for key in ("n_used", "raw_rmse_norm_uT", "rmse_norm_uT", "holdout_blocks_rmse_norm_uT",
+                "holdout_sessions_rmse_norm_uT", "noise_floor_norm_uT"):
+        if key in fs:
+            p(f"fit {key}: {fs[key]}")
+    for h in fs.get("held", []) if isinstance(fs.get("held"), list) else ():
+        if isinstance(h, dict):
+            p(f"held {h.get('param')} = {h.get('value')}: {h.get('reason')}")
+    return buf.getvalue().rstrip("\n").split("\n")

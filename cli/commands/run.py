@@ -1,0 +1,94 @@
+"""``magstack run --config flight.toml [--sim] [--duration S] [--out DIR]``: the flight application.
+
+On the Raspberry Pi it opens the configured buses and runs until Ctrl-C / SIGTERM (or ``--duration``).
+With ``--sim`` (or a config whose buses are all ``sim``) the sensors are simulated: with
+``--duration`` in virtual time (a simulated day takes minutes at most), without it in real time.
+``--example-config`` prints the shipped example configuration.
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from magstack.cli.interrupt import EXIT_FOR_SIGNAL, graceful_stop
+from magstack.cli.options import finite_float, int_range, nonempty_dir
+from magstack.cli.output import CommandResult
+from magstack.drivers.errors import ConfigurationError
+from magstack.firmware.flight.app import FlightApp
+from magstack.firmware.flight.config import example_config_text, load_config
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("run", help="run the flight application (rate groups, telemetry, events, commands)",
+                              description=__doc__.split("\n\n", 1)[1] if __doc__ else None)
+    p.add_argument("--config", metavar="flight.toml", help="flight configuration (see --example-config)")
+    p.add_argument("--example-config", action="store_true", help="print the shipped example flight.toml and exit")
+    p.add_argument("--sim", action="store_true", help="simulated sensors instead of the configured buses")
+    p.add_argument("--duration", type=finite_float(0.0, 366 * 86400.0, lo_open=True, unit="s"), default=None,
+                   metavar="S", help="stop after S seconds (virtual time with --sim)")
+    p.add_argument("--out", type=nonempty_dir, default=None, metavar="DIR",
+                   help="telemetry directory (overrides the config)")
+    p.add_argument("--sim-program", default="rotation", metavar="NAME",
+                   help="with --sim: coil program giving the simulated field (default rotation; see magstack "
+                        "simulate --help)")
+    p.add_argument("--seed", type=int_range(0, 2**32 - 1), default=0, help="with --sim: simulation seed (default 0)")
+    p.set_defaults(func=run)
+
+
+def _sim_options(program_name: str, duration_s: float, seed: int):
+    """Per-sensor simulator options: one truth source for the run, a simulated bench per timeline."""
+    from magstack.sim.coil_programs import PROGRAMS, program
+    from magstack.sim.i2c_bench import default_bench
+
+    if program_name not in PROGRAMS:
+        raise ConfigurationError(f"--sim-program: unknown program {program_name!r}; valid: {', '.join(PROGRAMS)}")
+    truth = program(program_name, max(duration_s, PROGRAMS[program_name].default_duration_s), sessions=1)
+    benches: dict[int, object] = {}
+
+    def options(sensor, clock) -> dict:
+        if sensor.chip == "hmc1053":
+            return {"truth": truth, "seed": seed}
+        bench = benches.get(id(clock))
+        if bench is None:
+            bench = benches[id(clock)] = default_bench(clock, truth, seed=seed)
+        return {"bench": bench}
+    return options
+
+
+def run(args: argparse.Namespace) -> CommandResult:
+    if args.example_config:
+        return CommandResult("run", {"example_config": example_config_text()}, [example_config_text().rstrip()])
+    if not args.config:
+        raise ConfigurationError("--config is required (or --example-config)")
+    cfg = load_config(args.config)
+    simulate = args.sim or cfg.simulated
+    virtual = simulate and args.duration is not None
+    options = _sim_options(args.sim_program, args.duration or 3600.0, args.seed) if simulate else None
+    with graceful_stop() as stop:
+        app = FlightApp(cfg, virtual=virtual, simulate=simulate, telemetry_dir=args.out, chip_options=options,
+                        stop=stop)
+        try:
+            app.run(args.duration)
+        finally:
+            app.close()
+            summary = app.write_summary(Path(app.telemetry_dir) / f"summary-{app.run_id:04d}.json")
+    counters = app.counters()
+    mode = "virtual time" if virtual else "real time"
+    lines = [f"flight run {app.run_id} ({'simulated sensors, ' if simulate else ''}{mode}); telemetry in "
+             f"{app.telemetry_dir}; summary {summary}"]
+    if stop.signal_name:
+        lines.insert(0, f"{stop.signal_name}: stopped after the cycles under way; every telemetry file closed")
+    for g in app.executive.groups:
+        st = g.stats
+        lines.append(f"  rate group {g.name:<8} {g.rate_hz:7.3f} Hz: {st.runs} runs, {st.overruns} overruns, "
+                     f"{st.missed_slots} skipped slots, max execution {st.exec_max_s * 1e3:.1f} ms")
+    for name, slot in app.slots.items():
+        c = slot.channel.counters()
+        cal = slot.channel.corrector.status.get("ok", 0)
+        table = f"0x{slot.store.active.crc32:08x}" if slot.store.active else "none"
+        lines.append(f"  {name:<12} {c['cycles']} cycles: {c['samples_ok']} good, {cal} calibrated, "
+                     f"{c['error_count']} faults{' (DEGRADED)' if c['degraded'] else ''}; table {table}")
+    data = {"run_id": app.run_id, "telemetry_dir": str(app.telemetry_dir), "summary": str(summary),
+            "virtual_time": virtual, "simulated": simulate, "stopped_by": stop.signal_name, **counters}
+    code = EXIT_FOR_SIGNAL.get(stop.signal_name, 130) if stop.signal_name else 0
+    return CommandResult("run", data, lines, code)

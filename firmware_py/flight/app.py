@@ -1,0 +1,233 @@
+"""Build and run the flight application from a :class:`~magstack.firmware.flight.config.FlightConfig`.
+
+One :class:`FlightApp` = rate groups (each on its own clock: virtual clocks in simulation, the system
+clock on hardware), a :class:`~magstack.firmware.flight.channel.MagChannel` per sensor opened through
+the chip factory (``magstack.drivers.registry.open_chip``: the same code on the Pi and on simulated
+buses), a calibration-table store and fixed-point corrector per channel, telemetry files per channel,
+the event log (``events.jsonl``), and the command spool.
+"""
+from __future__ import annotations
+
+import json
+import math
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from magstack.drivers.clock import SystemClock, VirtualClock
+from magstack.drivers.registry import open_chip
+from magstack.firmware.cal_table import CalTableStore, load_table, validate
+from magstack.firmware.corrector import TableCorrector
+from magstack.firmware.errors import CalTableInvalid
+from magstack.firmware.flight.channel import ChannelLimits, MagChannel
+from magstack.firmware.flight.commands import Command, CommandSpool
+from magstack.firmware.flight.config import FlightConfig, SensorConfig
+from magstack.firmware.flight.events import EventFileSink, EventId, EventLog
+from magstack.firmware.flight.executive import Executive, RateGroup
+from magstack.firmware.flight.telemetry import ChannelTelemetry
+
+#: ``chip_options(sensor, clock) -> extra open_chip keyword arguments`` (the simulator's truth source ...).
+ChipOptions = Callable[[SensorConfig, Any], dict]
+
+
+@dataclass
+class ChannelSlot:
+    """A channel with its table store, corrector, telemetry and current rate group."""
+
+    sensor: SensorConfig
+    channel: MagChannel
+    store: CalTableStore
+    telemetry: ChannelTelemetry
+    group: str
+    pending: list[Command] = field(default_factory=list)
+
+
+class FlightApp:
+    """The on-board application. ``virtual=True`` runs every rate group on its own VirtualClock."""
+
+    def __init__(self, cfg: FlightConfig, *, virtual: bool = False, simulate: bool = False,
+                 telemetry_dir: str | Path | None = None, run_id: int | None = None,
+                 chip_options: ChipOptions | None = None, start_epoch_s: float | None = None,
+                 stop: threading.Event | None = None) -> None:
+        self.cfg = cfg
+        self.virtual = virtual
+        self.simulate = simulate
+        self.telemetry_dir = Path(telemetry_dir) if telemetry_dir is not None else cfg.telemetry_dir
+        self.telemetry_dir.mkdir(parents=True, exist_ok=True)
+        self.run_id = run_id if run_id is not None else self._next_run_id()
+        self._event_sink = EventFileSink(self.telemetry_dir / f"events-{self.run_id:04d}.jsonl")
+        self.events = EventLog(sink=self._event_sink)
+        shared = None if virtual else SystemClock()
+        self.clocks: dict[str, Any] = {}
+        groups = []
+        for g in cfg.rate_groups:
+            clk = VirtualClock(**({} if start_epoch_s is None else {"start_epoch_s": start_epoch_s})) \
+                if virtual else shared
+            self.clocks[g.name] = clk
+            groups.append(RateGroup(g.name, g.period_s, clk))
+        any_clock = next(iter(self.clocks.values()))
+        offset = any_clock.epoch_s() - any_clock.monotonic_s()
+        self.epoch_of = (lambda t: t + offset) if virtual else (lambda t: t - shared.monotonic_s() + shared.epoch_s())
+        self.executive = Executive(groups, self.events, self.epoch_of, stop)
+        self.slots: dict[str, ChannelSlot] = {}
+        try:
+            for s in cfg.sensors:
+                self._add_channel(s, chip_options)
+        except BaseException:
+            self.close()
+            raise
+        for g in groups:
+            g.boundary.append(self._boundary_hook(g))
+        self.spool = None
+        if cfg.command_dir is not None:
+            self.spool = CommandSpool(cfg.command_dir, self.events, self._dispatch,
+                                      lambda: self.epoch_of(any_clock.monotonic_s()))
+            fastest = max(groups, key=lambda x: x.rate_hz)
+            fastest.boundary.insert(0, self.spool.poll)
+
+    # ------------------------------------------------------------------ construction
+    def _next_run_id(self) -> int:
+        ids = [int(p.stem.split("-")[1]) for p in self.telemetry_dir.glob("events-*.jsonl")
+               if p.stem.split("-")[1].isdigit()]
+        return max(ids, default=0) + 1
+
+    def _add_channel(self, s: SensorConfig, chip_options: ChipOptions | None) -> None:
+        clock = self.clocks[s.rate_group]
+        bus = "sim" if self.simulate else s.bus
+        extra = dict(chip_options(s, clock)) if chip_options is not None else {}
+        mag = open_chip(s.chip, bus, clock, **{**s.options, **extra})
+        store = CalTableStore(s.device_id)
+        meta = {"device_id": s.device_id, "dut_chip": s.chip, "bus": bus, "flight_config": self.cfg.name,
+                "run_id": str(self.run_id), "rate_group": s.rate_group, "source": "magstack run"}
+        tlm = ChannelTelemetry(self.telemetry_dir, s.name, run_id=self.run_id, metadata=meta,
+                               rotate_bytes=self.cfg.rotate_bytes, block_rows=self.cfg.block_rows, events=self.events)
+        ch = MagChannel(s.name, mag, TableCorrector(store), self.events, sink=tlm,
+                        limits=ChannelLimits(s.max_field_uT, s.max_rate_uT_per_s, s.reinit_after, s.degrade_after),
+                        epoch_of=self.epoch_of)
+        slot = ChannelSlot(s, ch, store, tlm, s.rate_group)
+        self.slots[s.name] = slot
+        self.executive.group(s.rate_group).components.append(ch)
+        if s.table is not None:
+            try:
+                store.load_and_activate(s.table)
+                self.events.emit(self.epoch_of(clock.monotonic_s()), EventId.TABLE_ACTIVATED, s.name,
+                                 f"{s.table} crc32 0x{store.active.crc32:08x}")
+            except CalTableInvalid as exc:
+                self.events.emit(self.epoch_of(clock.monotonic_s()), EventId.TABLE_REJECTED, s.name, str(exc)[:200])
+
+    # ------------------------------------------------------------------ boundaries and commands
+    def _boundary_hook(self, group: RateGroup):
+        def hook(now_s: float) -> None:
+            for slot in self.slots.values():
+                if slot.group != group.name:
+                    continue
+                while slot.pending:
+                    self._execute(slot, slot.pending.pop(0))
+                if slot.store.cycle_boundary():
+                    a = slot.store.active
+                    self.events.emit(self.epoch_of(now_s), EventId.TABLE_ACTIVATED, slot.sensor.name,
+                                     f"crc32 0x{a.crc32:08x}" if a.crc32 is not None else "unsaved table")
+        return hook
+
+    def _dispatch(self, cmd: Command) -> None:
+        if cmd.channel is None:
+            self._execute(None, cmd)
+            return
+        slot = self.slots.get(cmd.channel)
+        if slot is None:
+            self.spool.finish(cmd.source, ok=False, message=f"no channel {cmd.channel!r}; have {sorted(self.slots)}")
+            return
+        slot.pending.append(cmd)
+
+    def _execute(self, slot: ChannelSlot | None, cmd: Command) -> None:
+        ok, msg, payload = True, "done", None
+        try:
+            if cmd.name == "dump_counters":
+                payload = self.counters()
+                msg = "counters dumped"
+            elif cmd.name == "load_table":
+                res = slot.store.load(self._path(cmd.args["path"]))
+                self.events.emit(self._now(slot),
+                                 EventId.TABLE_LOADED, slot.sensor.name, f"{cmd.args['path']} staged")
+                msg = f"staged (worst-case output {res.worst_output_uT:.1f} uT); activate with activate_table"
+            elif cmd.name == "validate_table":
+                table = load_table(self._path(cmd.args["path"]))
+                if table.device_id != slot.sensor.device_id:
+                    raise CalTableInvalid(f"table is for device {table.device_id!r}, channel serves "
+                                          f"{slot.sensor.device_id!r}")
+                v = validate(table)
+                ok, msg = v.ok, "valid" if v.ok else "invalid: " + "; ".join(v.problems)
+            elif cmd.name == "activate_table":
+                slot.store.request_activation()
+                msg = "activation requested (takes effect at the next cycle boundary)"
+            elif cmd.name == "set_rate_group":
+                msg = self._move(slot, cmd.args["group"])
+        except CalTableInvalid as exc:
+            ok, msg = False, str(exc)
+            if cmd.name == "load_table":
+                self.events.emit(self._now(slot), EventId.TABLE_REJECTED, slot.sensor.name, msg[:200])
+        except (KeyError, ValueError, OSError) as exc:
+            ok, msg = False, f"{type(exc).__name__}: {exc}"
+        self.spool.finish(cmd.source, ok=ok, message=msg, payload=payload)
+
+    def _path(self, p: str) -> Path:
+        q = Path(p)
+        return q if q.is_absolute() else self.cfg.path.parent / q
+
+    def _now(self, slot: ChannelSlot | None) -> float:
+        clk = self.clocks[slot.group] if slot is not None else next(iter(self.clocks.values()))
+        return self.epoch_of(clk.monotonic_s())
+
+    def _move(self, slot: ChannelSlot, group: str) -> str:
+        if group not in self.clocks:
+            raise ValueError(f"no rate group {group!r}; have {sorted(self.clocks)}")
+        if self.virtual and self.clocks[group] is not self.clocks[slot.group]:
+            # in virtual time the driver is bound to its group's clock: only same-timeline moves are exact
+            raise ValueError("in virtual time a channel cannot change timelines; restart with the new config")
+        old = self.executive.group(slot.group)
+        old.components.remove(slot.channel)
+        self.executive.group(group).components.append(slot.channel)
+        prev, slot.group = slot.group, group
+        return f"moved from {prev} to {group}"
+
+    # ------------------------------------------------------------------ running
+    def run(self, duration_s: float | None = None) -> None:
+        if self.virtual:
+            if duration_s is None or not math.isfinite(duration_s):
+                raise ValueError("virtual time needs a finite duration")
+            self.executive.run_virtual(duration_s)
+        else:
+            self.executive.run_threads(duration_s)
+
+    def stop(self) -> None:
+        self.executive.stop()
+
+    def counters(self) -> dict:
+        return {"channels": {n: s.channel.counters() | {"corrector": dict(s.channel.corrector.status),
+                                                         "table": s.store.telemetry()}
+                             for n, s in self.slots.items()},
+                "rate_groups": {g.name: {"rate_hz": g.rate_hz, **g.stats.to_dict()} for g in self.executive.groups},
+                "events": self.events.snapshot(),
+                "commands": None if self.spool is None else {"accepted": self.spool.accepted,
+                                                             "rejected": self.spool.rejected}}
+
+    def close(self) -> None:
+        """Close every telemetry file (rename to final) and the event log; safe to call twice."""
+        for s in getattr(self, "slots", {}).values():
+            s.telemetry.close()
+            close = getattr(s.channel.mag, "close", None)
+            if close is not None:
+                try:
+                    close()
+                except Exception:  # noqa: BLE001 - closing must not hide the run's result
+                    pass
+        sink = getattr(self, "_event_sink", None)
+        if sink is not None:
+            sink.close()
+
+    def write_summary(self, path: str | Path) -> Path:
+        p = Path(path)
+        p.write_text(json.dumps(self.counters(), indent=1, sort_keys=True, default=str) + "\n", encoding="utf-8")
+        return p

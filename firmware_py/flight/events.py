@@ -1,0 +1,145 @@
+"""Events with stable numeric ids and severities (F' / cFE style), counted and logged.
+
+Ids never change meaning once released: ground tools and tests key on them. Ranges:
+0x01xx executive, 0x02xx magnetometer channels, 0x03xx calibration tables, 0x04xx commands,
+0x05xx refit, 0x06xx telemetry. Severities follow F' (DIAGNOSTIC .. FATAL).
+"""
+from __future__ import annotations
+
+import json
+import os
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from enum import IntEnum
+from pathlib import Path
+
+
+class Severity(IntEnum):
+    DIAGNOSTIC = 0
+    ACTIVITY_LO = 1
+    ACTIVITY_HI = 2
+    WARNING_LO = 3
+    WARNING_HI = 4
+    FATAL = 5
+
+
+class EventId(IntEnum):
+    EXEC_STARTED = 0x0100
+    EXEC_STOPPED = 0x0101
+    RATE_GROUP_OVERRUN = 0x0110      # a group's execution took longer than its period
+    RATE_GROUP_SLIP = 0x0111         # slots skipped (schedule re-anchored, no catch-up burst)
+    CLOCK_STEPPED_BACK = 0x0112      # the tick source went backwards: schedule re-anchored
+    CHAN_BUS_ERROR = 0x0200
+    CHAN_TIMEOUT = 0x0201
+    CHAN_STALE = 0x0202              # no new data: chip said so, or the sample repeats the last one
+    CHAN_OVERFLOW = 0x0203
+    CHAN_IMPLAUSIBLE = 0x0204        # beyond the sensor range or a physically impossible rate of change
+    CHAN_SELF_TEST_FAILED = 0x0205
+    CHAN_EXCEPTION = 0x0206          # a non-magstack exception caught at the component boundary
+    CHAN_OTHER_ERROR = 0x0207        # any other typed magstack error
+    CHAN_OUT_OF_VALIDITY = 0x0208    # outside the active table's validity: published uncalibrated
+    CHAN_REINIT = 0x0210
+    CHAN_REINIT_FAILED = 0x0211
+    CHAN_DEGRADED = 0x0212
+    CHAN_RECOVERED = 0x0213
+    TABLE_LOADED = 0x0300
+    TABLE_REJECTED = 0x0301
+    TABLE_ACTIVATED = 0x0302
+    CMD_ACCEPTED = 0x0400
+    CMD_REJECTED = 0x0401
+    CMD_COMPLETED = 0x0402
+    REFIT_STARTED = 0x0500
+    REFIT_FINISHED = 0x0501
+    REFIT_FAILED = 0x0502
+    TLM_FILE_ROTATED = 0x0600
+    TLM_WRITE_ERROR = 0x0601
+
+
+#: Severity of each event id (the event definition, like an F' .fppi entry).
+SEVERITY: dict[EventId, Severity] = {
+    EventId.EXEC_STARTED: Severity.ACTIVITY_HI, EventId.EXEC_STOPPED: Severity.ACTIVITY_HI,
+    EventId.RATE_GROUP_OVERRUN: Severity.WARNING_LO, EventId.RATE_GROUP_SLIP: Severity.WARNING_LO,
+    EventId.CLOCK_STEPPED_BACK: Severity.WARNING_HI,
+    EventId.CHAN_BUS_ERROR: Severity.WARNING_LO, EventId.CHAN_TIMEOUT: Severity.WARNING_LO,
+    EventId.CHAN_STALE: Severity.WARNING_LO, EventId.CHAN_OVERFLOW: Severity.WARNING_LO,
+    EventId.CHAN_IMPLAUSIBLE: Severity.WARNING_LO, EventId.CHAN_SELF_TEST_FAILED: Severity.WARNING_HI,
+    EventId.CHAN_EXCEPTION: Severity.WARNING_HI, EventId.CHAN_OTHER_ERROR: Severity.WARNING_LO,
+    EventId.CHAN_OUT_OF_VALIDITY: Severity.DIAGNOSTIC,
+    EventId.CHAN_REINIT: Severity.ACTIVITY_HI, EventId.CHAN_REINIT_FAILED: Severity.WARNING_HI,
+    EventId.CHAN_DEGRADED: Severity.WARNING_HI, EventId.CHAN_RECOVERED: Severity.ACTIVITY_HI,
+    EventId.TABLE_LOADED: Severity.ACTIVITY_HI, EventId.TABLE_REJECTED: Severity.WARNING_HI,
+    EventId.TABLE_ACTIVATED: Severity.ACTIVITY_HI,
+    EventId.CMD_ACCEPTED: Severity.ACTIVITY_LO, EventId.CMD_REJECTED: Severity.WARNING_LO,
+    EventId.CMD_COMPLETED: Severity.ACTIVITY_LO,
+    EventId.REFIT_STARTED: Severity.ACTIVITY_HI, EventId.REFIT_FINISHED: Severity.ACTIVITY_HI,
+    EventId.REFIT_FAILED: Severity.WARNING_HI,
+    EventId.TLM_FILE_ROTATED: Severity.DIAGNOSTIC, EventId.TLM_WRITE_ERROR: Severity.WARNING_HI,
+}
+assert set(SEVERITY) == set(EventId), "every event id needs a severity"
+
+
+@dataclass(frozen=True)
+class Event:
+    t_s: float
+    id: EventId
+    source: str
+    message: str
+
+    @property
+    def severity(self) -> Severity:
+        return SEVERITY[self.id]
+
+    def to_dict(self) -> dict:
+        return {"t_s": self.t_s, "id": int(self.id), "name": self.id.name, "severity": self.severity.name,
+                "source": self.source, "message": self.message}
+
+
+@dataclass
+class EventLog:
+    """Counts every event by id and source; keeps the last ``keep`` in memory; ``sink`` gets each."""
+
+    keep: int = 10_000
+    sink: Callable[[Event], None] | None = None
+    counts: Counter = field(default_factory=Counter)           # (id, source) -> n
+    recent: list[Event] = field(default_factory=list)
+
+    def emit(self, t_s: float, eid: EventId, source: str, message: str = "") -> Event:
+        ev = Event(float(t_s), EventId(eid), source, message)
+        self.counts[(ev.id, source)] += 1
+        self.recent.append(ev)
+        if len(self.recent) > self.keep:
+            del self.recent[: len(self.recent) - self.keep]
+        if self.sink is not None:
+            self.sink(ev)
+        return ev
+
+    def count(self, eid: EventId, source: str | None = None) -> int:
+        return sum(n for (i, s), n in self.counts.items() if i == eid and (source is None or s == source))
+
+    def snapshot(self) -> dict[str, int]:
+        """``{"CHAN_TIMEOUT/lis3mdl": 3, ...}`` for telemetry and `dump_counters`."""
+        return {f"{i.name}/{s}": n for (i, s), n in sorted(self.counts.items())}
+
+
+class EventFileSink:
+    """Append events as JSON lines to ``path``; flushed per event, fsynced every ``sync_every``."""
+
+    def __init__(self, path: str | os.PathLike, sync_every: int = 20) -> None:
+        self.path = Path(path)
+        self._fh = open(self.path, "a", encoding="utf-8")
+        self.sync_every = max(1, int(sync_every))
+        self._n = 0
+
+    def __call__(self, ev: Event) -> None:
+        self._fh.write(json.dumps(ev.to_dict(), allow_nan=False) + "\n")
+        self._fh.flush()
+        self._n += 1
+        if self._n % self.sync_every == 0:
+            os.fsync(self._fh.fileno())
+
+    def close(self) -> None:
+        if not self._fh.closed:
+            self._fh.flush()
+            os.fsync(self._fh.fileno())
+            self._fh.close()

@@ -1,0 +1,248 @@
+"""Seeded fault-injection campaign over the whole flight application (issues 16 and 17), in virtual time.
+
+Three channels (HMC1053 on the simulated ADS1248 at 1 Hz, LIS3MDL and LSM303DLHC on simulated I2C at
+10 Hz) run for 700 simulated seconds (> 10,000 cycles). One I2C channel is the victim: a seeded schedule
+injects bus errors, timeouts (stuck data-ready), frozen registers, garbage bytes, overflows and foreign
+exceptions into its reads; a table corrupted on disk is commanded in; a command arrives mid-cycle. The
+executive must never crash, every injected fault must appear once in its counter and once in the event
+log, no published sample may be stale or corrupt while marked good, the healthy channels must keep their
+rate, and everything must recover when the faults stop.
+"""
+from __future__ import annotations
+
+import json
+import math
+from collections import Counter
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from magstack.drivers.errors import BusError, BusTimeout
+from magstack.firmware import cal_table as ct
+from magstack.firmware.flight.app import FlightApp
+from magstack.firmware.flight.channel import TlmFlag
+from magstack.firmware.flight.config import parse_config
+from magstack.firmware.flight.events import EventId
+from magstack.sim.coil_programs import program
+from magstack.sim.i2c_bench import default_bench
+
+DURATION_S = 700.0
+FAULT_END_S = 600.0
+KINDS = ("bus", "timeout", "frozen", "garbage", "overflow", "exception")
+#: counter and event each injected fault kind must land in
+EXPECT = {"bus": ("bus_errors", EventId.CHAN_BUS_ERROR), "timeout": ("timeouts", EventId.CHAN_TIMEOUT),
+          "frozen": ("stale", EventId.CHAN_STALE), "garbage": ("implausible", EventId.CHAN_IMPLAUSIBLE),
+          "overflow": ("overflows", EventId.CHAN_OVERFLOW), "exception": ("exceptions", EventId.CHAN_EXCEPTION)}
+
+
+class Injector:
+    """Wraps a driver; on a seeded schedule a read fails or returns a damaged sample instead."""
+
+    def __init__(self, mag, clock, seed: int, rate: float = 0.06):
+        self.mag, self.clock, self.name = mag, clock, mag.name
+        self.range_uT = getattr(mag, "range_uT", None)
+        self.rng = np.random.default_rng(seed)
+        self.rate = rate
+        self.injected: Counter = Counter()
+        self.damaged_t: dict[float, str] = {}     # sample time -> kind, for samples returned damaged
+        self.last = None
+        self.true_last = None
+
+    def data_ready(self):
+        return True
+
+    def reinit(self):
+        self.mag.reinit()
+
+    def read(self):
+        t = self.clock.monotonic_s()
+        kind = None
+        if t < FAULT_END_S and self.rng.random() < self.rate:
+            kind = KINDS[self.rng.integers(len(KINDS))]
+            if kind == "frozen" and (self.last is None or self.last.t_s in self.damaged_t):
+                kind = "bus"      # registers freeze holding the last real conversion
+        if kind is not None:
+            self.injected[kind] += 1
+        if kind == "bus":
+            raise BusError("injected NACK", address=0x1C, operation="read")
+        if kind == "timeout":
+            self.clock.sleep_s(0.05)
+            raise BusTimeout("injected: data-ready stuck low")
+        if kind == "exception":
+            raise ValueError("injected: invalid literal for int() with base 10")
+        if kind == "frozen":
+            self.clock.sleep_s(0.025)
+            s = replace(self.last, t_s=self.clock.monotonic_s())   # new read, unchanged registers
+            self.damaged_t[s.t_s] = kind
+            return s
+        s = self.mag.read()
+        if kind == "garbage":                         # a corrupted high byte: hundreds of uT off
+            b = list(s.b_uT)
+            ax = int(self.rng.integers(3))
+            b[ax] += float(self.rng.choice([-1, 1]) * self.rng.uniform(250.0, 700.0))
+            b[ax] = float(np.clip(b[ax], -399.0, 399.0)) if abs(b[ax]) > 399 else b[ax]
+            s = replace(s, b_uT=tuple(b), extra={**s.extra, "repeats": 0})
+            self.damaged_t[s.t_s] = kind
+        elif kind == "overflow":
+            b = list(s.b_uT)
+            b[0] = math.nan
+            s = replace(s, b_uT=tuple(b), overflow=(0,))
+            self.damaged_t[s.t_s] = kind
+        self.last = s
+        return s
+
+
+CONFIG = {
+    "flight": {"name": "campaign", "telemetry_dir": "tlm", "command_dir": "cmd", "block_rows": 200},
+    "rate_group": [{"name": "slow", "rate_hz": 1.0}, {"name": "fast", "rate_hz": 10.0},
+                   {"name": "fast2", "rate_hz": 10.0}],
+    "sensor": [
+        {"name": "hmc1053", "chip": "hmc1053", "bus": "sim", "rate_group": "slow", "device_id": "hmc1053:sn1",
+         "table": "hmc1053.json"},
+        {"name": "lis3mdl", "chip": "lis3mdl", "bus": "sim", "rate_group": "fast", "device_id": "lis3mdl:sn1",
+         "options": {"odr_hz": 40.0}, "max_rate_uT_per_s": 1000.0},
+        {"name": "lsm303dlhc", "chip": "lsm303dlhc", "bus": "sim", "rate_group": "fast2",
+         "device_id": "lsm303dlhc:sn1", "options": {"odr_hz": 30.0}},
+    ],
+}
+
+
+def _table(device: str, path) -> ct.CalTable:
+    t = ct.CalTable(device_id=device, terms=("gain_matrix", "offset"), S=np.eye(3), O=np.zeros(3),
+                    validity_field_uT=100.0, created_utc="2026-01-01T00:00:00Z")
+    ct.save_table(t, path)
+    return t
+
+
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory):
+    root = tmp_path_factory.mktemp("campaign")
+    (root / "cmd").mkdir()
+    cfg = parse_config(json.loads(json.dumps(CONFIG)), root / "flight.toml")
+    _table("hmc1053:sn1", root / "hmc1053.json")
+    _table("lis3mdl:sn1", root / "lis3mdl.json")
+    good = root / "lis3mdl-new.json"
+    _table("lis3mdl:sn1", good)
+    bad = root / "lis3mdl-corrupt.json"
+    raw = bytearray(good.read_bytes())
+    i = raw.index(b'"value"', raw.index(b'"O"'))
+    i = next(k for k in range(i, len(raw)) if chr(raw[k]).isdigit())
+    raw[i] ^= 0x04                                # one flipped bit on disk: 0 -> 4 in an offset
+    bad.write_bytes(bytes(raw))
+    truth = program("rotation", DURATION_S + 10, sessions=1)
+    injectors: dict[str, Injector] = {}
+
+    def options(sensor, clock):
+        if sensor.chip == "hmc1053":
+            return {"truth": truth, "seed": 3}
+        return {"bench": default_bench(clock, truth, seed=4)}
+
+    app = FlightApp(cfg, virtual=True, simulate=True, chip_options=options, run_id=1)
+    lis = app.slots["lis3mdl"].channel
+    inj = Injector(lis.mag, app.clocks["fast"], seed=2024)
+    lis.mag = inj
+    injectors["lis3mdl"] = inj
+    # commands: the corrupted table, then a good one and its activation, one arriving mid-cycle
+    cmd = root / "cmd"
+    (cmd / "01-load-corrupt.json").write_text(json.dumps({"cmd": "load_table", "channel": "lis3mdl",
+                                                            "path": str(bad)}))
+    mid_cycle = {"written_at": None}
+
+    class MidCycleWriter:
+        name = "writer"
+
+        def __init__(self, clock):
+            self.clock = clock
+
+        def run(self, now_s):
+            if mid_cycle["written_at"] is None and now_s >= 100.0:
+                # written while the fast group is inside its cycle (between two channel reads)
+                (cmd / "02-load-good.json").write_text(json.dumps({"cmd": "load_table", "channel": "lis3mdl",
+                                                                     "path": str(good)}))
+                (cmd / "03-activate.json").write_text(json.dumps({"cmd": "activate_table", "channel": "lis3mdl"}))
+                (cmd / "04-dump.json").write_text(json.dumps({"cmd": "dump_counters"}))
+                mid_cycle["written_at"] = now_s
+
+    fast = app.executive.group("fast")
+    fast.components.insert(0, MidCycleWriter(app.clocks["fast"]))
+    records: dict[str, list] = {n: [] for n in app.slots}
+    for name, slot in app.slots.items():
+        sink = slot.channel.sink
+
+        def tee(rec, _sink=sink, _name=name):
+            records[_name].append(rec)
+            _sink(rec)
+        slot.channel.sink = tee
+    app.run(DURATION_S)
+    app.close()
+    return app, injectors, records, root, mid_cycle
+
+
+def test_campaign_size_and_no_crash(campaign):
+    app, _, records, _, _ = campaign
+    assert sum(len(r) for r in records.values()) >= 10_000
+    assert app.events.count(EventId.EXEC_STOPPED) == 1
+
+
+def test_every_injected_fault_is_counted_once_in_its_class(campaign):
+    app, inj, _, _, _ = campaign
+    lis = app.slots["lis3mdl"].channel
+    injected = inj["lis3mdl"].injected
+    assert sum(injected.values()) > 200 and all(injected[k] > 10 for k in KINDS)
+    for kind, (counter, eid) in EXPECT.items():
+        assert getattr(lis.health, counter) == injected[kind], kind
+        assert app.events.count(eid, "lis3mdl") == injected[kind], kind
+    assert lis.health.other_errors == 0
+
+
+def test_no_bad_sample_is_published_as_good(campaign):
+    _, inj, records, _, _ = campaign
+    damaged = inj["lis3mdl"].damaged_t
+    published_bad_as_good = [r for r in records["lis3mdl"] if r.good and r.t_s - 1767225600.0 in damaged]
+    assert not published_bad_as_good
+    for recs in records.values():
+        for r in recs:
+            if r.calibrated:
+                assert r.good and not r.flags & (TlmFlag.OUT_OF_VALIDITY | TlmFlag.STALE)
+
+
+def test_healthy_channels_keep_their_rate(campaign):
+    app, _, records, _, _ = campaign
+    for group, n_expected in (("fast2", 10 * DURATION_S), ("slow", DURATION_S)):
+        st = app.executive.group(group).stats
+        assert st.runs == pytest.approx(n_expected, abs=1) and st.missed_slots == 0, group
+    assert all(r.good for r in records["lsm303dlhc"]) and all(r.good for r in records["hmc1053"])
+    assert app.executive.group("fast").stats.min_interval_s >= 0.1 - 1e-9
+
+
+def test_tables_commands_and_recovery(campaign):
+    app, _, records, root, mid = campaign
+    slot = app.slots["lis3mdl"]
+    assert app.events.count(EventId.TABLE_REJECTED, "lis3mdl") == 1          # the corrupted file
+    assert app.events.count(EventId.TABLE_LOADED, "lis3mdl") == 1
+    assert app.events.count(EventId.TABLE_ACTIVATED, "lis3mdl") == 1          # the good one, at a boundary
+    assert slot.store.active is not None and slot.store.reject_count == 1
+    done = root / "cmd" / "done"
+    results = {p.name: json.loads(p.read_text()) for p in done.glob("*.result.json")}
+    assert results["01-load-corrupt.json.result.json"]["ok"] is False
+    assert "CRC-32 mismatch" in results["01-load-corrupt.json.result.json"]["message"]
+    assert all(results[f"{n}.result.json"]["ok"] for n in ("02-load-good.json", "03-activate.json", "04-dump.json"))
+    assert "lis3mdl" in results["04-dump.json.result.json"]["result"]["channels"]
+    # calibrated only after the activation, which came after the mid-cycle write
+    first_cal = min(r.t_s for r in records["lis3mdl"] if r.calibrated) - 1767225600.0
+    assert first_cal > mid["written_at"]
+    # after the faults stop: every sample good and calibrated, channel not degraded
+    tail = [r for r in records["lis3mdl"] if r.t_s - 1767225600.0 > FAULT_END_S + 1.0]
+    assert len(tail) > 900 and all(r.good and r.calibrated for r in tail)
+    assert not slot.channel.degraded
+
+
+def test_telemetry_files_read_back_as_sessions(campaign):
+    from magstack.data.session import read_session
+
+    app, _, records, _, _ = campaign
+    for name, slot in app.slots.items():
+        rows = sum(len(read_session(p)) for p in slot.telemetry.files)
+        assert rows == len(records[name])
+        assert all(not str(p).endswith(".part") for p in slot.telemetry.files)
