@@ -27,6 +27,16 @@ def test_pinned_model_is_igrf14():
     assert geomag.igrf_epochs_s()[-1] == dt.datetime(2030, 1, 1, tzinfo=dt.UTC).timestamp()
 
 
+@pytest.mark.parametrize("height_km, xyz_nT", [(0.0, (27455.6, -1924.6, -15996.8)),
+                                               (500.0, (21550.0, -1684.8, -10816.4))])
+def test_published_calculator_values(height_km, xyz_nT):
+    # NOAA NCEI magnetic field calculator, IGRF model, at decimal year 2025.03288, geodetic latitude 0,
+    # longitude 0 (north, east, down, printed to 0.1 nT), as quoted in a public pyIGRF check script
+    t = dt.datetime(2025, 1, 1, tzinfo=dt.UTC).timestamp() + 0.03288 * 365 * 86400
+    got = geomag.igrf_geodetic_nT(np.array([t]), 0.0, 0.0, height_km)[0]
+    assert np.max(np.abs(got - np.array(xyz_nT))) < 0.5
+
+
 def test_agrees_with_independent_implementation_pyIGRF14():
     pyIGRF14 = pytest.importorskip("pyIGRF14")
     rng = np.random.default_rng(7)
