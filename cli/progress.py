@@ -5,7 +5,9 @@ A bar is shown only when stderr is a terminal and neither ``--json`` nor ``--qui
 
 * :func:`bar` - a tqdm bar for a known total (seconds of a session, rows, folds);
 * :func:`stages` - a bar over named stages of a command that calls one long library function
-  per stage (``with stages("fit", ["read", "fit + hold-out folds", "write"]) as st: st.next()``).
+  per stage (``with stages("fit", ["read", "fit + hold-out folds", "write"]) as st: st.next()``);
+* :func:`fraction_bar` - a bar fed by a library's ``progress(stage, fraction)`` callback
+  (``align_streams``, ``import_mageval``).
 
 Library functions do not import this: they take a plain callback (``progress(done)``), and the
 command connects it to a bar.
@@ -18,7 +20,7 @@ from contextlib import contextmanager
 
 from tqdm import tqdm
 
-__all__ = ["progress_enabled", "set_progress_policy", "bar", "stages", "Stages"]
+__all__ = ["progress_enabled", "set_progress_policy", "bar", "stages", "Stages", "fraction_bar"]
 
 _policy = {"off": False}
 
@@ -70,3 +72,19 @@ def stages(desc: str, names: Sequence[str]) -> Iterator[Stages]:
         st = Stages(pbar, names, desc)
         yield st
         pbar.update(pbar.total - pbar.n)
+
+
+@contextmanager
+def fraction_bar(desc: str) -> Iterator[object]:
+    """A bar driven by a library ``progress(stage, fraction)`` callback (0..1 per stage); yields the callback."""
+    with bar(100, f"{desc}: ", unit="%", bar_format="{desc}{bar} {n:.0f}% [{elapsed}]") as pbar:
+        state = {"stage": None}
+
+        def progress(stage: str, fraction: float) -> None:
+            if stage != state["stage"]:
+                state["stage"] = stage
+                pbar.set_description(f"{desc} ({stage})", refresh=False)
+            pbar.n = 100.0 * min(max(float(fraction), 0.0), 1.0)
+            pbar.refresh()
+
+        yield progress

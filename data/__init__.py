@@ -5,6 +5,3 @@ Sits beneath the on-board code (the flight application writes telemetry as sessi
 refitter reads them), the simulators and ground analysis; imports only ``magstack.drivers`` and
 ``magstack.errors``.
 """
-
-# register the telemetry columns (position, attitude) with the session file reader and writer
-from magstack.data import telemetry as _telemetry  # noqa: E402,F401

@@ -34,12 +34,11 @@ DUT_COLUMNS = ("dut_x_uT", "dut_y_uT", "dut_z_uT")
 REF_COLUMNS = ("ref_x_uT", "ref_y_uT", "ref_z_uT")
 #: Columns every telemetry file has.
 TELEMETRY_REQUIRED = ("t_s", *DUT_COLUMNS, "temp_c", "session", *POS_COLUMNS, *QUAT_COLUMNS)
-#: Column meanings, registered with the session file as extra numeric columns.
+#: Column meanings (session file v1 carries them as extra numeric columns, ``Session.extra``).
 TELEMETRY_COLUMNS = {
     **{c: f"position {c[9]}, Earth-fixed frame (ITRS/WGS84), km" for c in POS_COLUMNS},
     **{c: f"attitude quaternion {c[-1]} (scalar first), GCRS -> body" for c in QUAT_COLUMNS},
 }
-_session.register_extra_columns(TELEMETRY_COLUMNS)
 _CURRENT_RE = re.compile(r"^current_([A-Za-z0-9_]+)_A$")
 #: Rows per block read by default.
 BLOCK_ROWS = 16384

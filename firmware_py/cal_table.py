@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from magstack.data.io import atomic_write_text, json_safe
 from magstack.firmware import fixed_point
 from magstack.firmware.calibration.model import CAL_TERMS, GROUND_ONLY_TERMS
 from magstack.firmware.errors import CalTableInvalid
@@ -124,7 +125,7 @@ class CalTable:
             elif p:
                 params[p] = {"unit": _UNITS[p], "value": getattr(self, p).tolist()}
         if self.ground_only:
-            params["ground_only"] = _jsonable(self.ground_only)
+            params["ground_only"] = json_safe(self.ground_only)
         doc = {
             "schema": SCHEMA, "schema_version": self.schema_version, "table_name": self.table_name,
             "device_id": self.device_id, "description": self.description,
@@ -135,25 +136,13 @@ class CalTable:
             "validity": {"temp_c": None if self.validity_temp_c is None else list(self.validity_temp_c),
                          "field_uT": self.validity_field_uT,
                          "currents_A": {k: list(v) for k, v in self.validity_currents_A}},
-            "fit": _jsonable(dict(self.fit_stats)),
+            "fit": json_safe(dict(self.fit_stats)),
         }
         doc["crc32"] = f"0x{_crc(doc):08x}"
         return doc
 
     def to_json(self) -> str:
         return json.dumps(self.to_document(), indent=1, sort_keys=True, allow_nan=False) + "\n"
-
-
-def _jsonable(x):
-    if isinstance(x, Mapping):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple, np.ndarray)):
-        return [_jsonable(v) for v in (x.tolist() if isinstance(x, np.ndarray) else x)]
-    if isinstance(x, (np.floating, float)):
-        return float(x) if math.isfinite(x) else None
-    if isinstance(x, np.integer):
-        return int(x)
-    return x
 
 
 def _now_utc() -> str:
@@ -262,27 +251,13 @@ def load_table(path: str | os.PathLike) -> CalTable:
 
 
 def save_table(table: CalTable, path: str | os.PathLike) -> Path:
-    """Atomic write: temp file in the same directory, fsync, rename, fsync the directory."""
+    """Atomic write (:func:`magstack.data.io.atomic_write_text`): temp file, fsync, rename, fsync the directory."""
     p = Path(path)
     try:
         text = table.to_json()
     except ValueError as exc:   # json refuses NaN/inf (allow_nan=False)
         raise CalTableInvalid(f"{p}: table not written: {exc} (non-finite parameter or validity value)") from None
-    tmp = p.with_name(f".{p.name}.tmp-{os.getpid()}")
-    try:
-        with open(tmp, "w", encoding="utf-8") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, p)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    fd = os.open(p.parent, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    atomic_write_text(p, text)
     return p
 
 

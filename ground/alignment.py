@@ -32,16 +32,25 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from magstack.data.pairing import finite_rows, sort_unique, split_streams
 from magstack.ground.errors import AlignmentError
 
 AXES = "xyz"
 #: Coarse offset search limits (keep a long session's search to a few seconds).
 MAX_COARSE_CANDIDATES = 4000
 MAX_COARSE_ROWS = 1000
+#: Offsets per pass of the medium stage (all rows): long searches are refined in several passes.
+MAX_MEDIUM_CANDIDATES = 81
+#: Candidate offsets x rows x design columns evaluated at once: bounds the memory of every search
+#: stage (~8 MB per intermediate array) independently of the session length.
+MAX_CHUNK_ELEMENTS = 1_000_000
+#: A reference whose RMS variation on the compared rows is below this (uT) is constant: nothing to align on.
+MIN_REF_VARIATION_UT = 1e-6
 #: Temperature model (``temp_model="auto"``): used when the temperature is finite on at least
 #: MIN_TEMP_FRACTION of the DUT rows and its 2..98 % percentile span is at least MIN_TEMP_SPAN_C.
 #: (HMC1053 sensitivity tempco ~ -2700 ppm/degC: 1 degC ~ 135 nT at 50 uT.)
@@ -74,6 +83,14 @@ def interp_no_extrapolation(t_src: np.ndarray, y_src: np.ndarray, t_query: np.nd
         return (out[:, 0] if one_d else out), np.zeros(tq.size, bool)
     if np.any(np.diff(t_src) <= 0):
         raise AlignmentError("source timestamps must be strictly increasing")
+    y_out, valid = _interp_sorted(t_src, y, tq, max_gap_s)
+    return (y_out[:, 0] if one_d else y_out), valid
+
+
+def _interp_sorted(t_src: np.ndarray, y: np.ndarray, tq: np.ndarray, max_gap_s: float):
+    """:func:`interp_no_extrapolation` for a source already finite and strictly increasing (>= 2 rows,
+    ``y`` (N,k)): the search stages call it per chunk without re-checking the whole source."""
+    out = np.full((tq.size, y.shape[1]), np.nan)
     idx = np.searchsorted(t_src, tq, side="right")
     inside = np.isfinite(tq) & (tq >= t_src[0]) & (tq <= t_src[-1])
     hi = np.clip(idx, 1, t_src.size - 1)
@@ -83,13 +100,14 @@ def interp_no_extrapolation(t_src: np.ndarray, y_src: np.ndarray, t_query: np.nd
     w = np.where(valid, (tq - t_src[lo]) / np.where(span > 0, span, 1.0), 0.0)
     vals = y[lo] * (1 - w)[:, None] + y[hi] * w[:, None]
     out[valid] = vals[valid]
-    return (out[:, 0] if one_d else out), valid
+    return out, valid
 
 
 def _interp_batch(t_src: np.ndarray, y_src: np.ndarray, tq: np.ndarray, max_gap_s: float):
-    """Interpolation of (N,k) at a 2-D query array tq (C,M) -> (C,M,k), valid (C,M)."""
+    """Interpolation of a cleaned source (N,k) (see :func:`_clean`) at a 2-D query array tq (C,M)
+    -> (C,M,k), valid (C,M)."""
     shape = tq.shape
-    y, valid = interp_no_extrapolation(t_src, y_src, tq.reshape(-1), max_gap_s)
+    y, valid = _interp_sorted(t_src, y_src, tq.reshape(-1), max_gap_s)
     return y.reshape(*shape, -1), valid.reshape(shape)
 
 
@@ -173,28 +191,42 @@ def _solve_ssr(xtx, xty, yty, ysum, n) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return ssr, np.where(ok[:, None], sst, np.nan), n
 
 
-def _batched_ssr(X: np.ndarray, Y: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For each candidate c: SSR of ``Y[c] ~ [X[c], 1]`` on rows valid[c].
+#: Progress callback: ``progress(stage, fraction_done)`` with fraction in [0, 1], called per row chunk.
+Progress = Callable[[str, float], None]
 
-    X (C,M,p) or (M,p); Y (C,M,k) or (M,k); returns (ssr (C,), sst (C,), n (C,)), summed over
-    the k target columns.
+
+def _block_sums(design, n_cand: int, n_rows: int, n_blocks: int, width: int,
+                progress: tuple[Progress, str] | None = None) -> list[tuple]:
+    """:func:`_normal_eqs` sums of each of ``n_blocks`` contiguous row blocks, accumulated over row chunks.
+
+    ``design(rows: slice) -> (X, Y, valid)`` gives every candidate's design on those rows (as
+    :func:`_normal_eqs` takes them). Chunks hold at most about :data:`MAX_CHUNK_ELEMENTS`
+    candidate x row x ``width`` values, so the memory of a search does not grow with the row count
+    (the sums are the same as over all rows at once, up to rounding).
     """
-    ssr, sst, n = _solve_ssr(*_normal_eqs(X, Y, valid))
-    return ssr.sum(axis=1), sst.sum(axis=1), n
-
-
-def _block_ssr(X: np.ndarray, Y: np.ndarray, valid: np.ndarray, n_blocks: int):
-    """SSR (C,k) on all rows and with each of ``n_blocks`` contiguous row blocks deleted.
-
-    Returns ``(ssr_all, sst_all, [ssr_without_block_b])``; one pass over the rows (the normal
-    equations of each block are subtracted from the total).
-    """
-    M = valid.shape[1]
-    edges = np.linspace(0, M, n_blocks + 1).astype(int)
+    edges = np.linspace(0, n_rows, n_blocks + 1).astype(int)
+    step = max(1, MAX_CHUNK_ELEMENTS // max(1, n_cand * width))
     parts = []
     for b in range(n_blocks):
-        sl = slice(edges[b], edges[b + 1])
-        parts.append(_normal_eqs(X[..., sl, :], Y[..., sl, :], valid[:, sl]))
+        acc = None
+        for r0 in range(edges[b], edges[b + 1], step) if edges[b + 1] > edges[b] else [edges[b]]:
+            r1 = min(r0 + step, edges[b + 1])
+            sums = _normal_eqs(*design(slice(r0, r1)))
+            acc = sums if acc is None else tuple(a + q for a, q in zip(acc, sums, strict=True))
+            if progress is not None:
+                progress[0](progress[1], r1 / max(1, n_rows))
+        parts.append(acc)
+    return parts
+
+
+def _block_ssr(design, n_cand: int, n_rows: int, n_blocks: int, width: int,
+               progress: tuple[Progress, str] | None = None):
+    """SSR (C,k) on all rows and with each of ``n_blocks`` contiguous row blocks deleted.
+
+    Returns ``(ssr_all, sst_all, [ssr_without_block_b])``; one streamed pass over the rows
+    (:func:`_block_sums`; the normal equations of each block are subtracted from the total).
+    """
+    parts = _block_sums(design, n_cand, n_rows, n_blocks, width, progress)
     total = tuple(sum(pt[i] for pt in parts) for i in range(5))
     ssr, sst, _ = _solve_ssr(*total)
     loo = [_solve_ssr(*(t - q for t, q in zip(total, pt, strict=True)))[0] for pt in parts]
@@ -290,16 +322,11 @@ def _clean(t: np.ndarray, v: np.ndarray, what: str, temp_c: np.ndarray | None = 
         temp = np.asarray(temp_c, float).reshape(-1)
         if temp.size != t.size:
             raise AlignmentError(f"{what}: temp_c has {temp.size} values for {t.size} timestamps")
-    ok = np.isfinite(t) & np.all(np.isfinite(v), axis=1)
-    t, v = t[ok], v[ok]
-    order = np.argsort(t, kind="stable")
-    t, v = t[order], v[order]
-    keep = np.concatenate([[True], np.diff(t) > 0])
+    arrays = (v,) if temp is None else (v, temp)
+    t, cleaned, _ = sort_unique(t, *arrays, keep=finite_rows(t, v))
     if t.size < 10:
         raise AlignmentError(f"{what}: only {t.size} finite samples; need at least 10")
-    if temp_c is None:
-        return t[keep], v[keep]
-    return t[keep], v[keep], temp[ok][order][keep]
+    return (t, cleaned[0]) if temp is None else (t, cleaned[0], cleaned[1])
 
 
 def _temperature_terms(t_s: np.ndarray, temp_c: np.ndarray | None, mode: str, min_span_c: float,
@@ -465,7 +492,7 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
                           min_r2: float = 0.9, max_sigma_s: float = 1.0,
                           ambiguity_ratio: float = 2.0, n_blocks: int = 20, temp_c: np.ndarray | None = None,
                           temp_model: str = "auto", min_temp_span_c: float = MIN_TEMP_SPAN_C,
-                          temp_order: int = TEMP_ORDER) -> OffsetEstimate:
+                          temp_order: int = TEMP_ORDER, progress: Progress | None = None) -> OffsetEstimate:
     """Clock offset (add to reference time to get DUT time) minimising ``ref ~ A dut + b``.
 
     ``temp_c`` (degC, one per DUT row, NaN allowed) adds the Eq. 3 temperature columns
@@ -508,28 +535,32 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
     grid = np.linspace(lo, hi, int(math.ceil((hi - lo) / h_coarse)) + 1)
     sub = np.unique(np.linspace(0, t_dut.size - 1, min(t_dut.size, MAX_COARSE_ROWS)).astype(int))
 
-    def cost(offsets: np.ndarray, rows: np.ndarray | None = None):
+    def cost(offsets: np.ndarray, rows: np.ndarray | None = None, stage: str = ""):
         td = t_dut if rows is None else t_dut[rows]
         dd = xd if rows is None else xd[rows]
         min_rows = max(10, int(0.2 * td.size))
-        out_ssr = np.full(offsets.size, np.nan)
-        out_sst = np.full(offsets.size, np.nan)
-        out_n = np.zeros(offsets.size)
-        chunk = max(1, 2_000_000 // max(1, td.size * dd.shape[1]))
-        for s in range(0, offsets.size, chunk):
-            o = offsets[s:s + chunk]
-            tq = td[None, :] - o[:, None]
-            y, valid = _interp_batch(t_ref, ref, tq, gap)
-            ssr, sst, n = _batched_ssr(dd, y, valid)
-            out_ssr[s:s + chunk], out_sst[s:s + chunk], out_n[s:s + chunk] = ssr, sst, n
-        bad = out_n < min_rows
-        out_ssr[bad] = np.nan
+
+        def design(rs: slice):
+            y, valid = _interp_batch(t_ref, ref, td[None, rs] - offsets[:, None], gap)
+            return dd[rs], y, valid
+
+        (sums,) = _block_sums(design, offsets.size, td.size, 1, dd.shape[1] + 8,
+                              None if progress is None else (progress, stage))
+        out_ssr, out_sst, out_n = _solve_ssr(*sums)
+        out_ssr, out_sst = out_ssr.sum(axis=1), out_sst.sum(axis=1)
+        out_ssr[out_n < min_rows] = np.nan
+        # a constant reference (zero-field session, the first seconds of a run) explains nothing
+        out_sst[~(out_sst > 3 * out_n * MIN_REF_VARIATION_UT ** 2)] = np.nan
         return out_ssr, out_sst, out_n
 
-    ssr, sst, n = cost(grid, sub)
+    ssr, sst, n = cost(grid, sub, "clock offset: coarse search")
     if not np.any(np.isfinite(ssr)):
         raise AlignmentError("no offset in the searched range gives enough overlapping samples "
                              f"(searched {lo:.1f}..{hi:.1f} s)")
+    if not np.any(np.isfinite(ssr / sst)):
+        raise AlignmentError("the data cannot determine a clock offset: the reference field is constant on the "
+                             "overlapping samples (a zero-field session or the start of a run?); record while "
+                             "the field changes")
     unexpl = ssr / sst
     k = int(np.nanargmin(unexpl))
     best_u = float(unexpl[k])
@@ -543,15 +574,29 @@ def estimate_clock_offset(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarr
     ratio = runner / best_u if best_u > 0 else math.inf
     center = float(grid[k])
     if h_coarse > h or sub.size < t_dut.size:
-        mid = center + np.arange(-2 * h_coarse, 2 * h_coarse + h / 2, h)
-        ssr_m, sst_m, _ = cost(mid)
-        if np.any(np.isfinite(ssr_m)):
-            center = float(mid[int(np.nanargmin(ssr_m / sst_m))])
+        # medium stage on all rows: +-2 coarse steps around the best, refined in passes of at most
+        # MAX_MEDIUM_CANDIDATES offsets down to step h (one pass at step h for all but long searches;
+        # a single pass at step h over +-2 coarse steps grew with the searched range x rows)
+        half = 2 * h_coarse
+        while True:
+            step = max(h, 2 * half / (MAX_MEDIUM_CANDIDATES - 1))
+            mid = center + np.arange(-half, half + step / 2, step)
+            ssr_m, sst_m, _ = cost(mid, None, "clock offset: medium search")
+            if np.any(np.isfinite(ssr_m / sst_m)):
+                center = float(mid[int(np.nanargmin(ssr_m / sst_m))])
+            if step <= h:
+                break
+            half = 2 * step
 
     # Fine stage on a 5 ms grid; the curve is computed once, then once per deleted block.
     fine = center + np.arange(-max(2 * h, 0.25), max(2 * h, 0.25) + 0.0025, 0.005)
-    yf, vf = _interp_batch(t_ref, ref, t_dut[None, :] - fine[:, None], gap)
-    ssr_f, _, loo = _block_ssr(xd, yf, vf, n_blocks)
+
+    def fine_design(rs: slice):
+        y, valid = _interp_batch(t_ref, ref, t_dut[None, rs] - fine[:, None], gap)
+        return xd[rs], y, valid
+
+    ssr_f, _, loo = _block_ssr(fine_design, fine.size, t_dut.size, n_blocks, xd.shape[1] + 8,
+                               None if progress is None else (progress, "clock offset: fine search"))
     win = max(h, 0.1)
     vertex, curv, kf = _vertex(fine, ssr_f.sum(axis=1), win)
     jack = [_vertex(fine, s_b.sum(axis=1), win)[0] for s_b in loo]
@@ -586,7 +631,8 @@ def estimate_axis_skew(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarray,
                        offset_s: float, *, max_skew_s: float | None = None, max_gap_s: float | None = None,
                        min_r2: float = 0.9, max_sigma_s: float | None = None,
                        n_blocks: int = 20, temp_c: np.ndarray | None = None, temp_model: str = "auto",
-                       min_temp_span_c: float = MIN_TEMP_SPAN_C, temp_order: int = TEMP_ORDER) -> list[ParamEstimate]:
+                       min_temp_span_c: float = MIN_TEMP_SPAN_C, temp_order: int = TEMP_ORDER,
+                       progress: Progress | None = None) -> list[ParamEstimate]:
     """Per-axis time skew of the DUT relative to ``offset_s`` (see module doc for the sign).
 
     For axis ``i`` the skew minimises the residual of ``dut_i ~ a . ref(t + skew - offset) + c``.
@@ -604,25 +650,41 @@ def estimate_axis_skew(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarray,
     half = max_skew_s if max_skew_s is not None else dt_dut
     sig_max = max_sigma_s if max_sigma_s is not None else dt_dut
     grid = np.arange(-half, half + 0.0025, 0.005)
-    tq = t_dut[None, :] + grid[:, None] - offset_s
-    y, valid = _interp_batch(t_ref, ref, tq, gap)
+    q = 0 if tcols is None else tcols.shape[1]
+    width = 3 * (1 + q) + q + 8
+    step = max(1, MAX_CHUNK_ELEMENTS // (grid.size * width))
+
+    def reference_at(rows):
+        return _interp_batch(t_ref, ref, t_dut[None, rows] + grid[:, None] - offset_s, gap)
+
     # rows valid for every candidate so that all costs use the same samples
-    common = np.all(valid, axis=0)
+    common = np.concatenate([reference_at(slice(r0, r0 + step))[1].all(axis=0)
+                             for r0 in range(0, t_dut.size, step)])
+    idx = np.flatnonzero(common)
     out: list[ParamEstimate] = []
-    if common.sum() < 10:
+    if idx.size < 10:
         return [ParamEstimate(math.nan, math.nan, False, "too little overlap") for _ in range(3)]
-    yv = _with_temp(y[:, common, :], None if tcols is None else tcols[common])
-    vmask = np.ones(yv.shape[:2], bool)
+
+    def design(rs: slice):
+        rows = idx[rs]
+        y, _ = reference_at(rows)
+        yv = _with_temp(y, None if tcols is None else tcols[rows])
+        return yv, dut[rows], np.ones(yv.shape[:2], bool)
+
     # the design (reference columns) is shared by the three DUT axes: one pass gives every axis's
     # residual curve, all rows and each block deleted
-    ssr_all, sst_all, loo = _block_ssr(yv, dut[common], vmask, n_blocks)
+    ssr_all, sst_all, loo = _block_ssr(design, grid.size, idx.size, n_blocks, width,
+                                       None if progress is None else (progress, "per-axis skew"))
+    tcols_c = None if tcols is None else tcols[idx]
     win = max(dt_ref / 2, 0.1)
     for i in range(3):
         ssr, sst = ssr_all[:, i], sst_all[:, i]
         vertex, curv, k = _vertex(grid, ssr, win)
         r2 = 1 - ssr[k] / sst[k]
-        _, _, resid = linear_fit(yv[k], dut[common, i:i + 1])
-        s2 = float(np.sum(resid ** 2)) / max(1, resid.size - yv.shape[2] - 1)
+        y_k, _ = interp_no_extrapolation(t_ref, ref, t_dut[idx] + grid[k] - offset_s, gap)
+        yv_k = _with_temp(y_k, tcols_c)
+        _, _, resid = linear_fit(yv_k, dut[idx, i:i + 1])
+        s2 = float(np.sum(resid ** 2)) / max(1, resid.size - yv_k.shape[1] - 1)
         sigma_curv = math.sqrt(2 * s2 / curv) * _eff_factor(resid) if curv > 0 else math.inf
         jack = [_vertex(grid, s_b[:, i], win)[0] for s_b in loo]
         sigma = max(sigma_curv, _jackknife_sigma(jack))
@@ -710,7 +772,7 @@ def align_streams(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarray, ref_
                   prior_s: float | None = None, search_halfwidth_s: float | None = None,
                   max_gap_s: float | None = None, min_r2: float = 0.9, temp_c: np.ndarray | None = None,
                   temp_model: str = "auto", min_temp_span_c: float = MIN_TEMP_SPAN_C,
-                  temp_order: int = TEMP_ORDER) -> AlignmentReport:
+                  temp_order: int = TEMP_ORDER, progress: Progress | None = None) -> AlignmentReport:
     """Clock offset, per-axis skew and axis map of a DUT/reference pair, with uncertainties.
 
     Raises AlignmentError when the clock offset cannot be determined; skew and axis-map entries
@@ -721,7 +783,8 @@ def align_streams(t_dut: np.ndarray, dut_uT: np.ndarray, t_ref: np.ndarray, ref_
     reference interpolated onto the DUT timestamps at the estimated offset; ``rmse_model_uT``
     that of the temperature model (None when it was not used).
     """
-    tkw = {"temp_c": temp_c, "temp_model": temp_model, "min_temp_span_c": min_temp_span_c, "temp_order": temp_order}
+    tkw = {"temp_c": temp_c, "temp_model": temp_model, "min_temp_span_c": min_temp_span_c, "temp_order": temp_order,
+           "progress": progress}
     off = estimate_clock_offset(t_dut, dut_uT, t_ref, ref_uT, prior_s=prior_s,
                                 search_halfwidth_s=search_halfwidth_s, max_gap_s=max_gap_s, min_r2=min_r2, **tkw)
     skew = estimate_axis_skew(t_dut, dut_uT, t_ref, ref_uT, off.offset_s, max_gap_s=max_gap_s, min_r2=min_r2,
@@ -758,12 +821,14 @@ def aligned_session(session, report: AlignmentReport, *, correct_skew: bool = Fa
 
     if gaps not in ("nan", "drop"):
         raise AlignmentError(f"gaps must be 'nan' or 'drop', got {gaps!r}")
-    d = np.all(np.isfinite(session.dut_uT), axis=1)
-    r = np.all(np.isfinite(session.ref_uT), axis=1)
-    if d.sum() < 2 or r.sum() < 2:
-        raise AlignmentError(f"session has {int(d.sum())} DUT and {int(r.sum())} reference rows: nothing to pair")
-    t_dut, dut = session.t_s[d], session.dut_uT[d].copy()
-    t_ref, ref = session.t_s[r], session.ref_uT[r]
+    streams = split_streams(session)
+    d = streams.dut_rows
+    if d.sum() < 2 or streams.ref_rows.sum() < 2:
+        raise AlignmentError(f"session has {int(d.sum())} DUT and {int(streams.ref_rows.sum())} reference rows: "
+                             "nothing to pair")
+    streams.require_increasing()   # names file and line of the first out-of-order row
+    t_dut, dut = streams.t_dut_s, streams.dut_uT.copy()
+    t_ref, ref = streams.t_ref_s, streams.ref_uT
     gap = max_gap_s if max_gap_s is not None else max(4 * float(np.median(np.diff(t_ref))), 1.0)
     off = report.offset.offset_s
     ref_on, ok = interp_no_extrapolation(t_ref + off, ref, t_dut, gap)
@@ -784,5 +849,6 @@ def aligned_session(session, report: AlignmentReport, *, correct_skew: bool = Fa
     meta["gap_rows"] = str(int((flag != 0).sum()))
     meta["gap_policy"] = gaps
     out = Session(t_dut, ref_on, dut, session.temp_c[d], session.session[d],
-                  {k: v[d] for k, v in session.currents_A.items()}, meta, flag)
+                  {k: v[d] for k, v in session.currents_A.items()}, meta, flag,
+                  extra={k: v[d] for k, v in session.extra.items()})
     return out.select(flag == 0) if gaps == "drop" else out

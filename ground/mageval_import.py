@@ -24,13 +24,14 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from magstack.data.errors import SessionFileError
-from magstack.data.session import Session, read_text_file
+from magstack.data.pairing import sort_unique
+from magstack.data.session import Session, data_row_line, parse_table, read_file_bytes
 from magstack.drivers.errors import ConfigurationError
 from magstack.ground.alignment import estimate_clock_offset, interp_no_extrapolation
 from magstack.ground.errors import AlignmentError
@@ -48,56 +49,98 @@ FLAG_NO_REF = 1
 FLAG_NO_DUT = 2
 
 
-def _parse_rows(path: Path, ncols: int, header: Sequence[str] | None, bad_lines: str) -> tuple[np.ndarray, int]:
-    text = read_text_file(path, "file")
-    lines = text.splitlines()
-    start = 0
-    if header is not None:
-        if not lines:
-            raise SessionFileError(f"{path}: empty file (expected header {','.join(header)})")
-        got = [c.strip() for c in lines[0].split(",")]
-        if got[:len(header)] != list(header):
-            raise SessionFileError(f"{path}: header {got} is not the AV-MagEval data header {list(header)}")
-        start = 1
-    rows, skipped = [], 0
-    for k, line in enumerate(lines[start:], start=start + 1):
-        if not line.strip():
-            continue
-        cells = line.split(",")
+#: Physical range of each kind of column; a value outside it is refused with its line (issue 17 item 3).
+#: Field: above every sensor's range on this bench (HMC1053 +-600 uT, FVM400 +-100 uT). Time: Unix
+#: epoch seconds 1970..2100. Temperature: kelvin, -123..177 degC (beyond any electronics on the bench).
+FIELD_LIMIT_UT = 1000.0
+EPOCH_RANGE_S = (0.0, 4.1e9)
+KELVIN_RANGE = (150.0, 450.0)
+REF_COLUMNS = ("time", "bx", "by", "bz")
+
+
+def _limits(column: str) -> tuple[float, float, str]:
+    if column == "time":
+        return (*EPOCH_RANGE_S, "s")
+    if column.startswith("temp_"):
+        return (*KELVIN_RANGE, "K")
+    return (-FIELD_LIMIT_UT, FIELD_LIMIT_UT, "uT")
+
+
+def _bad_cells(arr: np.ndarray, columns: Sequence[str]) -> np.ndarray:
+    """(n, ncols) mask of cells that are not finite or outside their column's physical range."""
+    lo = np.array([_limits(c)[0] for c in columns])
+    hi = np.array([_limits(c)[1] for c in columns])
+    with np.errstate(invalid="ignore"):
+        return ~(np.isfinite(arr) & (arr >= lo) & (arr <= hi))
+
+
+def _cell_error(path: Path, lineno: int, column: str, value: float) -> SessionFileError:
+    if not math.isfinite(value):
+        return SessionFileError(f"{path}: line {lineno}: column {column!r}: non-finite value (empty or nan)")
+    lo, hi, unit = _limits(column)
+    return SessionFileError(f"{path}: line {lineno}: column {column!r}: {value:g} {unit} is outside the physical "
+                            f"range [{lo:g}, {hi:g}] {unit}")
+
+
+def _parse_rows(path: Path, columns: Sequence[str], has_header: bool, bad_lines: str) -> tuple[np.ndarray, int]:
+    """Rows of an AV-MagEval file: plain decimal cells within each column's physical range.
+
+    Vectorised (:func:`magstack.data.session.parse_table`); with ``bad_lines="skip"`` a file with bad
+    lines is read line by line and each bad line is skipped and counted.
+    """
+    raw = read_file_bytes(path, "file")
+    first = 1
+    if has_header:
+        end = raw.find(b"\n")
+        head = raw if end < 0 else raw[:end]
+        if not head.strip():
+            raise SessionFileError(f"{path}: empty file (expected header {','.join(columns)})")
         try:
-            if len(cells) != ncols:
-                raise ValueError(f"{len(cells)} cells, expected {ncols}")
-            vals = [float(c) for c in cells]
-            if not all(math.isfinite(v) for v in vals):
-                raise ValueError("non-finite value")
-        except ValueError as exc:
-            if bad_lines == "skip":
+            got = [c.strip() for c in head.decode("utf-8").split(",")]
+        except UnicodeDecodeError as exc:
+            raise SessionFileError(f"{path}: not a text file ({exc})") from None
+        if got[:len(columns)] != list(columns):
+            raise SessionFileError(f"{path}: header {got} is not the AV-MagEval data header {list(columns)}")
+        raw, first = (b"" if end < 0 else raw[end + 1:]), 2
+    if raw and not raw.endswith(b"\n"):
+        raw += b"\n"
+    skipped = 0
+    try:
+        arr = parse_table(raw, first, columns, str(path))
+        bad = _bad_cells(arr, columns)
+        if bad.any():
+            k, j = (int(x[0]) for x in np.nonzero(bad))
+            raise _cell_error(path, data_row_line(raw, first, k), columns[j], float(arr[k, j]))
+    except SessionFileError:
+        if bad_lines != "skip":
+            raise
+        rows = []
+        for k, line in enumerate(raw.decode("utf-8", "replace").split("\n")[:-1], start=first):
+            if not line.strip():
+                continue
+            try:
+                row = parse_table((line + "\n").encode("utf-8", "replace"), k, columns, str(path))
+                if row.shape[0] != 1 or _bad_cells(row, columns).any():
+                    raise SessionFileError("bad line")
+            except SessionFileError:
                 skipped += 1
                 continue
-            raise SessionFileError(f"{path}: line {k}: {exc}: {line[:80]!r}") from None
-        rows.append(vals)
-    if len(rows) < 2:
-        raise SessionFileError(f"{path}: only {len(rows)} usable rows")
-    return np.asarray(rows, dtype=float), skipped
-
-
-def _monotonic(t: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, list[np.ndarray], int]:
-    """Sort by time and drop repeated timestamps (keep first); returns the count removed."""
-    order = np.argsort(t, kind="stable")
-    t = t[order]
-    keep = np.concatenate([[True], np.diff(t) > 0])
-    return t[keep], [a[order][keep] for a in arrays], int((~keep).sum())
+            rows.append(row[0])
+        arr = np.array(rows, dtype=float).reshape(len(rows), len(columns))
+    if arr.shape[0] < 2:
+        raise SessionFileError(f"{path}: only {arr.shape[0]} usable rows")
+    return arr, skipped
 
 
 def read_mageval_data(data_csv: str | os.PathLike, *, bad_lines: str = "raise") -> tuple[dict[str, np.ndarray], int]:
     """Columns of a ``dataN.csv`` file by name, plus the number of skipped bad lines."""
-    arr, skipped = _parse_rows(Path(data_csv), len(DATA_COLUMNS), DATA_COLUMNS, bad_lines)
+    arr, skipped = _parse_rows(Path(data_csv), DATA_COLUMNS, True, bad_lines)
     return {c: arr[:, i] for i, c in enumerate(DATA_COLUMNS)}, skipped
 
 
 def read_mageval_ref(ref_csv: str | os.PathLike, *, bad_lines: str = "raise") -> tuple[np.ndarray, np.ndarray, int]:
     """``(t_s (N,), b_uT (N,3) in raw reference axes, skipped)`` from a ``refN.csv`` file."""
-    arr, skipped = _parse_rows(Path(ref_csv), 4, None, bad_lines)
+    arr, skipped = _parse_rows(Path(ref_csv), REF_COLUMNS, False, bad_lines)
     return arr[:, 0], arr[:, 1:4], skipped
 
 
@@ -121,7 +164,8 @@ def import_mageval(data_csv: str | os.PathLike, ref_csv: str | os.PathLike, *,
                    gaps: str = "nan",
                    bad_lines: str = "raise",
                    session_id: int = 0,
-                   metadata: Mapping[str, str] | None = None) -> Session:
+                   metadata: Mapping[str, str] | None = None,
+                   progress: Callable[[str, float], None] | None = None) -> Session:
     """Pair an AV-MagEval ``dataN.csv`` with its ``refN.csv`` into an aligned :class:`Session`.
 
     Parameters
@@ -139,6 +183,7 @@ def import_mageval(data_csv: str | os.PathLike, ref_csv: str | os.PathLike, *,
     gaps: ``"nan"`` keeps gap rows with NaN and ``flag`` bits (1: no reference, 2: no DUT);
         ``"drop"`` removes them. Either way the count is in the metadata.
     bad_lines: ``"raise"`` (SessionFileError naming the line) or ``"skip"`` (counted in metadata).
+    progress: ``progress(stage, fraction)`` callback of the clock-offset search (see alignment).
     """
     if temp_column not in ("temp_pi", "temp_mag"):
         raise ConfigurationError(f"temp_column must be 'temp_pi' or 'temp_mag', got {temp_column!r}")
@@ -164,8 +209,8 @@ def import_mageval(data_csv: str | os.PathLike, ref_csv: str | os.PathLike, *,
     t_ref_raw, ref_raw, skipped_ref = read_mageval_ref(ref_csv, bad_lines=bad_lines)
     dut_raw = np.column_stack([cols["x_test"], cols["y_test"], cols["z_test"]])
     temp_c_raw = cols[temp_column] - KELVIN_OFFSET
-    t_dut, (dut, temp_c), dup_dut = _monotonic(cols["time"], dut_raw, temp_c_raw)
-    t_ref, (ref_native,), dup_ref = _monotonic(t_ref_raw, ref_raw)
+    t_dut, (dut, temp_c), dup_dut = sort_unique(cols["time"], dut_raw, temp_c_raw)
+    t_ref, (ref_native,), dup_ref = sort_unique(t_ref_raw, ref_raw)
     ref = apply_axis_map(ref_native, axis_map)
 
     meta: dict[str, str] = {
@@ -184,7 +229,7 @@ def import_mageval(data_csv: str | os.PathLike, ref_csv: str | os.PathLike, *,
         try:
             est = estimate_clock_offset(t_dut, dut, t_ref, ref, prior_s=offset_prior_s,
                                         search_halfwidth_s=offset_search_halfwidth_s, max_gap_s=max_gap_s,
-                                        temp_c=temp_c)
+                                        temp_c=temp_c, progress=progress)
             offset = est.offset_s
             meta["clock_offset_method"] = "estimated (min residual of ref ~ A dut + b)"
             meta["clock_offset_model"] = est.model

@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from magstack.data.pairing import split_streams
 from magstack.data.session import SessionWriter
 from magstack.drivers.clock import Clock, VirtualClock
 from magstack.drivers.errors import ConfigurationError, MagError
@@ -429,7 +430,6 @@ def truth_currents(truth) -> tuple[tuple[str, ...], Callable[[float], Mapping[st
 
 
 def paired_view(session) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Split a raw bench session into (t_dut, dut_uT, t_ref, ref_uT) by which columns are filled."""
-    d = np.all(np.isfinite(session.dut_uT), axis=1)
-    r = np.all(np.isfinite(session.ref_uT), axis=1)
-    return session.t_s[d], session.dut_uT[d], session.t_s[r], session.ref_uT[r]
+    """(t_dut, dut_uT, t_ref, ref_uT) of a raw bench session (:func:`magstack.data.pairing.split_streams`)."""
+    st = split_streams(session)
+    return st.t_dut_s, st.dut_uT, st.t_ref_s, st.ref_uT

@@ -135,7 +135,7 @@ def test_every_command_prints_strict_json_with_stable_keys(tmp_path, capsys, sim
           "axis_map", "rmse_uT", "notes", "out", "paired_rows", "gap_rows"}),
         (["import-mageval", str(DATA / "data5.csv"), str(DATA / "ref5.csv"), "--out", str(tmp_path / "mag.csv")],
          {"out", "rows", "clock_offset_s", "clock_offset_vs_authors_s", "clock_offset_sigma_s", "clock_offset_method",
-          "gap_rows", "gap_policy"}),
+          "gap_rows", "gap_policy", "warning"}),
         (["probe"], {"bus", "devices", "supported_found"}),
         (["read", "--chip", "hmc5983", "-n", "3"], {"chip", "bus", "config", "samples"}),
     ]

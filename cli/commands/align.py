@@ -7,7 +7,8 @@ import numpy as np
 
 from magstack.cli.options import finite_float, nonempty_path
 from magstack.cli.output import CommandResult
-from magstack.cli.progress import stages
+from magstack.cli.progress import fraction_bar
+from magstack.data.pairing import split_streams
 from magstack.data.session import read_session, refuse_overwriting_inputs, write_session
 from magstack.drivers.errors import ConfigurationError
 from magstack.ground.alignment import align_streams, aligned_session
@@ -46,12 +47,10 @@ def register(subparsers) -> None:
 
 def _load(inputs: list[str], prior: float | None, halfwidth: float | None):
     if len(inputs) == 1:
-        s = read_session(inputs[0])
-        ok = np.all(np.isfinite(s.dut_uT), axis=1)
-        okr = np.all(np.isfinite(s.ref_uT), axis=1)
+        st = split_streams(read_session(inputs[0]))
         if prior is None and halfwidth is None:
             prior, halfwidth = 0.0, 10.0
-        return s.t_s[ok], s.dut_uT[ok], s.t_s[okr], s.ref_uT[okr], prior, halfwidth, s.temp_c[ok]
+        return st.t_dut_s, st.dut_uT, st.t_ref_s, st.ref_uT, prior, halfwidth, st.temp_dut_c
     if len(inputs) == 2:
         cols, _ = read_mageval_data(inputs[0])
         t_ref, ref, _ = read_mageval_ref(inputs[1])
@@ -66,17 +65,15 @@ def run(args: argparse.Namespace) -> CommandResult:
         raise ConfigurationError("--out needs a session file input; for DATA.csv REF.csv use import-mageval")
     if args.out:
         refuse_overwriting_inputs(args.out, args.inputs)
-    with stages("align", ["read", "estimate offset, skew, axis map", "write paired session"]) as st:
-        st.next()
-        t_dut, dut, t_ref, ref, prior, halfwidth, temp_c = _load(args.inputs, args.prior_s, args.halfwidth_s)
-        st.next()
+    t_dut, dut, t_ref, ref, prior, halfwidth, temp_c = _load(args.inputs, args.prior_s, args.halfwidth_s)
+    with fraction_bar("align") as progress:
         rep = align_streams(t_dut, dut, t_ref, ref, prior_s=prior, search_halfwidth_s=halfwidth,
                             max_gap_s=args.max_gap_s, min_r2=args.min_r2, temp_c=temp_c, temp_model=args.temp_model,
-                            min_temp_span_c=args.min_temp_span_c, temp_order=args.temp_order)
+                            min_temp_span_c=args.min_temp_span_c, temp_order=args.temp_order, progress=progress)
         lines = _report_lines(rep)
         data = {**rep.as_dict(), "out": None, "paired_rows": None, "gap_rows": None}
         if args.out:
-            st.next()
+            progress("write paired session", 0.0)
             paired = aligned_session(read_session(args.inputs[0]), rep, correct_skew=args.correct_skew,
                                      max_gap_s=args.max_gap_s, gaps="drop" if args.drop_gaps else "nan")
             write_session(args.out, paired)

@@ -2,10 +2,11 @@
 from __future__ import annotations
 
 import argparse
+import logging
 
 from magstack.cli.options import finite_float, int_range, nonempty_path
 from magstack.cli.output import CommandResult
-from magstack.cli.progress import stages
+from magstack.cli.progress import fraction_bar
 from magstack.data.session import refuse_overwriting_inputs, write_session
 from magstack.drivers.errors import ConfigurationError
 from magstack.ground.mageval_import import AUTHORS_OFFSET_S, import_mageval
@@ -38,6 +39,8 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+log = logging.getLogger(__name__)
+
 #: Accepted uniform grid step for --onto (s).
 ONTO_STEP_RANGE_S = (0.001, 3600.0)
 
@@ -55,18 +58,24 @@ def run(args: argparse.Namespace) -> CommandResult:
     onto = _onto(args.onto)
     refuse_overwriting_inputs(args.out, [args.data_csv, args.ref_csv])
     offset = AUTHORS_OFFSET_S if args.authors_offset else args.clock_offset_s
-    with stages("import-mageval", ["read, estimate offset, pair", "write"]) as st:
-        st.next()
+    with fraction_bar("import-mageval") as progress:
         s = import_mageval(args.data_csv, args.ref_csv, temp_column=args.temp_column, clock_offset_s=offset,
                            on_undetermined="raise" if args.strict_offset else "prior", onto=onto,
                            max_gap_s=args.max_gap_s, gaps="drop" if args.drop_gaps else "nan",
-                           bad_lines="skip" if args.skip_bad_lines else "raise", session_id=args.session_id)
-        st.next()
+                           bad_lines="skip" if args.skip_bad_lines else "raise", session_id=args.session_id,
+                           progress=progress)
+        progress("write", 0.0)
         write_session(args.out, s)
     m = s.metadata
     keys = ("clock_offset_s", "clock_offset_vs_authors_s", "clock_offset_sigma_s", "clock_offset_method", "gap_rows",
             "gap_policy")
     data = {"out": str(args.out), "rows": len(s), **{k: m.get(k) for k in keys}}
+    warning = None
+    if m["clock_offset_method"].startswith("prior"):
+        warning = (f"clock offset NOT estimated, the authors' value was used: {m['clock_offset_method']} "
+                   "(use --strict-offset to fail instead)")
+        log.warning("import-mageval: %s", warning)
+    data["warning"] = warning
     return CommandResult("import-mageval", data, [
         f"wrote {args.out}: {len(s)} rows; clock offset {m['clock_offset_s']} s "
         f"({m['clock_offset_vs_authors_s']} s vs authors, sigma {m['clock_offset_sigma_s']} s, "

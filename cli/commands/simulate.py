@@ -133,7 +133,7 @@ def run(args) -> CommandResult:
     blocks = simulate_measurement_blocks(params, truth, duration_s=truth.duration_s, rate_hz=rate, seed=args.seed,
                                          effects=effects, block_rows=BLOCK_ROWS)
     writer = SessionWriter(args.out, metadata, current_names=names, block_rows=BLOCK_ROWS,
-                           extra_columns=extra_columns)
+                           extra_names=extra_columns)
     stopped = None
     with graceful_stop() as stop, bar(n_rows, "simulate", unit="row") as pbar:
         try:

@@ -13,9 +13,10 @@ from typing import Any
 import numpy as np
 
 from magstack.cli.demo.config import DEVICE_ID, Say
+from magstack.data.pairing import split_streams
 from magstack.data.session import read_session, write_session
 from magstack.ground import alignment
-from magstack.hil.bench import paired_view, record_sim_session
+from magstack.hil.bench import record_sim_session
 from magstack.sim.measurement_sim import FVM400_NOISE_uT
 
 
@@ -47,8 +48,8 @@ def record_session(path: Path, *, program: str, seconds: float, seed: int, sessi
                                  ref_noise_uT=ref_noise_uT, instrument_name=instrument_name,
                                  metadata={"device_id": DEVICE_ID, "source": "magstack demo"})
     s = read_session(path)
-    dut_rows = np.all(np.isfinite(s.dut_uT), axis=1)
-    t = s.temp_c[dut_rows & np.isfinite(s.temp_c)]
+    t = split_streams(s).temp_dut_c
+    t = t[np.isfinite(t)]
     fig = BenchFigures(
         Path(path), program, float(seconds), seed, res.rows, res.dut_samples, res.ref_samples,
         res.dut_samples / res.duration_s, res.ref_samples / res.duration_s, dict(res.ref_skipped),
@@ -85,10 +86,10 @@ class AlignFigures:
 def align_session(raw_path: Path, paired_path: Path, *, say: Say = print, verbose: bool = True) -> AlignFigures:
     """Estimate offset / skew / axis map from a raw bench session and write the paired session."""
     raw = read_session(raw_path)
-    t_dut, dut, t_ref, ref = paired_view(raw)
+    st = split_streams(raw)
     # both streams carry the host clock: search 0 +- 10 s as `magstack align` does for a session file
-    temp_dut_c = raw.temp_c[np.all(np.isfinite(raw.dut_uT), axis=1)]   # same rows paired_view keeps
-    rep = alignment.align_streams(t_dut, dut, t_ref, ref, prior_s=0.0, search_halfwidth_s=10.0, temp_c=temp_dut_c)
+    rep = alignment.align_streams(st.t_dut_s, st.dut_uT, st.t_ref_s, st.ref_uT, prior_s=0.0,
+                                  search_halfwidth_s=10.0, temp_c=st.temp_dut_c)
     paired = alignment.aligned_session(raw, rep, correct_skew=True)
     write_session(paired_path, paired)
     am = rep.axis_map

@@ -1,0 +1,1 @@
+"""Reproducible studies of published calibration methods (ground-side analysis)."""
