@@ -208,50 +208,33 @@ def test_candidate_failing_validation_is_never_proposed(tumbling, monkeypatch):
     assert not r.proposed and any("fails validation" in x for x in r.reasons)
 
 
-def test_cli_dispatches_scalar_and_pso_to_their_hooks(tumbling, tmp_path, monkeypatch, capsys):
-    import sys
-    import types
-    calls = []
+def test_cli_scalar_method_fits_the_magnitude_and_proposes(tumbling, tmp_path, capsys):
+    out, rep = tmp_path / "s.json", tmp_path / "s_rep.json"
+    assert main(["refit", str(tumbling), "--method", "scalar", "--out", str(out), "--json", str(rep),
+                 "--no-progress"]) == 0
+    text = capsys.readouterr().out
+    assert "refit (scalar, attitude-independent)" in text and "PROPOSED" in text
+    doc = json.loads(rep.read_text())
+    assert doc["method"] == "scalar" and doc["proposed"]
+    # gain + offset only: the temperature and current terms (about 1 uT here) stay in the residual
+    assert doc["holdout_scalar_rms_candidate_uT"] < 0.5 * doc["holdout_scalar_rms_active_uT"]
+    table = load_table(out)
+    assert table.terms == ("gain_matrix", "offset") and validate(table).ok
+    # a magnitude fit determines S up to a rotation: its singular values are the truth's
+    p = _truth(tumbling)
+    s0 = np.linalg.inv(p.gain_matrix @ misalignment_matrix(p.misalignment_rad, p.rotation_rad))
+    assert np.allclose(np.linalg.svd(table.S, compute_uv=False), np.linalg.svd(s0, compute_uv=False), atol=0.01)
 
-    class Result:
-        proposed = True
-        candidate = load_identity()
 
-        def report(self):
-            return "fake report"
-
-        def to_dict(self):
-            return {"fitness": 199.0, "S_mc": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "offset_nT": [0, 0, 0],
-                    "runtime_s": 0.1}
-
-    def hook(paths, *, active, options, progress):
-        calls.append((paths, active, options))
-        return Result()
-    for mod, name in (("magstack.firmware.calibration.scalar", "refit_scalar"),
-                      ("magstack.firmware.calibration.pso", "refit_pso")):
-        m = types.ModuleType(mod)
-        setattr(m, name, hook)
-        monkeypatch.setitem(sys.modules, mod, m)
-    out = tmp_path / "s.json"
-    assert main(["refit", str(tumbling), "--method", "scalar", "--out", str(out), "--no-progress"]) == 0
-    assert load_table(out).device_id == "hmc1053" and "fake report" in capsys.readouterr().out
+def test_cli_pso_paper_model_and_telemetry(tumbling, tmp_path, capsys):
     rep = tmp_path / "pso.json"
-    assert main(["refit", "--method", "pso", "--paper-model", "1", "--seed", "7", "--json", str(rep)]) == 0
-    assert json.loads(rep.read_text())["fitness"] == 199.0
-    (p1, a1, o1), (p2, a2, o2) = calls
-    assert p1 == [str(tumbling)] and a1 is None and o1["method"] == "scalar" and o1["currents"] is None
-    assert p2 == [] and o2["paper_model"] == 1 and o2["seed"] == 7
-
-
-def test_cli_other_methods_dispatch_or_say_unavailable(tumbling, tmp_path, capsys, monkeypatch):
-    import importlib
-    try:
-        importlib.import_module("magstack.firmware.calibration.scalar")
-        pytest.skip("scalar method installed: dispatch is covered by its own tests")
-    except ImportError:
-        pass
-    assert main(["refit", str(tumbling), "--out", str(tmp_path / "x.json"), "--method", "scalar"]) == 2
-    assert "not available" in capsys.readouterr().err
+    assert main(["refit", "--method", "pso", "--paper-model", "1", "--seed", "0", "--iterations", "20",
+                 "--json", str(rep)]) == 0
+    doc = json.loads(rep.read_text())
+    assert {"fitness", "S_mc", "offset_nT", "runtime_s"} <= set(doc)
+    assert main(["refit", str(tumbling), "--method", "pso", "--out", str(tmp_path / "x.json")]) == 2
+    assert "rotation-axis segments" in capsys.readouterr().err
+    assert main(["refit", "--method", "scalar", "--paper-model", "1"]) == 2
 
 
 def test_streaming_fit_merge_equals_one_accumulation():

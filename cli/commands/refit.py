@@ -1,15 +1,15 @@
 """``magstack refit TELEMETRY.csv [...] [--active cal.json] --out candidate.json [--method ...]``.
 
-``attitude`` (this module's default) refits against IGRF-14 rotated into the body frame by the
-telemetry attitude (:mod:`magstack.firmware.calibration.refit`). ``scalar`` and ``pso`` dispatch
-to ``magstack.firmware.calibration.scalar.refit_scalar`` / ``...pso.refit_pso`` when installed,
-with the hook signature documented in docs/refit.md. Exit 0 when a candidate is proposed and
-written, 1 when the run worked but nothing is proposed (the candidate is not written).
+``attitude`` (default) refits against IGRF-14 rotated into the body frame by the telemetry attitude;
+``scalar`` fits against the IGRF-14 magnitude only (attitude not trusted;
+:func:`magstack.firmware.calibration.refit.refit_scalar_telemetry` around
+``magstack.firmware.calibration.scalar.refit_scalar``); ``pso --paper-model N`` reruns the riwanto
+study (:mod:`magstack.cli.refit_pso`). Exit 0 when a candidate is proposed and written, 1 when the run
+worked but nothing is proposed (the candidate is not written).
 """
 from __future__ import annotations
 
 import argparse
-import importlib
 import os
 from pathlib import Path
 
@@ -19,8 +19,6 @@ from magstack.cli.progress import bar
 from magstack.drivers.errors import ConfigurationError
 
 METHODS = ("attitude", "scalar", "pso")
-HOOKS = {"scalar": ("magstack.firmware.calibration.scalar", "refit_scalar"),
-         "pso": ("magstack.firmware.calibration.pso", "refit_pso")}
 
 
 def register(subparsers) -> None:
@@ -62,6 +60,8 @@ def register(subparsers) -> None:
     p.add_argument("--device-id", help="device id (default: active table, then telemetry metadata)")
     p.add_argument("--paper-model", type=int_range(1, 5), metavar="N", help="(pso) rerun the riwanto paper's model N")
     p.add_argument("--seed", type=int_range(0, None), default=0, help="(pso) random seed")
+    p.add_argument("--iterations", type=int_range(1, None), default=None, metavar="K",
+                   help="(pso) PSO iterations k_max (default: the paper's 500)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=run)
 
@@ -113,14 +113,28 @@ def run(args: argparse.Namespace) -> int:
     from magstack.firmware.cal_table import load_table, save_table, validate
 
     paths = list(args.telemetry)
-    if args.method == "attitude" and not paths:
+    if args.paper_model is not None:
+        if args.method != "pso" or paths:
+            raise ConfigurationError("--paper-model N reruns the riwanto PSO study: use --method pso and no "
+                                     "telemetry files")
+        from magstack.cli.refit_pso import run_paper_model_cli
+
+        ns = argparse.Namespace(method="pso", paper_model=args.paper_model, seed=args.seed,
+                                iterations=args.iterations, json=None if args.json_out is None else str(args.json_out))
+        return run_paper_model_cli(ns)
+    if args.method == "pso":
+        raise ConfigurationError("--method pso on telemetry needs rotation-axis segments (loci) that the "
+                                 "telemetry columns do not carry: use --paper-model N, --method scalar, or the "
+                                 "Python API refit_scalar(..., method='pso', locus=..., omega_body=...)")
+    if not paths:
         raise ConfigurationError("give at least one TELEMETRY.csv")
-    if paths and not args.out:
+    if not args.out:
         raise ConfigurationError("--out candidate.json is required with telemetry files")
     if args.engine == "local" and args.scheduler:
         raise ConfigurationError("--scheduler needs --engine dask")
-    if args.out:
-        refuse_overwriting_inputs(args.out, paths + ([args.active] if args.active else []))
+    if args.method == "scalar" and args.engine != "local":
+        raise ConfigurationError("--engine dask runs the attitude method only (the scalar fit is a batch fit)")
+    refuse_overwriting_inputs(args.out, paths + ([args.active] if args.active else []))
     active = None
     if args.active:
         active = load_table(args.active)
@@ -132,16 +146,9 @@ def run(args: argparse.Namespace) -> int:
         if args.method == "attitude":
             result = _attitude(args, paths, active, currents, progress)
         else:
-            module, name = HOOKS[args.method]
-            try:
-                hook = getattr(importlib.import_module(module), name)
-            except (ImportError, AttributeError):
-                raise ConfigurationError(f"--method {args.method} is not available in this build "
-                                         f"({module}.{name} not found)") from None
-            opts = {k: v for k, v in vars(args).items() if k not in ("func", "telemetry", "active")}
-            opts["currents"] = currents
-            opts["json"] = opts.pop("json_out", None)
-            result = hook(paths, active=active, options=opts, progress=progress)
+            from magstack.firmware.calibration.refit import refit_scalar_telemetry
+
+            result = refit_scalar_telemetry(paths, active, _options(args, currents), progress=progress)
     finally:
         close()
     lines = [result.report()]
@@ -162,21 +169,26 @@ def run(args: argparse.Namespace) -> int:
     if args.json_out:
         _write_json_atomic(args.json_out, data)
         lines.append(f"wrote {args.json_out}")
-    return CommandResult("refit", data, lines, 0 if (written is not None or not paths) else 1)
+    return CommandResult("refit", data, lines, 0 if written is not None else 1)
 
 
-def _attitude(args, paths, active, currents, progress):
-    from magstack.firmware.calibration.refit import RefitOptions, Selection, refit
+def _options(args, currents):
+    from magstack.firmware.calibration.refit import RefitOptions, Selection
 
     sel = Selection(_band(args.lat_band, "--lat-band"), _band(args.temp_band, "--temp-band"), args.eclipse)
-    opts = RefitOptions(model=args.model, currents=currents, selection=sel, robust=not args.no_robust,
+    return RefitOptions(model=args.model, currents=currents, selection=sel, robust=not args.no_robust,
                         robust_passes=args.robust_passes, holdout_block_s=args.holdout_block_s,
                         holdout_every=args.holdout_every, max_current_gap_s=args.max_current_gap_s,
                         dut1_s=args.dut1, min_improvement=args.min_improvement, device_id=args.device_id)
+
+
+def _attitude(args, paths, active, currents, progress):
+    from magstack.firmware.calibration.refit import refit
+
     mapper = None
     if args.engine == "dask":
         from magstack.ground.refit_dask import dask_mapper
 
         mapper = dask_mapper(args.scheduler)
         progress = None
-    return refit(paths, active, opts, progress=progress, mapper=mapper)
+    return refit(paths, active, _options(args, currents), progress=progress, mapper=mapper)

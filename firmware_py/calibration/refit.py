@@ -295,8 +295,9 @@ def _robust_add(st: PassStats, arrays: tuple, plan: Plan, theta, sigma_uT) -> No
     st.fit.add(bm, y, tc, cc, ss, tt, weights=w)
 
 
-def _block_pass(st: PassStats, blk: telemetry.TelemetryBlock, plan: Plan, theta, sigma_uT,
-                cache: FitRowCache | None = None) -> None:
+def _prepare_block(st: PassStats, blk: telemetry.TelemetryBlock, plan: Plan):
+    """Reference field and row selection of one block: (b_ref (N,3), usable (N,), held out (N,), currents);
+    counts the excluded rows by reason in ``st``."""
     opt, model = plan.options, plan.model
     sel = opt.selection
     cnt = st.counts
@@ -327,21 +328,29 @@ def _block_pass(st: PassStats, blk: telemetry.TelemetryBlock, plan: Plan, theta,
             cnt[reason] = cnt.get(reason, 0) + k
         use &= ~bad
     held_out = np.floor(blk.t_s / opt.holdout_block_s).astype(np.int64) % opt.holdout_every == 0
-    fit_rows = use & ~held_out
     cur = {k: blk.currents_A[k] for k in model.currents}
+    return b_ref, use, held_out, cur
 
-    def rows(mask):
-        return (blk.dut_uT[mask], b_ref[mask], blk.temp_c[mask], {k: v[mask] for k, v in cur.items()},
-                blk.session[mask], blk.t_s[mask])
+
+def _rows(blk: telemetry.TelemetryBlock, b_ref, cur, mask) -> tuple:
+    """(b_meas, b_ref, temp, currents, session, t) of the rows in ``mask``."""
+    return (blk.dut_uT[mask], b_ref[mask], blk.temp_c[mask], {k: v[mask] for k, v in cur.items()},
+            blk.session[mask], blk.t_s[mask])
+
+
+def _block_pass(st: PassStats, blk: telemetry.TelemetryBlock, plan: Plan, theta, sigma_uT,
+                cache: FitRowCache | None = None) -> None:
+    b_ref, use, held_out, cur = _prepare_block(st, blk, plan)
+    fit_rows = use & ~held_out
     if theta is None:
-        arrays = rows(fit_rows)
+        arrays = _rows(blk, b_ref, cur, fit_rows)
         st.fit.add(*arrays)
         st.bins.update(b_ref[fit_rows], blk.temp_c[fit_rows])
-        st.hold.add(*rows(use & held_out))
+        st.hold.add(*_rows(blk, b_ref, cur, use & held_out))
         if cache is not None:
             cache.add(blk.path, arrays)
     else:
-        _robust_add(st, rows(fit_rows), plan, theta, sigma_uT)
+        _robust_add(st, _rows(blk, b_ref, cur, fit_rows), plan, theta, sigma_uT)
 
 
 def holdout_rms(R: np.ndarray, theta: np.ndarray, model: CalModel, n: int) -> np.ndarray:
@@ -604,3 +613,116 @@ def refit(paths: Sequence[str], active: cal_table.CalTable | None = None, option
 
 __all__ = ["RefitOptions", "RefitResult", "Selection", "Plan", "PassStats", "refit", "file_pass", "make_plan",
            "merge_stats", "local_mapper", "identity_table", "theta_from_table", "holdout_rms"]
+
+
+# ---------------------------------------------------------------------- attitude-independent (scalar)
+@dataclass
+class ScalarRefitResult:
+    """Outcome of ``--method scalar``: magnitude-only fit (:func:`scalar.refit_scalar`) on the fit rows,
+    candidate vs active compared by the RMS of ``|B_cal| - |B_ref|`` on the held-out rows."""
+
+    candidate: cal_table.CalTable | None
+    proposed: bool
+    reasons: list[str]
+    fit: Any
+    holdout_candidate_uT: float
+    holdout_active_uT: float
+    n_fit: int
+    n_holdout: int
+    counts: dict[str, int]
+    rows: int
+    runtime_s: float
+    active_name: str
+
+    def to_dict(self) -> dict[str, Any]:
+        f = self.fit
+        return {"method": "scalar", "proposed": self.proposed, "reasons": self.reasons, "rows": self.rows,
+                "rows_fitted": self.n_fit, "rows_holdout": self.n_holdout, "excluded": dict(self.counts),
+                "runtime_s": self.runtime_s, "active": self.active_name,
+                "holdout_scalar_rms_candidate_uT": self.holdout_candidate_uT,
+                "holdout_scalar_rms_active_uT": self.holdout_active_uT,
+                "gauge": None if f is None else f.gauge,
+                "S": None if f is None else np.asarray(f.S).tolist(),
+                "O_uT": None if f is None else np.asarray(f.O_uT).tolist(),
+                "fit_scalar_rms_uT": None if f is None else f.rms_residual_uT}
+
+    def report(self) -> str:
+        L = [f"refit (scalar, attitude-independent): {self.rows} rows read, {self.n_fit} fitted, {self.n_holdout} "
+             f"held out, {self.runtime_s:.1f} s; active table: {self.active_name}"]
+        if self.counts:
+            L.append("excluded rows: " + ", ".join(f"{k} {v}" for k, v in sorted(self.counts.items())))
+        if self.fit is not None:
+            L.append(f"fitted: S (3x3), O (3) [gauge {self.fit.gauge}]; every other term of the active table "
+                     "is dropped (magnitude-only fit)")
+        L.append(f"held-out RMS of |B_cal| - |B_ref| (nT): candidate {self.holdout_candidate_uT * 1e3:.1f}, "
+                 f"active ({self.active_name}) {self.holdout_active_uT * 1e3:.1f}")
+        L.append(("PROPOSED: " if self.proposed else "NOT proposed: ") + "; ".join(self.reasons))
+        return "\n".join(L)
+
+
+def refit_scalar_telemetry(paths: Sequence[str], active: cal_table.CalTable | None = None,
+                           options: RefitOptions | None = None, *,
+                           progress: Callable[[int, str], None] | None = None) -> ScalarRefitResult:
+    """``--method scalar`` on telemetry: the same reading, reference, selection and held-out split as
+    :func:`refit`, then :func:`magstack.firmware.calibration.scalar.refit_scalar` (closed form + least
+    squares on ``|B_ref|``; gauge ``prior`` = the active table's S when given) on the fit rows. The fit
+    rows are collected in memory (the scalar fit is a batch fit: O(N))."""
+    from magstack.firmware.calibration.scalar import refit_scalar
+
+    t_start = time.perf_counter()
+    options = options or RefitOptions()
+    paths = [str(p) for p in paths]
+    if not paths:
+        raise FitError("no telemetry files")
+    meta = telemetry.read_header(paths[0]).metadata
+    device = options.device_id or (active.device_id if active is not None else None) \
+        or meta.get("device_id") or meta.get("dut_serial") or meta.get("dut_chip")
+    if not device:
+        raise FitError("no device id: pass one (--device-id) or an active table")
+    active_name = "identity" if active is None else (active.description or active.table_name or "active")
+    act = active if active is not None else identity_table(device)
+    plan = make_plan(paths, act, options)
+    fit_parts, hold_parts, counts, rows = [], [], {}, 0
+    for path in paths:
+        st = _new_stats(plan, True)
+        blocks = interpolate_currents(telemetry.iter_telemetry(path, options.block_rows), plan.model.currents,
+                                      options.max_current_gap_s)
+        for blk in blocks:
+            b_ref, use, held_out, cur = _prepare_block(st, blk, plan)
+            fit_parts.append(_rows(blk, b_ref, cur, use & ~held_out))
+            h = _rows(blk, b_ref, cur, use & held_out)
+            hold_parts.append((h[0], h[1], plan.model.design(*h[:1], h[2], h[3], h[4], h[5])))
+            if progress is not None:
+                progress(len(blk), "pass 1/1")
+        for k, v in st.counts.items():
+            counts[k] = counts.get(k, 0) + v
+        rows += st.rows
+    bm = np.vstack([a[0] for a in fit_parts]) if fit_parts else np.zeros((0, 3))
+    y = np.vstack([a[1] for a in fit_parts]) if fit_parts else np.zeros((0, 3))
+    if bm.shape[0] < 20:
+        raise FitError(f"{bm.shape[0]} usable fit rows: not enough for a scalar fit")
+    fit = refit_scalar(bm, y, method="scalar", K_prior=None if active is None else act.S)
+    hb = [h for h in hold_parts if h[0].shape[0]]
+    n_hold = int(sum(h[0].shape[0] for h in hb))
+    cand_sq = act_sq = 0.0
+    for bmh, yh, xh in hb:
+        r = np.linalg.norm(yh, axis=1)
+        cand_sq += float(np.sum((np.linalg.norm(bmh @ np.asarray(fit.S).T + fit.O_uT, axis=1) - r) ** 2))
+        act_sq += float(np.sum((np.linalg.norm(plan.model.predict(plan.theta_active, xh), axis=1) - r) ** 2))
+    hc = math.sqrt(cand_sq / max(n_hold, 1))
+    ha = math.sqrt(act_sq / max(n_hold, 1))
+    table = fit.to_table(device, description=f"on-orbit refit (scalar, IGRF-14 magnitude) vs {active_name}")
+    reasons = []
+    val = cal_table.validate(table)
+    if not val.ok:
+        reasons.append("candidate fails validation: " + "; ".join(val.problems))
+    if n_hold < options.min_holdout_rows:
+        reasons.append(f"only {n_hold} held-out rows (need {options.min_holdout_rows})")
+    if not hc < ha * (1.0 - options.min_improvement):
+        reasons.append(f"held-out scalar RMS {hc * 1e3:.1f} nT is not better than the active table's {ha * 1e3:.1f} nT")
+    proposed = not reasons
+    if proposed:
+        reasons.append(f"held-out scalar RMS {hc * 1e3:.1f} nT vs active {ha * 1e3:.1f} nT; validation passed")
+    return ScalarRefitResult(table, proposed, reasons, fit, hc, ha, int(bm.shape[0]), n_hold, counts, rows,
+                             time.perf_counter() - t_start, active_name)
+
