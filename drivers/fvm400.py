@@ -80,6 +80,10 @@ COMMANDS = MappingProxyType({c.name: c for c in (
     Command("channel_z", b"SC2", "ack", "select channel Z"),
 )})
 
+#: Nominal measuring range per component (nT), [U: not confirmed from the manual]. Calibration
+#: treats reference rows at or beyond it as possibly saturated (magstack.firmware.calibration.reference).
+NOMINAL_RANGE_NT = 100_000
+
 #: Magnitude above which a component is rejected as out of range (nT). The nominal range is
 #: +-100 000 nT [U]; real files hold 107 240 nT and a rig comment shows 108 638, so the default
 #: accepts up to 2x nominal and rejects only values that cannot be a field reading.

@@ -395,7 +395,9 @@ def table_from_fit(result, device_id: str, *, description: str = "", created_utc
     if "drift" in m.terms:
         ground["drift_uT_per_s"] = p["r"]
         ground["drift_t_ref_s"] = m.t_ref_s
-    return CalTable(device_id=device_id, terms=m.terms, S=p["S"], K_S=p["K_S"], O=p["O"], K_O=p["K_O"],
+    # terms without table parameters (the bench mount: fitted as a nuisance, reported in fit_stats)
+    terms = tuple(t for t in m.terms if t != "mount_rotation")
+    return CalTable(device_id=device_id, terms=terms, S=p["S"], K_S=p["K_S"], O=p["O"], K_O=p["K_O"],
                     D=tuple((k, p["D"][k]) for k in m.currents), c3=p["c3"], P=p["P"], t0_c=m.t0_c,
                     validity_temp_c=validity_temp_c,
                     validity_field_uT=validity_field_uT,

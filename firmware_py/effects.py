@@ -35,6 +35,14 @@ _EFFECTS = (
     Effect("interference", 20, "field proportional to named currents",
            "A current loop of fixed geometry adds D_i * I_i at the sensor (Eq. 4 of belsten, sec. 3.4.2).",
            "D_i in uT/A", "belsten sec. 3.4.2", "currents"),
+    Effect("mount_rotation", 25, "the sensor is mounted slightly rotated, differently each session",
+           "A bench remount turns the sensor by a small rotation R_s per session s: it senses R_s^T B_true "
+           "(R_s = I for the frame session). Acts on the body-frame field (after interference, whose "
+           "coefficients are body frame) before the sensor's own misalignment. "
+           "A property of the bench, not of the sensor: calibration fits the angles as per-session "
+           "nuisance parameters and never writes them into the table.",
+           "rad (rotation vector per session)", "issue 13 (real bench: X->Z slope changes sign between "
+           "sessions); belsten sec. 3.2 (power cycles, remounts)", "mount_rotation"),
     Effect("misalignment", 30, "sensor axes rotated / non-orthogonal w.r.t. the body frame",
            "Small rotation and non-orthogonality angles mixing the true field into each axis.",
            "rad", "lab study (misalignment); belsten Eq. 1 matrix C", "gain_matrix"),

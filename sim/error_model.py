@@ -3,7 +3,7 @@
 One ordered pipeline (the order and names come from :mod:`magstack.firmware.effects`, the single
 catalogue) applied to a :class:`~magstack.sim.truth_source.TruthSource`::
 
-    time_skew -> interference -> misalignment -> gain -> cross_axis -> nonlinearity
+    time_skew -> interference -> mount_rotation -> misalignment -> gain -> cross_axis -> nonlinearity
     -> temperature_gain -> hysteresis -> offset -> temperature_offset -> drift
     -> session_offset -> noise -> saturation -> quantization
 

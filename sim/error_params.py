@@ -85,6 +85,10 @@ class ErrorParams:
     axis_delay_s: Any = (0.0, 0.0, 0.0)
     # interference: field added at the sensor per named current, uT/A, body frame (3,).
     interference_uT_per_A: Mapping[str, Any] = field(default_factory=dict)
+    # mount_rotation: session id -> rotation vector (3,) rad of the sensor mount in that session
+    # relative to the frame mount; the sensor senses R_s^T b_body (R_s = Rotation.from_rotvec, active:
+    # the mounted triad is the frame triad turned by +rotvec). Sessions not listed: unrotated.
+    mount_rotation_rad: Mapping[int, Any] = field(default_factory=dict)
     # misalignment: non-orthogonality angles (a_xy, a_xz, a_yz) in rad (deviation from 90 deg
     # between the named pair of sensor axes) and a rotation vector (rad): b_sensor = W R b_body with
     # R = Rotation.from_rotvec(rotation_rad) applied actively (the sensor triad is the body triad
@@ -135,6 +139,21 @@ class ErrorParams:
                 raise ConfigurationError(f"current name {name!r} must match [A-Za-z0-9_]+")
             interf[name] = _vec3(f"interference_uT_per_A[{name!r}]", vec)
         s(self, "interference_uT_per_A", MappingProxyType(dict(sorted(interf.items()))))
+        if not isinstance(self.mount_rotation_rad, Mapping):
+            raise ConfigurationError("mount_rotation_rad must be a mapping session id -> (3,) rad")
+        mounts = {}
+        for key, vec in self.mount_rotation_rad.items():
+            try:
+                sid = int(key)
+            except (TypeError, ValueError):
+                raise ConfigurationError(f"mount_rotation_rad: session id {key!r} is not an integer") from None
+            if isinstance(key, float) and key != sid:
+                raise ConfigurationError(f"mount_rotation_rad: session id {key!r} is not an integer")
+            rv = _vec3(f"mount_rotation_rad[{sid}]", vec)
+            if np.linalg.norm(rv) >= math.pi / 4:
+                raise ConfigurationError(f"mount_rotation_rad[{sid}] must be a small rotation (< pi/4 rad), got {rv}")
+            mounts[sid] = rv
+        s(self, "mount_rotation_rad", MappingProxyType(dict(sorted(mounts.items()))))
         s(self, "misalignment_rad", _vec3("misalignment_rad", self.misalignment_rad))
         if (np.abs(self.misalignment_rad) >= math.pi / 4).any():
             raise ConfigurationError(f"misalignment_rad must be < pi/4 in magnitude, got {self.misalignment_rad}")
@@ -191,8 +210,8 @@ class ErrorParams:
         out: dict[str, Any] = {}
         for f in fields(self):
             v = getattr(self, f.name)
-            if isinstance(v, Mapping):
-                v = {k: np.asarray(x).tolist() for k, x in v.items()}
+            if isinstance(v, Mapping):   # JSON object keys are strings (session ids are read back as ints)
+                v = {str(k): np.asarray(x).tolist() for k, x in v.items()}
             elif isinstance(v, np.ndarray):
                 v = v.tolist()
             elif isinstance(v, tuple):

@@ -228,6 +228,35 @@ class Interference(Stage):
 
 
 @stage
+class MountRotation(Stage):
+    """``mount_rotation``: in session s the sensor is mounted turned by R_s, so it senses R_s^T b_body
+    (``params.mount_rotation_rad[s]``, rad; sessions not listed are unrotated)."""
+
+    name, kind = "mount_rotation", FIELD
+
+    def __init__(self, params: ErrorParams, seed: int, enabled: Collection[str]) -> None:
+        super().__init__(params, seed, enabled)
+        # rot_mount_from_frame^T as a matrix per session: b_mounted = R_s^T b_body
+        self._m = {k: Rotation.from_rotvec(np.array(v, dtype=float)).as_matrix().T
+                   for k, v in params.mount_rotation_rad.items() if np.any(v != 0)}
+        self._rows = {k: m.tolist() for k, m in self._m.items()}
+        self.active = bool(self._m)
+
+    def vector(self, b_body_uT: np.ndarray, at: FieldInputs) -> np.ndarray:
+        out = b_body_uT.copy()
+        ses = np.asarray(at.session)
+        for k, m in self._m.items():
+            rows = ses == k
+            if rows.any():
+                out[rows] = _matvec_series(m, b_body_uT[rows])
+        return out
+
+    def single(self, b_body_uT: list[float], at: FieldInputs) -> list[float]:
+        rows = self._rows.get(int(at.session))
+        return b_body_uT if rows is None else _matvec_one(rows, *b_body_uT)
+
+
+@stage
 class Misalignment(Stage):
     """``misalignment``: body frame -> sensor axes, b_sensor = W R b_body (:func:`misalignment_matrix`)."""
 

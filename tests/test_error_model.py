@@ -49,6 +49,7 @@ T = np.linspace(0.0, 20.0, 201)
 ONE_EFFECT = {
     "time_skew": ErrorParams(axis_delay_s=(0.0, 0.05, 0.1)),
     "interference": ErrorParams(interference_uT_per_A={"solar_A": (0.5, -0.2, 0.1)}),
+    "mount_rotation": ErrorParams(mount_rotation_rad={1: (0.01, -0.02, 0.03), 3: (0.0, 0.004, 0.0)}),
     "misalignment": ErrorParams(misalignment_rad=(0.01, -0.02, 0.015), rotation_rad=(0.002, 0.0, -0.003)),
     "gain": ErrorParams(gain_matrix=((1.1, 0.05, 0.0), (0.01, 0.95, -0.02), (0.0, 0.03, 1.2))),
     "cross_axis": ErrorParams(cross_axis_h0_uT=500.0, cross_axis_mode="set"),

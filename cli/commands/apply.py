@@ -5,12 +5,16 @@ import argparse
 
 import numpy as np
 
-from magstack.cli.options import nonempty_path
+from magstack.cli.options import finite_float, nonempty_path
 from magstack.cli.output import CommandResult
 from magstack.cli.progress import stages
 from magstack.data.errors import SessionFileError
 from magstack.data.session import read_session, refuse_overwriting_inputs, write_session
+from magstack.data.windows import add_window_options, describe, select_rows
+from magstack.drivers.errors import ConfigurationError
 from magstack.firmware.cal_table import load_table, validate
+from magstack.firmware.calibration.reference import reference_range, saturated_rows
+from magstack.firmware.calibration.steps import reference_steps, step_threshold_uT
 from magstack.firmware.errors import CalTableInvalid
 from magstack.firmware.float_applier import ApplyFlag
 from magstack.ground.apply_session import FLAG_SHIFT, calibrate_session
@@ -25,6 +29,10 @@ def register(subparsers) -> None:
     p.add_argument("--out", required=True, metavar="calibrated.csv", type=nonempty_path)
     p.add_argument("--applier", choices=("float", "fixed"), default="float",
                    help="float64 reference (default) or the on-board integer applier")
+    p.add_argument("--exclude-steps", type=finite_float(0, 1e4, lo_open=True, unit="uT"), default=None, metavar="UT",
+                   help="score 'away from steps' without rows next to a reference change above UT (as fit); "
+                        "default: the automatic threshold of fit's step diagnosis")
+    add_window_options(p)
     p.set_defaults(func=run)
 
 
@@ -40,6 +48,14 @@ def run(args: argparse.Namespace) -> CommandResult:
             raise SessionFileError(f"{args.session} is already calibrated (table "
                                    f"{s.metadata.get('cal_table_crc32')}); apply the table to the raw session")
         notes = [f"{args.session}: {w}" for w in s.warnings]
+        if args.window or args.drop_window:
+            keep = select_rows(s.t_s, s.session, args.window, args.drop_window)
+            if not keep.any():
+                raise ConfigurationError("the time windows select no rows")
+            how = describe(args.window, args.drop_window, int(keep.sum()), len(s))
+            s = s.select(keep)
+            s.metadata["rows_selected"] = how
+            notes.append(f"time windows: {how}")
         dev = s.metadata.get("device_id")
         if dev is not None and dev != table.device_id:
             raise CalTableInvalid(f"table is for device {table.device_id!r}, session is from {dev!r}")
@@ -55,14 +71,46 @@ def run(args: argparse.Namespace) -> CommandResult:
     lines.append(f"wrote {args.out}: {len(out)} rows ({args.applier} applier); not calibrated (missing input) "
                  f"{counts['missing_input']}, outside validity {counts['out_of_validity']}, saturated "
                  f"{counts['saturated']}")
-    ok = np.all(np.isfinite(out.ref_uT), axis=1) & np.all(np.isfinite(out.dut_uT), axis=1)
-    rms_nT = None
-    if ok.any():
-        rms = np.sqrt(np.mean((out.ref_uT[ok] - out.dut_uT[ok]) ** 2, axis=0)) * 1e3
-        rms_nT = {"x": rms[0], "y": rms[1], "z": rms[2], "norm": np.linalg.norm(rms), "n": int(ok.sum())}
-        lines.append(f"calibrated vs ref RMS (nT): x {rms[0]:.1f} y {rms[1]:.1f} z {rms[2]:.1f} "
-                     f"norm {np.linalg.norm(rms):.1f}")
+    score = scores(out, args.exclude_steps)
+    lines += score.pop("lines")
     data = {"out": str(args.out), "rows": len(out), "applier": args.applier,
-            "table_crc32": table.to_document()["crc32"], "flag_counts": counts, "calibrated_vs_ref_rms_nT": rms_nT,
-            "notes": notes}
+            "table_crc32": table.to_document()["crc32"], "flag_counts": counts,
+            "calibrated_vs_ref_rms_nT": score["all_rows"],
+            "calibrated_vs_ref_rms_away_from_steps_nT": score["away_from_steps"],
+            "rows_selected": out.metadata.get("rows_selected"), "notes": notes}
     return CommandResult("apply", data, lines)
+
+
+def scores(out, exclude_steps_uT: float | None) -> dict:
+    """Calibrated-vs-reference RMS (nT) over all rows and away from reference steps, as ``fit`` scores:
+    ``{"all_rows", "away_from_steps", "lines"}`` (the figures None when no row has both values)."""
+    ok = np.all(np.isfinite(out.ref_uT), axis=1) & np.all(np.isfinite(out.dut_uT), axis=1)
+    if not ok.any():
+        return {"all_rows": None, "away_from_steps": None, "lines": ["calibrated vs ref: no row has both values"]}
+    name, rng, note = reference_range(out.metadata)
+    sat = ok & saturated_rows(out.ref_uT, rng)
+    thr = step_threshold_uT(out.ref_uT[ok], out.session[ok]) if exclude_steps_uT is None else exclude_steps_uT
+    at = np.zeros(len(out), dtype=bool)
+    if np.isfinite(thr) and thr > 0:
+        at[ok] = reference_steps(out.ref_uT[ok], out.session[ok], thr)
+
+    def rms(m):
+        if not m.any():
+            return None
+        r = np.sqrt(np.mean((out.ref_uT[m] - out.dut_uT[m]) ** 2, axis=0)) * 1e3
+        return {"x": r[0], "y": r[1], "z": r[2], "norm": np.linalg.norm(r), "n": int(m.sum())}
+
+    def fmt(label, r):
+        if r is None:
+            return f"{label}: no rows"
+        return f"{label} ({r['n']} rows): x {r['x']:.1f} y {r['y']:.1f} z {r['z']:.1f} norm {r['norm']:.1f}"
+    how = "--exclude-steps" if exclude_steps_uT is not None else "automatic threshold"
+    all_rows, away = rms(ok), rms(ok & ~at)
+    if away is not None:
+        away.update({"threshold_uT": thr, "threshold_source": how})
+    lines = ["calibrated vs ref RMS (nT):", fmt("  all rows", all_rows),
+             fmt(f"  away from steps (reference change > {thr:.2g} uT, {how})", away)]
+    if sat.any():
+        lines.append(f"note: {int(sat.sum())} rows have the reference at/beyond its range ({name} +-{rng:g} uT)"
+                     + (f"; {note}" if note else "") + "; they are in both figures")
+    return {"all_rows": all_rows, "away_from_steps": away, "lines": lines}

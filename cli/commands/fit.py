@@ -7,11 +7,13 @@ from magstack.cli.options import finite_float, float_list, nonempty_path
 from magstack.cli.output import CommandResult, say
 from magstack.cli.progress import stages
 from magstack.data.session import load_sessions, refuse_overwriting_inputs
+from magstack.data.windows import add_window_options, describe, select_rows
 from magstack.drivers.errors import ConfigurationError
 from magstack.firmware.cal_table import BOUNDS as TABLE_BOUNDS
 from magstack.firmware.cal_table import save_table, table_from_fit, validate
 from magstack.firmware.calibration import FitData, FitOptions, fit
 from magstack.firmware.calibration.model import CAL_TERMS, MODELS
+from magstack.firmware.calibration.reference import reference_range
 from magstack.firmware.errors import CalTableInvalid, FitError
 
 
@@ -41,6 +43,15 @@ def register(subparsers) -> None:
                    help="temperature span needed to fit temperature terms (default 5)")
     p.add_argument("--field-present", type=finite_float(0, 1e4, unit="uT"), default=5.0, metavar="UT",
                    help="|B| counted as field on an axis for coverage rules (default 5)")
+    p.add_argument("--include-saturated", action="store_true",
+                   help="keep rows where the reference is at/beyond its range (default: excluded, counted)")
+    p.add_argument("--max-vif", type=finite_float(1, None, lo_open=True), default=FitOptions.max_vif, metavar="VIF",
+                   help=f"hold degenerate parameter groups at or above this variance inflation "
+                        f"(default {FitOptions.max_vif:g})")
+    p.add_argument("--mount-frame", type=int, default=None, metavar="SESSION",
+                   help="with --terms mount_rotation: the session whose mount defines the sensor frame "
+                        "(default: the first session in which rotations about every axis are observable)")
+    add_window_options(p)
     p.add_argument("--refuse-unidentifiable", action="store_true",
                    help="fail instead of holding undetermined parameters at their prior")
     p.add_argument("--no-holdout", action="store_true", help="skip held-out evaluation")
@@ -68,15 +79,32 @@ def run(args: argparse.Namespace) -> CommandResult:
     with stages("fit", ["read sessions", fit_stage, "validate + write table"]) as st:
         st.next()
         session, notes = load_sessions(args.sessions)
+        keep = select_rows(session.t_s, session.session, args.window, args.drop_window)
+        selection = {"windows": describe(args.window, args.drop_window, int(keep.sum()), len(session))}
+        if args.window or args.drop_window:
+            if not keep.any():
+                raise ConfigurationError(f"the time windows select no rows ({selection['windows']})")
+            session = session.select(keep)
+            notes.append(f"time windows: {selection['windows']}")
+        ids = sorted(set(session.session.tolist()))
+        if args.mount_frame is not None and args.mount_frame not in ids:
+            raise ConfigurationError(f"--mount-frame {args.mount_frame}: no such session (have {ids})")
+        ref_name, ref_range, ref_note = reference_range(session.metadata)
+        if ref_note:
+            notes.append(ref_note)
+        selection["reference"] = f"{ref_name} +-{ref_range:g} uT" + (" (assumed)" if ref_note else "")
         device_id = args.device_id or session.metadata.get("device_id") or session.metadata.get("dut_chip")
         if not device_id:
             raise FitError("no device id in the session metadata: pass --device-id")
         opts = FitOptions(robust=args.robust, on_unidentifiable="refuse" if args.refuse_unidentifiable else "hold",
                           min_temp_span_c=args.min_temp_span, field_present_uT=args.field_present,
-                          holdout=not args.no_holdout, block_s=args.block_s, exclude_ref_steps_uT=args.exclude_steps)
+                          holdout=not args.no_holdout, block_s=args.block_s, exclude_ref_steps_uT=args.exclude_steps,
+                          max_vif=args.max_vif, ref_range_uT=ref_range, include_saturated=args.include_saturated,
+                          mount_frame=args.mount_frame)
         st.next()
         result = fit(FitData.from_session(session), args.model, _split(args.terms), _split([args.currents]),
                      args.t0, opts)
+        result.selection.update(selection)
         st.next()
         report = result.report()
         table = table_from_fit(result, device_id, description=args.description or

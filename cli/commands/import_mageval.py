@@ -8,6 +8,7 @@ from magstack.cli.options import finite_float, int_range, nonempty_path
 from magstack.cli.output import CommandResult
 from magstack.cli.progress import fraction_bar
 from magstack.data.session import refuse_overwriting_inputs, write_session
+from magstack.data.windows import add_window_options, describe, select_rows
 from magstack.drivers.errors import ConfigurationError
 from magstack.ground.mageval_import import AUTHORS_OFFSET_S, import_mageval
 
@@ -36,6 +37,7 @@ def register(subparsers) -> None:
     p.add_argument("--skip-bad-lines", action="store_true", help="skip (and count) unparsable lines")
     p.add_argument("--session-id", type=int_range(0, 2 ** 31 - 1), default=0,
                    help="integer run id for the session column")
+    add_window_options(p)
     p.set_defaults(func=run)
 
 
@@ -64,12 +66,19 @@ def run(args: argparse.Namespace) -> CommandResult:
                            max_gap_s=args.max_gap_s, gaps="drop" if args.drop_gaps else "nan",
                            bad_lines="skip" if args.skip_bad_lines else "raise", session_id=args.session_id,
                            progress=progress)
+        if args.window or args.drop_window:
+            keep = select_rows(s.t_s, s.session, args.window, args.drop_window)
+            if not keep.any():
+                raise ConfigurationError("the time windows select no rows")
+            s.metadata["rows_selected"] = describe(args.window, args.drop_window, int(keep.sum()), len(s))
+            s = s.select(keep)
         progress("write", 0.0)
         write_session(args.out, s)
     m = s.metadata
     keys = ("clock_offset_s", "clock_offset_vs_authors_s", "clock_offset_sigma_s", "clock_offset_method", "gap_rows",
             "gap_policy")
-    data = {"out": str(args.out), "rows": len(s), **{k: m.get(k) for k in keys}}
+    data = {"out": str(args.out), "rows": len(s), **{k: m.get(k) for k in keys},
+            "rows_selected": m.get("rows_selected")}
     warning = None
     if m["clock_offset_method"].startswith("prior"):
         warning = (f"clock offset NOT estimated, the authors' value was used: {m['clock_offset_method']} "

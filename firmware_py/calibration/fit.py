@@ -12,19 +12,35 @@ scalar figure is the vector norm of the three per-axis values.
 """
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg
 
+from magstack.firmware.calibration.degeneracy import GROUP_CORR, VIF_LIMIT
+from magstack.firmware.calibration.identify import CORE_TERMS, HeldParam, identify, independent_field_rms
+from magstack.firmware.calibration.linalg import RANK_RTOL, qr_r
 from magstack.firmware.calibration.model import AXES, MODELS, CalModel, resolve_terms
+from magstack.firmware.calibration.mount import MountSolution, solve_mount
+from magstack.firmware.calibration.reference import SATURATION_MARGIN, saturated_rows
+from magstack.firmware.calibration.session_map import compare, comparison_lines
+from magstack.firmware.calibration.steps import (
+    STEP_NOISE_FACTOR,
+    STEP_RATIO,
+    STEP_SHARE,
+    StepDiagnosis,
+    diagnose_steps,
+    reference_steps,
+    step_threshold_uT,
+)
 from magstack.firmware.errors import FitError
 
-#: Rank tolerance: a column whose part orthogonal to the columns accepted before it is
-#: below this fraction of its own norm is numerically undetermined.
-RANK_RTOL = 1e-9
+#: Names other modules import from here (the pieces now live in steps, identify, linalg).
+__all__ = ["FitData", "FitOptions", "FitResult", "Coverage", "HeldParam", "AxisSolution", "StepDiagnosis",
+           "fit", "identify", "independent_field_rms", "solve_axis", "noise_floor", "qr_r", "reference_steps",
+           "diagnose_steps", "step_threshold_uT", "build_model", "block_folds", "frame_reference", "comparison_lines",
+           "RANK_RTOL", "CORE_TERMS", "STEP_RATIO", "STEP_SHARE", "STEP_NOISE_FACTOR"]
 
 
 @dataclass
@@ -97,6 +113,11 @@ class FitOptions:
     ``temperature_gain`` on input axis j counts only samples with ``|B_j| >=
     field_present_uT`` (field and temperature must vary together), ``temperature_offset``
     counts every sample. ``priors``: parameter name (e.g. ``"K_S[y,y]"``) -> held value.
+
+    ``max_vif`` / ``group_corr``: the degeneracy rule (module degeneracy). ``ref_range_uT``: the
+    reference's range (uT, :func:`reference.reference_range` from the session metadata; None = no
+    saturation guard): rows with a reference component at or beyond it are counted and excluded
+    unless ``include_saturated``.
     """
 
     robust: bool = False
@@ -113,6 +134,11 @@ class FitOptions:
     n_folds: int = 5
     noise_lag_s: float = 1.0
     exclude_ref_steps_uT: float | None = None
+    max_vif: float = VIF_LIMIT
+    group_corr: float = GROUP_CORR
+    ref_range_uT: float | None = None
+    include_saturated: bool = False
+    mount_frame: int | None = None
 
     def __post_init__(self) -> None:
         if self.on_unidentifiable not in ("hold", "refuse"):
@@ -125,6 +151,12 @@ class FitOptions:
             raise FitError("exclude_ref_steps_uT must be > 0 or None")
         if self.n_folds < 2:
             raise FitError("n_folds must be >= 2")
+        if not self.max_vif > 1:
+            raise FitError(f"max_vif must be > 1, got {self.max_vif!r}")
+        if not 0 < self.group_corr <= 1:
+            raise FitError(f"group_corr must be in (0, 1], got {self.group_corr!r}")
+        if self.ref_range_uT is not None and not (np.isfinite(self.ref_range_uT) and self.ref_range_uT > 0):
+            raise FitError(f"ref_range_uT must be finite and > 0 or None, got {self.ref_range_uT!r}")
 
 
 @dataclass
@@ -176,15 +208,6 @@ class Coverage:
 
 
 @dataclass
-class HeldParam:
-    axis: int
-    column: int
-    name: str
-    value: float
-    reason: str
-
-
-@dataclass
 class AxisSolution:
     theta: np.ndarray     # (p,) coefficients (held ones at their prior, unused 0)
     se: np.ndarray        # (p,) standard errors (NaN for held / unused)
@@ -192,60 +215,6 @@ class AxisSolution:
     dof: int
     cond_scaled: float    # condition number of the column-equilibrated active design
     cond_raw: float
-
-
-@dataclass
-class StepDiagnosis:
-    """In-sample residual split between rows at reference steps and the rest (plain RMS, uT).
-
-    ``threshold_uT``: a row is "at a step" when the reference changes by more than this between it
-    and a neighbouring row of its session (:func:`reference_steps`)."""
-
-    threshold_uT: float
-    n_step: int
-    n_steady: int
-    step_rms_uT: np.ndarray     # (3,)
-    steady_rms_uT: np.ndarray   # (3,)
-    step_share: float           # fraction of the total squared residual on step rows
-
-    @property
-    def dominant(self) -> bool:
-        """Step rows carry a disproportionate share of the misfit (worth excluding or modelling)."""
-        ratio = np.linalg.norm(self.step_rms_uT) / max(float(np.linalg.norm(self.steady_rms_uT)), 1e-300)
-        return ratio >= STEP_RATIO and self.step_share >= STEP_SHARE
-
-
-#: The step diagnosis reports step rows as dominant when their residual RMS is at least STEP_RATIO
-#: times that of the other rows and they carry at least STEP_SHARE of the squared residual.
-STEP_RATIO = 2.0
-STEP_SHARE = 0.5
-#: Automatic step threshold: this many times the median non-zero row-to-row reference change
-#: (the reference's own sample-to-sample noise while the field is steady).
-STEP_NOISE_FACTOR = 10.0
-
-
-def step_threshold_uT(b_ref_uT: np.ndarray, session: np.ndarray) -> float:
-    """Reference change between consecutive rows (uT, max over axes) that counts as a step:
-    STEP_NOISE_FACTOR x the median non-zero change within sessions; NaN if there is none."""
-    d = np.abs(np.diff(b_ref_uT, axis=0)).max(axis=1)
-    d = d[(session[1:] == session[:-1]) & np.isfinite(d) & (d > 0)]
-    return float(STEP_NOISE_FACTOR * np.median(d)) if d.size else math.nan
-
-
-def diagnose_steps(resid_uT: np.ndarray, b_ref_uT: np.ndarray, session: np.ndarray,
-                   threshold_uT: float | None = None) -> StepDiagnosis | None:
-    """Split the residual between rows at reference steps and the rest; None when the data has
-    no steps (fewer than 10 step or 10 other rows, or no usable threshold)."""
-    thr = step_threshold_uT(b_ref_uT, session) if threshold_uT is None else float(threshold_uT)
-    if not (math.isfinite(thr) and thr > 0):
-        return None
-    at = reference_steps(b_ref_uT, session, thr)
-    if at.sum() < 10 or (~at).sum() < 10:
-        return None
-    sq = resid_uT ** 2
-    total = float(sq.sum())
-    return StepDiagnosis(thr, int(at.sum()), int((~at).sum()), np.sqrt(sq[at].mean(axis=0)),
-                         np.sqrt(sq[~at].mean(axis=0)), float(sq[at].sum()) / total if total > 0 else 0.0)
 
 
 @dataclass
@@ -271,10 +240,20 @@ class FitResult:
     notes: list[str] = field(default_factory=list)
     n_excluded_steps: int = 0                          # rows excluded by exclude_ref_steps_uT
     steps: StepDiagnosis | None = None                 # residual at reference steps vs elsewhere
+    n_saturated: int = 0                               # usable rows at/beyond the reference range
+    saturated_excluded: bool = True                    # ... and whether they were left out
+    ref_range_uT: float | None = None
+    selection: dict = field(default_factory=dict)      # how rows were chosen (windows), for the table
+    mount: MountSolution | None = None                 # per-session mount rotations (nuisance)
+    comparison: dict = field(default_factory=dict)     # mount rotation vs a general per-session map
 
     @property
     def rmse_norm_uT(self) -> float:
         return float(np.linalg.norm(self.rmse_uT))
+
+    @property
+    def _n_sat_out(self) -> int:
+        return self.n_saturated if self.saturated_excluded else 0
 
     @property
     def params(self) -> dict:
@@ -299,6 +278,11 @@ class FitResult:
             "cond_scaled": lst(self.cond_scaled), "cond_raw": lst(self.cond_raw),
             "held": [{"param": h.name, "value": h.value, "reason": h.reason} for h in self.held],
             "n_excluded_steps": self.n_excluded_steps,
+            "ref_range_uT": self.ref_range_uT, "saturated_rows": self.n_saturated,
+            "saturated_rows_excluded": bool(self.saturated_excluded and self.n_saturated),
+            **({"selection": dict(self.selection)} if self.selection else {}),
+            **({"mount_rotation": self.mount.stats()} if self.mount is not None else {}),
+            **({"mount_vs_session_map": dict(self.comparison)} if self.comparison else {}),
             **({} if self.steps is None else {
                 "step_threshold_uT": self.steps.threshold_uT, "step_rows": self.steps.n_step,
                 "step_rms_uT": lst(self.steps.step_rms_uT), "steady_rms_uT": lst(self.steps.steady_rms_uT),
@@ -309,9 +293,10 @@ class FitResult:
         m = self.model
         L = [f"model {m.name}: terms {', '.join(m.terms)}" + (f"; currents {', '.join(m.currents)}"
                                                              if m.currents else "") + f"; t0 = {m.t0_c:g} degC",
-             f"rows used {self.n_used}, excluded {self.n_excluded - self.n_excluded_steps} "
+             f"rows used {self.n_used}, excluded {self.n_excluded - self.n_excluded_steps - self._n_sat_out} "
              "(NaN / flagged / zero weight)"
              + (f" + {self.n_excluded_steps} at reference steps" if self.n_excluded_steps else "")
+             + (f" + {self._n_sat_out} with the reference saturated" if self._n_sat_out else "")
              + ("; robust Huber IRLS" if self.robust else ""),
              f"coverage: T {self.coverage.temp_min_c:.2f}..{self.coverage.temp_max_c:.2f} degC, "
              f"|B| max per axis {np.array2string(self.coverage.field_max_uT, precision=1)} uT, "
@@ -345,6 +330,10 @@ class FitResult:
                     continue
                 se = "held" if (i, c) in held else f"{self.se[i, c]:12.3g}"
                 L.append(f"{m.param_name(i, c):18s}{self.theta[i, c]:14.6g}{se:>12s}  {col.unit}")
+        if self.mount is not None:
+            L += [""] + self.mount.report_lines()
+        if self.comparison:
+            L += [""] + comparison_lines(self.comparison)
         if self.held:
             L += ["", "identifiability: parameters the data cannot determine (held at prior):"]
             L += [f"  {h.name} = {h.value:g}: {h.reason}" for h in self.held]
@@ -359,118 +348,6 @@ class FitResult:
 
 
 # ---------------------------------------------------------------------- numerics
-def qr_r(A: np.ndarray) -> np.ndarray:
-    """Square upper-triangular R with R^T R = A^T A (zero-padded if A has few rows)."""
-    m = A.shape[1]
-    if A.shape[0] == 0:
-        return np.zeros((m, m))
-    R = np.linalg.qr(A, mode="r")
-    if R.shape[0] < m:
-        R = np.vstack([R, np.zeros((m - R.shape[0], m))])
-    return R
-
-
-def independent_field_rms(model: CalModel, R: np.ndarray, cov: Coverage, min_rms_uT: float = 0.0) -> np.ndarray:
-    """(3,) uT: how much the data excites each input axis on its own.
-
-    Axes are taken in order of decreasing field RMS (about the offset); each gets the RMS of its
-    component not explained (least squares) by a constant and the axes accepted before it, and is
-    accepted when that is at least ``min_rms_uT``. A single-axis sweep thus determines its own axis
-    even though the DUT's cross-axis coupling makes the other channels scaled copies of it: only
-    those copies are reported as not excited on their own."""
-    cols = {c.index: k for k, c in enumerate(model.columns) if c.term == "gain_matrix"}
-    off = [k for k, c in enumerate(model.columns) if c.term == "offset"]
-    n = max(cov.sum_w, 1e-300)
-
-    def orth_rms(j: int, others: list[int]) -> float:
-        A = R[:, [cols[k] for k in others] + off]
-        v = R[:, cols[j]]
-        if A.shape[1] == 0:
-            return float(np.linalg.norm(v) / np.sqrt(n))
-        coef, *_ = np.linalg.lstsq(A, v, rcond=None)
-        return float(np.linalg.norm(v - A @ coef) / np.sqrt(n))
-
-    own = [orth_rms(j, []) for j in range(3)]
-    out = np.zeros(3)
-    accepted: list[int] = []
-    for j in sorted(range(3), key=lambda k: -own[k]):
-        out[j] = orth_rms(j, accepted)
-        if out[j] >= min_rms_uT:
-            accepted.append(j)
-    return out
-
-
-def identify(model: CalModel, R: np.ndarray, cov: Coverage, options: FitOptions) -> list[HeldParam]:
-    """Parameters the data cannot determine. ``R``: R factor of the weighted [X | Y].
-
-    Coverage rules (temperature terms, sessions) first, then numerical rank: columns
-    are accepted in order (gain and offset first, nuisance terms last) and a column
-    whose component orthogonal to the accepted ones is below RANK_RTOL of its norm is held.
-    """
-    p = model.n_columns
-    mask = model.axis_mask()
-    prior = model.prior()
-    names = {model.param_name(i, c): (i, c) for i in range(3) for c in range(p) if mask[i, c]}
-    for k, v in options.priors.items():
-        if k not in names:
-            raise FitError(f"prior for unknown parameter {k!r}")
-        prior[names[k]] = float(v)
-    held: dict[tuple[int, int], str] = {}
-    orth = independent_field_rms(model, R, cov, options.min_field_rms_uT)
-    for c, col in enumerate(model.columns):
-        reason = None
-        if col.term == "temperature_gain":
-            span = cov.temp_span_with_field(col.index)
-            if span < options.min_temp_span_c:
-                reason = (f"temperature spans only {span:.2f} degC while |B_{AXES[col.index]}| >= "
-                          f"{options.field_present_uT:g} uT (need {options.min_temp_span_c:g} degC)")
-        elif col.term == "temperature_offset":
-            if cov.temp_span_c < options.min_temp_span_c:
-                reason = (f"temperature spans only {cov.temp_span_c:.2f} degC "
-                          f"(need {options.min_temp_span_c:g} degC)")
-        elif col.term in ("gain_matrix", "cubic") and orth[col.index] < options.min_field_rms_uT:
-            reason = (f"field on {AXES[col.index]} not explained by the more excited axes has RMS "
-                      f"{orth[col.index]:.3g} uT (need {options.min_field_rms_uT:g} uT)")
-        elif col.term == "cross_products":
-            jj, kk = ((0, 1), (0, 2), (1, 2))[col.index]
-            if min(orth[jj], orth[kk]) < options.min_field_rms_uT:
-                reason = (f"{col.feature}: both axes need independent field RMS >= "
-                          f"{options.min_field_rms_uT:g} uT")
-        elif col.term == "session_offset" and len(cov.sessions) < options.min_sessions:
-            reason = f"only {len(cov.sessions)} session(s)"
-        if reason:
-            for i in range(3):
-                if mask[i, c]:
-                    held[(i, c)] = reason
-    norms = np.linalg.norm(R[:, :p], axis=0)
-    priority = {"gain_matrix": 0, "offset": 1}
-    order = sorted(range(p), key=lambda c: (priority.get(model.columns[c].term, 2), c))
-    for i in range(3):
-        accepted: list[int] = []
-        for c in order:
-            if not mask[i, c] or (i, c) in held:
-                continue
-            if norms[c] == 0:
-                held[(i, c)] = "column is zero in the data (never excited)"
-                continue
-            if accepted:
-                A = R[:, accepted] / norms[accepted]
-                v = R[:, c] / norms[c]
-                coef, *_ = np.linalg.lstsq(A, v, rcond=None)
-                resid = np.linalg.norm(v - A @ coef)
-            else:
-                resid = 1.0
-            if resid < RANK_RTOL * 1e3 * np.sqrt(p):
-                others = ", ".join(model.columns[a].feature for a in accepted)
-                held[(i, c)] = f"column {model.columns[c].feature} is a combination of [{others}]"
-            else:
-                accepted.append(c)
-    out = [HeldParam(i, c, model.param_name(i, c), float(prior[i, c]), r) for (i, c), r in sorted(held.items())]
-    if out and options.on_unidentifiable == "refuse":
-        raise FitError("data cannot determine: " + "; ".join(f"{h.name} ({h.reason})" for h in out))
-    return out
-
-
 def solve_axis(R: np.ndarray, p: int, i: int, mask_i: np.ndarray, held: Mapping[int, float],
                n: int) -> AxisSolution:
     """Solve output axis ``i`` from the R factor of weighted [X | Y] (p + 3 columns)."""
@@ -532,18 +409,6 @@ def noise_floor(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, lag_
 
 
 # ---------------------------------------------------------------------- the fit
-def reference_steps(b_ref_uT: np.ndarray, session: np.ndarray, step_uT: float) -> np.ndarray:
-    """Rows on either side of a reference change above ``step_uT`` (any axis) between
-    consecutive rows of one session: field transitions, where interpolating two
-    asynchronous streams is least trustworthy (the authors' step 4)."""
-    d = np.abs(np.diff(b_ref_uT, axis=0))
-    big = np.any(d > step_uT, axis=1) & (session[1:] == session[:-1])   # NaN compares False
-    out = np.zeros(len(session), dtype=bool)
-    out[1:] |= big
-    out[:-1] |= big
-    return out
-
-
 def build_model(data: FitData, terms: Sequence[str], currents: Sequence[str], t0_c: float,
                 name: str) -> CalModel:
     sessions = tuple(int(s) for s in np.unique(data.session)) if "session_offset" in terms else ()
@@ -585,7 +450,18 @@ def _fit_core(data: FitData, model: CalModel, options: FitOptions):
                 if change < 1e-10:
                     break
         theta[i], se[i], conds[0, i], conds[1, i] = sol.theta, sol.se, sol.cond_scaled, sol.cond_raw
-    return X, theta, se, held, conds, cov
+    mount = None
+    if "mount_rotation" in model.terms:
+        if options.robust:
+            raise FitError("robust IRLS is not available with mount_rotation")
+        theta, se, mount = solve_mount(X, Y, data.session, data.weights, model,
+                                       {(h.axis, h.column): h.value for h in held}, theta, options)
+    return X, theta, se, held, conds, cov, mount
+
+
+def frame_reference(data: FitData, mount: MountSolution | None) -> np.ndarray:
+    """The reference field in the frame session's mount (unchanged without mount rotations)."""
+    return data.b_ref_uT if mount is None else mount.rotate_to_frame(data.b_ref_uT, data.session)
 
 
 def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, currents: Sequence[str] = (),
@@ -596,6 +472,12 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
     name = model if all_terms == MODELS.get(model) else f"{model}+" + "+".join(
         t for t in all_terms if t not in MODELS[model])
     ok = data.usable(all_terms, currents)
+    n_sat = 0
+    if options.ref_range_uT is not None:
+        sat = ok & saturated_rows(data.b_ref_uT, options.ref_range_uT)
+        n_sat = int(sat.sum())
+        if not options.include_saturated:
+            ok &= ~sat
     n_steps = 0
     if options.exclude_ref_steps_uT is not None:
         at_step = ok & reference_steps(data.b_ref_uT, data.session, options.exclude_ref_steps_uT)
@@ -613,21 +495,49 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
                 why.append(f"{label} missing/flagged on {int(bad.sum())} rows")
         raise FitError(f"{len(d)} usable rows of {len(data)} for {cm.n_columns} columns: not enough data"
                        + (f" ({'; '.join(why)})" if why else ""))
-    X, theta, se, held, conds, cov = _fit_core(d, cm, options)
-    resid = d.b_ref_uT - cm.predict(theta, X)
+    X, theta, se, held, conds, cov, mount = _fit_core(d, cm, options)
+    resid = frame_reference(d, mount) - cm.predict(theta, X)
     p_i = cm.axis_mask().sum(axis=1) - np.array([sum(1 for h in held if h.axis == i) for i in range(3)])
+    if mount is not None:   # the angles are shared by the three axes: a third of them to each
+        p_i = p_i + sum(1 for k in mount.se_rad for a in range(3)
+                        if k != mount.frame and np.isfinite(mount.se_rad[k][a])) / 3
     rmse = np.sqrt(np.sum(resid ** 2, axis=0) / np.maximum(len(d) - p_i, 1))
     raw = np.sqrt(np.mean((d.b_ref_uT - d.b_meas_uT) ** 2, axis=0))
     res = FitResult(cm, theta, se, held, len(d), int((~ok).sum()), rmse, raw, conds[0], conds[1],
                     noise_floor(resid, d.t_s, d.session, options.noise_lag_s), cov, options.robust)
     res.n_excluded_steps = n_steps
+    res.mount = mount
+    res.n_saturated, res.saturated_excluded, res.ref_range_uT = n_sat, not options.include_saturated, \
+        options.ref_range_uT
+    if n_sat:
+        lim = (1 - SATURATION_MARGIN) * options.ref_range_uT
+        res.notes.insert(0, (f"WARNING: {n_sat} rows have a reference component at or beyond {lim:.4g} uT "
+                             f"(range +-{options.ref_range_uT:g} uT): reference possibly saturated; " + (
+                                 "excluded (include them with --include-saturated)" if not options.include_saturated
+                                 else "INCLUDED as requested (--include-saturated)")))
     if options.exclude_ref_steps_uT is None:
         res.steps = diagnose_steps(resid, d.b_ref_uT, d.session)
     if options.holdout:
         res.holdout_blocks_uT = _holdout_blocks(d, all_terms, currents, t0_c, name, options, res.notes)
         res.holdout_sessions_uT, res.holdout_per_session_uT = _holdout_sessions(
             d, all_terms, currents, t0_c, name, options, res.notes, [h.name for h in held])
+    if mount is not None and len(np.unique(d.session)) > 1:
+        res.comparison = compare(X, d.b_ref_uT, d.b_meas_uT, d.session, d.weights, cm, held, mount,
+                                 d.b_ref_uT - _rotate_from_frame(cm.predict(theta, X), d.session, mount),
+                                 options, block_folds(d, options) if options.holdout else None,
+                                 res.holdout_blocks_uT)
     return res
+
+
+def _rotate_from_frame(b_uT: np.ndarray, session: np.ndarray, mount: MountSolution) -> np.ndarray:
+    """``R_s b`` per row: the frame-mount model field as the session's reference would see it."""
+    from scipy.spatial.transform import Rotation
+    out = np.array(b_uT, dtype=float, copy=True)
+    for k, rv in mount.rotvec_rad.items():
+        m = session == k
+        if m.any():
+            out[m] = Rotation.from_rotvec(rv).apply(out[m])
+    return out
 
 
 def _predict_out(train: FitData, test: FitData, terms, currents, t0_c, name, options,
@@ -635,18 +545,25 @@ def _predict_out(train: FitData, test: FitData, terms, currents, t0_c, name, opt
     """Residual of ``test`` under a fit on ``train``; the names of the parameters that fit held
     are appended to ``held_names`` when given."""
     cm = build_model(train, terms, currents, t0_c, name)
-    _, theta, _, held, *_ = _fit_core(train, cm, options)
+    _, theta, _, held, _, _, mount = _fit_core(train, cm, options)
     if held_names is not None:
         held_names += [h.name for h in held]
     Xt = cm.design(test.b_meas_uT, test.temp_c, test.currents_A, test.session, test.t_s)
-    return test.b_ref_uT - cm.predict(theta, Xt)
+    # a session the training rows saw keeps its mount; an unseen one gets the frame's (identity)
+    return frame_reference(test, mount) - cm.predict(theta, Xt)
 
 
-def _holdout_blocks(d: FitData, terms, currents, t0_c, name, options, notes) -> np.ndarray | None:
+def block_folds(d: FitData, options: FitOptions) -> np.ndarray:
+    """(N,) fold of each row: ``block_s`` blocks from each session's start, block k -> fold k mod n_folds."""
     fold = np.zeros(len(d), dtype=np.int64)
     for s in np.unique(d.session):
         m = d.session == s
         fold[m] = np.floor((d.t_s[m] - d.t_s[m].min()) / options.block_s).astype(np.int64) % options.n_folds
+    return fold
+
+
+def _holdout_blocks(d: FitData, terms, currents, t0_c, name, options, notes) -> np.ndarray | None:
+    fold = block_folds(d, options)
     sq, cnt = np.zeros(3), 0
     for f in np.unique(fold):
         test = fold == f

@@ -32,8 +32,12 @@ FLIGHT_TERMS: tuple[str, ...] = ("gain_matrix", "temperature_gain", "offset", "t
 #: Terms the float64 applier can also apply (not the fixed-point one).
 FLOAT_ONLY_TERMS: tuple[str, ...] = ("cubic", "cross_products")
 #: Terms that explain the fit data (nuisance) but are not applied to new data:
-#: time skew needs dB/dt, session offsets are unknown for a new power cycle, drift would extrapolate.
-GROUND_ONLY_TERMS: tuple[str, ...] = ("time_skew", "session_offset", "drift")
+#: time skew needs dB/dt, session offsets are unknown for a new power cycle, drift would extrapolate,
+#: a mount rotation belongs to the bench, not to the sensor.
+GROUND_ONLY_TERMS: tuple[str, ...] = ("time_skew", "session_offset", "drift", "mount_rotation")
+#: Terms without design-matrix columns: fitted by their own solver (``mount_rotation``: the
+#: per-session angles couple the output axes; :mod:`magstack.firmware.calibration.mount`).
+JOINT_TERMS: tuple[str, ...] = ("mount_rotation",)
 
 #: Named models (sets of terms). ``currents`` is added when currents are named.
 MODELS: Mapping[str, tuple[str, ...]] = {

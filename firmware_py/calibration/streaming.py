@@ -27,6 +27,8 @@ class StreamingFit:
     def __init__(self, model: CalModel, options: FitOptions | None = None) -> None:
         if "time_skew" in model.terms:
             raise FitError("time_skew is batch-only (needs neighbouring samples)")
+        if "mount_rotation" in model.terms:
+            raise FitError("mount_rotation is batch-only (the angles couple the output axes)")
         self.options = options or FitOptions()
         if self.options.robust:
             raise FitError("robust IRLS is batch-only")

@@ -1,0 +1,89 @@
+"""Degenerate parameter groups (variance inflation / correlations) on simulated thermal runs."""
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from magstack.firmware.calibration import FitOptions, fit
+from magstack.firmware.calibration.degeneracy import VIF_LIMIT, correlation_stats, degenerate_groups
+from magstack.firmware.errors import FitError
+from magstack.sim.calibration_benches import thermal_bench
+
+NO_HOLDOUT = FitOptions(holdout=False)
+
+
+def _at_field(level, rng):
+    """A heat-and-cool run at one field level the fit did not see (its own data set)."""
+    return thermal_bench([level], rng, with_sweeps=False)[2]
+
+
+def _rms_out(result, data):
+    X = result.model.design(data.b_meas_uT, data.temp_c)
+    return float(np.linalg.norm(np.sqrt(np.mean((data.b_ref_uT - result.model.predict(result.theta, X)) ** 2,
+                                                axis=0))))
+
+
+def test_correlation_stats_on_a_known_pair():
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=500)
+    b = a + 0.05 * rng.normal(size=500)
+    c = rng.normal(size=500)
+    vif, corr = correlation_stats(np.column_stack([a, b, c]))
+    r2 = np.corrcoef(a, b)[0, 1] ** 2
+    assert vif[0] == pytest.approx(1 / (1 - r2), rel=0.05) and vif[2] < 1.1
+    assert corr[0, 1] < -0.99                       # estimates of near-copies anti-correlate
+    g = degenerate_groups(np.column_stack([a, b, c]), [True, True, True])
+    assert len(g) == 1 and set(g[0].members) == {0, 1}
+
+
+def test_one_field_thermal_run_holds_the_degenerate_pair_and_does_not_hurt_other_fields():
+    rng = np.random.default_rng(1)
+    _, _, d = thermal_bench([(50.0, 0.0, 0.0)], rng)
+    r = fit(d, "eq3", options=NO_HOLDOUT)
+    held = {h.name: h.reason for h in r.held}
+    for i in "xyz":      # the pair is held on every output axis, and named as degenerate
+        assert "degenerate" in held[f"K_S[{i},x]"] and "degenerate" in held[f"K_O[{i}]"]
+        assert f"held with K_O[{i}]" in held[f"K_S[{i},x]"] or f"held with K_S[{i},x]" in held[f"K_O[{i}]"]
+    corr = float(re.search(r"correlates at ([-+][0-9.]+)", held["K_S[x,x]"]).group(1))
+    assert corr <= -0.99
+    # the unguarded fit (what the old rule did) determines the pair only formally
+    forced = fit(d, "eq3", options=FitOptions(holdout=False, max_vif=1e12))
+    assert not any("degenerate" in h.reason for h in forced.held)
+    # held-out at field levels the fit did not see: never worse than the model without the terms
+    plain = fit(d, "gain_offset", options=NO_HOLDOUT)
+    for level in [(0.0, 0.0, 0.0), (-30.0, 0.0, 0.0), (0.0, 0.0, 40.0)]:
+        other = _at_field(level, np.random.default_rng(7))
+        assert _rms_out(r, other) <= _rms_out(plain, other) * (1 + 1e-9)
+    with pytest.raises(FitError, match="degenerate"):
+        fit(d, "eq3", options=FitOptions(holdout=False, on_unidentifiable="refuse"))
+
+
+@pytest.mark.parametrize("levels", [[(50.0, 0.0, 0.0), (0.0, 0.0, 0.0)],
+                                    [(50.0, 0.0, 0.0), (0.0, 50.0, 0.0), (0.0, 0.0, 50.0), (0.0, 0.0, 0.0)]])
+def test_two_or_more_field_levels_determine_the_temperature_terms_within_their_errors(levels):
+    rng = np.random.default_rng(2)
+    m, th, d = thermal_bench(levels, rng)
+    r = fit(d, "eq3", options=NO_HOLDOUT)
+    assert not any("degenerate" in h.reason for h in r.held)
+    held = {(h.axis, h.column) for h in r.held}
+    free = [(i, c) for i in range(3) for c in range(m.n_columns) if (i, c) not in held]
+    z = np.array([(r.theta[i, c] - th[i, c]) / r.se[i, c] for i, c in free])
+    assert np.all(np.abs(z) < 4.0)                   # every fitted coefficient within 4 standard errors
+    assert np.sqrt(np.mean(z ** 2)) < 1.6             # and the errors are honest on average
+    ks_x = [c for c, col in enumerate(m.columns) if col.feature == "B_x*dT"][0]
+    assert all((i, ks_x) not in held for i in range(3))
+    if len(levels) == 4:                              # every axis heated in a field: all 24 fitted
+        assert r.held == []
+
+
+def test_vif_limit_separates_the_thermal_degeneracy_from_a_rich_design():
+    # documented: one-field thermal run ~7e4, the 36-parameter synthetic design of test_calibration_fit 82
+    rng = np.random.default_rng(3)
+    m, _, d = thermal_bench([(50.0, 0.0, 0.0)], rng)
+    X = m.design(d.b_meas_uT, d.temp_c)
+    off = [c for c, col in enumerate(m.columns) if col.term == "offset"][0]
+    cols = [c for c, col in enumerate(m.columns) if col.feature in ("B_x", "B_y", "B_z", "B_x*dT", "dT")]
+    vif, _ = correlation_stats(X[:, cols], X[:, off])
+    assert vif.max() > 100 * VIF_LIMIT
