@@ -174,3 +174,18 @@ def test_sparse_samples_years_apart_use_a_grid_around_each_sample():
     exact = erfa.c2t06a(*frames.tt_jd(t), *frames.ut1_jd(t), 0.0, 0.0)
     assert Rotation.from_matrix(np.einsum("nij,nkj->nik", m, exact)).magnitude().max() < 1e-9
     assert frames._grid_around(t, frames.Q_GRID_S).size <= 2 * t.size
+
+
+def test_batch_spanning_an_igrf_epoch_is_continuous_and_exact():
+    t25 = dt.datetime(2025, 1, 1, tzinfo=dt.UTC).timestamp()
+    t = t25 + np.array([-3600.0, -1.0, 0.0, 1.0, 3600.0])
+    p = np.tile([[3000.0, -4000.0, 4500.0]], (5, 1))
+    b = geomag.igrf_ecef_nT(t, p)
+    assert np.max(np.abs(np.diff(b, axis=0))) < 0.1          # secular variation: ~0.01 nT per hour
+    r = np.linalg.norm(p[0])
+    th, ph = math.acos(p[0, 2] / r), math.atan2(p[0, 1], p[0, 0])
+    for k in (0, 4):
+        d = dt.datetime.fromtimestamp(t[k], dt.UTC).replace(tzinfo=None)
+        br, bt, bp = (x.ravel()[0] for x in ppigrf.igrf_gc(r, math.degrees(th), math.degrees(ph), d))
+        assert np.allclose(b[k], geomag.spherical_to_ecef(np.array([th]), np.array([ph]), br, bt, bp)[0],
+                           atol=1e-6)
