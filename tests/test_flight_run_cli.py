@@ -99,3 +99,41 @@ def test_sigterm_stops_cleanly_and_kill_loses_nothing_flushed(tmp_path):
     part = next(out.glob("lis3mdl-*.csv.part"))
     s = read_session(part)
     assert len(s) >= 15 and np.all(np.isfinite(s.dut_uT))
+
+
+def test_refit_commands_over_recorded_telemetry(tmp_path):
+    """start_refit runs the on-orbit refit over recorded telemetry in a worker while the rate groups run;
+    the proposed candidate is then loaded and activated by the ordinary table commands."""
+    from magstack.firmware.flight.app import FlightApp
+    from magstack.firmware.flight.config import load_config
+    from magstack.firmware.flight.events import EventId
+
+    orbit = tmp_path / "orbit.csv"
+    assert main(["simulate", "--program", "orbit_tumbling", "--seconds", "7200", "--rate-hz", "1", "--sessions", "1",
+                 "--seed", "3", "--t0", "1780272000", "--effects",
+                 "misalignment,gain,offset,noise", "--out", str(orbit)]) == 0
+    cfg_path = _sim_config(tmp_path, table=False)
+    dev = read_session(orbit).metadata.get("device_id") or "lis3mdl:sn1"
+    cfg_path.write_text(cfg_path.read_text().replace('device_id = "lis3mdl:sn1"', f'device_id = "{dev}"'))
+    cmd = tmp_path / "commands"
+    cmd.mkdir()
+    (cmd / "01.json").write_text(json.dumps({"cmd": "start_refit", "channel": "lis3mdl", "files": "orbit*.csv"}))
+    app = FlightApp(load_config(cfg_path), virtual=True, simulate=True, telemetry_dir=tmp_path / "tlm")
+    try:
+        app.run(5.0)
+        app.wait_refits(600)
+        job = app.refits["lis3mdl"]
+        assert job.result["ok"] and job.result.get("candidate_path"), job.result
+        assert app.events.count(EventId.REFIT_STARTED, "lis3mdl") == 1
+        assert app.events.count(EventId.REFIT_FINISHED, "lis3mdl") == 1
+        (cmd / "02.json").write_text(json.dumps({"cmd": "load_table", "channel": "lis3mdl",
+                                                 "path": job.result["candidate_path"]}))
+        (cmd / "03.json").write_text(json.dumps({"cmd": "activate_table", "channel": "lis3mdl"}))
+        (cmd / "04.json").write_text(json.dumps({"cmd": "stop_refit", "channel": "lis3mdl"}))
+        app.run(2.0)
+        assert app.slots["lis3mdl"].store.active is not None
+        assert app.events.count(EventId.TABLE_ACTIVATED, "lis3mdl") == 1
+        res = json.loads((cmd / "done" / "04.json.result.json").read_text())
+        assert res["ok"] is False and "no refit running" in res["message"]
+    finally:
+        app.close()

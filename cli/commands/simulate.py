@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+import magstack.sim.orbit_truth  # noqa: F401  (registers the orbit_* programs)
 from magstack.cli.interrupt import EXIT_FOR_SIGNAL, graceful_stop
 from magstack.cli.options import finite_float, int_range, name_list, named_vector, nonempty_path
 from magstack.cli.output import CommandResult
@@ -111,7 +112,12 @@ def run(args) -> CommandResult:
     else:
         effects = list(EFFECT_NAMES)
     truth = program(args.program, args.seconds, sessions=args.sessions)
-    params = _params(args.chip, args.interference, sorted(truth.currents_A(0.0)), args.program)
+    orbit = hasattr(truth, "q_body_eci_series")
+    interference = list(args.interference)
+    if orbit:   # an orbit programme: its own epoch, and its currents' field at the sensor unless overridden
+        truth = truth.at_epoch(args.t0)
+        interference = list(truth.default_interference_uT_per_A.items()) + interference
+    params = _params(args.chip, interference, sorted(truth.currents_A(0.0)), args.program)
     info = preset_info(args.chip)
     rate = info.rate_hz if args.rate_hz is None else args.rate_hz
     n_rows = measurement_rows(truth.duration_s, rate)
@@ -143,9 +149,11 @@ def run(args) -> CommandResult:
         "error_params": json.dumps(params.to_dict(), separators=(",", ":"), sort_keys=True),
     }
     names = sorted(truth.currents_A(0.0))
+    extra_columns = _orbit_metadata(truth, metadata) if orbit else []
     blocks = simulate_measurement_blocks(params, truth, duration_s=truth.duration_s, rate_hz=rate, seed=args.seed,
                                          effects=effects, block_rows=BLOCK_ROWS)
-    writer = SessionWriter(args.out, metadata, current_names=names, block_rows=BLOCK_ROWS)
+    writer = SessionWriter(args.out, metadata, current_names=names, block_rows=BLOCK_ROWS,
+                           extra_names=extra_columns)
     stopped = None
     with graceful_stop() as stop, bar(n_rows, "simulate", unit="row") as pbar:
         try:
@@ -153,9 +161,12 @@ def run(args) -> CommandResult:
                 t = args.t0 + blk.t_s
                 session = blk.session.astype(np.int64)
                 cur = {k: blk.currents_A[k] for k in names}
+                ref, extra = blk.ref_uT, {}
+                if orbit:
+                    ref, extra = _orbit_columns(truth, blk, cur, rate)
                 for i in range(t.size):
-                    writer.write_row(t[i], blk.ref_uT[i], blk.dut_uT[i], blk.temp_c[i], session[i],
-                                     {k: v[i] for k, v in cur.items()})
+                    writer.write_row(t[i], ref[i], blk.dut_uT[i], blk.temp_c[i], session[i],
+                                     {k: v[i] for k, v in cur.items()}, extra={k: v[i] for k, v in extra.items()})
                 writer.flush()
                 pbar.update(t.size)
                 if stop.is_set():
@@ -180,3 +191,32 @@ def run(args) -> CommandResult:
         data["params"] = str(args.save_params)
         lines.append(f"wrote {args.save_params}: error-model parameters ({len(effects_on)} effects on)")
     return CommandResult("simulate", data, lines)
+
+
+def _orbit_metadata(truth, metadata: dict) -> list[str]:
+    """Metadata of an orbit programme's telemetry; returns its extra columns (data/telemetry.py)."""
+    from magstack.data.telemetry import POS_COLUMNS, QUAT_COLUMNS
+
+    metadata.update({"ref_instrument": "none: ref columns hold the true field (for scoring)",
+                     "orbit_attitude": truth.attitude, "orbit_altitude_km": f"{truth.altitude_km:g}",
+                     "housekeeping_period_s": json.dumps(truth.housekeeping_period_s, sort_keys=True)})
+    metadata.pop("ref_noise_uT", None)
+    metadata.pop("ref_lsb_uT", None)
+    return list(POS_COLUMNS + QUAT_COLUMNS)
+
+
+def _orbit_columns(truth, blk, currents: dict, rate_hz: float):
+    """Telemetry of one block of an orbit programme: the true field as ``ref``, position and attitude
+    columns; housekeeping currents kept only at their own sampling instants (other cells empty)."""
+    from magstack.data.telemetry import POS_COLUMNS, QUAT_COLUMNS
+
+    t = blk.t_s
+    pos = truth.pos_ecef_series_km(t)
+    q = truth.q_body_eci_series(t)
+    for name, period in truth.housekeeping_period_s.items():
+        if name in currents and period > 0:   # a sample at the first row of every period (sim time)
+            keep = np.floor(t / period) != np.floor((t - 1.0 / rate_hz) / period)
+            currents[name] = np.where(keep, currents[name], np.nan)
+    cols = {c: pos[:, j] for j, c in enumerate(POS_COLUMNS)}
+    cols.update({c: q[:, j] for j, c in enumerate(QUAT_COLUMNS)})
+    return blk.truth_uT, cols

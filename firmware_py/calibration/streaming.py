@@ -80,6 +80,34 @@ class StreamingFit:
         self._raw_sq += np.sum((y - b) ** 2, axis=0)
         self.n_used += b.shape[0]
 
+    def merge(self, other: StreamingFit) -> StreamingFit:
+        """Fold another accumulator of the same model in (blocks fitted elsewhere, e.g. on another
+        worker): R^T R of the result is the sum of both Gram matrices. Coverage extremes combine."""
+        if other.model != self.model:
+            raise FitError("cannot merge streaming fits of different models")
+        self._R = qr_r(np.vstack([self._R, other._R]))
+        self._raw_sq = self._raw_sq + other._raw_sq
+        self.n_used += other.n_used
+        self.n_excluded += other.n_excluded
+        a, b = self.coverage, other.coverage
+        a.n += b.n
+        a.sum_w += b.sum_w
+        a.temp_min_c, a.temp_max_c = min(a.temp_min_c, b.temp_min_c), max(a.temp_max_c, b.temp_max_c)
+        a.temp_with_field_c = np.column_stack([np.minimum(a.temp_with_field_c[:, 0], b.temp_with_field_c[:, 0]),
+                                               np.maximum(a.temp_with_field_c[:, 1], b.temp_with_field_c[:, 1])])
+        a.field_max_uT = np.maximum(a.field_max_uT, b.field_max_uT)
+        for k, (lo, hi) in b.currents_A.items():
+            lo0, hi0 = a.currents_A.get(k, [np.inf, -np.inf])
+            a.currents_A[k] = [min(lo0, lo), max(hi0, hi)]
+        a.sessions |= b.sessions
+        a.t_min_s, a.t_max_s = min(a.t_min_s, b.t_min_s), max(a.t_max_s, b.t_max_s)
+        return self
+
+    @property
+    def R(self) -> np.ndarray:
+        """The accumulated R factor of the weighted ``[X | Y]`` ((p+3) x (p+3))."""
+        return self._R
+
     @property
     def state_bytes(self) -> int:
         """Size of the accumulated state (constant in the number of rows)."""

@@ -18,7 +18,7 @@ from typing import Any
 
 from magstack.drivers.clock import SystemClock, VirtualClock
 from magstack.drivers.registry import open_chip
-from magstack.firmware.cal_table import CalTableStore, load_table, validate
+from magstack.firmware.cal_table import CalTableStore, load_table, save_table, validate
 from magstack.firmware.corrector import TableCorrector
 from magstack.firmware.errors import CalTableInvalid
 from magstack.firmware.flight.channel import ChannelLimits, MagChannel
@@ -42,6 +42,58 @@ class ChannelSlot:
     telemetry: ChannelTelemetry
     group: str
     pending: list[Command] = field(default_factory=list)
+
+
+class _Cancelled(Exception):
+    pass
+
+
+class RefitJob:
+    """One channel's batch refit in a background worker (it reads files; the rate groups keep running)."""
+
+    def __init__(self, channel: str, files: list[str], active, device_id: str, out_dir: Path, events: EventLog,
+                 now: Callable[[], float]) -> None:
+        self.channel, self.files, self.active, self.device_id = channel, files, active, device_id
+        self.out_dir, self.events, self.now = Path(out_dir), events, now
+        self.cancel = threading.Event()
+        self.result: dict | None = None
+        self.thread = threading.Thread(target=self._run, name=f"refit-{channel}", daemon=True)
+
+    def start(self) -> None:
+        self.events.emit(self.now(), EventId.REFIT_STARTED, self.channel, f"{len(self.files)} telemetry file(s)")
+        self.thread.start()
+
+    def _progress(self, _rows: int, _label: str) -> None:
+        if self.cancel.is_set():
+            raise _Cancelled()
+
+    def _run(self) -> None:
+        from magstack.firmware.calibration.refit import RefitOptions, refit
+
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        stamp = f"{self.channel}-{int(self.now())}"
+        try:
+            res = refit(self.files, self.active, RefitOptions(device_id=self.device_id), progress=self._progress)
+        except _Cancelled:
+            self.result = {"ok": False, "message": "stopped by stop_refit"}
+            self.events.emit(self.now(), EventId.REFIT_FAILED, self.channel, "stopped by stop_refit")
+        except Exception as exc:  # noqa: BLE001 - a refit failure is an event, never a crash of the executive
+            self.result = {"ok": False, "message": f"{type(exc).__name__}: {exc}"}
+            self.events.emit(self.now(), EventId.REFIT_FAILED, self.channel, f"{type(exc).__name__}: {exc}"[:200])
+        else:
+            self.result = {"ok": True, **res.to_dict()}
+            if res.proposed and res.candidate is not None:
+                path = save_table(res.candidate, self.out_dir / f"{stamp}-candidate.json")
+                self.result["candidate_path"] = str(path)
+                msg = f"candidate {path.name} proposed"
+            else:
+                msg = "no candidate proposed: " + "; ".join(res.reasons)[:180]
+            self.events.emit(self.now(), EventId.REFIT_FINISHED, self.channel, msg)
+        try:
+            (self.out_dir / f"{stamp}-result.json").write_text(json.dumps(self.result, indent=1, sort_keys=True,
+                                                                          default=str) + "\n", encoding="utf-8")
+        except OSError:
+            pass
 
 
 class FlightApp:
@@ -72,6 +124,7 @@ class FlightApp:
         self.epoch_of = (lambda t: t + offset) if virtual else (lambda t: t - shared.monotonic_s() + shared.epoch_s())
         self.executive = Executive(groups, self.events, self.epoch_of, stop)
         self.slots: dict[str, ChannelSlot] = {}
+        self.refits: dict[str, RefitJob] = {}
         try:
             for s in cfg.sensors:
                 self._add_channel(s, chip_options)
@@ -164,6 +217,14 @@ class FlightApp:
                 msg = "activation requested (takes effect at the next cycle boundary)"
             elif cmd.name == "set_rate_group":
                 msg = self._move(slot, cmd.args["group"])
+            elif cmd.name == "start_refit":
+                msg = self._start_refit(slot, cmd.args["files"])
+            elif cmd.name == "stop_refit":
+                job = self.refits.get(slot.sensor.name)
+                if job is None or not job.thread.is_alive():
+                    raise ValueError("no refit running on this channel")
+                job.cancel.set()
+                msg = "stop requested (the refit stops at its next block)"
         except CalTableInvalid as exc:
             ok, msg = False, str(exc)
             if cmd.name == "load_table":
@@ -192,6 +253,24 @@ class FlightApp:
         prev, slot.group = slot.group, group
         return f"moved from {prev} to {group}"
 
+    # ------------------------------------------------------------------ refit
+    def _start_refit(self, slot: ChannelSlot, pattern: str) -> str:
+        import glob
+
+        name = slot.sensor.name
+        job = self.refits.get(name)
+        if job is not None and job.thread.is_alive():
+            raise ValueError("a refit is already running on this channel (stop_refit first)")
+        base = self.cfg.path.parent
+        files = sorted(glob.glob(pattern if Path(pattern).is_absolute() else str(base / pattern)))
+        if not files:
+            raise ValueError(f"no telemetry files match {pattern!r}")
+        job = RefitJob(name, files, slot.store.active, slot.sensor.device_id, self.telemetry_dir / "refit",
+                       self.events, lambda: self._now(slot))
+        self.refits[name] = job
+        job.start()
+        return f"refit started over {len(files)} file(s)"
+
     # ------------------------------------------------------------------ running
     def run(self, duration_s: float | None = None) -> None:
         if self.virtual:
@@ -213,8 +292,16 @@ class FlightApp:
                 "commands": None if self.spool is None else {"accepted": self.spool.accepted,
                                                              "rejected": self.spool.rejected}}
 
+    def wait_refits(self, timeout_s: float | None = None) -> None:
+        """Wait for running refits (tests, and a clean shutdown)."""
+        for job in getattr(self, "refits", {}).values():
+            job.thread.join(timeout_s)
+
     def close(self) -> None:
         """Close every telemetry file (rename to final) and the event log; safe to call twice."""
+        for job in getattr(self, "refits", {}).values():
+            job.cancel.set()
+        self.wait_refits(30.0)
         for s in getattr(self, "slots", {}).values():
             s.telemetry.close()
             close = getattr(s.channel.mag, "close", None)

@@ -14,7 +14,14 @@ Commands (``"cmd"`` key), each naming its ``"channel"`` where it applies:
 * ``validate_table {channel, path}`` - report whether a table file would be accepted, stage nothing;
 * ``activate_table {channel}`` - swap the staged table in at the channel's next cycle boundary;
 * ``set_rate_group {channel, group}`` - move a channel to another rate group at the next boundary;
-* ``dump_counters {}`` - write every channel's health counters, group statistics and event counts.
+* ``dump_counters {}`` - write every channel's health counters, group statistics and event counts;
+* ``start_refit {channel, files}`` - start the on-orbit batch refit (:mod:`magstack.firmware.calibration.refit`)
+  of the channel's calibration over recorded telemetry (``files``: a glob, relative to the config file,
+  of telemetry session files carrying position and attitude columns) in a background worker; the
+  candidate table (written only if valid and better than the active table on held-out rows) and a
+  result file go to ``<telemetry_dir>/refit/``; events ``REFIT_STARTED`` / ``REFIT_FINISHED`` /
+  ``REFIT_FAILED``. The candidate is not activated: ``load_table`` + ``activate_table`` take it from there;
+* ``stop_refit {channel}`` - cancel a running refit (it stops at its next block).
 
 A command for a channel is queued to the rate group that runs the channel and executed by that
 group between two of its cycles, never while a read is under way.
@@ -36,6 +43,8 @@ COMMANDS = {
     "activate_table": {"channel"},
     "set_rate_group": {"channel", "group"},
     "dump_counters": set(),
+    "start_refit": {"channel", "files"},
+    "stop_refit": {"channel"},
 }
 MAX_COMMAND_BYTES = 64 * 1024
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import threading
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -103,15 +104,18 @@ class EventLog:
     sink: Callable[[Event], None] | None = None
     counts: Counter = field(default_factory=Counter)           # (id, source) -> n
     recent: list[Event] = field(default_factory=list)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     def emit(self, t_s: float, eid: EventId, source: str, message: str = "") -> Event:
+        """Count and record one event (thread-safe: rate-group threads and the refit worker share the log)."""
         ev = Event(float(t_s), EventId(eid), source, message)
-        self.counts[(ev.id, source)] += 1
-        self.recent.append(ev)
-        if len(self.recent) > self.keep:
-            del self.recent[: len(self.recent) - self.keep]
-        if self.sink is not None:
-            self.sink(ev)
+        with self._lock:
+            self.counts[(ev.id, source)] += 1
+            self.recent.append(ev)
+            if len(self.recent) > self.keep:
+                del self.recent[: len(self.recent) - self.keep]
+            if self.sink is not None:
+                self.sink(ev)
         return ev
 
     def count(self, eid: EventId, source: str | None = None) -> int:

@@ -1,0 +1,728 @@
+"""On-orbit batch refit: telemetry + IGRF-14 reference in the body frame -> a candidate table.
+
+Per block of telemetry rows (memory flat in the number of rows; :mod:`.streaming` accumulates):
+
+1. housekeeping currents interpolated from their own rates (:mod:`.housekeeping`);
+2. reference field: IGRF-14 at ``pos_ecef`` and ``t_s``, rotated ITRS -> GCRS -> body by
+   ``q_body_eci`` (:mod:`magstack.firmware.reference`); sensor frame = body frame;
+3. selection: flag == 0, finite inputs, geodetic latitude band, temperature band, eclipse state;
+4. split: rows in every ``holdout_every``-th time block of ``holdout_block_s`` (absolute time, so
+   independent of files and blocks) are held out; the rest are fitted;
+5. accumulate: the fit rows' weighted ``[X | Y]`` (Eq. 3 plus currents, :class:`CalModel`), the
+   held-out rows' unweighted ``[X | Y]``, fit coverage and 192-bin attitude coverage.
+
+Passes: pass 1 is ordinary least squares. Each robust pass (``robust_passes``) re-reads the data
+and weights fit rows by Huber (k = ``huber_k``) on their residual under the previous pass's
+solution. The scale is 1.4826 x the median |residual| per axis, taken from a histogram of
+|residual| (log bins, 0.9 % wide) accumulated in the previous robust pass, so it is global and
+independent of how rows fall into blocks or files; the first robust pass, which has no histogram
+yet, uses the OLS RMSE (inflated by outliers, so it down-weights only gross ones). A row's weight
+is the smallest of its three axes' Huber weights. The held-out RMS of any parameter
+set follows from the held-out R factor (``||R_h [theta; -1]||``), so the candidate and the active
+table are compared on exactly the same rows without another pass.
+
+Identifiability: the bench fit's rules (:func:`fit.identify`: temperature span, independent field
+per axis, numerical rank) plus attitude coverage: with fewer than ``min_attitude_bins`` direction
+bins the gain matrix and its temperature terms are held; ``temperature_gain`` is also held unless
+the coldest and the warmest quarter of the temperature range each saw ``min_bins_at_temp_ends``
+bins. Held parameters keep the active table's values.
+
+A candidate is proposed only if it passes :func:`cal_table.validate` and its held-out RMS (vector
+norm of the per-axis values) is below the active table's by more than ``min_improvement``.
+
+The work is a map (file -> :class:`PassStats`) and a reduce (:meth:`PassStats.merge`); ``mapper``
+lets another engine (Dask, in the CLI) run the map and reduce; the in-process default reads the
+files one after the other.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from magstack.data import telemetry
+from magstack.firmware import cal_table
+from magstack.firmware.calibration.coverage_bins import N_BINS, AttitudeCoverage
+from magstack.firmware.calibration.fit import FitOptions, FitResult, HeldParam, identify, solve_axis
+from magstack.firmware.calibration.housekeeping import MAX_GAP_S, interpolate_currents
+from magstack.firmware.calibration.model import FLIGHT_TERMS, FLOAT_ONLY_TERMS, CalModel, resolve_terms
+from magstack.firmware.calibration.streaming import StreamingFit
+from magstack.firmware.errors import FitError
+from magstack.firmware.reference import frames, geomag
+
+#: Histogram of |residual| per axis (robust scale without keeping residuals): log bins, uT.
+HIST_EDGES_uT = np.geomspace(1e-5, 1e4, 2401)
+ECLIPSE_MODES = ("any", "sunlit", "eclipse")
+
+
+@dataclass(frozen=True)
+class Selection:
+    """Which rows may be used. ``lat_band_deg``: geodetic latitude (lo, hi) deg; ``temp_band_c``:
+    (lo, hi) degC; ``eclipse``: any | sunlit | eclipse (cylindrical Earth shadow)."""
+
+    lat_band_deg: tuple[float, float] | None = None
+    temp_band_c: tuple[float, float] | None = None
+    eclipse: str = "any"
+
+    def __post_init__(self) -> None:
+        if self.eclipse not in ECLIPSE_MODES:
+            raise FitError(f"eclipse must be one of {ECLIPSE_MODES}, got {self.eclipse!r}")
+        for name in ("lat_band_deg", "temp_band_c"):
+            v = getattr(self, name)
+            if v is not None and not (len(v) == 2 and all(math.isfinite(x) for x in v) and v[0] < v[1]):
+                raise FitError(f"{name} must be (lo, hi) with lo < hi, got {v!r}")
+
+
+@dataclass(frozen=True)
+class RefitOptions:
+    model: str = "eq3"
+    currents: tuple[str, ...] | None = None      # None: every current column of the files
+    selection: Selection = field(default_factory=Selection)
+    robust: bool = True
+    huber_k: float = 1.345
+    robust_passes: int = 4
+    cache_mb: float = 256.0                      # fit rows kept in memory for the robust passes
+    holdout_block_s: float = 600.0
+    holdout_every: int = 5
+    max_current_gap_s: float = MAX_GAP_S
+    block_rows: int = telemetry.BLOCK_ROWS
+    dut1_s: float = 0.0
+    min_attitude_bins: int = 12
+    min_bins_at_temp_ends: int = 8
+    min_holdout_rows: int = 100
+    min_improvement: float = 0.0                 # fraction of the active held-out RMS
+    min_temp_span_c: float = 5.0
+    min_field_rms_uT: float = 2.0
+    device_id: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.holdout_every < 2 or not self.holdout_block_s > 0:
+            raise FitError("holdout_every must be >= 2 and holdout_block_s > 0")
+        if self.robust_passes < 0 or not self.huber_k > 0:
+            raise FitError("robust_passes must be >= 0 and huber_k > 0")
+
+
+def identity_table(device_id: str = "identity") -> cal_table.CalTable:
+    """The table meaning "raw output taken as calibrated" (used when no active table is given)."""
+    return cal_table.CalTable(device_id=device_id, terms=("gain_matrix", "offset"), S=np.eye(3),
+                              model_name="identity", description="identity (raw output)")
+
+
+def theta_from_table(model: CalModel, table: cal_table.CalTable) -> np.ndarray:
+    """(3, p) coefficients of ``table`` in ``model``'s columns (terms the table lacks read 0)."""
+    th = np.zeros((3, model.n_columns))
+    d = dict(table.D)
+    for c, col in enumerate(model.columns):
+        if col.term not in table.terms:
+            continue
+        if col.term == "gain_matrix":
+            th[:, c] = table.S[:, col.index]
+        elif col.term == "temperature_gain":
+            th[:, c] = table.K_S[:, col.index]
+        elif col.term == "offset":
+            th[:, c] = table.O
+        elif col.term == "temperature_offset":
+            th[:, c] = table.K_O
+        elif col.term == "currents":
+            th[:, c] = d.get(col.param[2:], np.zeros(3))
+        elif col.term == "cubic":
+            th[col.index, c] = table.c3[col.index]
+        elif col.term == "cross_products":
+            th[:, c] = table.P[:, col.index]
+    return th
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What every pass needs (picklable: shipped to workers)."""
+
+    model: CalModel
+    options: RefitOptions
+    theta_active: np.ndarray
+
+
+@dataclass
+class PassStats:
+    """Mergeable result of one pass over some rows."""
+
+    fit: StreamingFit
+    hold: StreamingFit | None
+    bins: AttitudeCoverage
+    counts: dict[str, int]
+    eclipse_rows: int = 0
+    rows: int = 0
+    abs_resid_hist: np.ndarray = field(default_factory=lambda: np.zeros((3, HIST_EDGES_uT.size + 1), np.int64))
+
+    def robust_scale_uT(self) -> np.ndarray | None:
+        """1.4826 x the median |residual| per axis from the histogram (None if empty)."""
+        c = self.abs_resid_hist
+        if c.sum() == 0:
+            return None
+        out = np.zeros(3)
+        mids = np.r_[HIST_EDGES_uT[0], np.sqrt(HIST_EDGES_uT[1:] * HIST_EDGES_uT[:-1]), HIST_EDGES_uT[-1]]
+        for i in range(3):
+            cum = np.cumsum(c[i])
+            out[i] = 1.4826 * mids[int(np.searchsorted(cum, 0.5 * cum[-1]))]
+        return out
+
+    def merge(self, other: PassStats) -> PassStats:
+        self.fit.merge(other.fit)
+        if self.hold is not None and other.hold is not None:
+            self.hold.merge(other.hold)
+        self.bins = self.bins.merge(other.bins)
+        for k, v in other.counts.items():
+            self.counts[k] = self.counts.get(k, 0) + v
+        self.eclipse_rows += other.eclipse_rows
+        self.rows += other.rows
+        self.abs_resid_hist = self.abs_resid_hist + other.abs_resid_hist
+        return self
+
+
+def merge_stats(parts: Sequence[PassStats]) -> PassStats:
+    out = parts[0]
+    for p in parts[1:]:
+        out = out.merge(p)
+    return out
+
+
+def _new_stats(plan: Plan, first_pass: bool) -> PassStats:
+    fo = FitOptions(holdout=False)
+    return PassStats(StreamingFit(plan.model, fo), StreamingFit(plan.model, fo) if first_pass else None,
+                     AttitudeCoverage(), {})
+
+
+def reference_block(blk: telemetry.TelemetryBlock, dut1_s: float = 0.0):
+    """(b_ref_body_uT (N,3), geodetic latitude deg (N,), eclipse (N,) bool) for rows with finite time,
+    |position| 6300..100000 km and a unit quaternion (+-1e-3); other rows NaN / False."""
+    n = len(blk)
+    with np.errstate(invalid="ignore"):
+        r = np.linalg.norm(blk.pos_ecef_km, axis=1)
+        qn = np.linalg.norm(blk.q_body_eci, axis=1)
+        # a GPS without fix (zeros) or a corrupted quaternion loses its row, not the whole refit
+        ok = np.isfinite(blk.t_s) & (r >= 6300.0) & (r <= 100_000.0) & (np.abs(qn - 1.0) <= 1e-3)
+    b = np.full((n, 3), np.nan)
+    lat = np.full(n, np.nan)
+    ecl = np.zeros(n, dtype=bool)
+    if ok.any():
+        t, p = blk.t_s[ok], blk.pos_ecef_km[ok]
+        m = frames.gcrs_to_itrs_matrix(t, dut1_s)
+        b_gcrs = np.einsum("nji,nj->ni", m, geomag.igrf_ecef_nT(t, p))
+        b[ok] = geomag.attitude(blk.q_body_eci[ok]).apply(b_gcrs).reshape(-1, 3) / 1e3
+        lat[ok] = frames.ecef_to_geodetic(p)[0]
+        ecl[ok] = frames.in_eclipse(t, np.einsum("nji,nj->ni", m, p))
+    return b, lat, ecl
+
+
+def _nbytes(arrays: tuple) -> int:
+    bm, y, tc, cc, ss, tt = arrays
+    return bm.nbytes + y.nbytes + tc.nbytes + ss.nbytes + tt.nbytes + sum(v.nbytes for v in cc.values())
+
+
+class FitRowCache:
+    """In-process store of each file's fit rows (design inputs and reference) from pass 1, so the
+    robust passes need not re-read files and re-evaluate IGRF; a file whose rows would exceed the
+    budget is not kept (its passes re-read it), so memory stays below ``budget_mb``."""
+
+    def __init__(self, budget_mb: float) -> None:
+        self.left = int(budget_mb * 1e6)
+        self.files: dict[str, list[tuple]] = {}
+        self.complete: set[str] = set()
+        self._open: set[str] = set()
+
+    def start(self, path: str) -> None:
+        self.files[path] = []
+        self._open.add(path)
+
+    def add(self, path: str, arrays: tuple) -> None:
+        if path not in self._open:
+            return
+        size = _nbytes(arrays)
+        if size > self.left:   # does not fit: give this file's rows back, re-read it later
+            self.left += sum(_nbytes(x) for x in self.files.pop(path))
+            self._open.discard(path)
+            return
+        self.left -= size
+        self.files[path].append(arrays)
+
+    def finish(self, path: str) -> None:
+        if path in self._open:
+            self._open.discard(path)
+            self.complete.add(path)
+
+
+def file_pass(path: str, plan: Plan, theta: np.ndarray | None = None, sigma_uT: np.ndarray | None = None,
+              progress: Callable[[int], None] | None = None, cache: FitRowCache | None = None) -> PassStats:
+    """One pass over one file: the map step. ``theta`` None = OLS pass (also accumulates the
+    held-out rows and coverage); otherwise Huber weights on residuals under ``theta``."""
+    opt, model = plan.options, plan.model
+    st = _new_stats(plan, theta is None)
+    if theta is not None and cache is not None and path in cache.complete:
+        for arrays in cache.files[path]:
+            _robust_add(st, arrays, plan, theta, sigma_uT)
+            if progress is not None:
+                progress(arrays[0].shape[0])
+        return st
+    if theta is None and cache is not None:
+        cache.start(path)
+    blocks = interpolate_currents(telemetry.iter_telemetry(path, opt.block_rows), model.currents,
+                                  opt.max_current_gap_s)
+    for blk in blocks:
+        _block_pass(st, blk, plan, theta, sigma_uT, cache)
+        if progress is not None:
+            progress(len(blk))
+    if theta is None and cache is not None:
+        cache.finish(path)
+    return st
+
+
+def _robust_add(st: PassStats, arrays: tuple, plan: Plan, theta, sigma_uT) -> None:
+    """Huber-weighted accumulation of fit rows (b_meas, b_ref, temp, currents, session, t)."""
+    bm, y, tc, cc, ss, tt = arrays
+    if bm.shape[0] == 0:
+        return
+    model = plan.model
+    r = y - model.predict(theta, model.design(bm, tc, cc, ss, tt))
+    for i in range(3):
+        st.abs_resid_hist[i] += np.bincount(np.searchsorted(HIST_EDGES_uT, np.abs(r[:, i])),
+                                            minlength=HIST_EDGES_uT.size + 1)
+    u = np.abs(r) / (plan.options.huber_k * np.maximum(sigma_uT, 1e-12))
+    w = np.min(np.where(u <= 1, 1.0, 1.0 / np.maximum(u, 1e-300)), axis=1)
+    st.fit.add(bm, y, tc, cc, ss, tt, weights=w)
+
+
+def _prepare_block(st: PassStats, blk: telemetry.TelemetryBlock, plan: Plan):
+    """Reference field and row selection of one block: (b_ref (N,3), usable (N,), held out (N,), currents);
+    counts the excluded rows by reason in ``st``."""
+    opt, model = plan.options, plan.model
+    sel = opt.selection
+    cnt = st.counts
+    n = len(blk)
+    st.rows += n
+    b_ref, lat, ecl = reference_block(blk, opt.dut1_s)
+    st.eclipse_rows += int(ecl.sum())
+    use = np.ones(n, dtype=bool)
+    checks = []
+    if blk.flag is not None:
+        checks.append((blk.flag != 0, "flag != 0"))
+    checks += [(~np.all(np.isfinite(blk.dut_uT), 1), "no sensor sample"),
+               (~np.all(np.isfinite(b_ref), 1), "no or implausible position/attitude"),
+               (~np.isfinite(blk.temp_c), "no temperature")]
+    checks += [(~np.isfinite(blk.currents_A[k]), f"current {k} not interpolable") for k in model.currents]
+    if sel.lat_band_deg is not None:
+        checks.append((~((lat >= sel.lat_band_deg[0]) & (lat <= sel.lat_band_deg[1])), "outside latitude band"))
+    if sel.temp_band_c is not None:
+        checks.append((~((blk.temp_c >= sel.temp_band_c[0]) & (blk.temp_c <= sel.temp_band_c[1])),
+                       "outside temperature band"))
+    if sel.eclipse == "sunlit":
+        checks.append((ecl, "in eclipse"))
+    elif sel.eclipse == "eclipse":
+        checks.append((~ecl, "sunlit"))
+    for bad, reason in checks:
+        k = int((use & bad).sum())
+        if k:
+            cnt[reason] = cnt.get(reason, 0) + k
+        use &= ~bad
+    held_out = np.floor(blk.t_s / opt.holdout_block_s).astype(np.int64) % opt.holdout_every == 0
+    cur = {k: blk.currents_A[k] for k in model.currents}
+    return b_ref, use, held_out, cur
+
+
+def _rows(blk: telemetry.TelemetryBlock, b_ref, cur, mask) -> tuple:
+    """(b_meas, b_ref, temp, currents, session, t) of the rows in ``mask``."""
+    return (blk.dut_uT[mask], b_ref[mask], blk.temp_c[mask], {k: v[mask] for k, v in cur.items()},
+            blk.session[mask], blk.t_s[mask])
+
+
+def _block_pass(st: PassStats, blk: telemetry.TelemetryBlock, plan: Plan, theta, sigma_uT,
+                cache: FitRowCache | None = None) -> None:
+    b_ref, use, held_out, cur = _prepare_block(st, blk, plan)
+    fit_rows = use & ~held_out
+    if theta is None:
+        arrays = _rows(blk, b_ref, cur, fit_rows)
+        st.fit.add(*arrays)
+        st.bins.update(b_ref[fit_rows], blk.temp_c[fit_rows])
+        st.hold.add(*_rows(blk, b_ref, cur, use & held_out))
+        if cache is not None:
+            cache.add(blk.path, arrays)
+    else:
+        _robust_add(st, _rows(blk, b_ref, cur, fit_rows), plan, theta, sigma_uT)
+
+
+def holdout_rms(R: np.ndarray, theta: np.ndarray, model: CalModel, n: int) -> np.ndarray:
+    """(3,) RMS residual of ``theta`` on the rows whose R factor is ``R`` (unweighted), uT."""
+    p = model.n_columns
+    th = np.where(model.axis_mask(), theta, 0.0)
+    out = np.zeros(3)
+    for i in range(3):
+        z = np.zeros(p + 3)
+        z[:p] = th[i]
+        z[p + i] = -1.0
+        out[i] = np.linalg.norm(R @ z)
+    return out / np.sqrt(max(n, 1))
+
+
+def solve(stats: PassStats, plan: Plan, extra_holds: Mapping[tuple[int, int], str]) -> FitResult:
+    """Solve the accumulated pass: bench identifiability + ``extra_holds`` ((axis, column) -> reason),
+    held parameters at the active table's values."""
+    model, opt = plan.model, plan.options
+    sf = stats.fit
+    p = model.n_columns
+    if sf.n_used <= p:
+        raise FitError(f"{sf.n_used} usable fit rows for {p} columns: not enough data "
+                       f"(excluded: {dict(stats.counts) or 'none'})")
+    mask = model.axis_mask()
+    priors = {model.param_name(i, c): float(plan.theta_active[i, c]) for i in range(3) for c in range(p)
+              if mask[i, c]}
+    fo = FitOptions(holdout=False, priors=priors, min_temp_span_c=opt.min_temp_span_c,
+                    min_field_rms_uT=opt.min_field_rms_uT)
+    held = {(h.axis, h.column): h for h in identify(model, sf.R, sf.coverage, fo)}
+    for (i, c), reason in extra_holds.items():   # the coverage reason is the root cause: it wins
+        held[(i, c)] = HeldParam(i, c, model.param_name(i, c), float(plan.theta_active[i, c]), reason)
+    held_list = [held[k] for k in sorted(held)]
+    theta = np.zeros((3, p))
+    se = np.full((3, p), np.nan)
+    conds = np.full((2, 3), np.nan)
+    rmse = np.zeros(3)
+    for i in range(3):
+        h = {x.column: x.value for x in held_list if x.axis == i}
+        sol = solve_axis(sf.R, p, i, mask[i], h, sf.n_used)
+        theta[i], se[i], conds[0, i], conds[1, i] = sol.theta, sol.se, sol.cond_scaled, sol.cond_raw
+        rmse[i] = math.sqrt(sol.sse / max(sol.dof, 1))
+    raw = np.sqrt(sf._raw_sq / sf.n_used)
+    return FitResult(model, theta, se, held_list, sf.n_used, sf.n_excluded, rmse, raw, conds[0], conds[1],
+                     np.full(3, np.nan), sf.coverage, robust=False)
+
+
+def coverage_holds(model: CalModel, stats: PassStats, opt: RefitOptions) -> dict[tuple[int, int], str]:
+    """Attitude-coverage rules (see the module docstring): (axis, column) -> reason."""
+    out: dict[tuple[int, int], str] = {}
+    bins = stats.bins
+    cov = stats.fit.coverage
+    mask = model.axis_mask()
+    if bins.bins_filled < opt.min_attitude_bins:
+        why = (f"field directions fill only {bins.bins_filled} of {N_BINS} attitude bins "
+               f"(need {opt.min_attitude_bins})")
+        for c, col in enumerate(model.columns):
+            if col.term in ("gain_matrix", "temperature_gain"):
+                out.update({(i, c): why for i in range(3) if mask[i, c]})
+        return out
+    if "temperature_gain" in model.terms and cov.temp_span_c > 0:
+        q = cov.temp_span_c / 4.0
+        cold = bins.bins_in_temp(cov.temp_min_c, cov.temp_min_c + q)
+        warm = bins.bins_in_temp(cov.temp_max_c - q, cov.temp_max_c)
+        if min(cold, warm) < opt.min_bins_at_temp_ends:
+            why = (f"field directions in the coldest / warmest quarter of {cov.temp_min_c:.1f}..{cov.temp_max_c:.1f} "
+                   f"degC fill {cold} / {warm} bins (need {opt.min_bins_at_temp_ends} each)")
+            for c, col in enumerate(model.columns):
+                if col.term == "temperature_gain":
+                    out.update({(i, c): why for i in range(3) if mask[i, c]})
+    return out
+
+
+@dataclass
+class RefitResult:
+    """Outcome of a refit. ``candidate`` is None when no fit was possible; ``proposed`` says whether
+    it may be offered to the flight table commands (validated and better on held-out data)."""
+
+    method: str
+    candidate: cal_table.CalTable | None
+    proposed: bool
+    reasons: list[str]
+    fit: FitResult | None
+    holdout_candidate_uT: np.ndarray | None
+    holdout_active_uT: np.ndarray | None
+    n_holdout: int
+    bins: AttitudeCoverage | None
+    counts: dict[str, int]
+    rows: int
+    eclipse_rows: int
+    passes: int
+    runtime_s: float
+    active_name: str
+    notes: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        def lst(v):
+            return None if v is None else [float(x) for x in v]
+        f = self.fit
+        cov = None if f is None else f.coverage
+        return {
+            "method": self.method, "proposed": self.proposed, "reasons": self.reasons,
+            "rows": self.rows, "rows_fitted": None if f is None else f.n_used, "rows_holdout": self.n_holdout,
+            "rows_in_eclipse": self.eclipse_rows, "excluded": dict(self.counts), "passes": self.passes,
+            "runtime_s": self.runtime_s, "active": self.active_name,
+            "holdout_rms_candidate_uT": lst(self.holdout_candidate_uT),
+            "holdout_rms_active_uT": lst(self.holdout_active_uT),
+            "holdout_rms_candidate_norm_uT": None if self.holdout_candidate_uT is None
+            else float(np.linalg.norm(self.holdout_candidate_uT)),
+            "holdout_rms_active_norm_uT": None if self.holdout_active_uT is None
+            else float(np.linalg.norm(self.holdout_active_uT)),
+            "attitude_bins_filled": None if self.bins is None else self.bins.bins_filled,
+            "attitude_bins_total": N_BINS,
+            "attitude_coverage": None if self.bins is None else self.bins.fraction,
+            "attitude_bins_per_temp_band": None if self.bins is None else
+            [{"temp_c": [lo, hi], "bins": k} for lo, hi, k in self.bins.per_temp_band()],
+            "temp_range_c": None if cov is None else [cov.temp_min_c, cov.temp_max_c],
+            "temp_span_c": None if cov is None else cov.temp_span_c,
+            "held": [] if f is None else [{"param": h.name, "value": h.value, "reason": h.reason} for h in f.held],
+            "fitted": [] if f is None else fitted_names(f),
+            "parameters": None if f is None else {f.model.param_name(i, c): float(f.theta[i, c])
+                                                  for i in range(3) for c in range(f.model.n_columns)
+                                                  if f.model.axis_mask()[i, c]},
+            "notes": self.notes,
+        }
+
+    def report(self) -> str:
+        d = self.to_dict()
+        L = [f"refit ({self.method}): {self.rows} rows read, {d['rows_fitted']} fitted, {self.n_holdout} held out, "
+             f"{self.passes} pass(es), {self.runtime_s:.1f} s; active table: {self.active_name}"]
+        if self.counts:
+            L.append("excluded rows: " + ", ".join(f"{k} {v}" for k, v in sorted(self.counts.items())))
+        if self.bins is not None:
+            L.append(f"attitude coverage: {self.bins.bins_filled} of {N_BINS} equal-area bins "
+                     f"({100 * self.bins.fraction:.1f} %); temperature {d['temp_range_c'][0]:.1f}.."
+                     f"{d['temp_range_c'][1]:.1f} degC (span {d['temp_span_c']:.1f} degC); "
+                     f"{self.eclipse_rows} rows in eclipse")
+            L.append("  bins per 5 degC band: " + ", ".join(f"{lo:g}..{hi:g}: {k}" for lo, hi, k in
+                                                           self.bins.per_temp_band()))
+        if self.fit is not None:
+            L.append(f"fitted ({len(d['fitted'])}): " + ", ".join(d["fitted"]))
+            if self.fit.held:
+                L.append(f"held at the active table's values ({len(self.fit.held)}):")
+                L += [f"  {h.name} = {h.value:g}: {h.reason}" for h in self.fit.held]
+        if self.holdout_candidate_uT is not None:
+            def row(label, v):
+                v = np.asarray(v) * 1e3
+                return f"  {label:22s}" + "".join(f"{x:10.1f}" for x in v) + f"{np.linalg.norm(v):10.1f}"
+            L += [f"held-out RMS on {self.n_holdout} rows (nT):{'x':>9s}{'y':>10s}{'z':>10s}{'norm':>10s}",
+                  row("candidate", self.holdout_candidate_uT), row(f"active ({self.active_name})",
+                                                                    self.holdout_active_uT)]
+        L.append(("PROPOSED: " if self.proposed else "NOT proposed: ") + "; ".join(self.reasons))
+        L += [f"note: {n}" for n in self.notes]
+        return "\n".join(L)
+
+
+def fitted_names(f: FitResult) -> list[str]:
+    held = {(h.axis, h.column) for h in f.held}
+    m = f.model.axis_mask()
+    return [f.model.param_name(i, c) for i in range(3) for c in range(f.model.n_columns)
+            if m[i, c] and (i, c) not in held]
+
+
+def make_plan(paths: Sequence[str], active: cal_table.CalTable, options: RefitOptions) -> Plan:
+    """Model (terms of ``options.model`` plus the active table's flight terms, currents) for these files."""
+    if not paths:
+        raise FitError("no telemetry files")
+    headers = [telemetry.read_header(p) for p in paths]
+    in_data = set(headers[0].currents)
+    for h in headers[1:]:
+        in_data &= set(h.currents)
+    if options.currents is None:
+        currents = tuple(sorted(in_data))
+    else:
+        currents = tuple(options.currents)
+    missing = [k for k in set(currents) | set(active.currents) if k not in in_data]
+    if missing:
+        raise FitError(f"current(s) {sorted(missing)} not in every telemetry file (have {sorted(in_data)})")
+    currents = tuple(dict.fromkeys(currents + active.currents))
+    extra = [t for t in active.terms if t in FLIGHT_TERMS + FLOAT_ONLY_TERMS and t != "currents"]
+    terms = resolve_terms(options.model, extra, currents)
+    model = CalModel(terms, currents, (), active.t0_c, 0.0, options.model)
+    return Plan(model, options, theta_from_table(model, active))
+
+
+def local_mapper(paths: Sequence[str], fn: Callable[[str], PassStats]) -> PassStats:
+    """In-process map (file order) and reduce."""
+    return merge_stats([fn(p) for p in paths])
+
+
+def refit(paths: Sequence[str], active: cal_table.CalTable | None = None, options: RefitOptions | None = None,
+          *, progress: Callable[[int, str], None] | None = None,
+          mapper: Callable[[Sequence[str], Callable[[str], PassStats]], PassStats] | None = None,
+          metadata: Mapping[str, str] | None = None) -> RefitResult:
+    """Refit the calibration against the attitude-rotated IGRF reference (see the module docstring).
+
+    ``progress(rows, label)`` is called per block; ``mapper(paths, fn)`` runs ``fn`` per file and
+    reduces (default :func:`local_mapper`)."""
+    t_start = time.perf_counter()
+    options = options or RefitOptions()
+    paths = [str(p) for p in paths]
+    if len(set(paths)) != len(paths):
+        raise FitError("a telemetry file is given more than once")
+    active_name = "identity" if active is None else (active.description or active.table_name or "active")
+    if not paths:
+        raise FitError("no telemetry files")
+    meta = dict(metadata) if metadata is not None else telemetry.read_header(paths[0]).metadata
+    device = options.device_id or (active.device_id if active is not None else None) \
+        or meta.get("device_id") or meta.get("dut_serial") or meta.get("dut_chip")
+    if not device:
+        raise FitError("no device id: pass one (--device-id) or an active table")
+    active = active if active is not None else identity_table(device)
+    plan = make_plan(paths, active, options)
+    mapper = mapper or local_mapper
+    n_pass = 1 + (options.robust_passes if options.robust else 0)
+
+    cache = FitRowCache(options.cache_mb) if mapper is local_mapper and options.cache_mb > 0 else None
+
+    def run(theta, sigma, k):
+        cb = None if progress is None else (lambda n: progress(n, f"pass {k}/{n_pass}"))
+        return mapper(paths, lambda p: file_pass(p, plan, theta, sigma, cb, cache))
+
+    first = run(None, None, 1)
+    holds = coverage_holds(plan.model, first, options)
+    res = solve(first, plan, holds)
+    scale = res.rmse_uT
+    for k in range(2, n_pass + 1):
+        stats = run(res.theta, scale, k)   # same rows as pass 1 (Huber weights are never 0)
+        scale = stats.robust_scale_uT()
+        if scale is None:
+            break
+        res = solve(stats, plan, holds)
+        res.robust = True
+    hold = first.hold
+    h_cand = holdout_rms(hold.R, res.theta, plan.model, hold.n_used)
+    h_act = holdout_rms(hold.R, plan.theta_active, plan.model, hold.n_used)
+    table = cal_table.table_from_fit(res, device, description=f"on-orbit refit (attitude, IGRF-14) vs {active_name}")
+    stats_doc = dict(table.fit_stats)
+    stats_doc.update({"refit_method": "attitude", "holdout_rms_candidate_uT": h_cand.tolist(),
+                      "holdout_rms_active_uT": h_act.tolist(), "holdout_rows": hold.n_used,
+                      "attitude_bins_filled": first.bins.bins_filled})
+    table = dataclasses.replace(table, fit_stats=stats_doc)
+    reasons = []
+    val = cal_table.validate(table)
+    if not val.ok:
+        reasons.append("candidate fails validation: " + "; ".join(val.problems))
+    if hold.n_used < options.min_holdout_rows:
+        reasons.append(f"only {hold.n_used} held-out rows (need {options.min_holdout_rows})")
+    nc, na = float(np.linalg.norm(h_cand)), float(np.linalg.norm(h_act))
+    if not nc < na * (1.0 - options.min_improvement):
+        reasons.append(f"held-out RMS {nc * 1e3:.1f} nT is not better than the active table's {na * 1e3:.1f} nT")
+    proposed = not reasons
+    if proposed:
+        reasons.append(f"held-out RMS {nc * 1e3:.1f} nT vs active {na * 1e3:.1f} nT; validation passed")
+    out = RefitResult("attitude", table, proposed, reasons, res, h_cand, h_act, hold.n_used, first.bins,
+                      first.counts, first.rows, first.eclipse_rows, n_pass, time.perf_counter() - t_start,
+                      active_name)
+    return out
+
+
+__all__ = ["RefitOptions", "RefitResult", "Selection", "Plan", "PassStats", "refit", "file_pass", "make_plan",
+           "merge_stats", "local_mapper", "identity_table", "theta_from_table", "holdout_rms"]
+
+
+# ---------------------------------------------------------------------- attitude-independent (scalar)
+@dataclass
+class ScalarRefitResult:
+    """Outcome of ``--method scalar``: magnitude-only fit (:func:`scalar.refit_scalar`) on the fit rows,
+    candidate vs active compared by the RMS of ``|B_cal| - |B_ref|`` on the held-out rows."""
+
+    candidate: cal_table.CalTable | None
+    proposed: bool
+    reasons: list[str]
+    fit: Any
+    holdout_candidate_uT: float
+    holdout_active_uT: float
+    n_fit: int
+    n_holdout: int
+    counts: dict[str, int]
+    rows: int
+    runtime_s: float
+    active_name: str
+
+    def to_dict(self) -> dict[str, Any]:
+        f = self.fit
+        return {"method": "scalar", "proposed": self.proposed, "reasons": self.reasons, "rows": self.rows,
+                "rows_fitted": self.n_fit, "rows_holdout": self.n_holdout, "excluded": dict(self.counts),
+                "runtime_s": self.runtime_s, "active": self.active_name,
+                "holdout_scalar_rms_candidate_uT": self.holdout_candidate_uT,
+                "holdout_scalar_rms_active_uT": self.holdout_active_uT,
+                "gauge": None if f is None else f.gauge,
+                "S": None if f is None else np.asarray(f.S).tolist(),
+                "O_uT": None if f is None else np.asarray(f.O_uT).tolist(),
+                "fit_scalar_rms_uT": None if f is None else f.rms_residual_uT}
+
+    def report(self) -> str:
+        L = [f"refit (scalar, attitude-independent): {self.rows} rows read, {self.n_fit} fitted, {self.n_holdout} "
+             f"held out, {self.runtime_s:.1f} s; active table: {self.active_name}"]
+        if self.counts:
+            L.append("excluded rows: " + ", ".join(f"{k} {v}" for k, v in sorted(self.counts.items())))
+        if self.fit is not None:
+            L.append(f"fitted: S (3x3), O (3) [gauge {self.fit.gauge}]; every other term of the active table "
+                     "is dropped (magnitude-only fit)")
+        L.append(f"held-out RMS of |B_cal| - |B_ref| (nT): candidate {self.holdout_candidate_uT * 1e3:.1f}, "
+                 f"active ({self.active_name}) {self.holdout_active_uT * 1e3:.1f}")
+        L.append(("PROPOSED: " if self.proposed else "NOT proposed: ") + "; ".join(self.reasons))
+        return "\n".join(L)
+
+
+def refit_scalar_telemetry(paths: Sequence[str], active: cal_table.CalTable | None = None,
+                           options: RefitOptions | None = None, *,
+                           progress: Callable[[int, str], None] | None = None) -> ScalarRefitResult:
+    """``--method scalar`` on telemetry: the same reading, reference, selection and held-out split as
+    :func:`refit`, then :func:`magstack.firmware.calibration.scalar.refit_scalar` (closed form + least
+    squares on ``|B_ref|``; gauge ``prior`` = the active table's S when given) on the fit rows. The fit
+    rows are collected in memory (the scalar fit is a batch fit: O(N))."""
+    from magstack.firmware.calibration.scalar import refit_scalar
+
+    t_start = time.perf_counter()
+    options = options or RefitOptions()
+    paths = [str(p) for p in paths]
+    if not paths:
+        raise FitError("no telemetry files")
+    meta = telemetry.read_header(paths[0]).metadata
+    device = options.device_id or (active.device_id if active is not None else None) \
+        or meta.get("device_id") or meta.get("dut_serial") or meta.get("dut_chip")
+    if not device:
+        raise FitError("no device id: pass one (--device-id) or an active table")
+    active_name = "identity" if active is None else (active.description or active.table_name or "active")
+    act = active if active is not None else identity_table(device)
+    plan = make_plan(paths, act, options)
+    fit_parts, hold_parts, counts, rows = [], [], {}, 0
+    for path in paths:
+        st = _new_stats(plan, True)
+        blocks = interpolate_currents(telemetry.iter_telemetry(path, options.block_rows), plan.model.currents,
+                                      options.max_current_gap_s)
+        for blk in blocks:
+            b_ref, use, held_out, cur = _prepare_block(st, blk, plan)
+            fit_parts.append(_rows(blk, b_ref, cur, use & ~held_out))
+            h = _rows(blk, b_ref, cur, use & held_out)
+            hold_parts.append((h[0], h[1], plan.model.design(*h[:1], h[2], h[3], h[4], h[5])))
+            if progress is not None:
+                progress(len(blk), "pass 1/1")
+        for k, v in st.counts.items():
+            counts[k] = counts.get(k, 0) + v
+        rows += st.rows
+    bm = np.vstack([a[0] for a in fit_parts]) if fit_parts else np.zeros((0, 3))
+    y = np.vstack([a[1] for a in fit_parts]) if fit_parts else np.zeros((0, 3))
+    if bm.shape[0] < 20:
+        raise FitError(f"{bm.shape[0]} usable fit rows: not enough for a scalar fit")
+    fit = refit_scalar(bm, y, method="scalar", K_prior=None if active is None else act.S)
+    hb = [h for h in hold_parts if h[0].shape[0]]
+    n_hold = int(sum(h[0].shape[0] for h in hb))
+    cand_sq = act_sq = 0.0
+    for bmh, yh, xh in hb:
+        r = np.linalg.norm(yh, axis=1)
+        cand_sq += float(np.sum((np.linalg.norm(bmh @ np.asarray(fit.S).T + fit.O_uT, axis=1) - r) ** 2))
+        act_sq += float(np.sum((np.linalg.norm(plan.model.predict(plan.theta_active, xh), axis=1) - r) ** 2))
+    hc = math.sqrt(cand_sq / max(n_hold, 1))
+    ha = math.sqrt(act_sq / max(n_hold, 1))
+    table = fit.to_table(device, description=f"on-orbit refit (scalar, IGRF-14 magnitude) vs {active_name}")
+    reasons = []
+    val = cal_table.validate(table)
+    if not val.ok:
+        reasons.append("candidate fails validation: " + "; ".join(val.problems))
+    if n_hold < options.min_holdout_rows:
+        reasons.append(f"only {n_hold} held-out rows (need {options.min_holdout_rows})")
+    if not hc < ha * (1.0 - options.min_improvement):
+        reasons.append(f"held-out scalar RMS {hc * 1e3:.1f} nT is not better than the active table's {ha * 1e3:.1f} nT")
+    proposed = not reasons
+    if proposed:
+        reasons.append(f"held-out scalar RMS {hc * 1e3:.1f} nT vs active {ha * 1e3:.1f} nT; validation passed")
+    return ScalarRefitResult(table, proposed, reasons, fit, hc, ha, int(bm.shape[0]), n_hold, counts, rows,
+                             time.perf_counter() - t_start, active_name)
+
