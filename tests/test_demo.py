@@ -198,8 +198,8 @@ def test_cli_demo_runs_and_is_deterministic(tmp_path, capsys):
     a, b = tmp_path / "a", tmp_path / "b"
     assert main(["demo", "--out-dir", str(a), "--seconds", "300", "--seed", "1"]) == 0
     text = capsys.readouterr().out
-    for n in range(1, 8):
-        assert f"[{n}/7]" in text
+    for n in range(1, 9):
+        assert f"[{n}/8]" in text
     assert "summary" in text and "files written" in text
     # the same run with --json: stdout holds only the summary figures as strict JSON
     assert main(["demo", "--out-dir", str(b), "--seconds", "300", "--seed", "1", "--json"]) == 0
@@ -214,6 +214,9 @@ def test_cli_demo_runs_and_is_deterministic(tmp_path, capsys):
     assert doc["loop"]["health"]["error_count"] == 2 and cap.err == ""
     for name in ("session.csv", "session-paired.csv", "cal.json", "holdout-calibrated.csv", "flight-loop.csv"):
         assert (a / name).read_bytes() == (b / name).read_bytes(), name
+    html = (a / "report.html").read_text()
+    assert html.startswith("<!DOCTYPE html>") and html.count("data:image/png;base64,") == 4
+    assert "Flight executive" in html and "Held-out session" in html
 
 
 def test_cli_rejects_bad_parameters(tmp_path, capsys):

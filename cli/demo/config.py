@@ -26,7 +26,8 @@ MAX_SECONDS = 36000.0
 #: Files the demo writes (their stale ``.part`` siblings from an interrupted run are removed).
 ARTEFACTS = ("probe.json", "session.csv", "session-paired.csv", "fit-report.txt", "cal.json",
              "cal-corrupted.json", "cal-truncated.json", "holdout-session.csv", "holdout-paired.csv",
-             "holdout-calibrated.csv", "flight-loop.csv", "flight-events.jsonl", "summary.json")
+             "holdout-calibrated.csv", "flight-loop.csv", "flight-events.jsonl", "report.html",
+             "summary.json")
 
 #: A step's way to print one line for a person.
 Say = Callable[[str], None]

@@ -13,7 +13,8 @@ from magstack.cli.demo.fit import FitFigures, fit_calibration
 from magstack.cli.demo.holdout import HoldoutFigures, holdout_check
 from magstack.cli.demo.loop import LoopFigures, flight_loop
 from magstack.cli.demo.probe import ProbeFigures, probe_bench
-from magstack.cli.demo.summary import figures, summary_lines
+from magstack.cli.demo.report import write_demo_report
+from magstack.cli.demo.summary import figures, summary_lines, summary_rows
 from magstack.cli.demo.table import TableFigures, table_lifecycle
 from magstack.cli.output import dumps
 from magstack.drivers.errors import ConfigurationError, MagError
@@ -26,7 +27,8 @@ STEPS = (("probe", "probe the simulated bench and read every chip (magstack.driv
          ("fit", "fit the calibration (belsten Eq. 3 + optional terms) on the paired session"),
          ("table", "calibration table: save, validate, activate; corrupted copies refused"),
          ("holdout", "held-out session: apply the table with the fixed-point applier"),
-         ("loop", "flight sampling loop with the active table, faults injected"))
+         ("loop", "flight executive with the active table, faults injected"),
+         ("report", "HTML report with plots (report.html)"))
 
 
 @dataclass
@@ -129,6 +131,11 @@ def run_demo(config: DemoConfig | None = None, *, say: Say = print,
     with _step(7, res, say, on_step):
         res.loop = flight_loop(res.table.store, out / "flight-loop.csv", seed=cfg.seed + 2, cycles=cfg.loop_cycles,
                                period_s=cfg.loop_period_s, say=say)
+
+    with _step(8, res, say, on_step):
+        res.wall_s = time.perf_counter() - t_start
+        path = write_demo_report(res, out / "report.html", summary_rows(res))
+        say(f"  -> {path.name}: open it in a browser (self-contained: plots embedded)")
 
     res.wall_s = time.perf_counter() - t_start
     res.files = [out / n for n in ARTEFACTS if n != "summary.json"] + [out / "summary.json"]

@@ -45,8 +45,8 @@ def _nT(v: float | None) -> str:
     return "n/a" if v is None or not math.isfinite(v) else f"{v * 1e3:.1f} nT"
 
 
-def summary_lines(res: DemoResult) -> list[str]:
-    """The closing summary table and the list of files written."""
+def summary_rows(res: DemoResult) -> list[tuple[str, str]]:
+    """(quantity, value) rows of the closing summary (also the report's summary table)."""
     f, h, a, t, lp, b = res.fit, res.holdout, res.align, res.table, res.loop, res.bench
     rows = [
         ("I2C chips identified / HMC1053 ADC ID", f"{len(res.probe.devices)} / {res.probe.ads1248_id:#x}"),
@@ -69,6 +69,12 @@ def summary_lines(res: DemoResult) -> list[str]:
         ("flight loop error vs truth raw -> cal", f"{lp.raw_error_norm_uT:.3f} uT -> {_nT(lp.cal_error_norm_uT)}"),
         ("wall time", f"{res.wall_s:.1f} s"),
     ]
+    return rows
+
+
+def summary_lines(res: DemoResult) -> list[str]:
+    """The closing summary table and the list of files written."""
+    rows = summary_rows(res)
     w = max(len(k) for k, _ in rows)
     out = ["", "summary (RMSE = vector norm of per-axis RMSE; measured in this run)", "-" * (w + 40)]
     out += [f"{k:<{w}}  {v}" for k, v in rows]
