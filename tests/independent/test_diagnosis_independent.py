@@ -1,0 +1,113 @@
+"""``magstack diagnose`` on sessions from an independent generator (generator.py: pure numpy, its own
+physics, stimulus and CSV writer; nothing from magstack.sim). Issue 14: the diagnosis is judged on
+sessions from generators that are not ours; here the truth is known.
+
+For every catalogue effect the generator can switch on: a session with that effect at a realistic
+strength on top of gain matrix + offset + noise; the effect is withheld from ``--model``
+(``gain_offset``; ``offset`` for gain and misalignment). Pass: the verdict is the effect (or, when the
+diagnosis says it cannot tell the verdict from its runner-up, the runner-up is the effect), and the
+held-out gap after adding it is within 1.3x the diagnosis' own noise floor. Clean sessions must give
+``none``. Results against the diag branch: docs/diagnosis-independent.md.
+"""
+from __future__ import annotations
+
+import importlib
+
+import pytest
+
+try:
+    importlib.import_module("magstack.cli.commands.diagnose")
+except ModuleNotFoundError as exc:   # only "the command does not exist" skips; any other import error fails
+    if exc.name != "magstack.cli.commands.diagnose":
+        raise
+    pytest.skip("magstack diagnose (issue 14) does not exist in this checkout: magstack.cli.commands.diagnose "
+                "is not importable; run against the diag branch (docs/diagnosis-independent.md)",
+                allow_module_level=True)
+
+from generator import EFFECTS  # noqa: E402
+from harness import AFTER_OVER_NOISE_MAX, case, fit_table  # noqa: E402
+
+#: One seed per effect. The default run covers the two non-linear estimators (delay search, hysteresis
+#: state), a temperature, a current and a per-power-cycle effect; the rest are slow (each diagnosis of a
+#: 3 x 400 s session takes 3-10 s on the shared 2-core machine).
+FAST_SEED = 1
+FAST_EFFECTS = ("time_skew", "hysteresis", "temperature_gain", "interference", "session_offset")
+SLOW_EFFECTS = tuple(e for e in EFFECTS if e not in FAST_EFFECTS)
+#: Clean seeds in the default run; the false-alarm rate over more seeds is the slow test.
+FAST_CLEAN_SEEDS = (100,)
+
+
+def _explain(o) -> str:
+    d = o.doc
+    rank = ", ".join(f"{r['effect']} {r['rmse_nT']:.1f}{'*' if r['significant'] else ''}" for r in d["ranking"])
+    return (f"true {o.effect} (seed {o.seed}, x{o.strength:g}, --model {o.model}): verdict {o.verdict}, "
+            f"runner-up {d.get('runner_up')}, distinguishable {d.get('distinguishable')}; baseline "
+            f"{d['baseline_rmse_nT']:.1f} nT, after {d['after_rmse_nT']:.1f} nT, "
+            f"noise floor {d['noise_floor_nT']:.1f} nT; "
+            f"ranking (held-out nT, * significant): {rank}")
+
+
+def _check_effect(o):
+    assert o.outcome in ("hit", "runner_up"), _explain(o)
+    assert o.after_over_noise <= AFTER_OVER_NOISE_MAX, _explain(o)
+
+
+@pytest.mark.parametrize("effect", [*FAST_EFFECTS, *(pytest.param(e, marks=pytest.mark.slow) for e in SLOW_EFFECTS)])
+def test_withheld_effect_is_named(tmp_path, effect):
+    o = case(tmp_path, effect, FAST_SEED)
+    tested = {r["effect"] for r in o.doc["ranking"]}
+    assert effect in tested, (f"{effect} was not tried although the session has temperature, currents and "
+                              f"3 power cycles: not_testable = {o.doc['not_testable']}")
+    _check_effect(o)
+
+
+@pytest.mark.parametrize("seed", FAST_CLEAN_SEEDS)
+def test_clean_session_gives_none(tmp_path, seed):
+    o = case(tmp_path, None, seed)
+    assert o.verdict == "none", _explain(o)
+    assert {"noise", "quantization", "saturation"} <= {n["effect"] for n in o.doc["not_testable"]}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("effect", EFFECTS)
+def test_withheld_effect_is_named_on_other_seeds(tmp_path, effect):
+    for seed in (2, 3):
+        _check_effect(case(tmp_path, effect, seed))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("effect", ["time_skew", "interference", "temperature_offset", "session_offset"])
+def test_withheld_effect_is_named_at_half_strength(tmp_path, effect):
+    """Half the realistic size: effects that stay well above the noise at half strength."""
+    _check_effect(case(tmp_path, effect, FAST_SEED, 0.5))
+
+
+@pytest.mark.slow
+def test_false_alarm_rate_on_clean_sessions(tmp_path):
+    outs = [case(tmp_path, None, 100 + k) for k in range(10)]
+    alarms = [o for o in outs if o.verdict != "none"]
+    assert len(alarms) <= 1, "false alarms > 10 %:\n" + "\n".join(_explain(o) for o in alarms)
+
+
+# ---- mode (b): "last month's model against today's unit" (--table fitted on an earlier clean session)
+DEVICE = 7
+
+
+@pytest.fixture(scope="module")
+def table(tmp_path_factory):
+    return fit_table(tmp_path_factory.mktemp("table"), seed=201, device_seed=DEVICE)
+
+
+def test_table_mode_names_the_changed_effect(tmp_path, table):
+    o = case(tmp_path, "temperature_offset", 202, table=table, device_seed=DEVICE)
+    _check_effect(o)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("effect", [None, "interference", "hysteresis", "session_offset", "time_skew"])
+def test_table_mode_other_effects(tmp_path, table, effect):
+    o = case(tmp_path, effect, 202, table=table, device_seed=DEVICE)
+    if effect is None:
+        assert o.verdict == "none", _explain(o)
+    else:
+        _check_effect(o)
