@@ -316,7 +316,7 @@ def _params(dev_rng, rng, sc: Scenario) -> dict:
     elif e == "cross_axis":
         p["H0_uT"] = rng.uniform(1000, 1400, 3) / np.sqrt(s)            # anisotropy-like field scale
         p["set_reset_imbalance"] = 0.03 * rng.choice([-1, 1], 3)
-        p["easy_axis"] = np.array([1, 0, 0])                              # x bridge easy along y, y/z along x
+        p["easy_axis"] = np.array([1, 0, 0])      # index of each bridge's easy axis: x -> y, y -> x, z -> x
     elif e == "nonlinearity":   # saturating bridge: Bs tanh(u/Bs); ~ -u^3/(3 Bs^2): 0.1 uT at 100 uT if s=1
         p["Bs_uT"] = rng.uniform(1600, 2000, 3) / np.sqrt(s)
     elif e == "temperature_gain":   # HMC1053 -2700 ppm/degC typ (-3000..-2400); small curvature
@@ -408,7 +408,7 @@ def make_session(sc: Scenario) -> GeneratedSession:
                 u = u * (1 + p["alpha_per_c"] * dT[:, None] + p["beta_per_c2"] * dT[:, None] ** 2)
             ui = u[:, i]
             if e == "cross_axis":   # set: H0 (1+eps), reset: H0 (1-eps); easy-axis field h flips sign with state
-                h = u[:, [1, 0, 0][i]]
+                h = u[:, p["easy_axis"][i]]
                 h0 = p["H0_uT"][i] * (1 + sign * p["set_reset_imbalance"][i])
                 ui = ui * h0 / (h0 + sign * h)
             if e == "nonlinearity":

@@ -27,6 +27,9 @@ except ModuleNotFoundError as exc:   # only "the command does not exist" skips; 
 from generator import EFFECTS  # noqa: E402
 from harness import AFTER_OVER_NOISE_MAX, case, fit_table  # noqa: E402
 
+#: Below this fraction of the noise floor (norm of per-axis RMS, 3 x 400 s at ~48 nT) an effect is
+#: at the detection limit of the session: ``none`` is accepted (measured hits go down to ~0.25).
+IDENTIFIABLE_EXCESS = 0.5
 #: One seed per effect. The default run covers the two non-linear estimators (delay search, hysteresis
 #: state), a temperature, a current and a per-power-cycle effect; the rest are slow (each diagnosis of a
 #: 3 x 400 s session takes 3-10 s on the shared 2-core machine).
@@ -40,7 +43,9 @@ FAST_CLEAN_SEEDS = (100,)
 def _explain(o) -> str:
     d = o.doc
     rank = ", ".join(f"{r['effect']} {r['rmse_nT']:.1f}{'*' if r['significant'] else ''}" for r in d["ranking"])
-    return (f"true {o.effect} (seed {o.seed}, x{o.strength:g}, --model {o.model}): verdict {o.verdict}, "
+    how = o.model if o.model.startswith("--") else f"--model {o.model}"
+    return (f"true {o.effect} (seed {o.seed}, x{o.strength:g}, {how}, oracle excess {o.excess_nT:.1f} nT): "
+            f"verdict {o.verdict}, "
             f"runner-up {d.get('runner_up')}, distinguishable {d.get('distinguishable')}; baseline "
             f"{d['baseline_rmse_nT']:.1f} nT, after {d['after_rmse_nT']:.1f} nT, "
             f"noise floor {d['noise_floor_nT']:.1f} nT; "
@@ -48,6 +53,11 @@ def _explain(o) -> str:
 
 
 def _check_effect(o):
+    """Found (or the indistinguishable runner-up) and closed to 1.3x the noise floor. An effect whose
+    oracle size (harness.excess_nT) is below IDENTIFIABLE_EXCESS x the noise floor need not be found,
+    but then the verdict must be ``none``: a wrong effect is never acceptable."""
+    if o.excess_nT < IDENTIFIABLE_EXCESS * o.doc["noise_floor_nT"] and o.verdict == "none":
+        return
     assert o.outcome in ("hit", "runner_up"), _explain(o)
     assert o.after_over_noise <= AFTER_OVER_NOISE_MAX, _explain(o)
 
@@ -87,6 +97,13 @@ def test_false_alarm_rate_on_clean_sessions(tmp_path):
     outs = [case(tmp_path, None, 100 + k) for k in range(10)]
     alarms = [o for o in outs if o.verdict != "none"]
     assert len(alarms) <= 1, "false alarms > 10 %:\n" + "\n".join(_explain(o) for o in alarms)
+
+
+@pytest.mark.slow
+def test_nonlinearity_with_excursions_at_random_times(tmp_path):
+    """Control for the even bench program: the same unit and effect with excursions at random times,
+    so an axis' two excursions rarely share a held-out fold (docs/diagnosis-independent.md, finding 2)."""
+    _check_effect(case(tmp_path, "nonlinearity", 3, excursion_times="random"))
 
 
 # ---- mode (b): "last month's model against today's unit" (--table fitted on an earlier clean session)
