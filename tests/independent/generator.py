@@ -57,6 +57,7 @@ class Scenario:
     ref_dropouts: int = 2               # reference serial dropouts (2-5 s): empty ref cells, flag 1
     excursion_times: str = "even"       # "even": spread evenly over the powered time; "random"
     device_seed: int | None = None      # gain matrix and offset drawn from this (default: seed): one unit
+    ref_range_uT: float | None = None   # reference full scale: rows beyond it logged empty with flag 1
 
     def __post_init__(self):
         if self.effect is not None and self.effect not in EFFECTS:
@@ -446,6 +447,10 @@ def make_session(sc: Scenario) -> GeneratedSession:
         ref[m] = np.column_stack([np.interp(tk[m], rt, rv[:, j]) for j in range(3)])
 
     flag = np.zeros(n, dtype=int)
+    if sc.ref_range_uT is not None:      # over-range reference (belsten 2.3.4: the +-150 uT run saturated it)
+        over = np.any(np.abs(ref) > sc.ref_range_uT, axis=1)
+        ref[over] = np.nan
+        flag[over] = 1
     for _ in range(sc.ref_dropouts):
         a = stim_rng.uniform(tk[0], tk[-1] - 6.0)
         gone = (tk >= a) & (tk < a + stim_rng.uniform(2.0, 5.0))

@@ -106,6 +106,14 @@ def test_nonlinearity_with_excursions_at_random_times(tmp_path):
     _check_effect(case(tmp_path, "nonlinearity", 3, excursion_times="random"))
 
 
+@pytest.mark.slow
+def test_hysteresis_when_the_reference_saturates_in_the_excursions(tmp_path):
+    """Belsten 2.3.4: the +-150 uT run saturated the reference. Rows beyond a 100 uT reference range are
+    logged with empty reference cells and flag 1, but the DUT reading that sets the remanence state is
+    in the file; the rows with a reference still carry the state change (oracle excess > 60 nT)."""
+    _check_effect(case(tmp_path, "hysteresis", 3, ref_range_uT=100.0))
+
+
 # ---- mode (b): "last month's model against today's unit" (--table fitted on an earlier clean session)
 DEVICE = 7
 
