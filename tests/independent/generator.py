@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+import zlib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -22,7 +23,8 @@ import numpy as np
 
 #: Catalogue effects this generator can switch on (one at a time, on top of gain matrix + offset).
 #: ``gain`` and ``misalignment`` replace the always-on matrix by a pure scale / pure rotation.
-EFFECTS = ("time_skew", "interference", "misalignment", "gain", "cross_axis", "nonlinearity",
+#: ``mount_rotation`` is in the catalogue on main since fe58249 (not yet on every branch).
+EFFECTS = ("time_skew", "interference", "mount_rotation", "misalignment", "gain", "cross_axis", "nonlinearity",
            "temperature_gain", "hysteresis", "temperature_offset", "drift", "session_offset")
 
 CURRENT_NAMES = ("heater", "payload", "solar")
@@ -99,22 +101,29 @@ def _cell(x: float, decimals: int) -> str:
     return "" if not np.isfinite(x) else f"{x:.{decimals}f}"
 
 
-def write_session_csv(path, columns: dict, metadata: dict, current_names=CURRENT_NAMES) -> None:
-    """Session file v1 as docs/session-file.md describes it (not magstack's writer)."""
+def write_session_csv(path, columns: dict, metadata: dict, current_names=CURRENT_NAMES, *,
+                      extra_columns: dict | None = None, closing_line: bool = True) -> None:
+    """Session file v1 as docs/session-file.md describes it (not magstack's writer): metadata lines,
+    header, rows (empty cell = no value), other numeric columns after the currents and before ``flag``,
+    and the closing line ``# magstack-end: rows=N crc32=0x........`` (CRC-32 of the row bytes, header
+    excluded; ``closing_line=False`` writes a file as older tools did)."""
     path = Path(path)
+    extra_columns = extra_columns or {}
     head = ["t_s", "ref_x_uT", "ref_y_uT", "ref_z_uT", "dut_x_uT", "dut_y_uT", "dut_z_uT", "temp_c", "session"]
-    head += [f"current_{n}_A" for n in current_names] + ["flag"]
-    dec = [6, 6, 6, 6, 6, 6, 6, 4, None] + [6] * len(current_names) + [None]
-    cols = [columns[h] for h in head]
-    lines = ["# magstack-session: 1"] + [f"# {k}: {v}" for k, v in metadata.items()] + [",".join(head)]
+    head += [f"current_{n}_A" for n in current_names] + list(extra_columns) + ["flag"]
+    dec = [6, 6, 6, 6, 6, 6, 6, 4, None] + [6] * len(current_names) + [6] * len(extra_columns) + [None]
+    cols = [columns[h] if h in columns else extra_columns[h] for h in head]
+    head_text = "\n".join(["# magstack-session: 1"] + [f"# {k}: {v}" for k, v in metadata.items()]
+                          + [",".join(head)]) + "\n"
+    rows = []
     for i in range(cols[0].size):
-        cells = []
-        for c, d in zip(cols, dec, strict=True):
-            cells.append(str(int(c[i])) if d is None else _cell(float(c[i]), d))
-        lines.append(",".join(cells))
+        cells = [str(int(c[i])) if d is None else _cell(float(c[i]), d) for c, d in zip(cols, dec, strict=True)]
+        rows.append(",".join(cells) + "\n")
+    body = "".join(rows).encode("ascii")
+    tail = f"# magstack-end: rows={len(rows)} crc32=0x{zlib.crc32(body):08x}\n".encode() if closing_line else b""
     part = path.with_name(path.name + ".part")
-    with open(part, "w", encoding="utf-8", newline="\n") as fh:
-        fh.write("\n".join(lines) + "\n")
+    with open(part, "wb") as fh:
+        fh.write(head_text.encode("utf-8") + body + tail)
     os.replace(part, path)
 
 
@@ -314,6 +323,9 @@ def _params(dev_rng, rng, sc: Scenario) -> dict:
     elif e == "interference":
         p["D_uT_per_A"] = {"heater": s * _rand_vec(rng, 0.03, 0.08), "payload": s * _rand_vec(rng, 0.3, 0.6),
                            "solar": s * _rand_vec(rng, 0.2, 0.4)}
+    elif e == "mount_rotation":   # hand remount in a printed holder between power cycles: 0.2-0.6 deg
+        ang = s * np.deg2rad(rng.uniform(0.2, 0.6, sc.n_sessions))
+        p["mount_rotvec_rad"] = np.stack([_rand_vec(rng, 1, 1) * a for a in ang])
     elif e == "cross_axis":
         p["H0_uT"] = rng.uniform(1000, 1400, 3) / np.sqrt(s)            # anisotropy-like field scale
         p["set_reset_imbalance"] = 0.03 * rng.choice([-1, 1], 3)
@@ -395,6 +407,11 @@ def make_session(sc: Scenario) -> GeneratedSession:
     n = tk.size
 
     conv = p.get("conv_times_s", np.zeros((3, 2)))
+    if e == "mount_rotation":   # the sensor senses R_s^T B in session s (R_s from the rotation vector)
+        R = np.stack([_rot(v, np.linalg.norm(v)) for v in p["mount_rotvec_rad"]])
+        M_row = np.einsum("ij,njk->nik", p["M"], np.transpose(R, (0, 2, 1))[session - 1])   # M R_s^T per row
+    else:
+        M_row = None
     T_die = np.interp(tk, t, temp)
     dT = T_die - 25.0
     M = p["M"]
@@ -404,7 +421,7 @@ def make_session(sc: Scenario) -> GeneratedSession:
         for c, sign in ((0, 1.0), (1, -1.0)):
             tc = tk + conv[i, c]
             bv = np.column_stack([np.interp(tc, t, b_sensor[:, j]) for j in range(3)])
-            u = bv @ M.T                                     # sensor-frame field (all bridges)
+            u = bv @ M.T if M_row is None else np.einsum("nij,nj->ni", M_row, bv)   # sensor-frame field
             if e == "temperature_gain":
                 u = u * (1 + p["alpha_per_c"] * dT[:, None] + p["beta_per_c2"] * dT[:, None] ** 2)
             ui = u[:, i]

@@ -24,8 +24,14 @@ except ModuleNotFoundError as exc:   # only "the command does not exist" skips; 
                 "is not importable; run against the diag branch (docs/diagnosis-independent.md)",
                 allow_module_level=True)
 
-from generator import EFFECTS  # noqa: E402
+from generator import EFFECTS as GENERATOR_EFFECTS  # noqa: E402
 from harness import AFTER_OVER_NOISE_MAX, case, fit_table  # noqa: E402
+
+from magstack.firmware.effects import EFFECT_NAMES  # noqa: E402
+
+#: The effects the catalogue of the code under test names and this generator can produce (an effect
+#: added to the catalogue, e.g. mount_rotation, is tested as soon as the catalogue has it).
+EFFECTS = tuple(e for e in GENERATOR_EFFECTS if e in EFFECT_NAMES)
 
 #: Below this fraction of the noise floor (norm of per-axis RMS, 3 x 400 s at ~48 nT) an effect is
 #: at the detection limit of the session: ``none`` is accepted (measured hits go down to ~0.25).

@@ -62,14 +62,26 @@ def test_reader_ignores_unknown_column_and_accepts_minimal_file(tmp_path):
     cols = dict(g.columns)
     write_session_csv(tmp_path / "m.csv", cols, {}, current_names=())   # no metadata, no currents
     s = read_session(tmp_path / "m.csv")
-    assert len(s) == g.n and s.currents_A == {}
-    text = (tmp_path / "m.csv").read_text().splitlines()
-    text[1] = text[1] + ",humidity_pct"
-    text[2:] = [ln + ",41.5" for ln in text[2:]]
-    (tmp_path / "u.csv").write_text("\n".join(text) + "\n")
+    assert len(s) == g.n and s.currents_A == {} and s.warnings == []
+    # a column name that is neither a v1 column, a current nor an identifier: ignored with a warning
+    write_session_csv(tmp_path / "u.csv", cols, {}, current_names=(),
+                      extra_columns={"rel.humidity": np.full(g.n, 41.5)})
     s2 = read_session(tmp_path / "u.csv")
-    assert any("humidity_pct" in w for w in s2.warnings)
+    assert any("rel.humidity" in w for w in s2.warnings)
     np.testing.assert_array_equal(s2.dut_uT, s.dut_uT)
+
+
+def test_file_without_closing_line_reads_the_same_rows(tmp_path):
+    """Files from older tools have no closing line: same rows (a reader that knows the closing line
+    may warn that the file could have been cut short; docs/session-file.md)."""
+    g = make_session(Scenario(effect=None, seed=14, n_sessions=1, session_s=60.0))
+    write_session_csv(tmp_path / "a.csv", g.columns, g.metadata)
+    write_session_csv(tmp_path / "b.csv", g.columns, g.metadata, closing_line=False)
+    a, b = read_session(tmp_path / "a.csv"), read_session(tmp_path / "b.csv")
+    assert a.warnings == []
+    np.testing.assert_array_equal(a.dut_uT, b.dut_uT)
+    np.testing.assert_array_equal(a.ref_uT, b.ref_uT)
+    assert all("cut short" in w for w in b.warnings)
 
 
 # Tolerances for the gain+offset fit. Statistical error with ~2400 rows, ~30 nT noise and tens of uT
