@@ -367,7 +367,8 @@ def _hysteresis_field(t, b_true, p) -> np.ndarray:
 
 
 def make_session(sc: Scenario) -> GeneratedSession:
-    rng = np.random.default_rng([20261123, sc.seed, EFFECTS.index(sc.effect) + 1 if sc.effect else 0])
+    # effect parameters keyed by the effect's name (stable when effects are added to EFFECTS)
+    rng = np.random.default_rng([20261123, sc.seed, zlib.crc32(sc.effect.encode()) if sc.effect else 0])
     dev_rng = np.random.default_rng([4242, sc.seed if sc.device_seed is None else sc.device_seed])
     stim_rng = np.random.default_rng([777, sc.seed])    # stimulus depends on the seed only, not the effect
     windows = []
