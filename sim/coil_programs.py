@@ -28,6 +28,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from magstack.drivers.errors import ConfigurationError
+from magstack.sim.truth_source import SeriesTruth
 
 __all__ = [
     "ProgramTruth", "ProgramSpec", "PROGRAMS", "program", "program_names", "register_program",
@@ -303,7 +304,7 @@ def pulse_current(amplitude_A: float, period_s: float, width_s: float, start_s: 
 
 
 @dataclass
-class ProgramTruth:
+class ProgramTruth(SeriesTruth):
     """A TruthSource built from a field profile, a temperature profile, named currents, sessions."""
 
     name: str
@@ -335,23 +336,7 @@ class ProgramTruth:
         t = _t(t_s).reshape(-1)
         return {k: np.asarray(f(t), dtype=float).reshape(t.size) for k, f in self.current_fns.items()}
 
-    def session_series(self, t_s) -> np.ndarray:
-        t = _t(t_s).reshape(-1)
-        idx = np.floor(np.clip(t, 0.0, self.duration_s) / self.duration_s * self.sessions).astype(np.int64)
-        return np.minimum(idx, self.sessions - 1)
-
-    # scalar TruthSource protocol
-    def field_uT(self, t_s: float) -> np.ndarray:
-        return self.field_series_uT(np.array([t_s]))[0]
-
-    def temp_c(self, t_s: float) -> float:
-        return float(self.temp_series_c(np.array([t_s]))[0])
-
-    def currents_A(self, t_s: float) -> dict[str, float]:
-        return {k: float(v[0]) for k, v in self.currents_series_A(np.array([t_s])).items()}
-
-    def session(self, t_s: float) -> int:
-        return int(self.session_series(np.array([t_s]))[0])
+    # session_series and the scalar TruthSource protocol: SeriesTruth
 
     def session_starts_s(self) -> np.ndarray:
         """Start time (s) of each power cycle."""

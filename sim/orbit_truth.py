@@ -32,6 +32,7 @@ from scipy.spatial.transform import Rotation
 
 from magstack.drivers.errors import ConfigurationError
 from magstack.firmware.reference import frames, geomag
+from magstack.sim.truth_source import SeriesTruth
 
 MU_KM3_S2 = 398600.4418
 J2 = 1.08262668e-3
@@ -54,7 +55,7 @@ def sso_inclination_deg(altitude_km: float) -> float:
 
 
 @dataclass
-class OrbitTruth:
+class OrbitTruth(SeriesTruth):
     name: str = "orbit"
     duration_s: float = 86400.0
     epoch_unix_s: float = DEFAULT_EPOCH_S
@@ -201,23 +202,7 @@ class OrbitTruth:
         battery = solar - self.load_A - self.heater_A * heater - np.abs(torquer)
         return {"battery": battery, "solar": solar, "torquer": torquer}
 
-    def session_series(self, t_s) -> np.ndarray:
-        t = np.asarray(t_s, dtype=float).reshape(-1)
-        idx = np.floor(np.clip(t, 0.0, self.duration_s) / self.duration_s * self.sessions).astype(np.int64)
-        return np.minimum(idx, self.sessions - 1)
-
-    # scalar protocol
-    def field_uT(self, t_s: float) -> np.ndarray:
-        return self.field_series_uT(np.array([t_s]))[0]
-
-    def temp_c(self, t_s: float) -> float:
-        return float(self.temp_series_c(np.array([t_s]))[0])
-
-    def currents_A(self, t_s: float) -> dict[str, float]:
-        return {k: float(v[0]) for k, v in self.currents_series_A(np.array([t_s])).items()}
-
-    def session(self, t_s: float) -> int:
-        return int(self.session_series(np.array([t_s]))[0])
+    # session_series and the scalar TruthSource protocol: SeriesTruth
 
 
 #: Orbit programmes for ``magstack simulate --program``: name -> (attitude, help).

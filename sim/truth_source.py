@@ -46,3 +46,30 @@ class StaticTruth:
 
     def session(self, t_s: float) -> int:
         return 0
+
+
+class SeriesTruth:
+    """Mixin: the scalar :class:`TruthSource` methods and power-cycle sessions from the vectorised ones.
+
+    A subclass provides ``field_series_uT``, ``temp_series_c``, ``currents_series_A`` and the attributes
+    ``duration_s`` (s) and ``sessions`` (equal power cycles over the run)."""
+
+    duration_s: float
+    sessions: int
+
+    def session_series(self, t_s) -> np.ndarray:
+        t = np.asarray(t_s, dtype=float).reshape(-1)
+        idx = np.floor(np.clip(t, 0.0, self.duration_s) / self.duration_s * self.sessions).astype(np.int64)
+        return np.minimum(idx, self.sessions - 1)
+
+    def field_uT(self, t_s: float) -> np.ndarray:
+        return self.field_series_uT(np.array([t_s]))[0]
+
+    def temp_c(self, t_s: float) -> float:
+        return float(self.temp_series_c(np.array([t_s]))[0])
+
+    def currents_A(self, t_s: float) -> dict[str, float]:
+        return {k: float(v[0]) for k, v in self.currents_series_A(np.array([t_s])).items()}
+
+    def session(self, t_s: float) -> int:
+        return int(self.session_series(np.array([t_s]))[0])
