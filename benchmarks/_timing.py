@@ -13,3 +13,18 @@ def best_wall_s(fn: Callable[[], object], repeat: int = 3) -> float:
         fn()
         best = min(best, time.perf_counter() - t0)
     return best
+
+
+def measure(fn: Callable[[], object]) -> tuple[object, float, float]:
+    """(result, wall s, peak traced Python memory MiB) of one ``fn()`` call (tracemalloc)."""
+    import gc
+    import tracemalloc
+
+    gc.collect()
+    tracemalloc.start()
+    t0 = time.perf_counter()
+    out = fn()
+    dt = time.perf_counter() - t0
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    return out, dt, peak / 2 ** 20

@@ -13,9 +13,9 @@ bench with known remounts.
 from __future__ import annotations
 
 import argparse
-import gc
+import os
+import sys
 import time
-import tracemalloc
 from pathlib import Path
 
 import numpy as np
@@ -28,19 +28,11 @@ from magstack.firmware.fixed_point import FixedPointTable, to_fixed_inputs
 from magstack.firmware.float_applier import apply_float
 from magstack.sim.synthetic_calibration import make_data, random_theta
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _timing import measure  # noqa: E402  (sibling module; scripts run from benchmarks/)
+
 CURRENTS = ("solar", "heater")
 TERMS = resolve_terms("eq3", currents=CURRENTS)
-
-
-def _measure(fn):
-    gc.collect()
-    tracemalloc.start()
-    t0 = time.perf_counter()
-    out = fn()
-    dt = time.perf_counter() - t0
-    _, peak = tracemalloc.get_traced_memory()
-    tracemalloc.stop()
-    return out, dt, peak / 2 ** 20
 
 
 def main() -> None:
@@ -63,7 +55,7 @@ def main() -> None:
     print(f"== batch fit: N = {n}, {int(model.axis_mask().sum())} parameters (Eq. 3 + 2 currents), "
           f"input arrays {in_bytes / 2 ** 20:.0f} MiB")
     opts = FitOptions(holdout=False)
-    res, dt_batch, peak_batch = _measure(lambda: fit(data, "eq3", currents=CURRENTS, options=opts))
+    res, dt_batch, peak_batch = measure(lambda: fit(data, "eq3", currents=CURRENTS, options=opts))
     print(f"batch fit: {dt_batch:.2f} s, peak extra memory {peak_batch:.0f} MiB "
           f"({peak_batch * 2 ** 20 / n:.0f} B/sample), rmse {res.rmse_norm_uT * 1e3:.1f} nT (noise 52 nT), "
           f"held {len(res.held)}, max |theta - truth| {np.abs(res.theta - theta).max():.2e}")
@@ -78,7 +70,7 @@ def main() -> None:
                 sf.add(d.b_meas_uT, d.b_ref_uT, d.temp_c, d.currents_A, d.session, d.t_s)
                 del d
             return sf.solve(), sf.state_bytes
-        (rs, state), dt, peak = _measure(run)
+        (rs, state), dt, peak = measure(run)
         print(f"streaming N={n_s:>8d}: {dt:.2f} s, peak {peak:.1f} MiB (state {state} B), "
               f"max |theta - truth| {np.abs(rs.theta - theta).max():.2e}")
     print(f"streaming vs batch time at N={n}: {dt / dt_batch:.2f}x, peak memory {peak / peak_batch:.3f}x")

@@ -15,11 +15,10 @@ measures in this process (perf_counter, tracemalloc peak of Python/numpy allocat
 from __future__ import annotations
 
 import argparse
-import gc
 import os
+import sys
 import tempfile
 import time
-import tracemalloc
 from pathlib import Path
 
 import numpy as np
@@ -29,16 +28,8 @@ from magstack.data.telemetry import iter_telemetry
 from magstack.firmware.calibration.refit import RefitOptions, reference_block, refit
 from magstack.firmware.reference import geomag
 
-
-def _measure(fn):
-    gc.collect()
-    tracemalloc.start()
-    t0 = time.perf_counter()
-    out = fn()
-    dt = time.perf_counter() - t0
-    _, peak = tracemalloc.get_traced_memory()
-    tracemalloc.stop()
-    return out, dt, peak / 2 ** 20
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _timing import measure  # noqa: E402  (sibling module; scripts run from benchmarks/)
 
 
 def _reference_only(path):
@@ -69,17 +60,17 @@ def main() -> None:
     n = t.size
     print(f"rows {n}; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs", flush=True)
     k = args.naive
-    _, dt_naive, _ = _measure(lambda: [geomag.igrf_ecef_nT(t[j:j + 1], pos[j:j + 1]) for j in range(k)])
-    _, dt_batch_k, _ = _measure(lambda: geomag.igrf_ecef_nT(t[:k], pos[:k]))
+    _, dt_naive, _ = measure(lambda: [geomag.igrf_ecef_nT(t[j:j + 1], pos[j:j + 1]) for j in range(k)])
+    _, dt_batch_k, _ = measure(lambda: geomag.igrf_ecef_nT(t[:k], pos[:k]))
     print(f"one ppigrf call per sample ({k} samples): {dt_naive / k * 1e3:.1f} ms/sample "
           f"-> {dt_naive / k * n:.0f} s projected for {n} rows; the batched path on the same {k}: "
           f"{dt_batch_k * 1e3:.0f} ms", flush=True)
     if args.naive_only:
         return
-    _, dt_igrf, pk_igrf = _measure(lambda: geomag.igrf_ecef_nT(t, pos))
-    _, dt_ref, pk_ref = _measure(lambda: _reference_only(day))
-    res, dt_fit, pk_fit = _measure(lambda: refit([day]))
-    res0, dt_fit0, pk_fit0 = _measure(lambda: refit([day], options=RefitOptions(cache_mb=0)))
+    _, dt_igrf, pk_igrf = measure(lambda: geomag.igrf_ecef_nT(t, pos))
+    _, dt_ref, pk_ref = measure(lambda: _reference_only(day))
+    res, dt_fit, pk_fit = measure(lambda: refit([day]))
+    res0, dt_fit0, pk_fit0 = measure(lambda: refit([day], options=RefitOptions(cache_mb=0)))
     print(f"IGRF-14 alone (ppigrf, in-memory positions): {dt_igrf:.2f} s, peak {pk_igrf:.1f} MiB")
     print(f"reference field over the file (read + IGRF + frames + attitude + eclipse): {dt_ref:.2f} s, "
           f"peak {pk_ref:.1f} MiB")
@@ -96,11 +87,11 @@ def main() -> None:
                 os.symlink(day, link)
             links.append(link)
         if d in args.days:
-            r1, dt1, pk1 = _measure(lambda links=links: refit(links, options=RefitOptions(robust=False, cache_mb=0)))
+            r1, dt1, pk1 = measure(lambda links=links: refit(links, options=RefitOptions(robust=False, cache_mb=0)))
             print(f"{d:3d} day(s), {r1.rows} rows: OLS streaming (1 pass, no cache) {dt1:.1f} s, "
                   f"{dt1 / d:.1f} s/day, peak {pk1:.1f} MiB", flush=True)
         if d in args.default_days:
-            r2, dt2, pk2 = _measure(lambda links=links: refit(links))
+            r2, dt2, pk2 = measure(lambda links=links: refit(links))
             print(f"{d:3d} day(s), {r2.rows} rows: default (OLS + 4 robust passes, fit-row cache) {dt2:.1f} s, "
                   f"{dt2 / d:.1f} s/day, peak {pk2:.1f} MiB", flush=True)
 
