@@ -122,18 +122,14 @@ def run(args: argparse.Namespace) -> int:
         ns = argparse.Namespace(method="pso", paper_model=args.paper_model, seed=args.seed,
                                 iterations=args.iterations, json=None if args.json_out is None else str(args.json_out))
         return run_paper_model_cli(ns)
-    if args.method == "pso":
-        raise ConfigurationError("--method pso on telemetry needs rotation-axis segments (loci) that the "
-                                 "telemetry columns do not carry: use --paper-model N, --method scalar, or the "
-                                 "Python API refit_scalar(..., method='pso', locus=..., omega_body=...)")
     if not paths:
         raise ConfigurationError("give at least one TELEMETRY.csv")
     if not args.out:
         raise ConfigurationError("--out candidate.json is required with telemetry files")
     if args.engine == "local" and args.scheduler:
         raise ConfigurationError("--scheduler needs --engine dask")
-    if args.method == "scalar" and args.engine != "local":
-        raise ConfigurationError("--engine dask runs the attitude method only (the scalar fit is a batch fit)")
+    if args.method in ("scalar", "pso") and args.engine != "local":
+        raise ConfigurationError("--engine dask runs the attitude method only (scalar and PSO fits are batch fits)")
     refuse_overwriting_inputs(args.out, paths + ([args.active] if args.active else []))
     active = None
     if args.active:
@@ -148,7 +144,8 @@ def run(args: argparse.Namespace) -> int:
         else:
             from magstack.firmware.calibration.refit import refit_scalar_telemetry
 
-            result = refit_scalar_telemetry(paths, active, _options(args, currents), progress=progress)
+            result = refit_scalar_telemetry(paths, active, _options(args, currents), progress=progress,
+                                            method=args.method, seed=args.seed)
     finally:
         close()
     lines = [result.report()]

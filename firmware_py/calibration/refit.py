@@ -647,7 +647,8 @@ class ScalarRefitResult:
                 "fit_scalar_rms_uT": None if f is None else f.rms_residual_uT}
 
     def report(self) -> str:
-        L = [f"refit (scalar, attitude-independent): {self.rows} rows read, {self.n_fit} fitted, {self.n_holdout} "
+        L = [f"refit ({self.fit.method}, attitude-independent): {self.rows} rows read, {self.n_fit} fitted, "
+             f"{self.n_holdout} "
              f"held out, {self.runtime_s:.1f} s; active table: {self.active_name}"]
         if self.counts:
             L.append("excluded rows: " + ", ".join(f"{k} {v}" for k, v in sorted(self.counts.items())))
@@ -660,13 +661,52 @@ class ScalarRefitResult:
         return "\n".join(L)
 
 
+#: PSO on telemetry: samples kept per locus and loci kept (the swarm's cost is linear in the samples).
+PSO_SAMPLES_PER_LOCUS = 48
+PSO_MAX_LOCI = 24
+#: Smallest angle between two loci axes for the rotation-axis gauge to fix the sensor rotation.
+PSO_MIN_AXIS_SPREAD_DEG = 20.0
+
+
+def _axis_spread_deg(axes: np.ndarray) -> float:
+    """Largest angle (deg) between any two loci axes, sign-free (0 for fewer than two)."""
+    if len(axes) < 2:
+        return 0.0
+    c = np.clip(np.abs(axes @ axes.T), 0.0, 1.0)
+    return float(np.degrees(np.arccos(c.min())))
+
+
+def _pso_loci(t_s: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(row indices, locus labels of those rows, unit axes) for the PSO: rotation-axis loci from the
+    attitude (:mod:`.spin_loci`), each thinned to ``PSO_SAMPLES_PER_LOCUS`` evenly spaced rows, at most
+    ``PSO_MAX_LOCI`` loci spread over the run."""
+    from magstack.firmware.calibration.spin_loci import loci_from_attitude
+
+    labels, axes = loci_from_attitude(t_s, q)
+    keep = np.unique(labels[labels >= 0])
+    if keep.size > PSO_MAX_LOCI:
+        keep = keep[np.linspace(0, keep.size - 1, PSO_MAX_LOCI).round().astype(int)]
+    rows, labs = [], []
+    for new, old in enumerate(keep):
+        idx = np.flatnonzero(labels == old)
+        idx = idx[np.linspace(0, idx.size - 1, min(PSO_SAMPLES_PER_LOCUS, idx.size)).round().astype(int)]
+        rows.append(idx)
+        labs.append(np.full(idx.size, new))
+    if not rows:
+        return np.zeros(0, int), np.zeros(0, int), np.zeros((0, 3))
+    return np.concatenate(rows), np.concatenate(labs), axes[keep]
+
+
 def refit_scalar_telemetry(paths: Sequence[str], active: cal_table.CalTable | None = None,
                            options: RefitOptions | None = None, *,
-                           progress: Callable[[int, str], None] | None = None) -> ScalarRefitResult:
-    """``--method scalar`` on telemetry: the same reading, reference, selection and held-out split as
-    :func:`refit`, then :func:`magstack.firmware.calibration.scalar.refit_scalar` (closed form + least
-    squares on ``|B_ref|``; gauge ``prior`` = the active table's S when given) on the fit rows. The fit
-    rows are collected in memory (the scalar fit is a batch fit: O(N))."""
+                           progress: Callable[[int, str], None] | None = None, method: str = "scalar",
+                           seed: int = 0) -> ScalarRefitResult:
+    """``--method scalar|pso`` on telemetry: the same reading, reference, selection and held-out split as
+    :func:`refit`, then :func:`magstack.firmware.calibration.scalar.refit_scalar` on the fit rows.
+    ``scalar``: closed form + least squares on ``|B_ref|`` (gauge ``prior`` = the active table's S when
+    given). ``pso``: the riwanto PSO on rotation-axis loci found in the attitude (:func:`_pso_loci`; a
+    spinning spacecraft; refused when fewer than two loci with non-parallel axes exist). The fit rows are
+    collected in memory (a batch fit: O(N))."""
     from magstack.firmware.calibration.scalar import refit_scalar
 
     t_start = time.perf_counter()
@@ -682,7 +722,7 @@ def refit_scalar_telemetry(paths: Sequence[str], active: cal_table.CalTable | No
     active_name = "identity" if active is None else (active.description or active.table_name or "active")
     act = active if active is not None else identity_table(device)
     plan = make_plan(paths, act, options)
-    fit_parts, hold_parts, counts, rows = [], [], {}, 0
+    fit_parts, hold_parts, att_parts, counts, rows = [], [], [], {}, 0
     for path in paths:
         st = _new_stats(plan, True)
         blocks = interpolate_currents(telemetry.iter_telemetry(path, options.block_rows), plan.model.currents,
@@ -690,6 +730,7 @@ def refit_scalar_telemetry(paths: Sequence[str], active: cal_table.CalTable | No
         for blk in blocks:
             b_ref, use, held_out, cur = _prepare_block(st, blk, plan)
             fit_parts.append(_rows(blk, b_ref, cur, use & ~held_out))
+            att_parts.append(blk.q_body_eci[use & ~held_out])
             h = _rows(blk, b_ref, cur, use & held_out)
             hold_parts.append((h[0], h[1], plan.model.design(*h[:1], h[2], h[3], h[4], h[5])))
             if progress is not None:
@@ -701,7 +742,28 @@ def refit_scalar_telemetry(paths: Sequence[str], active: cal_table.CalTable | No
     y = np.vstack([a[1] for a in fit_parts]) if fit_parts else np.zeros((0, 3))
     if bm.shape[0] < 20:
         raise FitError(f"{bm.shape[0]} usable fit rows: not enough for a scalar fit")
-    fit = refit_scalar(bm, y, method="scalar", K_prior=None if active is None else act.S)
+    K_prior = None if active is None else act.S
+    if method not in ("scalar", "pso"):
+        raise FitError(f"unknown telemetry refit method {method!r}; valid: scalar, pso")
+    t_fit = np.concatenate([a[5] for a in fit_parts])
+    idx, lab, axes = _pso_loci(t_fit, np.vstack(att_parts))
+    spread = _axis_spread_deg(axes)
+    axes_ok = np.unique(lab).size >= 2 and spread >= PSO_MIN_AXIS_SPREAD_DEG
+    if method == "pso":
+        if not axes_ok:
+            raise FitError("the PSO fixes the rotation by the rotation axes and needs loci about at least two body "
+                           f"axes >= {PSO_MIN_AXIS_SPREAD_DEG:g} deg apart (each turning >= 90 deg at >= 0.5 deg/s); "
+                           f"the attitude shows {np.unique(lab).size} loci whose axes span {spread:.1f} deg (a spin "
+                           "about one body axis leaves the rotation about it free): use --method attitude or scalar")
+        fit = refit_scalar(bm[idx], y[idx], method="pso", locus=lab, omega_body=axes, K_prior=K_prior, seed=seed)
+    elif axes_ok:
+        # the loci fix the rotation too: least squares on |B_ref| plus the rotation-axis residuals (gauge "axes")
+        loc = np.full(bm.shape[0], -1)
+        loc[idx] = lab
+        keep = loc >= 0
+        fit = refit_scalar(bm[keep], y[keep], method="scalar", locus=loc[keep], omega_body=axes, K_prior=K_prior)
+    else:
+        fit = refit_scalar(bm, y, method="scalar", K_prior=K_prior)
     hb = [h for h in hold_parts if h[0].shape[0]]
     n_hold = int(sum(h[0].shape[0] for h in hb))
     cand_sq = act_sq = 0.0
@@ -711,7 +773,7 @@ def refit_scalar_telemetry(paths: Sequence[str], active: cal_table.CalTable | No
         act_sq += float(np.sum((np.linalg.norm(plan.model.predict(plan.theta_active, xh), axis=1) - r) ** 2))
     hc = math.sqrt(cand_sq / max(n_hold, 1))
     ha = math.sqrt(act_sq / max(n_hold, 1))
-    table = fit.to_table(device, description=f"on-orbit refit (scalar, IGRF-14 magnitude) vs {active_name}")
+    table = fit.to_table(device, description=f"on-orbit refit ({method}, IGRF-14 magnitude) vs {active_name}")
     reasons = []
     val = cal_table.validate(table)
     if not val.ok:
