@@ -351,3 +351,16 @@ def test_mount_rotation_needs_two_sessions():
     j = diagnose_model(make(None, sessions=1), "gain_offset").to_dict()
     nt = {n["effect"]: n["reason"] for n in j["not_testable"]}
     assert "one session" in nt["mount_rotation"]
+
+
+def test_few_test_units_can_still_be_significant():
+    """Six consistent units: the sign-flip floor is 2^-6 = 0.016 (never below Holm's level for 9
+    effects); unit_p uses Student's t there, so a large consistent shrink can pass."""
+    from magstack.ground.diagnose.search import unit_p
+    d = np.array([1.0, 1.2, 0.9, 1.1, 1.05, 0.95])
+    assert sign_flip_p(d) > 0.01
+    assert unit_p(d) < 1e-4
+    assert unit_p(-d) > 0.99
+    rng = np.random.default_rng(3)
+    p = np.array([unit_p(rng.standard_normal(6)) for _ in range(400)])
+    assert 0.02 <= np.mean(p < 0.05) <= 0.09     # calibrated under the null

@@ -63,8 +63,9 @@ def _explain(o) -> str:
 #: entry when it is fixed. Keyed by (test name, effect); effect None = any parameter.
 KNOWN_LIMITS = {
     ("test_withheld_effect_is_named", "hysteresis"):
-        "seed 1: hysteresis closes 107 -> 55 nT held out but the 60 s blocks group into ~6 test units "
-        "(slow 1/f noise): not significant after Holm",
+        "seed 1: hysteresis closes 109 -> 56 nT held out, but the test unit (from the best residual, whose slow "
+        "misfit - the generator's cross-axis remanence - correlates neighbouring blocks) groups the 21 blocks into "
+        "~6 units: not significant after Holm (docs/diagnosis-independent.md)",
 }
 
 
