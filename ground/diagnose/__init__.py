@@ -14,9 +14,10 @@ __all__ = ["Diagnosis", "diagnose", "Gap", "check_rows", "fixed_gap", "model_gap
 
 
 def shift_source(full, keep):
-    """Gap.shift_source: the reference field of every usable row."""
+    """Gap.shift_source: the reference field of every usable row (and the DUT excursion history that
+    :func:`check_rows` recorded, for hysteresis)."""
     from magstack.ground.diagnose.nonlinear import runs
-    return (full.t_s, full.ref_uT, keep, runs(full.t_s, full.session))
+    return (full.t_s, full.ref_uT, keep, runs(full.t_s, full.session), getattr(full, "dut_history", None))
 
 
 def diagnose_model(session, model: str = "gain_offset", options: Options | None = None,

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from magstack.ground.diagnose import nonlinear as nl
+from magstack.ground.diagnose import rotation as rot
 from magstack.ground.diagnose import search as sr
 from magstack.ground.diagnose import where as wh
 from magstack.ground.diagnose.gap import Block, Gap, folds_from_blocks, jackknife_se, solve, time_blocks
@@ -55,7 +56,8 @@ class Diagnosis:
             "ranking": [{"effect": t.effect, "rmse_nT": float(t.rmse_norm_uT * 1e3), "shrink": float(t.shrink),
                          "significant": bool(t.significant), "p_value": float(t.p_value),
                          "p_holm": float(t.p_holm), "kind": t.kind, "test_unit_blocks": int(t.extra.get("group", 1)),
-                         "rmse_axes_nT": [float(v * 1e3) for v in t.rmse_uT]} for t in r.trials],
+                         "rmse_axes_nT": [float(v * 1e3) for v in t.rmse_uT],
+                         **({"note": t.note} if t.note else {})} for t in r.trials],
             "not_testable": r.not_testable,
             "where": self.where,
             "parameters": self.parameters,
@@ -142,14 +144,24 @@ def verdict_parameters(gap: Gap, res: sr.SearchResult, fold: np.ndarray, run: np
                             "meaning": "DUT axis reads the field at t + dt relative to the reference"}
                for j, a in enumerate("xyz")}
         return out
+    if v.kind == "joint":
+        mc = rot.mount_columns(gap)
+        ang, se = rot.fit_all(base, mc, Y, res.baseline.rmse_uT)
+        jk = jackknife_se([np.asarray(a) for a in v.extra["fold_angles_rad"]])
+        return {n: {"value": float(a), "se": float(max(e, j)) if np.isfinite(j) else float(e), "se_ols": float(e),
+                    "se_jackknife": float(j), "unit": "rad",
+                    "meaning": f"rotation of the mount relative to session {mc.frame} (small angle)"}
+                for n, a, e, j in zip(mc.names, ang, se, jk, strict=True)}
     if v.kind == "hysteresis":
-        thr = sr.choose_thresholds(gap, base, Y, _hyst_cands(gap), np.ones(gap.n, bool))
-        blk = sr.hysteresis_block(gap, thr)
+        thr, init = sr.choose_thresholds(gap, base, Y, _hyst_cands(gap), np.ones(gap.n, bool))
+        blk = sr.hysteresis_block(gap, thr, init)
         allb = Block.join([base, blk], gap.n)
         out = _linear_params(allb.X, Y, allb, base.p, fold)
         for j, a in enumerate("xyz"):
             if np.isfinite(thr[j]):
                 out[f"threshold[{a}]"] = {"value": float(thr[j]), "se": float("nan"), "unit": "uT (chosen level)"}
+                out[f"initial_state[{a}]"] = {"value": float(init[j]), "se": float("nan"),
+                                              "unit": "sign of the remanence before the first excursion (chosen)"}
         return out
     blk = sr.linear_block(gap, v.effect, v.extra["terms"])
     allb = Block.join([base, blk], gap.n)
@@ -157,7 +169,7 @@ def verdict_parameters(gap: Gap, res: sr.SearchResult, fold: np.ndarray, run: np
 
 
 def _hyst_cands(gap: Gap):
-    return nl.hysteresis_thresholds(gap.session.dut_uT)
+    return nl.hysteresis_thresholds(*gap.history())
 
 
 def _gain_or_misalignment(res: sr.SearchResult, params: dict) -> str | None:
@@ -180,7 +192,7 @@ def diagnose(gap: Gap, options: sr.Options | None = None) -> Diagnosis:
     opts = options or sr.Options()
     s = gap.session
     blocks = time_blocks(s.t_s, s.session, opts.block_s)
-    fold = folds_from_blocks(blocks, s.session, opts.n_folds)
+    fold = folds_from_blocks(blocks, s.session, opts.n_folds, gap.predictor_uT, opts.seed)
     run = nl.runs(s.t_s, s.session)
     res = sr.search(gap, blocks, fold, opts)
     notes: list[str] = []

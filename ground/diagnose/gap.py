@@ -10,9 +10,9 @@ Two ways to say what the simulator is (issue 14):
   ``--sim`` adapter). The gap is the session minus the fixed prediction; the base design holds only
   nuisance terms the fixed simulator treats as random (per-session offsets).
 
-Every candidate effect is then a block of extra columns added to the base design. Folds are
-interleaved time blocks within each session (block ``k`` of a session goes to fold ``k mod n``), as
-the calibration's held-out check; all figures are uT inside, nT at the JSON boundary.
+Every candidate effect is then a block of extra columns added to the base design. Folds are sets of
+time blocks stratified by field magnitude (:func:`folds_from_blocks`: robust to bench programs that
+repeat per power cycle); all figures are uT inside, nT at the JSON boundary.
 """
 from __future__ import annotations
 
@@ -84,6 +84,20 @@ class Gap:
     #: where the base is refitted on the de-skewed reading)
     deskew_J: np.ndarray | None = None
 
+    def history(self) -> tuple[np.ndarray, np.ndarray]:
+        """(dut (M,3), idx (N,)): the excursion history for hysteresis, i.e. the DUT reading of every
+        row with one, sorted by session then time (also rows left out for a missing or saturated
+        reference), and the position of each of the gap's rows in it. Without a recorded history
+        (``shift_source`` without it, or rows dropped after it was made): the gap's own rows."""
+        src = self.shift_source
+        if src is not None and len(src) > 4 and src[4] is not None:
+            dut, idx_full = src[4]
+            keep = src[2]
+            idx = idx_full[keep] if not isinstance(keep, slice) else idx_full
+            if idx.size == self.n:
+                return dut, idx
+        return self.session.dut_uT, np.arange(self.n)
+
     def _dut_image(self) -> np.ndarray:
         """A (3,3): the DUT-space image of the reference, ``dut ~ A ref + b`` (least squares)."""
         if getattr(self, "_A", None) is None:
@@ -103,7 +117,7 @@ class Gap:
             t, ref, keep = self.session.t_s, self.session.ref_uT, slice(None)
             run = runs(t, self.session.session)
         else:
-            t, ref, keep, run = self.shift_source
+            t, ref, keep, run = self.shift_source[:4]
         A = self._dut_image()
         d = np.asarray(delay_s, dtype=float)
         out = np.zeros((self.n, 3))
@@ -182,14 +196,38 @@ def time_blocks(t_s: np.ndarray, session: np.ndarray, block_s: float) -> np.ndar
     return out
 
 
-def folds_from_blocks(blocks: np.ndarray, session: np.ndarray, n_folds: int) -> np.ndarray:
-    """Fold id per row: the k-th block of each session goes to fold k mod n_folds."""
+def folds_from_blocks(blocks: np.ndarray, session: np.ndarray, n_folds: int,
+                      field_uT: np.ndarray | None = None, seed: int = 0) -> np.ndarray:
+    """Fold id per row.
+
+    With ``field_uT`` (N,3), stratified by field magnitude: blocks are ranked by their largest
+    ``|B_j|`` (per axis as a rank percentile among the blocks, then the largest over axes), taken in
+    consecutive groups of ``n_folds`` down that ranking, and each group is dealt to the folds by a
+    seeded random permutation. Every fold then sees a spread of field magnitudes on every axis,
+    whatever the timing of the program: "block k of a session -> fold k mod n" puts all of an axis'
+    excursions into one fold when the program repeats per power cycle (its training then never sees
+    that axis at high field). Without ``field_uT``: block k of each session -> fold k mod n_folds."""
     fold = np.zeros(blocks.size, dtype=np.int64)
-    for s in np.unique(session):
-        m = session == s
-        _, inv = np.unique(blocks[m], return_inverse=True)
-        fold[m] = inv % n_folds
-    return fold
+    if field_uT is None:
+        for s in np.unique(session):
+            m = session == s
+            _, inv = np.unique(blocks[m], return_inverse=True)
+            fold[m] = inv % n_folds
+        return fold
+    ids, inv = np.unique(blocks, return_inverse=True)
+    a = np.where(np.isfinite(field_uT), np.abs(field_uT), 0.0)
+    peak = np.zeros((ids.size, 3))
+    for j in range(3):
+        np.maximum.at(peak[:, j], inv, a[:, j])
+    pct = np.argsort(np.argsort(peak, axis=0, kind="stable"), axis=0, kind="stable") / max(ids.size - 1, 1)
+    key = pct.max(axis=1) + 1e-3 * peak.max(axis=1) / max(float(peak.max()), 1e-12)
+    order = np.argsort(-key, kind="stable")
+    rng = np.random.default_rng(seed)
+    bfold = np.empty(ids.size, dtype=np.int64)
+    for k in range(0, ids.size, n_folds):
+        grp = order[k:k + n_folds]
+        bfold[grp] = rng.permutation(n_folds)[:grp.size]
+    return bfold[inv]
 
 
 # ----------------------------------------------------------------------------- least squares
@@ -300,8 +338,10 @@ def usable_rows(s: Session) -> np.ndarray:
 
 def check_rows(s: Session, min_rows: int = 50, exclude_bends: float | None = None
                ) -> tuple[Session, np.ndarray, list[str]]:
-    """The usable rows sorted by session then time, the mask of those kept for the diagnosis (with
-    ``exclude_bends``: not at sharp bends of the reference, see :func:`nonlinear.bend_rows`), and
+    """The usable rows sorted by session then time (attribute ``dut_history``: see
+    :meth:`Gap.history`), the mask of those kept for the diagnosis (with
+    ``exclude_bends``: not at sharp bends of the reference, see :func:`nonlinear.bend_rows`, nor at
+    the edges of a contiguous run, see :func:`run_edge_rows`), and
     notes; DiagnosisError when too few remain."""
     from magstack.ground.diagnose.nonlinear import bend_rows
     notes = []
@@ -314,6 +354,13 @@ def check_rows(s: Session, min_rows: int = 50, exclude_bends: float | None = Non
     s2 = s.select(ok)
     order = np.lexsort((s2.t_s, s2.session))
     s2 = s2.select(order)
+    # excursion history (hysteresis): every row with a DUT reading, sorted the same way
+    has = np.all(np.isfinite(s.dut_uT), axis=1) & np.isfinite(s.t_s)
+    h_rows = np.flatnonzero(has)
+    h_rows = h_rows[np.lexsort((s.t_s[h_rows], s.session[h_rows]))]
+    pos = np.full(len(s), -1, dtype=np.int64)
+    pos[h_rows] = np.arange(h_rows.size)
+    s2.dut_history = (s.dut_uT[h_rows], pos[np.flatnonzero(ok)[order]])
     keep = np.ones(len(s2), bool)
     if exclude_bends is not None:
         bend = bend_rows(s2.ref_uT, s2.t_s, s2.session, exclude_bends, s2.dut_uT)
@@ -323,7 +370,27 @@ def check_rows(s: Session, min_rows: int = 50, exclude_bends: float | None = Non
                          "out: there two sample "
                          "streams cannot be paired to a fraction of a sample")
             keep = ~bend
+        edge = run_edge_rows(s2.t_s, s2.session)
+        if edge.any() and (keep & ~edge).sum() >= min_rows:
+            notes.append(f"{int((edge & keep).sum())} rows within the delay search's half-width of a run's start or "
+                         "end (session ends, gaps, reference dropouts) left out: a delayed axis there would need "
+                         "the field beyond the recorded run")
+            keep &= ~edge
     return s2, keep, notes
+
+
+def run_edge_rows(t_s: np.ndarray, session: np.ndarray) -> np.ndarray:
+    """Rows closer than the delay search's half-width (``DELAY_HALF_WIDTH_ROWS`` median spacings) to
+    the first or last row of their contiguous run (:func:`nonlinear.runs`)."""
+    from magstack.ground.diagnose.nonlinear import DELAY_HALF_WIDTH_ROWS, runs
+    run = runs(t_s, session)
+    dt = np.diff(t_s)
+    pos = dt[dt > 0]
+    half = DELAY_HALF_WIDTH_ROWS * (float(np.median(pos)) if pos.size else 1.0)
+    first = np.r_[0, np.flatnonzero(np.diff(run)) + 1]
+    last = np.r_[first[1:] - 1, run.size - 1]
+    k = np.repeat(np.arange(first.size), np.diff(np.r_[first, run.size]))
+    return ((t_s - t_s[first][k]) < half) | ((t_s[last][k] - t_s) < half)
 
 
 def model_gap(s: Session, base_terms: Sequence[str], modelled: Sequence[str], description: str,

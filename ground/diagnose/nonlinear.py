@@ -8,11 +8,16 @@
   never enters both sides of the fit. Elsewhere the catalogue's first-order calibration term
   (``dB/dt`` columns by central differences, which exclude the row's own sample) is used.
 * ``hysteresis`` (catalogue: the offset shifts by a remanent amount signed by the last excursion
-  beyond a threshold, not cleared by power cycles): per axis a state column in {-1, 0, +1} that
+  beyond a threshold, not cleared by power cycles): per axis a state column in {-1, +1} that
   follows the sign of the last DUT reading with ``|B_j| >= threshold``; the threshold is chosen
-  on the training rows among high quantiles of ``|B_j|``. A per-session offset is constant within
-  a session, the hysteresis state changes inside a session at an excursion and persists across
-  sessions: the two are told apart by those rows (and declared confounded when they coincide).
+  on the training rows among high quantiles of ``|B_j|``. The excursion history is built from
+  every row with a DUT reading (also rows whose reference is missing or saturated: the excursion
+  that sets the state is often exactly where the reference saturates) and then restricted to the
+  rows tested. The state before an axis' first excursion is unknown (+ or -, never 0): both signs
+  are tried per axis and the one with the lower training SSE is kept (one discrete parameter).
+  A per-session offset is constant within a session, the hysteresis state changes inside a session
+  at an excursion and persists across sessions: the two are told apart by those rows (and declared
+  confounded when they coincide).
 """
 from __future__ import annotations
 
@@ -90,10 +95,14 @@ def search_delays(sse_of, grid: np.ndarray, passes: int = 2) -> np.ndarray:
     return d
 
 
-def hysteresis_state(b_uT: np.ndarray, threshold_uT: np.ndarray) -> np.ndarray:
-    """(N,3) sign (-1/0/+1) of the last reading with ``|B_j| >= threshold_j`` (0 before the first)."""
+def hysteresis_state(b_uT: np.ndarray, threshold_uT: np.ndarray, initial=None) -> np.ndarray:
+    """(N,3) sign (-1/+1) of the last reading with ``|B_j| >= threshold_j``; before an axis' first such
+    reading the state is ``initial[j]`` (the remanence the part had when the file starts: a magnetised
+    part is + or -, never 0, but which one is unknown; the search tries both, see ``search``).
+    ``initial`` None: 0 there."""
     n = b_uT.shape[0]
     out = np.zeros((n, 3))
+    init = np.zeros(3) if initial is None else np.asarray(initial, dtype=float)
     ar = np.arange(n)
     for j in range(3):
         thr = threshold_uT[j]
@@ -101,12 +110,17 @@ def hysteresis_state(b_uT: np.ndarray, threshold_uT: np.ndarray) -> np.ndarray:
             continue
         e = np.where(np.abs(b_uT[:, j]) >= thr, np.sign(b_uT[:, j]), 0.0)
         last = np.maximum.accumulate(np.where(e != 0, ar, -1))
-        out[:, j] = np.where(last >= 0, e[np.maximum(last, 0)], 0.0)
+        out[:, j] = np.where(last >= 0, e[np.maximum(last, 0)], init[j])
     return out
 
 
-def hysteresis_thresholds(b_uT: np.ndarray) -> list[list[float]]:
-    """Candidate thresholds per axis (uT) whose state column has >= 2 states with enough rows."""
+def hysteresis_thresholds(b_uT: np.ndarray, rows: np.ndarray | None = None) -> list[list[float]]:
+    """Candidate thresholds per axis (uT) whose state column has >= 2 states with enough rows.
+
+    ``b_uT`` is the excursion history (every row with a DUT reading, also where the reference is
+    missing or saturated); ``rows`` (indices into it) are the rows the diagnosis tests on, where the
+    states must have enough rows (None: all)."""
+    rows = np.arange(b_uT.shape[0]) if rows is None else rows
     out = []
     for j in range(3):
         a = np.abs(b_uT[:, j])
@@ -116,7 +130,7 @@ def hysteresis_thresholds(b_uT: np.ndarray) -> list[list[float]]:
             thr = float(np.quantile(a, q))
             if thr <= HYSTERESIS_MIN_RATIO * med or thr <= 0 or any(abs(thr - c) < 1e-9 for c in cands):
                 continue
-            st = hysteresis_state(b_uT[:, [j, j, j]], np.array([thr, np.inf, np.inf]))[:, 0]
+            st = hysteresis_state(b_uT[:, [j, j, j]], np.array([thr, np.inf, np.inf]))[rows, 0]
             counts = [int(np.sum(st == v)) for v in (-1.0, 0.0, 1.0)]
             if sum(c >= HYSTERESIS_MIN_ROWS for c in counts) >= 2:
                 cands.append(thr)

@@ -181,8 +181,8 @@ def _table_case(change: str, seed: int, duration_s: float, opts, table_gap):
     """Fit a gain+offset table on a clean session, then diagnose a later session where ``change`` changed."""
     from magstack.firmware.cal_table import table_from_fit
     from magstack.firmware.calibration import FitData, fit
+    from magstack.ground.diagnose import shift_source
     from magstack.ground.diagnose.gap import check_rows
-    from magstack.ground.diagnose.nonlinear import runs
 
     clean = simulate(None, 0.0, seed, duration_s)
     res = fit(FitData.from_session(clean), "gain_offset", options=_fit_options())
@@ -197,15 +197,15 @@ def _table_case(change: str, seed: int, duration_s: float, opts, table_gap):
     later.t_s = later.t_s + duration_s + 600.0   # a later run of the same program
     full, keep, notes = check_rows(later, exclude_bends=opts.exclude_bends)
     g = table_gap(full.select(keep), table, "validation table")
-    g.shift_source = (full.t_s, full.ref_uT, keep, runs(full.t_s, full.session))
+    g.shift_source = shift_source(full, keep)
     g.notes += notes
     return diagnose(g, opts)
 
 
 def _sim_case(seed, duration_s, opts, out, params_document, sim_gap):
     """Parameters file with a stale offset; the session's unit has moved by 0.15/-0.1/0.12 uT."""
+    from magstack.ground.diagnose import shift_source
     from magstack.ground.diagnose.gap import check_rows
-    from magstack.ground.diagnose.nonlinear import runs
 
     p = _base_params()
     eff = _effects_for(None)
@@ -215,7 +215,7 @@ def _sim_case(seed, duration_s, opts, out, params_document, sim_gap):
     s = simulate(None, 0.0, seed, duration_s, params=unit, effects=eff)
     full, keep, notes = check_rows(s, exclude_bends=opts.exclude_bends)
     g = sim_gap(full, keep, path)
-    g.shift_source = (full.t_s, full.ref_uT, keep, runs(full.t_s, full.session))
+    g.shift_source = shift_source(full, keep)
     g.notes += notes
     return diagnose(g, opts)
 
