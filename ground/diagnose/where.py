@@ -139,7 +139,8 @@ def spectrum(r: np.ndarray, t_s: np.ndarray, session: np.ndarray) -> dict:
     f = np.linspace(1.0 / span, fny, 400)
     psd = np.empty((f.size, 3))
     for j in range(3):
-        pg = scipy.signal.lombscargle(tt, x[:, j], 2 * np.pi * f, precenter=True)
+        xj = x[:, j] - x[:, j].mean()      # what precenter=True did (deprecated in SciPy 1.17)
+        pg = scipy.signal.lombscargle(tt, xj, 2 * np.pi * f)
         # unnormalised Lomb-Scargle of white noise of variance s2 averages s2; its one-sided PSD is s2/fny
         psd[:, j] = pg / fny
     return _spec_out("lombscargle", f, psd, fny)
