@@ -46,14 +46,8 @@ class SimulatedRun:
     seed: int = 0
 
 
-def simulate_measurement(params: ErrorParams, truth, *, duration_s: float, rate_hz: float, seed: int = 0,
-                         effects: Iterable[str] | None = None, ref_noise_uT=FVM400_NOISE_uT,
-                         ref_lsb_uT: float = FVM400_LSB_uT, t_start_s: float = 0.0) -> SimulatedRun:
-    """Sample ``truth`` at ``rate_hz`` for ``duration_s`` and return DUT, reference and truth arrays.
-
-    Deterministic in ``seed``: the DUT model uses ``seed``; the reference noise uses an independent
-    stream derived from it. ``effects`` as for :class:`ErrorModel` (None = all).
-    """
+def _check_run(rate_hz: float, duration_s: float, ref_lsb_uT: float, t_start_s: float) -> None:
+    """ConfigurationError for a run that cannot be sampled (shared by both simulate functions)."""
     if not (rate_hz > 0 and math.isfinite(rate_hz)):
         raise ConfigurationError(f"rate_hz must be > 0, got {rate_hz}")
     if not (duration_s > 0 and math.isfinite(duration_s)):
@@ -62,6 +56,17 @@ def simulate_measurement(params: ErrorParams, truth, *, duration_s: float, rate_
         raise ConfigurationError(f"ref_lsb_uT must be finite and >= 0 (0 = no rounding), got {ref_lsb_uT}")
     if not math.isfinite(t_start_s):
         raise ConfigurationError(f"t_start_s must be finite, got {t_start_s}")
+
+
+def simulate_measurement(params: ErrorParams, truth, *, duration_s: float, rate_hz: float, seed: int = 0,
+                         effects: Iterable[str] | None = None, ref_noise_uT=FVM400_NOISE_uT,
+                         ref_lsb_uT: float = FVM400_LSB_uT, t_start_s: float = 0.0) -> SimulatedRun:
+    """Sample ``truth`` at ``rate_hz`` for ``duration_s`` and return DUT, reference and truth arrays.
+
+    Deterministic in ``seed``: the DUT model uses ``seed``; the reference noise uses an independent
+    stream derived from it. ``effects`` as for :class:`ErrorModel` (None = all).
+    """
+    _check_run(rate_hz, duration_s, ref_lsb_uT, t_start_s)
     n = int(math.floor(duration_s * rate_hz + 1e-9)) + 1
     t = t_start_s + np.arange(n) / rate_hz
     model = ErrorModel(params, seed=seed, effects=effects)
@@ -91,14 +96,7 @@ def simulate_measurement_blocks(params: ErrorParams, truth, *, duration_s: float
     those of :func:`simulate_measurement` up to floating-point rounding of the noise-filter state
     (deterministic in ``seed`` and ``block_rows``).
     """
-    if not (rate_hz > 0 and math.isfinite(rate_hz)):
-        raise ConfigurationError(f"rate_hz must be > 0, got {rate_hz}")
-    if not (duration_s > 0 and math.isfinite(duration_s)):
-        raise ConfigurationError(f"duration_s must be > 0, got {duration_s}")
-    if not (math.isfinite(ref_lsb_uT) and ref_lsb_uT >= 0):
-        raise ConfigurationError(f"ref_lsb_uT must be finite and >= 0 (0 = no rounding), got {ref_lsb_uT}")
-    if not math.isfinite(t_start_s):
-        raise ConfigurationError(f"t_start_s must be finite, got {t_start_s}")
+    _check_run(rate_hz, duration_s, ref_lsb_uT, t_start_s)
     if int(block_rows) < 1:
         raise ConfigurationError(f"block_rows must be >= 1, got {block_rows}")
     noise = np.asarray(ref_noise_uT, dtype=float).reshape(3)
