@@ -48,10 +48,10 @@ import numpy as np
 from magstack.data import telemetry
 from magstack.firmware import cal_table
 from magstack.firmware.calibration.coverage_bins import N_BINS, AttitudeCoverage
-from magstack.firmware.calibration.fit import FitOptions, FitResult, HeldParam, identify, solve_axis
+from magstack.firmware.calibration.fit import FitOptions, FitResult, HeldParam, identify
 from magstack.firmware.calibration.housekeeping import MAX_GAP_S, interpolate_currents
 from magstack.firmware.calibration.model import FLIGHT_TERMS, FLOAT_ONLY_TERMS, CalModel, resolve_terms
-from magstack.firmware.calibration.streaming import StreamingFit
+from magstack.firmware.calibration.streaming import StreamingFit, solve_axes
 from magstack.firmware.errors import FitError
 from magstack.firmware.reference import frames, geomag
 
@@ -384,15 +384,7 @@ def solve(stats: PassStats, plan: Plan, extra_holds: Mapping[tuple[int, int], st
     for (i, c), reason in extra_holds.items():   # the coverage reason is the root cause: it wins
         held[(i, c)] = HeldParam(i, c, model.param_name(i, c), float(plan.theta_active[i, c]), reason)
     held_list = [held[k] for k in sorted(held)]
-    theta = np.zeros((3, p))
-    se = np.full((3, p), np.nan)
-    conds = np.full((2, 3), np.nan)
-    rmse = np.zeros(3)
-    for i in range(3):
-        h = {x.column: x.value for x in held_list if x.axis == i}
-        sol = solve_axis(sf.R, p, i, mask[i], h, sf.n_used)
-        theta[i], se[i], conds[0, i], conds[1, i] = sol.theta, sol.se, sol.cond_scaled, sol.cond_raw
-        rmse[i] = math.sqrt(sol.sse / max(sol.dof, 1))
+    theta, se, conds, rmse = solve_axes(sf.R, p, mask, held_list, sf.n_used)
     raw = np.sqrt(sf._raw_sq / sf.n_used)
     return FitResult(model, theta, se, held_list, sf.n_used, sf.n_excluded, rmse, raw, conds[0], conds[1],
                      np.full(3, np.nan), sf.coverage, robust=False)

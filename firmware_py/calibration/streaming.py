@@ -21,6 +21,21 @@ from magstack.firmware.calibration.model import CalModel
 from magstack.firmware.errors import FitError
 
 
+def solve_axes(R: np.ndarray, p: int, mask: np.ndarray, held, n_used: int):
+    """Per-axis solve from accumulated R factors with ``held`` parameters fixed:
+    ``(theta (3,p), se (3,p), conds (2,3) scaled/raw, rmse (3,) uT)``; shared by the streaming fit and
+    the on-orbit refit."""
+    theta = np.zeros((3, p))
+    se = np.full((3, p), np.nan)
+    conds = np.full((2, 3), np.nan)
+    rmse = np.zeros(3)
+    for i in range(3):
+        h = {x.column: x.value for x in held if x.axis == i}
+        sol = solve_axis(R, p, i, mask[i], h, n_used)
+        theta[i], se[i], conds[0, i], conds[1, i] = sol.theta, sol.se, sol.cond_scaled, sol.cond_raw
+        rmse[i] = np.sqrt(sol.sse / max(sol.dof, 1))
+    return theta, se, conds, rmse
+
 class StreamingFit:
     """Accumulate blocks with :meth:`add`, then :meth:`solve`."""
 
@@ -119,15 +134,7 @@ class StreamingFit:
             raise FitError(f"{self.n_used} usable rows for {p} columns: not enough data")
         held = identify(self.model, self._R, self.coverage, self.options)
         mask = self.model.axis_mask()
-        theta = np.zeros((3, p))
-        se = np.full((3, p), np.nan)
-        conds = np.full((2, 3), np.nan)
-        rmse = np.zeros(3)
-        for i in range(3):
-            h = {x.column: x.value for x in held if x.axis == i}
-            sol = solve_axis(self._R, p, i, mask[i], h, self.n_used)
-            theta[i], se[i], conds[0, i], conds[1, i] = sol.theta, sol.se, sol.cond_scaled, sol.cond_raw
-            rmse[i] = np.sqrt(sol.sse / max(sol.dof, 1))
+        theta, se, conds, rmse = solve_axes(self._R, p, mask, held, self.n_used)
         res = FitResult(self.model, theta, se, held, self.n_used, self.n_excluded, rmse,
                         np.sqrt(self._raw_sq / self.n_used), conds[0], conds[1], np.full(3, np.nan),
                         self.coverage)
