@@ -5,6 +5,7 @@ without ``--hil`` they are skipped. See hil/README.md for wiring.
 """
 from __future__ import annotations
 
+import logging
 import os
 
 import pytest
@@ -36,6 +37,19 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "hil" in item.keywords:
             item.add_marker(skip)
+
+
+@pytest.fixture(autouse=True)
+def _restore_magstack_logger():
+    """``magstack`` CLI runs in-process configure the ``magstack`` logger (own handler, no
+    propagation); restore it after each test so later tests' ``caplog`` sees records whatever the
+    test order."""
+    logger = logging.getLogger("magstack")
+    saved = (list(logger.handlers), logger.level, logger.propagate)
+    yield
+    logger.handlers[:] = saved[0]
+    logger.setLevel(saved[1])
+    logger.propagate = saved[2]
 
 
 @pytest.fixture

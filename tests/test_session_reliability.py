@@ -4,6 +4,7 @@ closing line, same file twice, BOM, write errors naming the file, extra columns,
 from __future__ import annotations
 
 import io
+import logging
 import os
 import subprocess
 import sys
@@ -226,10 +227,26 @@ def test_fuzz_mutated_valid_files_raise_only_session_file_error(tmp_path_factory
     _read_bytes(tmp_path_factory, bytes(data), suffix)
 
 
-def test_reader_warnings_are_logged(tmp_path, caplog):
+class _ListHandler(logging.Handler):
+    def __init__(self):
+        super().__init__(logging.WARNING)
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record):
+        self.records.append(record)
+
+
+def test_reader_warnings_are_logged(tmp_path):
+    """The warning reaches a handler on the module's own logger, whatever an earlier in-process CLI
+    run did to the ``magstack`` logger's propagation (not via the root logger, as caplog would)."""
     p = write_session(tmp_path / "s.csv", _session(4))
     cut = tmp_path / "cut.csv"
     cut.write_text("\n".join(p.read_text().splitlines()[:-1]) + "\n")
-    with caplog.at_level("WARNING", logger="magstack.data.session"):
+    logger = logging.getLogger("magstack.data.session")
+    handler = _ListHandler()
+    logger.addHandler(handler)
+    try:
         read_session(cut)
-    assert any("cut.csv: no closing" in r.getMessage() for r in caplog.records)
+    finally:
+        logger.removeHandler(handler)
+    assert any("cut.csv: no closing" in r.getMessage() for r in handler.records)
