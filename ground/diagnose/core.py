@@ -123,6 +123,23 @@ def _linear_params(X: np.ndarray, Y: np.ndarray, blk_all: Block, first: int, fol
     return out
 
 
+def _joint_params(gap: Gap, allb: Block, Y: np.ndarray, first: int, fold: np.ndarray) -> dict:
+    """:func:`_linear_params` when the model names mount_rotation: the base, the effect's columns and
+    the per-session angles solved jointly (rotation.joint_fit), on all rows and leaving out each fold."""
+    mc, sigma = gap.rotation
+    th, se, _, _ = rot.joint_fit(allb, mc, Y, sigma)
+    thetas = [rot.joint_fit(allb, mc, Y, sigma, fold != f)[0] for f in np.unique(fold)]
+    jk = sr_jack(thetas, th)
+    out = {}
+    for i in range(3):
+        for c in range(first, allb.p):
+            if allb.mask[i, c]:
+                out[allb.names[i][c]] = {"value": float(th[i, c]), "se": float(np.nanmax([se[i, c], jk[i, c]])),
+                                         "se_ols": float(se[i, c]), "se_jackknife": float(jk[i, c]),
+                                         "unit": allb.units[c]}
+    return out
+
+
 def sr_jack(thetas, like):
     return jackknife_se(thetas) if len(thetas) >= 2 else np.full_like(like, np.nan)
 
@@ -156,7 +173,7 @@ def verdict_parameters(gap: Gap, res: sr.SearchResult, fold: np.ndarray, run: np
         thr, init = sr.choose_thresholds(gap, base, Y, _hyst_cands(gap), np.ones(gap.n, bool))
         blk = sr.hysteresis_block(gap, thr, init)
         allb = Block.join([base, blk], gap.n)
-        out = _linear_params(allb.X, Y, allb, base.p, fold)
+        out = _params(gap, allb, Y, base.p, fold)
         for j, a in enumerate("xyz"):
             if np.isfinite(thr[j]):
                 out[f"threshold[{a}]"] = {"value": float(thr[j]), "se": float("nan"), "unit": "uT (chosen level)"}
@@ -165,7 +182,13 @@ def verdict_parameters(gap: Gap, res: sr.SearchResult, fold: np.ndarray, run: np
         return out
     blk = sr.linear_block(gap, v.effect, v.extra["terms"])
     allb = Block.join([base, blk], gap.n)
-    return _linear_params(allb.X, Y, allb, base.p, fold)
+    return _params(gap, allb, Y, base.p, fold)
+
+
+def _params(gap: Gap, allb: Block, Y: np.ndarray, first: int, fold: np.ndarray) -> dict:
+    if gap.rotation is not None:
+        return _joint_params(gap, allb, Y, first, fold)
+    return _linear_params(allb.X, Y, allb, first, fold)
 
 
 def _hyst_cands(gap: Gap):

@@ -84,6 +84,10 @@ class Gap:
     #: where the base is refitted on the de-skewed reading)
     deskew_J: np.ndarray | None = None
 
+    #: mode (a) with ``mount_rotation`` modelled: (MountColumns, per-axis weights sigma (3,) uT), set by
+    #: the search; every fit then solves the base columns and the per-session angles jointly (rotation.py)
+    rotation: tuple | None = None
+
     def history(self) -> tuple[np.ndarray, np.ndarray]:
         """(dut (M,3), idx (N,)): the excursion history for hysteresis, i.e. the DUT reading of every
         row with one, sorted by session then time (also rows left out for a missing or saturated

@@ -160,17 +160,44 @@ def out_of_fold(base: Block, mc: MountColumns, Y: np.ndarray, fold: np.ndarray, 
     return r, angles
 
 
-def fit_all(base: Block, mc: MountColumns, Y: np.ndarray, sigma_uT: np.ndarray):
-    """Angles (q,) rad on all rows with OLS standard errors of the weighted stacked problem."""
+def train_test_residual(base: Block, mc: MountColumns, Y: np.ndarray, sigma_uT: np.ndarray,
+                        train: np.ndarray, test: np.ndarray) -> np.ndarray:
+    """Residual (n_test,3) on ``test`` rows of the joint fit (base columns + angles) on ``train`` rows."""
     w = 1.0 / np.maximum(np.asarray(sigma_uT, dtype=float), 1e-12)
-    allr = np.ones(Y.shape[0], bool)
-    G, b = _normal(base, mc, Y, w, allr)
+    G, b = _normal(base, mc, Y, w, train)
+    return _residual(base, mc, Y, _solve(G, b), test)
+
+
+def _unstack(base: Block, th: np.ndarray) -> np.ndarray:
+    """(3, p) per-axis base coefficients (0 where the mask is off) from the stacked parameter vector."""
+    out = np.zeros(base.mask.shape)
+    k = 0
+    for i in range(3):
+        used = np.flatnonzero(base.mask[i])
+        out[i, used] = th[k:k + used.size]
+        k += used.size
+    return out
+
+
+def joint_fit(base: Block, mc: MountColumns, Y: np.ndarray, sigma_uT: np.ndarray, rows=None):
+    """Joint fit on ``rows`` (all by default): (base coefficients (3,p), their OLS standard errors (3,p),
+    angles (q,) rad, their standard errors (q,)), from the weighted stacked problem."""
+    w = 1.0 / np.maximum(np.asarray(sigma_uT, dtype=float), 1e-12)
+    rows = np.ones(Y.shape[0], bool) if rows is None else rows
+    G, b = _normal(base, mc, Y, w, rows)
     th = _solve(G, b)
-    r = _residual(base, mc, Y, th, allr) * w
+    r = _residual(base, mc, Y, th, rows) * w
     dof = max(r.size - G.shape[0], 1)
     s2 = float(np.sum(r ** 2)) / dof
     d = np.sqrt(np.diag(G))
     d[d == 0] = 1.0
     cov = np.linalg.pinv(G / np.outer(d, d), hermitian=True) / np.outer(d, d) * s2
+    se = np.sqrt(np.clip(np.diag(cov), 0, None))
     nb = int(base.mask.sum())
-    return th[nb:], np.sqrt(np.clip(np.diag(cov)[nb:], 0, None))
+    return _unstack(base, th[:nb]), _unstack(base, se[:nb]), th[nb:], se[nb:]
+
+
+def fit_all(base: Block, mc: MountColumns, Y: np.ndarray, sigma_uT: np.ndarray):
+    """Angles (q,) rad on all rows with OLS standard errors of the weighted stacked problem."""
+    _, _, ang, se = joint_fit(base, mc, Y, sigma_uT)
+    return ang, se

@@ -40,6 +40,7 @@ from magstack.firmware.errors import FitError
 from magstack.ground.diagnose import nonlinear as nl
 from magstack.ground.diagnose import rotation as rot
 from magstack.ground.diagnose.gap import Block, Gap, out_of_fold, predict, solve
+from magstack.ground.errors import DiagnosisError
 
 #: Temperature effects need at least this temperature span (degC) to be tested.
 MIN_TEMP_SPAN_C = 1.0
@@ -402,13 +403,30 @@ def delay_sse_fn(gap: Gap, rows: np.ndarray):
 
 
 # ----------------------------------------------------------------------------- evaluation
+def oof_residual(gap: Gap, blk: Block, Y: np.ndarray, fold: np.ndarray) -> np.ndarray:
+    """Out-of-fold residual (N,3) of ``blk`` (jointly with the modelled mount rotation, if any)."""
+    if gap.rotation is None:
+        return out_of_fold(blk.X, Y, blk.mask, fold)[0]
+    mc, sigma = gap.rotation
+    return rot.out_of_fold(blk, mc, Y, fold, sigma)[0]
+
+
+def fold_residual(gap: Gap, blk: Block, Y: np.ndarray, train: np.ndarray, test: np.ndarray) -> np.ndarray:
+    """Residual on ``test`` rows of ``blk`` fitted on ``train`` rows (jointly with a modelled rotation)."""
+    if gap.rotation is None:
+        th = solve(blk.X, Y, blk.mask, train)
+        return Y[test] - predict(blk.X[test], th, blk.mask)
+    mc, sigma = gap.rotation
+    return rot.train_test_residual(blk, mc, Y, sigma, train, test)
+
+
 def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: np.ndarray, nb: int,
              base_trial: Trial, opts: Options) -> Trial:
     Y = gap.target
     if cand.kind == "linear":
         own = linear_block(gap, cand.effect, cand.terms)
         blk = Block.join([base, own], gap.n)
-        r, _ = out_of_fold(blk.X, Y, blk.mask, fold)
+        r = oof_residual(gap, blk, Y, fold)
         cols = own.X
         n_par = int(own.mask.sum())
         del blk, own
@@ -420,8 +438,7 @@ def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: n
             thr, init = choose_thresholds(gap, base, Y, cand.thresholds, train)
             fold_thr.append(thr)
             blk = Block.join([base, hysteresis_block(gap, thr, init)], gap.n)
-            th = solve(blk.X, Y, blk.mask, train)
-            r[test] = Y[test] - predict(blk.X[test], th, blk.mask)
+            r[test] = fold_residual(gap, blk, Y, train, test)
         hist, idx = gap.history()
         cols = nl.hysteresis_state(hist, *choose_thresholds(gap, base, Y, cand.thresholds,
                                                              np.ones(gap.n, bool)))[idx]
@@ -439,8 +456,7 @@ def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: n
             d = nl.search_delays(delay_sse_fn(gap, train), grid)
             fold_d.append(d)
             blk, Yd = gap.deskewed(gap.skew_columns(d, nl.shift_axes))
-            th = solve(blk.X, Yd, blk.mask, train)
-            r[test] = Yd[test] - predict(blk.X[test], th, blk.mask)
+            r[test] = fold_residual(gap, blk, Yd, train, test)
         cols = gap.term_design(("time_skew",)).X
     sse = block_sse(r, blocks, nb)
     t = Trial(cand.effect, cand.kind, rms3(r), r.astype(np.float32), sse,
@@ -472,6 +488,13 @@ def search(gap: Gap, blocks: np.ndarray, fold: np.ndarray, opts: Options) -> Sea
         r0, _ = out_of_fold(base.X, gap.target, base.mask, fold)
     else:
         r0 = gap.target.copy()
+    if gap.mode == "model" and "mount_rotation" in gap.modelled:
+        mc = rot.mount_columns(gap)
+        if isinstance(mc, str):
+            raise DiagnosisError(f"--model names mount_rotation, but it cannot be fitted on this data: {mc}")
+        # weights of the stacked joint problem: the per-axis held-out RMS without the rotation
+        gap.rotation = (mc, rms3(r0))
+        r0 = oof_residual(gap, base, gap.target, fold)
     baseline = Trial("baseline", "base", rms3(r0), r0, block_sse(r0, blocks, nb))
     bs = np.zeros(nb, dtype=np.int64)
     bs[blocks] = gap.session.session

@@ -3,7 +3,8 @@
 ``eq3`` / ``gain_offset`` (the calibration's named models) or effect names joined by ``+`` (e.g.
 ``gain+offset+time_skew``, ``eq3+session_offset``). An effect stands for its catalogue ``cal_term``;
 effects sharing a term are modelled together (gain and misalignment), except hysteresis, which has
-its own estimator and is modelled only when named.
+its own estimator and is modelled only when named, and mount_rotation, whose per-session angles couple
+the axes: when named, every fit of the search solves them jointly with the base (rotation.py).
 """
 from __future__ import annotations
 
@@ -17,6 +18,9 @@ from magstack.ground.diagnose.gap import Block
 
 #: Effects estimated by their own (non-linear) estimator: modelled only when named.
 OWN_ESTIMATOR = ("hysteresis",)
+#: Effects whose parameters couple the output axes, modelled (when named) by solving the base columns
+#: and the effect's parameters as one stacked problem (search.oof_residual, rotation.py).
+JOINT_ESTIMATOR = ("mount_rotation",)
 
 
 def parse_model(spec: str) -> tuple[tuple[str, ...], tuple[str, ...], bool]:
@@ -31,6 +35,9 @@ def parse_model(spec: str) -> tuple[tuple[str, ...], tuple[str, ...], bool]:
             terms += list(MODELS[tok])
         elif tok in EFFECT_NAMES:
             e = EFFECTS[tok]
+            if tok in JOINT_ESTIMATOR:
+                named.append(tok)   # fitted jointly with the base by the search (rotation.py), no base term
+                continue
             if e.cal_term is None:
                 raise ConfigurationError(f"--model: effect {tok!r} has no calibration term (cannot be modelled)")
             if e.cal_term in JOINT_TERMS:
