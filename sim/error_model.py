@@ -113,7 +113,8 @@ class ErrorModel:
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
-        """Forget all state (random streams restart from the seed, hysteresis, walk and 1/f state cleared)."""
+        """Forget all state (random streams restart from the seed, hysteresis back to its initial state, walk
+        and 1/f state cleared)."""
         for s in self._stages.values():
             s.reset()
         self._last_t = None

@@ -111,6 +111,9 @@ class ErrorParams:
     # hysteresis: remanent offset (uT, per axis) after |b_i| >= threshold, signed by the excursion.
     hysteresis_uT: Any = (0.0, 0.0, 0.0)
     hysteresis_threshold_uT: float = math.inf
+    # remanence sign per axis before the first excursion of a run (-1, 0 or +1): 0 is a demagnetised
+    # (degaussed) part; a part that has ever seen a large field holds +-1 that no file records.
+    hysteresis_initial_state: Any = (0.0, 0.0, 0.0)
     # offset (uT) and temperature_offset (uT/degC, about temp_ref_c).
     offset_uT: Any = (0.0, 0.0, 0.0)
     k_o_uT_per_c: Any = (0.0, 0.0, 0.0)
@@ -175,6 +178,10 @@ class ErrorParams:
         s(self, "hysteresis_uT", _vec3("hysteresis_uT", self.hysteresis_uT))
         s(self, "hysteresis_threshold_uT",
           _scalar("hysteresis_threshold_uT", self.hysteresis_threshold_uT, allow_inf=True, positive=True))
+        h0 = _vec3("hysteresis_initial_state", self.hysteresis_initial_state)
+        if not np.isin(h0, (-1.0, 0.0, 1.0)).all():
+            raise ConfigurationError(f"hysteresis_initial_state must be -1, 0 or +1 per axis, got {h0.tolist()}")
+        s(self, "hysteresis_initial_state", h0)
         s(self, "offset_uT", _vec3("offset_uT", self.offset_uT))
         s(self, "k_o_uT_per_c", _vec3("k_o_uT_per_c", self.k_o_uT_per_c))
         s(self, "drift_uT_per_s", _vec3("drift_uT_per_s", self.drift_uT_per_s))

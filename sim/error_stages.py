@@ -389,7 +389,8 @@ class TemperatureGain(Stage):
 class Hysteresis(Stage):
     """``hysteresis``: once |y_i| >= threshold, y_i += +-h_i signed by that excursion, until an opposite one.
 
-    State: the last excursion sign per axis (-1, 0, +1), carried across calls and shared by both forms.
+    State: the last excursion sign per axis (-1, 0, +1), carried across calls and shared by both forms;
+    before the first excursion (and after ``reset``) ``hysteresis_initial_state``.
     """
 
     name, kind = "hysteresis", READING
@@ -397,12 +398,13 @@ class Hysteresis(Stage):
     def __init__(self, params: ErrorParams, seed: int, enabled: Collection[str]) -> None:
         super().__init__(params, seed, enabled)
         self._thr = params.hysteresis_threshold_uT
+        self._s0 = params.hysteresis_initial_state.tolist()
         self._h, self._h_f = params.hysteresis_uT, params.hysteresis_uT.tolist()
         self.active = bool((params.hysteresis_uT != 0).any()) and math.isfinite(self._thr)
         self.reset()
 
     def reset(self) -> None:
-        self._state = [0.0, 0.0, 0.0]
+        self._state = list(self._s0)
 
     def vector(self, y_uT: np.ndarray, at: ReadingInputs) -> np.ndarray:
         n = y_uT.shape[0]

@@ -230,6 +230,24 @@ def test_hysteresis_sign_flips_with_excursion_sign():
     np.testing.assert_array_equal(np.array([m.sense(x, truth) for x in t]), out)
 
 
+def test_hysteresis_initial_state_holds_until_the_first_excursion_and_after_reset():
+    """A magnetised part carries its remanence (+-h) from the start; 0 is a degaussed part."""
+    h = np.array([0.025, 0.03, 0.04])
+    p = ErrorParams(hysteresis_uT=h, hysteresis_threshold_uT=150.0, hysteresis_initial_state=(1, -1, 0))
+    truth = ProgramTruth("p", 20.0, piecewise_linear([0, 9, 10, 11, 20], [[0, 0, 0], [0, 0, 0], [-150] * 3,
+                                                                         [0, 0, 0], [0, 0, 0]]))
+    t = np.arange(0, 20, 0.5)
+    m = ErrorModel(p, effects=["hysteresis"])
+    out = m.sense_series(t, truth)
+    resid = out - truth.field_series_uT(t)
+    np.testing.assert_allclose(resid[t < 9], np.broadcast_to(h * [1, -1, 0], resid[t < 9].shape))
+    np.testing.assert_allclose(resid[t > 12], np.broadcast_to(-h, resid[t > 12].shape))
+    m.reset()
+    np.testing.assert_array_equal(np.array([m.sense(x, truth) for x in t]), out)
+    with pytest.raises(ConfigurationError, match="hysteresis_initial_state"):
+        ErrorParams(hysteresis_initial_state=(0.5, 0, 0))
+
+
 def test_hysteresis_below_threshold_does_nothing():
     p = ErrorParams(hysteresis_uT=(0.05,) * 3, hysteresis_threshold_uT=150.0)
     truth = ProgramTruth("p", 10.0, piecewise_linear([0, 5, 10], [[0, 0, 0], [149, -149, 149], [0, 0, 0]]))
@@ -411,6 +429,7 @@ def random_params(draw):
         k_s_per_c=np.array(draw(st.lists(_f(-1e-2, 1e-2), min_size=9, max_size=9))).reshape(3, 3),
         k_s2_per_c2=draw(_v3(-1e-4, 1e-4)),
         hysteresis_uT=draw(_v3(-1, 1)), hysteresis_threshold_uT=draw(_f(1.0, 500.0)),
+        hysteresis_initial_state=draw(st.tuples(*[st.sampled_from([-1.0, 0.0, 1.0])] * 3)),
         offset_uT=draw(_v3(-100, 100)), k_o_uT_per_c=draw(_v3(-1, 1)),
         drift_uT_per_s=draw(_v3(-1e-2, 1e-2)), drift_walk_uT_per_sqrt_s=draw(_v3(0, 0.1)),
         session_offset_sigma_uT=draw(_v3(0, 5)),

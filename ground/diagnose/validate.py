@@ -66,8 +66,10 @@ STRENGTHS: dict[str, tuple[Callable[[ErrorParams, float], ErrorParams], str]] = 
     "temperature_gain": (_scaled(1, k_s_per_c=lambda s: s * np.asarray(_P.k_s_per_c)),
                          "HMC1053 sensitivity tempco -2700 ppm/degC (hardware-facts 5.1)"),
     "hysteresis": (_scaled(1, hysteresis_uT=lambda s: s * np.asarray(_P.hysteresis_uT),
-                           hysteresis_threshold_uT=_P.hysteresis_threshold_uT),
-                   "belsten 2.3.4: 50 nT between +-150 uT excursions (+-25 nT remanence)"),
+                           hysteresis_threshold_uT=_P.hysteresis_threshold_uT,
+                           hysteresis_initial_state=(1.0, -1.0, 1.0)),
+                   "belsten 2.3.4: 50 nT between +-150 uT excursions (+-25 nT remanence); the part starts "
+                   "magnetised (+-, unknown to the diagnosis), not degaussed"),
     "offset": (_scaled(1, offset_uT=lambda s: s * np.asarray(_P.offset_uT)), "belsten Table 1"),
     "temperature_offset": (_scaled(1, k_o_uT_per_c=lambda s: s * np.array([-0.140, 0.015, 0.015])),
                            "belsten 2.3.3: -140 nT/degC on X; lab study mean 12.5-15 nT/K"),
