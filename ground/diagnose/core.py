@@ -109,26 +109,17 @@ def _f(x) -> str:
     return "n/a" if x is None else f"{x:.1f}"
 
 
-def _linear_params(X: np.ndarray, Y: np.ndarray, blk_all: Block, first: int, fold: np.ndarray) -> dict:
-    th, se = solve(X, Y, blk_all.mask, with_se=True)
-    thetas = [solve(X, Y, blk_all.mask, fold != f) for f in np.unique(fold)]
-    jk = sr_jack(thetas, th)
-    out = {}
-    for i in range(3):
-        for c in range(first, blk_all.p):
-            if blk_all.mask[i, c]:
-                name = blk_all.names[i][c]
-                out[name] = {"value": float(th[i, c]), "se": float(np.nanmax([se[i, c], jk[i, c]])),
-                             "se_ols": float(se[i, c]), "se_jackknife": float(jk[i, c]), "unit": blk_all.units[c]}
-    return out
-
-
-def _joint_params(gap: Gap, allb: Block, Y: np.ndarray, first: int, fold: np.ndarray) -> dict:
-    """:func:`_linear_params` when the model names mount_rotation: the base, the effect's columns and
-    the per-session angles solved jointly (rotation.joint_fit), on all rows and leaving out each fold."""
-    mc, sigma = gap.rotation
-    th, se, _, _ = rot.joint_fit(allb, mc, Y, sigma)
-    thetas = [rot.joint_fit(allb, mc, Y, sigma, fold != f)[0] for f in np.unique(fold)]
+def _params(gap: Gap, allb: Block, Y: np.ndarray, first: int, fold: np.ndarray) -> dict:
+    """Parameters of ``allb``'s columns from ``first`` on, fitted on all rows, with the OLS and the
+    delete-one-fold jackknife standard errors (``se`` the larger). When the model names mount_rotation
+    the base, these columns and the per-session angles are solved jointly (rotation.joint_fit)."""
+    if gap.rotation is None:
+        th, se = solve(allb.X, Y, allb.mask, with_se=True)
+        thetas = [solve(allb.X, Y, allb.mask, fold != f) for f in np.unique(fold)]
+    else:
+        mc, sigma = gap.rotation
+        th, se, _, _ = rot.joint_fit(allb, mc, Y, sigma)
+        thetas = [rot.joint_fit(allb, mc, Y, sigma, fold != f)[0] for f in np.unique(fold)]
     jk = sr_jack(thetas, th)
     out = {}
     for i in range(3):
@@ -183,12 +174,6 @@ def verdict_parameters(gap: Gap, res: sr.SearchResult, fold: np.ndarray, run: np
     blk = sr.linear_block(gap, v.effect, v.extra["terms"])
     allb = Block.join([base, blk], gap.n)
     return _params(gap, allb, Y, base.p, fold)
-
-
-def _params(gap: Gap, allb: Block, Y: np.ndarray, first: int, fold: np.ndarray) -> dict:
-    if gap.rotation is not None:
-        return _joint_params(gap, allb, Y, first, fold)
-    return _linear_params(allb.X, Y, allb, first, fold)
 
 
 def _hyst_cands(gap: Gap):
