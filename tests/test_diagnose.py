@@ -238,6 +238,7 @@ def test_cli_diagnose_writes_json_and_sim_path_round_trips(tmp_path):
     (["diagnose", "MISSING.csv"], 3, "no such session file"),
     (["diagnose", "{s}", "--model", "bogus"], 2, "unknown model or effect"),
     (["diagnose", "{s}", "--block-s", "0"], 2, "--block-s"),
+    (["diagnose", "{s}", "--null", "bogus"], 2, "--null"),
     (["diagnose", "{s}", "--sim", "{bad}"], 3, "line 1"),
     (["diagnose", "{s}", "--table", "{bad}"], 3, "not a valid JSON table"),
     (["diagnose", "{short}"], 3, "usable rows"),

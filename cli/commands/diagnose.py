@@ -38,6 +38,10 @@ def register(subparsers) -> None:
     p.add_argument("--folds", type=int_range(2, 50), default=5, help="number of folds, [2, 50] (default 5)")
     p.add_argument("--alpha", type=finite_float(0, 1, lo_open=True, hi_open=True), default=0.05,
                    help="family-wise false-alarm level, (0, 1) (default 0.05)")
+    p.add_argument("--null", choices=("surrogate", "blocks"), default="surrogate",
+                   help="null model of the significance test: 'surrogate' (default: the block test with one-block "
+                        "units and a surrogate test against noise with the residual's spectrum must both reject) "
+                        "or 'blocks' (the block test alone, units grouped by the residual's block correlation)")
     p.add_argument("--keep-bends", action="store_true",
                    help="keep the rows at sharp bends of the reference field (default: left out)")
     p.add_argument("--t0", type=finite_float(-60, 150, unit="degC"), default=25.0,
@@ -48,7 +52,7 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> CommandResult:
     opts = Options(block_s=args.block_s, n_folds=args.folds, alpha=args.alpha,
-                   exclude_bends=None if args.keep_bends else 10.0)
+                   exclude_bends=None if args.keep_bends else 10.0, null=args.null)
     if args.sim is None and args.table is None:
         terms, modelled, hyst = parse_model(args.model)
     if args.json_out:

@@ -55,7 +55,9 @@ class Diagnosis:
             "noise_floor_nT": nf,
             "ranking": [{"effect": t.effect, "rmse_nT": float(t.rmse_norm_uT * 1e3), "shrink": float(t.shrink),
                          "significant": bool(t.significant), "p_value": float(t.p_value),
-                         "p_holm": float(t.p_holm), "kind": t.kind, "test_unit_blocks": int(t.extra.get("group", 1)),
+                         "p_holm": float(t.p_holm), "kind": t.kind,
+                         "test_unit_blocks": int(t.extra.get("test_unit", t.extra.get("group", 1))),
+                         **_surrogate_keys(t),
                          "rmse_axes_nT": [float(v * 1e3) for v in t.rmse_uT],
                          **({"note": t.note} if t.note else {})} for t in r.trials],
             "not_testable": r.not_testable,
@@ -75,8 +77,11 @@ class Diagnosis:
             "sessions": list(self.gap.sessions),
             "method": {"block_s": self.options.block_s, "n_folds": self.options.n_folds, "alpha": self.options.alpha,
                        "min_shrink": self.options.min_shrink,
-                       "test": "one-sided sign-flip permutation test on held-out block SSE differences, "
-                               "Holm-corrected across effects"},
+                       "null": self.options.null,
+                       "test": ("one-sided sign-flip permutation test on held-out block SSE differences"
+                                + (" and, for effects it lets through, a surrogate test against noise with the "
+                                   "residual's spectrum (p = the larger)" if self.options.null == "surrogate" else "")
+                                + ", Holm-corrected across effects")},
             "notes": self.gap.notes + r.notes + self.notes,
         }
 
@@ -103,6 +108,19 @@ class Diagnosis:
             L.append(f"modelled by the simulator: {', '.join(d['modelled'])}")
         L += [f"note: {n}" for n in d["notes"]]
         return "\n".join(L)
+
+
+def _surrogate_keys(t) -> dict:
+    """Ranking keys of the two tests: ``p_blocks`` (block sign-flip test) and, when it ran,
+    ``p_surrogate`` with ``n_surrogates`` (surrogate.py)."""
+    out = {}
+    if "p_blocks" in t.extra:
+        out["p_blocks"] = float(t.extra["p_blocks"])
+    r = t.extra.get("surrogate")
+    out["p_surrogate"] = None if r is None else float(r.p_value)
+    if r is not None:
+        out["n_surrogates"] = int(r.n_surrogates)
+    return out
 
 
 def _f(x) -> str:

@@ -96,6 +96,9 @@ class Options:
     alpha: float = 0.05
     min_shrink: float = 0.005
     seed: int = 0
+    #: null model for slow noise: "surrogate" (the block test and the surrogate test must both reject,
+    #: see surrogate.py) or "blocks" (the block test alone)
+    null: str = "surrogate"
 
 
 @dataclass
@@ -481,6 +484,26 @@ def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: n
     return t
 
 
+#: With the surrogate null model, the block test's unit is one block (the surrogates carry the slow noise).
+TEST_UNIT_ONE = True
+
+
+def surrogate_tests(gap: Gap, cands: list[Candidate], trials: list[Trial], base: Block, fold: np.ndarray,
+                    template: np.ndarray, opts: Options) -> None:
+    """Second test for every candidate the block test lets through (raw p < alpha, shrink >=
+    min_shrink): noise with the residual's own spectrum must not explain its held-out shrink
+    (surrogate.py). ``p_value`` becomes the larger of the two (both must reject)."""
+    from magstack.ground.diagnose.surrogate import surrogate_tests as run
+    todo = [(c, t) for c, t in zip(cands, trials, strict=True)
+            if t.p_value < opts.alpha and t.shrink >= opts.min_shrink]
+    if not todo:
+        return
+    res = run(gap, [c for c, _ in todo], base, fold, template, opts.alpha / max(len(trials), 1), seed=opts.seed)
+    for (_, t), r in zip(todo, res, strict=True):
+        t.extra["surrogate"] = r
+        t.p_value = max(t.p_value, r.p_value)
+
+
 def search(gap: Gap, blocks: np.ndarray, fold: np.ndarray, opts: Options) -> SearchResult:
     nb = int(blocks.max()) + 1
     base = gap.base_design()
@@ -506,10 +529,16 @@ def search(gap: Gap, blocks: np.ndarray, fold: np.ndarray, opts: Options) -> Sea
     # from each candidate's own residual, a candidate's remaining misfit would lengthen its own unit
     # and could make a large, real shrink untestable on a short session
     best = min([baseline, *trials], key=lambda t: t.rmse_norm_uT)
-    g_unit = block_group(np.asarray(best.resid, dtype=float), blocks, bs)
+    template = np.asarray(best.resid, dtype=float)
+    g_unit = block_group(template, blocks, bs)
+    g_test = 1 if opts.null == "surrogate" and TEST_UNIT_ONE else g_unit
     for t in trials:
         t.extra["group"] = g_unit
-        t.p_value = unit_p(grouped(baseline.block_sse - t.block_sse, bs, g_unit), opts.seed)
+        t.extra["test_unit"] = g_test
+        t.p_value = unit_p(grouped(baseline.block_sse - t.block_sse, bs, g_test), opts.seed)
+        t.extra["p_blocks"] = t.p_value
+    if opts.null == "surrogate":
+        surrogate_tests(gap, cands, trials, base, fold, template, opts)
     res = SearchResult(baseline, trials, not_testable, modelled)
     if len(np.unique(blocks)) < MIN_BLOCKS:
         res.notes.append(f"only {len(np.unique(blocks))} held-out blocks of {opts.block_s:g} s: too few for a "

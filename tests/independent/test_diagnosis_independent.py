@@ -61,11 +61,9 @@ def _explain(o) -> str:
 #: Findings of this harness that the diagnosis does not yet meet (docs/diagnosis-independent.md, "Findings").
 #: Each is a known limit under work, run and reported as xfail (not strict: a fix shows as XPASS); remove the
 #: entry when it is fixed. Keyed by (test name, effect); effect None = any parameter.
-KNOWN_LIMITS = {
-    ("test_withheld_effect_is_named", "hysteresis"):
-        "seed 1: hysteresis closes 109 -> 56 nT held out, but the test unit (from the best residual, whose slow "
-        "misfit - the generator's cross-axis remanence - correlates neighbouring blocks) groups the 21 blocks into "
-        "~6 units: not significant after Holm (docs/diagnosis-independent.md)",
+KNOWN_LIMITS: dict = {
+    # (session 4) the hysteresis case at seed 1 (109 -> 56 nT, ~6 grouped test units: not significant) is
+    # named since the block test uses one-block units next to the surrogate null model (surrogate.py)
 }
 
 

@@ -1,0 +1,444 @@
+"""A null model for slow residual noise: surrogate sessions with the residual's own spectrum.
+
+The block sign-flip test (:mod:`.search`) assumes held-out blocks are exchangeable; slow noise (1/f,
+random walk) is real slow structure that offset-like columns (per-session offsets, drift, temperature
+offset, a hysteresis state) partly absorb, on held-out blocks too. This module asks the question
+directly: *could noise with this session's spectrum, and nothing unmodelled, shrink the held-out gap
+as much as the candidate did?*
+
+Surrogates (:class:`SurrogateSource`). The template is the held-out residual of the best description
+found (lowest held-out RMSE: the one closest to the noise). Not the baseline's: an unmodelled effect
+is itself slow power, and surrogates carrying it hide it (tried: the validation then missed
+temperature offset, drift, per-session offsets and hysteresis at realistic strength). The rows, in
+session-then-time order, are one series (slow noise runs on across power cycles; for sessions
+recorded apart this only adds slow power, the conservative side), mirrored (``x, x reversed``: no
+jump at the wrap) and Fourier transformed. Components faster than ``LOW_CYCLES`` cycles per record
+keep the template's amplitudes with random phases, the *same* phase on the three axes (the
+cross-spectrum is kept; Prichard & Theiler 1994). The slower ones are where the best candidate's fit
+may have taken slow noise out of the template, so they are drawn from a noise model instead: white +
+power law with one exponent in [0, 2] (:func:`fit_spectrum`, Whittle likelihood) fitted to the
+template's periodogram from ``LOW_CYCLES`` to ``FIT_SPAN`` x that, extrapolated down, with the
+coherence between axes measured in the fit band; their total is capped at ``LOW_CAP`` x the
+template's own slow power (a steep band edge, e.g. pairing noise, would otherwise extrapolate to
+hundreds of times the data's slow power). A surrogate is a stationary Gaussian series with that
+spectrum and no relation to any candidate's columns.
+
+Statistic. ``T`` = total held-out SSE reduction over all blocks and axes (uT^2), base against base +
+candidate, with the same folds. For surrogate ``y`` and design ``Z`` it needs only ``Z_f^T y`` per
+fold (``y^T y`` cancels), so the held-out fits of hundreds of surrogates are a few matrix products.
+The observed ``T`` comes from the same code on the session's own target, so both sides of the test
+use one statistic. Linear candidates and hysteresis (its threshold and initial sign chosen per fold
+by training SSE among the same options the search offers) are exact; the per-axis delay and the mount
+rotation, whose estimators are not per-axis linear, enter through per-axis linear proxies (the
+reference's rate of change mapped into DUT units, every axis' proxy for every output axis; the
+rotation's angle columns with a free coefficient per output axis), so their surrogate test is of a
+slightly richer model than the one ranked - for both sides alike.
+
+p-value. Monte Carlo ``(1 + hits) / (1 + k)``, one set of surrogates for every candidate, with
+sequential stopping per candidate (Besag & Clifford 1991): stop
+at ``STOP_HITS`` hits (``p = hits / k``), at ``max_surrogates`` (by a row budget, at most 1999), or,
+with no hit after ``MIN_SURROGATES``, when Cantelli's one-sided bound ``1 / (1 + z^2)`` (z of the
+observed ``T`` against the surrogates' mean and standard deviation; valid for any distribution) is
+already below ``p_needed`` (the smallest level Holm can ask for): then ``p`` is that bound.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.fft
+import scipy.linalg
+import scipy.optimize
+
+from magstack.ground.diagnose import nonlinear as nl
+from magstack.ground.diagnose.gap import RCOND, Block, Gap
+
+#: Upper limit of surrogates per candidate (p resolution 5e-4 < 0.05 / 14 effects).
+MAX_SURROGATES = 1999
+#: Surrogates drawn before Cantelli's bound may end a candidate's test early.
+MIN_SURROGATES = 199
+#: Hits (surrogate T >= observed T) that end a candidate's test: its p is then hits / k.
+STOP_HITS = 10
+#: Rows x surrogates per candidate: limits the surrogate count on very long data (at least MIN_SURROGATES).
+ROW_BUDGET = 1.5e8
+#: Components slower than 1/LOW_CYCLES of the record are drawn from the fitted noise model, not the template.
+LOW_CYCLES = 8
+#: The slow power drawn is at most this multiple of the template's own below k_a (per axis).
+LOW_CAP = 4.0
+#: The noise model is fitted between LOW_CYCLES and FIT_SPAN x LOW_CYCLES cycles per record.
+FIT_SPAN = 64
+#: Rows x 3 axes x surrogates in one batch (the transform's complex intermediates are ~6x this in bytes/8).
+BATCH_FLOATS = 2e6
+#: Floats of the candidates' own columns tested together on one set of surrogate batches.
+DESIGN_FLOATS = 2e7
+
+
+@dataclass
+class AxisDesign:
+    """Axis i: the candidate's own columns ``O`` (n,q) and its options, each an index array into them
+    (one option unless the candidate chooses per fold). The base columns are shared (:class:`Shared`)."""
+
+    O: np.ndarray
+    options: list[np.ndarray]
+
+
+@dataclass
+class SurrogateResult:
+    p_value: float
+    n_surrogates: int
+    t_observed_uT2: float
+    t_null_mean_uT2: float
+    t_null_sd_uT2: float
+    stopped: str          # "hits", "cantelli", "limit" or "no shrink"
+
+
+# ----------------------------------------------------------------------------- surrogates
+def fit_spectrum(power: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Whittle fit of ``P_j(k) = w_j + a_j k^-beta`` to periodogram ordinates ``power`` (m,3) at bins ``k``
+    (m,): white level ``w`` (3,), power-law level ``a`` (3,) and one exponent ``beta`` in [0, 2] shared
+    by the axes (white to random walk). Maximises the Whittle likelihood
+    ``-sum(log P + I / P)`` (exponentially distributed ordinates) by scipy.optimize."""
+    power = np.maximum(power, 1e-300)
+    lk = np.log(k)
+    scale = np.mean(power, axis=0)
+
+    def unpack(x):
+        w = scale * np.exp(x[0:3])
+        a = scale * np.exp(x[3:6])
+        beta = 2.0 / (1.0 + np.exp(-x[6]))
+        return w, a, beta
+
+    def nll(x):
+        w, a, beta = unpack(x)
+        P = w[None, :] + a[None, :] * np.exp(-beta * lk)[:, None]
+        return float(np.sum(np.log(P) + power / P))
+
+    best = None
+    for b0 in (-2.0, 0.0, 2.0):     # beta 0.24, 1, 1.76: the likelihood is not convex in beta
+        x0 = np.r_[np.log(0.5) * np.ones(3), np.log(0.5) * np.ones(3), b0]
+        r = scipy.optimize.minimize(nll, x0, method="Nelder-Mead",
+                                    options={"maxiter": 4000, "xatol": 1e-4, "fatol": 1e-6})
+        if best is None or r.fun < best.fun:
+            best = r
+    return unpack(best.x)
+
+
+class SurrogateSource:
+    """Surrogates of ``template`` (N,3), rows in session-then-time order taken as one series.
+
+    The template is a residual *after* a fit, and a candidate fitted to it may have removed slow noise
+    from its slowest components. So components slower than ``1/LOW_CYCLES`` of the record are drawn
+    afresh from a noise model fitted to the faster ones; faster components keep the template's own
+    Fourier amplitudes with random phases (the same phase on the three axes: the cross-spectrum is
+    kept). Model: white + power law with one exponent (:func:`fit_spectrum`) on the periodogram of
+    the mirrored template (no jump at the wrap) between ``LOW_CYCLES`` and ``FIT_SPAN`` x that many
+    cycles per record; the slow components are complex Gaussian with that power and the coherence
+    between axes measured in the fit band, the mean with the power of the lowest bin."""
+
+    def __init__(self, template_uT: np.ndarray, seed: int = 0):
+        x = np.where(np.isfinite(template_uT), template_uT, 0.0).astype(float)
+        self.n = x.shape[0]
+        # mirrored (no jump at the wrap), padded with its end value to a length the FFT does fast (a
+        # length with a large prime factor is up to 20x slower); the pad is a few % of the series
+        self.L = scipy.fft.next_fast_len(2 * self.n, real=True)
+        m = np.concatenate([x, x[::-1], np.repeat(x[:1], self.L - 2 * self.n, axis=0)], axis=0)
+        self.F = scipy.fft.rfft(m, axis=0)      # (bins, 3)
+        nf = self.F.shape[0]
+        self.k_a = int(min(2 * LOW_CYCLES, max(nf - 1, 0)))
+        k_c = int(min(nf - 1, FIT_SPAN * self.k_a))
+        self.p_low = np.zeros((self.k_a, 3))
+        self.chol = np.eye(3, dtype=complex)
+        self.beta = 0.0
+        if self.k_a >= 1 and k_c - self.k_a >= 8:
+            k = np.arange(self.k_a, k_c + 1)
+            band = self.F[k]
+            w, a, self.beta = fit_spectrum(np.abs(band) ** 2, k.astype(float))
+            kk = np.arange(self.k_a, dtype=float)
+            kk[0] = 1.0                                   # the mean: the lowest bin's power
+            self.p_low = w[None, :] + a[None, :] * kk[:, None] ** -self.beta
+            # an exponent fitted above k_a can explode below it (a steep band edge, pairing noise): the
+            # slow power drawn is at most LOW_CAP x what the template itself has there (per axis)
+            own = np.sum(np.abs(self.F[:self.k_a]) ** 2, axis=0)
+            tot = np.sum(self.p_low, axis=0)
+            self.p_low *= np.minimum(1.0, LOW_CAP * own / np.maximum(tot, 1e-300))[None, :]
+            model = w[None, :] + a[None, :] * k[:, None].astype(float) ** -self.beta
+            u = band / np.sqrt(model)
+            C = (u.T @ u.conj()) / k.size
+            d = np.sqrt(np.maximum(np.real(np.diag(C)), 1e-300))
+            C = C / np.outer(d, d) + 1e-9 * np.eye(3)
+            self.chol = np.linalg.cholesky(C)
+        elif self.k_a >= 1:                                 # too short to fit: the template's own mean power
+            self.p_low[:] = np.mean(np.abs(self.F[1:]) ** 2, axis=0) if nf > 1 else 0.0
+        self.rng = np.random.default_rng(seed)
+
+    def draw(self, k: int) -> np.ndarray:
+        """(N,3,k) surrogates (built as (k,3,bins) so every transform runs on contiguous rows)."""
+        L = self.L
+        nf = self.F.shape[0]
+        ph = np.exp(2j * np.pi * self.rng.random((k, nf)))
+        if L % 2 == 0:
+            ph[:, -1] = np.where(self.rng.random(k) < 0.5, 1.0, -1.0)   # the Nyquist bin stays real
+        G = ph[:, None, :] * self.F.T[None, :, :]
+        if self.k_a:
+            z = (self.rng.standard_normal((k, 3, self.k_a)) + 1j * self.rng.standard_normal((k, 3, self.k_a)))
+            z /= np.sqrt(2)
+            z = np.einsum("ij,kjm->kim", self.chol, z)               # coherent across axes as measured
+            z[:, :, 0] = np.real(z[:, :, 0]) * np.sqrt(2)            # the mean is real
+            G[:, :, :self.k_a] = np.sqrt(self.p_low).T[None, :, :] * z
+        y = scipy.fft.irfft(G, n=L, axis=-1, overwrite_x=True)[:, :, :self.n]
+        return np.transpose(y, (2, 1, 0))
+
+
+# ----------------------------------------------------------------------------- held-out algebra
+def _solve_multi(G: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """Least-squares coefficients (P,k) from normal equations G (P,P), C (P,k): column-equilibrated
+    Cholesky, pseudo-inverse with cut-off RCOND when (near) singular (as gap.solve_gram)."""
+    if G.shape[0] == 0:
+        return np.zeros((0, C.shape[1]))
+    d = np.sqrt(np.diag(G))
+    d[d == 0] = 1.0
+    Gn = G / np.outer(d, d)
+    Cn = C / d[:, None]
+    try:
+        c, low = scipy.linalg.cho_factor(Gn)
+        if np.min(np.diag(c)) ** 2 < RCOND * np.max(np.diag(c)) ** 2:
+            raise np.linalg.LinAlgError
+        sol = scipy.linalg.cho_solve((c, low), Cn)
+    except (np.linalg.LinAlgError, ValueError):
+        sol = np.linalg.pinv(Gn, rcond=RCOND, hermitian=True) @ Cn
+    return sol / d[:, None]
+
+
+class Shared:
+    """What every candidate's test shares: the row order grouping the folds, the base columns per axis
+    in that order with their fold Gram matrices, and ``B_f^T y`` of the current batch (computed once)."""
+
+    def __init__(self, gap: Gap, base: Block, fold: np.ndarray):
+        self.order = np.argsort(fold, kind="stable")
+        _, counts = np.unique(fold, return_counts=True)
+        ends = np.cumsum(counts)
+        self.counts = counts
+        self.slices = [slice(int(e - c), int(e)) for e, c in zip(ends, counts, strict=True)]
+        self.B = [np.ascontiguousarray(c[self.order]) for c in base_axis_columns(gap, base)]
+        self.BB = [[B[s].T @ B[s] for s in self.slices] for B in self.B]
+        self._key = None
+        self._cache: dict = {}
+
+    def base_products(self, Y: np.ndarray, i: int) -> list[np.ndarray]:
+        """Per fold ``B_f^T Y_f`` (p_base,k) of axis i for targets ``Y`` (n,3,k) in fold order."""
+        if self._key is not Y:
+            self._key, self._cache = Y, {}
+        if i not in self._cache:
+            self._cache[i] = [self.B[i][s].T @ Y[s, i, :] for s in self.slices]
+        return self._cache[i]
+
+
+class HeldOut:
+    """Held-out SSE (minus ``y_f^T y_f``, which cancels between models) per fold for one axis' design
+    (shared base columns + the candidate's own), from the fold Gram matrices and ``Z_f^T y`` of many
+    right-hand sides at once."""
+
+    def __init__(self, shared: Shared, i: int, design: AxisDesign):
+        self.sh, self.i, self.d = shared, i, design
+        B, O = shared.B[i], design.O
+        self.nb = B.shape[1]
+        P = self.nb + O.shape[1]
+        n = B.shape[0]
+        self.usable = [(n - c) > P and c > 0 for c in shared.counts]
+        self.Gf = []
+        for f, s in enumerate(shared.slices):
+            BO = B[s].T @ O[s]
+            self.Gf.append(np.block([[shared.BB[i][f], BO], [BO.T, O[s].T @ O[s]]]))
+        self.G = sum(self.Gf) if self.Gf else np.zeros((P, P))
+
+    def reduction(self, Y: np.ndarray) -> np.ndarray:
+        """(k,) held-out SSE(base) - SSE(base + candidate), summed over folds, for targets Y (n,3,k)
+        in fold order."""
+        cb = self.sh.base_products(Y, self.i)
+        O = self.d.O
+        cf = [np.vstack([cb[f], O[s].T @ Y[s, self.i, :]]) for f, s in enumerate(self.sh.slices)]
+        c = sum(cf)
+        base = np.arange(self.nb)
+        out = np.zeros(Y.shape[2])
+        for f in range(len(cf)):
+            if not self.usable[f]:
+                continue
+            Gt, ct = self.G - self.Gf[f], c - cf[f]
+            h0 = self._h(base, Gt, ct, self.Gf[f], cf[f])[0]
+            best_h, best_e = None, None
+            for o in self.d.options:
+                idx = np.r_[base, self.nb + o].astype(np.int64)
+                h, e = self._h(idx, Gt, ct, self.Gf[f], cf[f])
+                if best_h is None:
+                    best_h, best_e = h, e
+                else:   # the option with the largest explained training sum of squares (lowest training SSE)
+                    take = e > best_e
+                    best_h, best_e = np.where(take, h, best_h), np.where(take, e, best_e)
+            out += h0 - best_h
+        return out
+
+    @staticmethod
+    def _h(idx, Gt, ct, Gf, cf):
+        if idx.size == 0:
+            z = np.zeros(ct.shape[1])
+            return z, z
+        th = _solve_multi(Gt[np.ix_(idx, idx)], ct[idx])
+        held = -2.0 * np.sum(th * cf[idx], axis=0) + np.sum(th * (Gf[np.ix_(idx, idx)] @ th), axis=0)
+        explained = np.sum(th * ct[idx], axis=0)
+        return held, explained
+
+
+# ----------------------------------------------------------------------------- designs
+def _axis_cols(blk: Block, i: int) -> np.ndarray:
+    return blk.X[:, np.flatnonzero(blk.mask[i])]
+
+
+def base_axis_columns(gap: Gap, base: Block) -> list[np.ndarray]:
+    """Per output axis the base columns (with a modelled mount rotation: its angle columns, a free
+    coefficient per output axis)."""
+    out = [_axis_cols(base, i) for i in range(3)]
+    if gap.rotation is not None:
+        mc = gap.rotation[0]
+        out = [np.hstack([out[i], _nonzero(mc.axis_columns(i))]) for i in range(3)]
+    return out
+
+
+def _nonzero(X: np.ndarray) -> np.ndarray:
+    return X[:, np.any(X != 0, axis=0)]
+
+
+def candidate_designs(gap: Gap, cand) -> list[AxisDesign]:
+    """Per output axis the surrogate test's design for candidate ``cand`` (search.Candidate)."""
+    from magstack.ground.diagnose import rotation as rot
+    from magstack.ground.diagnose import search as sr
+    own: list[list[np.ndarray]]
+    if cand.kind == "linear":
+        blk = sr.linear_block(gap, cand.effect, cand.terms)
+        own = [[_axis_cols(blk, i)] for i in range(3)]
+    elif cand.kind == "hysteresis":
+        hist, idx = gap.history()
+        extra = gap.term_design(("offset",)) if "offset" not in gap.base_terms else None
+        own = []
+        for j in range(3):
+            fixed = _axis_cols(extra, j) if extra is not None else np.zeros((gap.n, 0))
+            opts = []
+            for c in cand.thresholds[j]:
+                for s0 in (-1.0, 1.0):
+                    thr, init = np.full(3, np.inf), np.ones(3)
+                    thr[j], init[j] = c, s0
+                    col = nl.hysteresis_state(hist, thr, init)[idx][:, j:j + 1]
+                    opts.append(np.hstack([fixed, col]))
+            own.append(opts or [fixed])
+    elif cand.kind == "joint":
+        mc = rot.mount_columns(gap)
+        own = [[_nonzero(mc.axis_columns(i))] for i in range(3)]
+    else:   # delay: first-order proxy, the reference's rate of change in DUT units (per DUT axis)
+        t = gap.session.t_s
+        dt = np.diff(t)
+        h = 0.25 * float(np.median(dt[dt > 0])) if np.any(dt > 0) else 1e-3
+        u = (gap.skew_columns(np.full(3, h), nl.shift_axes) - gap.skew_columns(np.full(3, -h), nl.shift_axes)) / (2 * h)
+        own = [[u] for _ in range(3)]
+    out = []
+    for i in range(3):
+        opts, k = [], 0
+        for o in own[i]:
+            opts.append(np.arange(k, k + o.shape[1]))
+            k += o.shape[1]
+        out.append(AxisDesign(np.hstack(own[i]) if own[i] else np.zeros((gap.n, 0)), opts))
+    return out
+
+
+# ----------------------------------------------------------------------------- the test
+def prepare(gap: Gap, cand, shared: Shared):
+    """(observed T, function mapping surrogates (N,3,k) in fold order to their T (k,), floats its own
+    columns hold)."""
+    designs = candidate_designs(gap, cand)
+    for d in designs:
+        d.O = np.ascontiguousarray(d.O[shared.order])
+    held = [HeldOut(shared, i, d) for i, d in enumerate(designs)]
+
+    def statistic(Ys: np.ndarray) -> np.ndarray:
+        return sum(held[i].reduction(Ys) for i in range(3))
+    t_obs = float(statistic(gap.target[shared.order][:, :, None])[0])
+    return t_obs, statistic, sum(d.O.size for d in designs)
+
+
+class _Test:
+    """One candidate's running Monte Carlo test."""
+
+    def __init__(self, t_obs: float, statistic):
+        self.t_obs, self.statistic = t_obs, statistic
+        self.tol = 1e-12 * abs(t_obs)
+        self.vals: list[np.ndarray] = []
+        self.hits = 0
+        self.result: SurrogateResult | None = None
+
+    def cantelli(self) -> float:
+        allv = np.concatenate(self.vals)
+        sd = float(np.std(allv, ddof=1))
+        z = (self.t_obs - float(np.mean(allv))) / sd if sd > 0 else np.inf
+        return 1.0 / (1.0 + z * z) if z > 0 else 1.0
+
+    def update(self, Ys: np.ndarray, k: int, kmax: int, p_needed: float) -> bool:
+        """Add a batch (k surrogates drawn so far, with it); True when the test has ended."""
+        t = self.statistic(Ys)
+        self.vals.append(t)
+        self.hits += int(np.sum(t >= self.t_obs - self.tol))
+        if self.hits >= STOP_HITS:
+            self.result = _result(self.hits / k, k, self.t_obs, self.vals, "hits")
+        elif self.hits == 0 and k >= MIN_SURROGATES and self.cantelli() < p_needed:
+            self.result = _result(self.cantelli(), k, self.t_obs, self.vals, "cantelli")
+        elif k >= kmax:
+            p = (1 + self.hits) / (1 + k)
+            if self.hits == 0:   # with a row budget below 1999 surrogates the bound may be the sharper one
+                p = min(p, self.cantelli())
+            self.result = _result(p, k, self.t_obs, self.vals, "limit")
+        return self.result is not None
+
+
+def surrogate_tests(gap: Gap, cands: list, base: Block, fold: np.ndarray, template_uT: np.ndarray,
+                    p_needed: float, seed: int = 0, max_surrogates: int | None = None) -> list[SurrogateResult]:
+    """One-sided p-values of the candidates' held-out SSE reductions against surrogates of
+    ``template_uT`` (see the module docs). Each batch of surrogates is drawn once and serves every
+    candidate still under test; candidates are prepared in groups of at most ``DESIGN_FLOATS`` design
+    floats (memory bounded for any number of rows)."""
+    n = gap.n
+    src = SurrogateSource(template_uT, seed)
+    kmax = max_surrogates or int(min(MAX_SURROGATES, max(MIN_SURROGATES, ROW_BUDGET // max(n, 1))))
+    batch = int(max(1, min(199, BATCH_FLOATS // (3 * n))))
+    out: list[SurrogateResult | None] = [None] * len(cands)
+    group: list[tuple[int, _Test]] = []
+    floats = 0
+
+    def run(group):
+        src.rng = np.random.default_rng(seed)
+        active = [(i, t) for i, t in group]
+        k = 0
+        while active:
+            m = min(batch, kmax - k)
+            Ys = np.ascontiguousarray(src.draw(m)[shared.order])
+            k += m
+            active = [(i, t) for i, t in active if not t.update(Ys, k, kmax, p_needed)]
+        for i, t in group:
+            out[i] = t.result
+
+    shared = Shared(gap, base, fold)
+    for i, c in enumerate(cands):
+        t_obs, statistic, size = prepare(gap, c, shared)
+        if not t_obs > 0:
+            out[i] = SurrogateResult(1.0, 0, t_obs, np.nan, np.nan, "no shrink")
+            continue
+        if group and floats + size > DESIGN_FLOATS:
+            run(group)
+            group, floats = [], 0
+        group.append((i, _Test(t_obs, statistic)))
+        floats += size
+    if group:
+        run(group)
+    return out
+
+
+def _result(p, k, t_obs, vals, why) -> SurrogateResult:
+    allv = np.concatenate(vals) if vals else np.array([np.nan])
+    sd = float(np.std(allv, ddof=1)) if allv.size > 1 else float("nan")
+    return SurrogateResult(float(p), int(k), t_obs, float(np.mean(allv)), sd, why)
