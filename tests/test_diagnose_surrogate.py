@@ -93,6 +93,9 @@ def test_slow_noise_alone_is_not_named(seed):
     assert top["p_surrogate"] > 0.05 and top["n_surrogates"] >= 1
     assert top["p_value"] == max(top["p_blocks"], top["p_surrogate"])
     assert d["method"]["null"] == "surrogate"
+    m = d["null_model"]      # what the surrogates were made of, for the reader
+    assert m["template"] in {r["effect"] for r in d["ranking"]} | {"baseline"}
+    assert 0.0 <= m["slow_noise_exponent"] <= 2.0
 
 
 @pytest.mark.parametrize("effect", ["session_offset", "temperature_offset"])
@@ -107,6 +110,7 @@ def test_null_blocks_is_the_grouped_block_test_alone():
     s = with_slow_noise(None, 7)
     d = diagnose_model(s, "gain_offset", Options(null="blocks")).to_dict()
     assert d["method"]["null"] == "blocks"
+    assert d["null_model"] is None
     for r in d["ranking"]:
         assert r["p_surrogate"] is None and "n_surrogates" not in r
         assert r["p_value"] == r["p_blocks"]

@@ -14,11 +14,13 @@ def register(subparsers) -> None:
         "validate-diagnosis", help="prove the diagnosis on simulated sessions with one effect withheld",
         description="For each catalogue effect the diagnosis can name: simulate sessions (coil program 'full') with "
                     "the effect at a realistic strength and at half, diagnose with it withheld; plus sessions with "
-                    "nothing withheld (false alarms) and the fixed-table / fixed-parameter path. Writes "
+                    "nothing withheld (false alarms; with the base noise and with LIS3MDL-level 1/f noise) and the "
+                    "fixed-table / fixed-parameter path. Writes "
                     "results.json, confusion.csv and summary.md into --out; exit 1 when a target is missed.")
     p.add_argument("--seeds", type=int_range(1, 100), default=1, help="sessions per effect and strength (default 1)")
     p.add_argument("--nulls", type=int_range(1, 10000), default=None,
-                   help="sessions with nothing withheld (default max(20, 10*seeds))")
+                   help="sessions with nothing withheld, run with the base noise and again with slow (1/f) noise "
+                        "(default max(20, 10*seeds) each)")
     p.add_argument("--seconds", type=finite_float(600, 86400, unit="s"), default=3600.0,
                    help="length of each simulated session, [600, 86400] s (default 3600)")
     p.add_argument("--out", required=True, metavar="DIR", type=nonempty_dir)

@@ -82,6 +82,7 @@ class Diagnosis:
                                 + (" and, for effects it lets through, a surrogate test against noise with the "
                                    "residual's spectrum (p = the larger)" if self.options.null == "surrogate" else "")
                                 + ", Holm-corrected across effects")},
+            "null_model": r.null_model,
             "notes": self.gap.notes + r.notes + self.notes,
         }
 
@@ -94,10 +95,18 @@ class Diagnosis:
             L.append(f"  after adding it: {d['after_rmse_nT']:.1f} nT (noise floor {_f(d['noise_floor_nT'])} nT)")
         if self.verdict_note:
             L.append("  " + self.verdict_note)
-        L.append(f"{'effect':20s}{'held-out nT':>12s}{'shrink':>9s}{'p':>9s}{'p(Holm)':>9s}  significant")
+        L.append(f"{'effect':20s}{'held-out nT':>12s}{'shrink':>9s}{'p blocks':>10s}{'p surr.':>9s}{'p':>9s}"
+                 f"{'p(Holm)':>9s}  significant")
         for t in d["ranking"]:
-            L.append(f"{t['effect']:20s}{t['rmse_nT']:12.1f}{t['shrink']:9.1%}{t['p_value']:9.4f}{t['p_holm']:9.4f}"
-                     f"  {'yes' if t['significant'] else 'no'}")
+            ps = "-" if t.get("p_surrogate") is None else f"{t['p_surrogate']:.4f}"
+            L.append(f"{t['effect']:20s}{t['rmse_nT']:12.1f}{t['shrink']:9.1%}{t.get('p_blocks', t['p_value']):10.4f}"
+                     f"{ps:>9s}{t['p_value']:9.4f}{t['p_holm']:9.4f}  {'yes' if t['significant'] else 'no'}")
+        if d["null_model"]:
+            m = d["null_model"]
+            L.append(f"slow-noise null model: surrogates of the {m['template']} residual, slow components from "
+                     f"white + 1/f^{m['slow_noise_exponent']:.2f}"
+                     + (f" (capped at {m['slow_power_cap']:g}x the residual's own slow power on "
+                        f"{', '.join(m['slow_power_capped_axes'])})" if m["slow_power_capped_axes"] else ""))
         if d["parameters"]:
             L.append("parameters of the verdict's effect (value +- standard error):")
             for name, p in d["parameters"].items():

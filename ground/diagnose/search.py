@@ -121,6 +121,8 @@ class SearchResult:
     distinguishable: bool | None = None
     confounded_with: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    #: the surrogate test's noise model (surrogate.SurrogateSource.summary) and its template, when it ran
+    null_model: dict | None = None
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -489,19 +491,22 @@ TEST_UNIT_ONE = True
 
 
 def surrogate_tests(gap: Gap, cands: list[Candidate], trials: list[Trial], base: Block, fold: np.ndarray,
-                    template: np.ndarray, opts: Options) -> None:
+                    template: np.ndarray, opts: Options) -> dict | None:
     """Second test for every candidate the block test lets through (raw p < alpha, shrink >=
     min_shrink): noise with the residual's own spectrum must not explain its held-out shrink
-    (surrogate.py). ``p_value`` becomes the larger of the two (both must reject)."""
+    (surrogate.py). ``p_value`` becomes the larger of the two (both must reject). Returns the noise
+    model's summary (None when no candidate needed the test)."""
     from magstack.ground.diagnose.surrogate import surrogate_tests as run
     todo = [(c, t) for c, t in zip(cands, trials, strict=True)
             if t.p_value < opts.alpha and t.shrink >= opts.min_shrink]
     if not todo:
-        return
-    res = run(gap, [c for c, _ in todo], base, fold, template, opts.alpha / max(len(trials), 1), seed=opts.seed)
+        return None
+    res, model = run(gap, [c for c, _ in todo], base, fold, template, opts.alpha / max(len(trials), 1),
+                     seed=opts.seed)
     for (_, t), r in zip(todo, res, strict=True):
         t.extra["surrogate"] = r
         t.p_value = max(t.p_value, r.p_value)
+    return model
 
 
 def search(gap: Gap, blocks: np.ndarray, fold: np.ndarray, opts: Options) -> SearchResult:
@@ -537,9 +542,10 @@ def search(gap: Gap, blocks: np.ndarray, fold: np.ndarray, opts: Options) -> Sea
         t.extra["test_unit"] = g_test
         t.p_value = unit_p(grouped(baseline.block_sse - t.block_sse, bs, g_test), opts.seed)
         t.extra["p_blocks"] = t.p_value
-    if opts.null == "surrogate":
-        surrogate_tests(gap, cands, trials, base, fold, template, opts)
+    model = surrogate_tests(gap, cands, trials, base, fold, template, opts) if opts.null == "surrogate" else None
     res = SearchResult(baseline, trials, not_testable, modelled)
+    if model is not None:
+        res.null_model = {"template": best.effect, **model}
     if len(np.unique(blocks)) < MIN_BLOCKS:
         res.notes.append(f"only {len(np.unique(blocks))} held-out blocks of {opts.block_s:g} s: too few for a "
                          "significance claim (shorten --block-s or add data)")

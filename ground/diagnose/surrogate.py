@@ -138,28 +138,35 @@ class SurrogateSource:
     def __init__(self, template_uT: np.ndarray, seed: int = 0):
         x = np.where(np.isfinite(template_uT), template_uT, 0.0).astype(float)
         self.n = x.shape[0]
-        # mirrored (no jump at the wrap), padded with its end value to a length the FFT does fast (a
-        # length with a large prime factor is up to 20x slower); the pad is a few % of the series
+        mirrored = np.concatenate([x, x[::-1]], axis=0)          # no jump at the wrap
+        # the noise model is fitted on the mirrored series itself (bins of 1/(2n) cycles per row) ...
+        F0 = scipy.fft.rfft(mirrored, axis=0)
+        # ... surrogates are drawn at a length the FFT does fast (a length with a large prime factor is
+        # up to 20x slower), the mirrored series padded with its end value (a few % of it)
         self.L = scipy.fft.next_fast_len(2 * self.n, real=True)
-        m = np.concatenate([x, x[::-1], np.repeat(x[:1], self.L - 2 * self.n, axis=0)], axis=0)
-        self.F = scipy.fft.rfft(m, axis=0)      # (bins, 3)
-        nf = self.F.shape[0]
-        self.k_a = int(min(2 * LOW_CYCLES, max(nf - 1, 0)))
-        k_c = int(min(nf - 1, FIT_SPAN * self.k_a))
+        self.F = scipy.fft.rfft(np.concatenate([mirrored, np.repeat(x[:1], self.L - 2 * self.n, axis=0)]), axis=0)
+        nf0, nf = F0.shape[0], self.F.shape[0]
+        k_a0 = int(min(2 * LOW_CYCLES, max(nf0 - 1, 0)))
+        k_c = int(min(nf0 - 1, FIT_SPAN * k_a0))
+        stretch = self.L / (2.0 * self.n)                         # padded bins per fitted bin (>= 1)
+        self.k_a = int(min(nf - 1, np.ceil(k_a0 * stretch))) if k_a0 else 0
         self.p_low = np.zeros((self.k_a, 3))
         self.chol = np.eye(3, dtype=complex)
         self.beta = 0.0
-        if self.k_a >= 1 and k_c - self.k_a >= 8:
-            k = np.arange(self.k_a, k_c + 1)
-            band = self.F[k]
+        self.capped = np.zeros(3, bool)
+        if k_a0 >= 1 and k_c - k_a0 >= 8:
+            k = np.arange(k_a0, k_c + 1)
+            band = F0[k]
             w, a, self.beta = fit_spectrum(np.abs(band) ** 2, k.astype(float))
-            kk = np.arange(self.k_a, dtype=float)
-            kk[0] = 1.0                                   # the mean: the lowest bin's power
-            self.p_low = w[None, :] + a[None, :] * kk[:, None] ** -self.beta
-            # an exponent fitted above k_a can explode below it (a steep band edge, pairing noise): the
-            # slow power drawn is at most LOW_CAP x what the template itself has there (per axis)
-            own = np.sum(np.abs(self.F[:self.k_a]) ** 2, axis=0)
+            kk = np.arange(self.k_a, dtype=float) / stretch       # padded bin -> fitted bin
+            kk[0] = 1.0                                           # the mean: the lowest bin's power
+            kk = np.maximum(kk, 1.0)
+            self.p_low = (w[None, :] + a[None, :] * kk[:, None] ** -self.beta) * stretch
+            # an exponent fitted above k_a can explode below it (a steep or ill-determined band edge,
+            # pairing noise): the slow power drawn is at most LOW_CAP x the template's own (per axis)
+            own = np.sum(np.abs(F0[:k_a0]) ** 2, axis=0) * (self.k_a / k_a0) * stretch
             tot = np.sum(self.p_low, axis=0)
+            self.capped = LOW_CAP * own < tot
             self.p_low *= np.minimum(1.0, LOW_CAP * own / np.maximum(tot, 1e-300))[None, :]
             model = w[None, :] + a[None, :] * k[:, None].astype(float) ** -self.beta
             u = band / np.sqrt(model)
@@ -170,6 +177,12 @@ class SurrogateSource:
         elif self.k_a >= 1:                                 # too short to fit: the template's own mean power
             self.p_low[:] = np.mean(np.abs(self.F[1:]) ** 2, axis=0) if nf > 1 else 0.0
         self.rng = np.random.default_rng(seed)
+
+    def summary(self) -> dict:
+        """The noise model for the JSON: exponent, slow components replaced, capped axes."""
+        return {"slow_noise_exponent": float(self.beta), "replaced_below_cycles_per_record": LOW_CYCLES,
+                "slow_power_capped_axes": [a for a, c in zip("xyz", self.capped, strict=True) if c],
+                "slow_power_cap": LOW_CAP}
 
     def draw(self, k: int) -> np.ndarray:
         """(N,3,k) surrogates (built as (k,3,bins) so every transform runs on contiguous rows)."""
@@ -397,11 +410,12 @@ class _Test:
 
 
 def surrogate_tests(gap: Gap, cands: list, base: Block, fold: np.ndarray, template_uT: np.ndarray,
-                    p_needed: float, seed: int = 0, max_surrogates: int | None = None) -> list[SurrogateResult]:
+                    p_needed: float, seed: int = 0, max_surrogates: int | None = None
+                    ) -> tuple[list[SurrogateResult], dict]:
     """One-sided p-values of the candidates' held-out SSE reductions against surrogates of
     ``template_uT`` (see the module docs). Each batch of surrogates is drawn once and serves every
     candidate still under test; candidates are prepared in groups of at most ``DESIGN_FLOATS`` design
-    floats (memory bounded for any number of rows)."""
+    floats (memory bounded for any number of rows). Also returns the noise model's summary."""
     n = gap.n
     src = SurrogateSource(template_uT, seed)
     kmax = max_surrogates or int(min(MAX_SURROGATES, max(MIN_SURROGATES, ROW_BUDGET // max(n, 1))))
@@ -435,7 +449,7 @@ def surrogate_tests(gap: Gap, cands: list, base: Block, fold: np.ndarray, templa
         floats += size
     if group:
         run(group)
-    return out
+    return out, src.summary()
 
 
 def _result(p, k, t_obs, vals, why) -> SurrogateResult:
