@@ -18,10 +18,13 @@ For each effect of :data:`magstack.firmware.effects.EFFECTS` that the simulator 
    "nothing unmodelled" the extra columns only add estimation noise, so ``d_b`` is symmetric minus a
    positive term: the test is conservative. Holm's step-down correction across the effects tested
    controls the family-wise false-alarm rate at ``alpha``; an effect must also shrink the RMSE by at
-   least ``min_shrink`` (practical significance). Slow noise (1/f, random walk) makes neighbouring
-   blocks alike: the test unit is then ``g`` consecutive blocks (:func:`block_group`), one ``g`` for
-   all candidates, estimated from the residual with the lowest held-out RMSE (the one closest to the
-   noise; a candidate's own residual would carry its own misfit).
+   least ``min_shrink`` (practical significance). Slow noise (1/f, random walk) is real slow structure
+   that offset-like columns absorb on held-out blocks too: with ``Options.null == "surrogate"`` (the
+   default) the unit is one block and every effect the block test lets through must also pass the
+   surrogate test of :mod:`.surrogate` (noise with the residual's own spectrum; ``p_value`` = the
+   larger). With ``"blocks"`` the block test stands alone and its unit is ``g`` consecutive blocks
+   (:func:`block_group`), one ``g`` for all candidates, from the residual with the lowest held-out RMSE.
+   The verdict's comparisons (parsimony, runner-up) use the grouped unit in both modes.
 4. Verdict: the significant effect with the lowest held-out RMSE, else ``none``. The runner-up is the
    next in the ranking; the verdict is compared with it by the same block test and by the canonical
    correlation of their columns (after removing the base), and is declared indistinguishable when
@@ -492,13 +495,14 @@ TEST_UNIT_ONE = True
 
 def surrogate_tests(gap: Gap, cands: list[Candidate], trials: list[Trial], base: Block, fold: np.ndarray,
                     template: np.ndarray, opts: Options) -> dict | None:
-    """Second test for every candidate the block test lets through (raw p < alpha, shrink >=
-    min_shrink): noise with the residual's own spectrum must not explain its held-out shrink
+    """Second test for every candidate the block test lets through (raw p < alpha): noise with the
+    residual's own spectrum must not explain its held-out shrink
     (surrogate.py). ``p_value`` becomes the larger of the two (both must reject). Returns the noise
     model's summary (None when no candidate needed the test)."""
     from magstack.ground.diagnose.surrogate import surrogate_tests as run
-    todo = [(c, t) for c, t in zip(cands, trials, strict=True)
-            if t.p_value < opts.alpha and t.shrink >= opts.min_shrink]
+    # every effect with raw p < alpha, also below the practical threshold: an unchecked small p_blocks
+    # would still take Holm's first slot and ease the others' correction
+    todo = [(c, t) for c, t in zip(cands, trials, strict=True) if t.p_value < opts.alpha]
     if not todo:
         return None
     res, model = run(gap, [c for c, _ in todo], base, fold, template, opts.alpha / max(len(trials), 1),
