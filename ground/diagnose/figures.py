@@ -28,9 +28,17 @@ def write_report(diag, out_dir) -> Path:
                            ["gap after the verdict's effect (held-out)", f"{d['after_rmse_nT']:.1f}"],
                            ["noise floor (from the data)", _f(d["noise_floor_nT"])]])
     rep.heading("Ranking (held-out blocks)")
-    rep.table(["effect", "held-out RMSE nT", "shrink", "p", "p (Holm)", "significant"],
-              [[r["effect"], f"{r['rmse_nT']:.1f}", f"{r['shrink']:.1%}", f"{r['p_value']:.3g}",
+    rep.table(["effect", "held-out RMSE nT", "shrink", "p blocks", "p surrogates", "p", "p (Holm)", "significant"],
+              [[r["effect"], f"{r['rmse_nT']:.1f}", f"{r['shrink']:.1%}", f"{r.get('p_blocks', r['p_value']):.3g}",
+                "-" if r.get("p_surrogate") is None else f"{r['p_surrogate']:.3g}", f"{r['p_value']:.3g}",
                 f"{r['p_holm']:.3g}", "yes" if r["significant"] else "no"] for r in d["ranking"]])
+    if d.get("null_model"):
+        m = d["null_model"]
+        rep.text(f"Slow-noise null model: surrogates of the {m['template']} residual; components slower than "
+                 f"{m['replaced_below_cycles_per_record']} cycles per record from white + 1/f^"
+                 f"{m['slow_noise_exponent']:.2f}" + (f", capped at {m['slow_power_cap']:g}x the residual's own slow "
+                                                       f"power on {', '.join(m['slow_power_capped_axes'])}"
+                                                       if m["slow_power_capped_axes"] else "") + ".")
     rep.image(_bars(d), "before/after bars per effect")
     rep.heading("Where the gap lies")
     t = s.t_s - s.t_s.min()
