@@ -243,11 +243,8 @@ def gram(X: np.ndarray, Y: np.ndarray, rows: np.ndarray | None = None) -> tuple[
 
 
 def solve_gram(G: np.ndarray, XtY: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Least-squares coefficients (3,p) from normal equations, per output axis over ``mask[i]``.
-
-    Columns are equilibrated (unit diagonal) and solved by Cholesky; a (near) rank-deficient block
-    falls back to the pseudo-inverse with relative cut-off RCOND (minimum-norm solution).
-    """
+    """Least-squares coefficients (3,p) from normal equations, per output axis over ``mask[i]``
+    (:func:`solve_normal` once per group of axes sharing their columns)."""
     p = G.shape[0]
     theta = np.zeros((3, p))
     groups: dict[bytes, list[int]] = {}
@@ -257,20 +254,28 @@ def solve_gram(G: np.ndarray, XtY: np.ndarray, mask: np.ndarray) -> np.ndarray:
         cols = np.flatnonzero(mask[axes[0]])
         if cols.size == 0:
             continue
-        Gs = G[np.ix_(cols, cols)]
-        d = np.sqrt(np.diag(Gs))
-        d[d == 0] = 1.0
-        Gn = Gs / np.outer(d, d)
-        bn = XtY[np.ix_(cols, axes)] / d[:, None]
-        try:
-            c, low = scipy.linalg.cho_factor(Gn)
-            if np.min(np.diag(c)) ** 2 < RCOND * np.max(np.diag(c)) ** 2:
-                raise np.linalg.LinAlgError
-            sol = scipy.linalg.cho_solve((c, low), bn)
-        except (np.linalg.LinAlgError, ValueError):
-            sol = np.linalg.pinv(Gn, rcond=RCOND, hermitian=True) @ bn
-        theta[np.ix_(axes, cols)] = (sol / d[:, None]).T
+        theta[np.ix_(axes, cols)] = solve_normal(G[np.ix_(cols, cols)], XtY[np.ix_(cols, axes)]).T
     return theta
+
+
+def solve_normal(G: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """Least-squares coefficients (p,k) from normal equations ``G`` (p,p), ``C`` (p,k): columns
+    equilibrated (unit diagonal) and solved by Cholesky; a (near) rank-deficient ``G`` falls back to
+    the pseudo-inverse with relative cut-off RCOND (minimum-norm solution)."""
+    if G.shape[0] == 0:
+        return np.zeros((0, C.shape[1]))
+    d = np.sqrt(np.diag(G))
+    d[d == 0] = 1.0
+    Gn = G / np.outer(d, d)
+    Cn = C / d[:, None]
+    try:
+        c, low = scipy.linalg.cho_factor(Gn)
+        if np.min(np.diag(c)) ** 2 < RCOND * np.max(np.diag(c)) ** 2:
+            raise np.linalg.LinAlgError
+        sol = scipy.linalg.cho_solve((c, low), Cn)
+    except (np.linalg.LinAlgError, ValueError):
+        sol = np.linalg.pinv(Gn, rcond=RCOND, hermitian=True) @ Cn
+    return sol / d[:, None]
 
 
 def solve(X: np.ndarray, Y: np.ndarray, mask: np.ndarray, rows: np.ndarray | None = None,

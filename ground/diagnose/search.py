@@ -489,10 +489,6 @@ def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: n
     return t
 
 
-#: With the surrogate null model, the block test's unit is one block (the surrogates carry the slow noise).
-TEST_UNIT_ONE = True
-
-
 def surrogate_tests(gap: Gap, cands: list[Candidate], trials: list[Trial], base: Block, fold: np.ndarray,
                     template: np.ndarray, opts: Options) -> dict | None:
     """Second test for every candidate the block test lets through (raw p < alpha): noise with the
@@ -540,7 +536,8 @@ def search(gap: Gap, blocks: np.ndarray, fold: np.ndarray, opts: Options) -> Sea
     best = min([baseline, *trials], key=lambda t: t.rmse_norm_uT)
     template = np.asarray(best.resid, dtype=float)
     g_unit = block_group(template, blocks, bs)
-    g_test = 1 if opts.null == "surrogate" and TEST_UNIT_ONE else g_unit
+    # with the surrogate null model the block test's unit is one block (the surrogates carry the slow noise)
+    g_test = 1 if opts.null == "surrogate" else g_unit
     for t in trials:
         t.extra["group"] = g_unit
         t.extra["test_unit"] = g_test

@@ -47,11 +47,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.fft
-import scipy.linalg
 import scipy.optimize
 
 from magstack.ground.diagnose import nonlinear as nl
-from magstack.ground.diagnose.gap import RCOND, Block, Gap
+from magstack.ground.diagnose.gap import Block, Gap, solve_normal
 
 #: Upper limit of surrogates per candidate (p resolution 5e-4 < 0.05 / 14 effects).
 MAX_SURROGATES = 1999
@@ -59,7 +58,7 @@ MAX_SURROGATES = 1999
 MIN_SURROGATES = 199
 #: Hits (surrogate T >= observed T) that end a candidate's test: its p is then hits / k.
 STOP_HITS = 10
-#: Rows x surrogates per candidate: limits the surrogate count on very long data (at least MIN_SURROGATES).
+#: Rows x surrogates: limits the surrogate count on very long data (at least MIN_SURROGATES).
 ROW_BUDGET = 1.5e8
 #: Components slower than 1/LOW_CYCLES of the record are drawn from the fitted noise model, not the template.
 LOW_CYCLES = 8
@@ -203,25 +202,6 @@ class SurrogateSource:
 
 
 # ----------------------------------------------------------------------------- held-out algebra
-def _solve_multi(G: np.ndarray, C: np.ndarray) -> np.ndarray:
-    """Least-squares coefficients (P,k) from normal equations G (P,P), C (P,k): column-equilibrated
-    Cholesky, pseudo-inverse with cut-off RCOND when (near) singular (as gap.solve_gram)."""
-    if G.shape[0] == 0:
-        return np.zeros((0, C.shape[1]))
-    d = np.sqrt(np.diag(G))
-    d[d == 0] = 1.0
-    Gn = G / np.outer(d, d)
-    Cn = C / d[:, None]
-    try:
-        c, low = scipy.linalg.cho_factor(Gn)
-        if np.min(np.diag(c)) ** 2 < RCOND * np.max(np.diag(c)) ** 2:
-            raise np.linalg.LinAlgError
-        sol = scipy.linalg.cho_solve((c, low), Cn)
-    except (np.linalg.LinAlgError, ValueError):
-        sol = np.linalg.pinv(Gn, rcond=RCOND, hermitian=True) @ Cn
-    return sol / d[:, None]
-
-
 class Shared:
     """What every candidate's test shares: the row order grouping the folds, the base columns per axis
     in that order with their fold Gram matrices, and ``B_f^T y`` of the current batch (computed once)."""
@@ -295,7 +275,7 @@ class HeldOut:
         if idx.size == 0:
             z = np.zeros(ct.shape[1])
             return z, z
-        th = _solve_multi(Gt[np.ix_(idx, idx)], ct[idx])
+        th = solve_normal(Gt[np.ix_(idx, idx)], ct[idx])
         held = -2.0 * np.sum(th * cf[idx], axis=0) + np.sum(th * (Gf[np.ix_(idx, idx)] @ th), axis=0)
         explained = np.sum(th * ct[idx], axis=0)
         return held, explained
