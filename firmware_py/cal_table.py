@@ -31,7 +31,7 @@ import numpy as np
 
 from magstack.data.io import atomic_write_text, json_safe
 from magstack.firmware import fixed_point
-from magstack.firmware.calibration.model import CAL_TERMS, GROUND_ONLY_TERMS
+from magstack.firmware.cal_terms import CAL_TERMS, GROUND_ONLY_TERMS
 from magstack.firmware.errors import CalTableInvalid
 from magstack.firmware.table_schema import check_document, parse_table_json
 
@@ -92,6 +92,7 @@ class CalTable:
     ground_only: Mapping[str, Any] = field(default_factory=dict)
     schema_version: int = SCHEMA_VERSION
     crc32: int | None = None
+    posterior: Mapping[str, Any] | None = None    # optional: {"x": {"names", "cov"}, ..., "bound_uT", ...}
 
     def __post_init__(self) -> None:
         for name in ("S", "K_S", "P"):
@@ -138,6 +139,8 @@ class CalTable:
                          "currents_A": {k: list(v) for k, v in self.validity_currents_A}},
             "fit": json_safe(dict(self.fit_stats)),
         }
+        if self.posterior is not None:
+            doc["posterior"] = json_safe(dict(self.posterior))
         doc["crc32"] = f"0x{_crc(doc):08x}"
         return doc
 
@@ -230,7 +233,7 @@ def table_from_document(doc: Any, source: str = "<table>") -> CalTable:
             model_name=str(model.get("name", "")), table_name=str(doc.get("table_name", "")),
             description=str(doc.get("description", "")), created_utc=str(doc.get("created_utc", "")),
             fit_stats=doc.get("fit", {}) or {}, ground_only=params.get("ground_only", {}) or {},
-            crc32=got, **kw)
+            crc32=got, posterior=doc.get("posterior"), **kw)
     except CalTableInvalid:
         raise
     except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
@@ -372,21 +375,128 @@ def worst_case_output_uT(table: CalTable) -> float:
 
 
 # ---------------------------------------------------------------------- from a fit
+#: A validity box narrower than this (degC) or with a lower field limit (uT, per axis) draws a warning.
+NARROW_TEMP_C = 10.0
+NARROW_FIELD_uT = 50.0
+#: The field limit is also capped at this multiple of the largest field the fit saw: the posterior does
+#: not contain the part's nonlinearity.
+FIELD_EXTRAPOLATION = 2.0
+#: Default validity bound: this multiple of the fit's noise floor (vector norm).
+VALIDITY_NOISE_FACTOR = 2.0
+
+
+def posterior_block(result) -> dict | None:
+    """The table's ``posterior`` block from a FitResult: per axis the flight parameters and their
+    posterior covariance (ground-only terms marginalised: their rows and columns dropped). None when the
+    fit has no posterior or a flight parameter is undetermined (no prior, ``--no-priors``)."""
+    post = getattr(result, "posterior", None)
+    if post is None:
+        return None
+    m = result.model
+    mask = m.axis_mask()
+    block: dict[str, Any] = {}
+    for i, a in enumerate(("x", "y", "z")):
+        cols = [c for c, col in enumerate(m.columns) if mask[i, c] and col.term in _TERM_PARAMS]
+        C = post.cov[i][np.ix_(cols, cols)]
+        if not np.all(np.isfinite(C)):
+            return None
+        block[a] = {"names": [m.param_name(i, c) for c in cols], "cov": (0.5 * (C + C.T)).tolist()}
+    block["sigma_uT"] = [float(x) for x in post.sigma_uT]
+    return block
+
+
+def _validity_from_posterior(result, block: dict, bound_uT: float, part_temp_c, part_field_uT: float,
+                             currents: dict) -> tuple[tuple[float, float] | None, float, list[str]]:
+    """(temperature interval, field limit, notes) where the posterior sd stays below ``bound_uT``."""
+    from magstack.firmware.cal_uncertainty import field_limit_uT, validity_box
+
+    m, cov = result.model, result.coverage
+    notes = []
+    tlo, thi = BOUNDS["temp_c"]
+    lim = (max(tlo, part_temp_c[0]), min(thi, part_temp_c[1]))
+    data_field = float(np.max(cov.field_max_uT)) if np.all(np.isfinite(cov.field_max_uT)) else 0.0
+    f_cap = min(part_field_uT, BOUNDS["field_uT"], max(1.0, math.ceil(FIELD_EXTRAPOLATION * data_field)))
+    has_t = math.isfinite(cov.temp_min_c)
+    centre = 0.5 * (cov.temp_min_c + cov.temp_max_c) if has_t else m.t0_c
+    field = field_limit_uT(block, m.t0_c, bound_uT, centre, f_cap, currents)
+    if field < math.ceil(data_field):
+        notes.append(f"posterior sd exceeds the bound {bound_uT * 1e3:.0f} nT at {field:g} uT, inside the fitted "
+                     f"field: the field limit is the data's {math.ceil(data_field):g} uT")
+        field = float(max(1.0, math.ceil(data_field)))
+    data_t = ((math.floor(cov.temp_min_c * 100) / 100, math.ceil(cov.temp_max_c * 100) / 100) if has_t else None)
+    if not ({"temperature_gain", "temperature_offset"} & set(m.terms)):
+        notes.append("no temperature terms: the posterior says nothing about temperature; validity temperature = "
+                     "the data's range")
+        return data_t, field, notes
+    # the temperature interval at the field magnitude the fit saw (within the field limit)
+    seen = float(np.max(cov.field_max_uT)) if np.all(np.isfinite(cov.field_max_uT)) else field
+    box, at_c = validity_box(block, m.t0_c, bound_uT, lim, min(field, max(seen, 1.0)), centre, currents)
+    if box is None:
+        notes.append(f"posterior sd at the data's centre ({at_c * 1e3:.0f} nT) exceeds the bound "
+                     f"{bound_uT * 1e3:.0f} nT: validity temperature = the data's range")
+        return data_t, field, notes
+    if data_t is not None and (box[0] > data_t[0] or box[1] < data_t[1]):
+        # never narrower than where the fit had data (there the calibration was tested)
+        notes.append(f"posterior sd exceeds the bound inside the data's own range ({box[0]:g}..{box[1]:g} degC): "
+                     f"validity keeps the data's {data_t[0]:g}..{data_t[1]:g} degC")
+        box = (min(box[0], data_t[0]), max(box[1], data_t[1]))
+    return box, field, notes
+
+
 def table_from_fit(result, device_id: str, *, description: str = "", created_utc: str = "",
                    validity_temp_c: tuple[float, float] | None = None, validity_field_uT: float | None = None,
-                   validity_currents_A: Mapping[str, tuple[float, float]] | None = None) -> CalTable:
-    """A table from a :class:`magstack.firmware.calibration.FitResult`. Validity defaults to what
-    the fit data covered (temperature range, max |B| component, current ranges)."""
+                   validity_currents_A: Mapping[str, tuple[float, float]] | None = None,
+                   validity_sd_uT: float | None = None) -> CalTable:
+    """A table from a :class:`magstack.firmware.calibration.FitResult`.
+
+    With a posterior (the MAP fit) the table carries its covariance (block ``posterior``) and the validity
+    box is where the posterior sd of the calibrated field (an upper bound of the worst case over the box,
+    :mod:`magstack.firmware.cal_uncertainty`) stays below ``validity_sd_uT`` (default 2x the fit's noise
+    floor, else 2x its in-sample RMSE), clipped to the part's operating range (the chip's priors) and to
+    ``FIELD_EXTRAPOLATION`` x the largest field the fit saw. Without one, validity is what the fit data
+    covered (temperature range, max |B| component). Given values override; currents: the data's ranges.
+    The decisions are in ``fit_stats["validity"]``."""
+    from magstack.drivers.cal_priors import priors_for
+
     m = result.model
     p = m.unpack(result.theta)
     cov = result.coverage
+    vc = dict(validity_currents_A or {})
+    for k in m.currents:
+        vc.setdefault(k, tuple(cov.currents_A.get(k, (0.0, 0.0))))
+    block = posterior_block(result)
+    stats = result.stats()
+    vinfo: dict[str, Any] = {"rule": "data range"}
+    if block is not None:
+        nf = np.asarray(result.noise_floor_uT, dtype=float)
+        base = float(np.linalg.norm(nf)) if np.all(np.isfinite(nf)) else float(np.linalg.norm(result.rmse_uT))
+        bound = float(validity_sd_uT) if validity_sd_uT is not None else VALIDITY_NOISE_FACTOR * base
+        part = priors_for(getattr(result, "chip", None))
+        t_box, f_box, notes = _validity_from_posterior(result, block, bound, part.operating_temp_c,
+                                                       part.field_range_uT, vc)
+        block["bound_uT"] = bound
+        block["prior"] = getattr(result, "prior_name", "") or ""
+        if np.all(np.isfinite(nf)):
+            block["noise_floor_uT"] = [float(x) for x in nf]
+        vinfo = {"rule": "posterior sd <= bound", "bound_uT": bound, "part": part.chip,
+                 "part_temp_c": list(part.operating_temp_c), "part_field_uT": part.field_range_uT,
+                 "notes": notes}
+        if validity_temp_c is None:
+            validity_temp_c = t_box
+        if validity_field_uT is None:
+            validity_field_uT = f_box
     if validity_temp_c is None and math.isfinite(cov.temp_min_c):
         validity_temp_c = (math.floor(cov.temp_min_c * 100) / 100, math.ceil(cov.temp_max_c * 100) / 100)
     if validity_field_uT is None:
         validity_field_uT = float(np.ceil(cov.field_max_uT.max()))
-    vc = dict(validity_currents_A or {})
-    for k in m.currents:
-        vc.setdefault(k, tuple(cov.currents_A.get(k, (0.0, 0.0))))
+    warn = []
+    if validity_temp_c is not None and validity_temp_c[1] - validity_temp_c[0] < NARROW_TEMP_C:
+        warn.append(f"validity temperature {validity_temp_c[0]:g}..{validity_temp_c[1]:g} degC is narrower than "
+                    f"{NARROW_TEMP_C:g} degC: samples outside it will not be calibrated")
+    if validity_field_uT < NARROW_FIELD_uT:
+        warn.append(f"validity field {validity_field_uT:g} uT per axis is below {NARROW_FIELD_uT:g} uT")
+    vinfo["warnings"] = warn
+    stats["validity"] = vinfo
     ground = {}
     if "time_skew" in m.terms:
         ground["tau_s"] = p["tau"]
@@ -403,7 +513,7 @@ def table_from_fit(result, device_id: str, *, description: str = "", created_utc
                     validity_field_uT=validity_field_uT,
                     validity_currents_A=tuple((k, vc[k]) for k in m.currents), model_name=m.name,
                     description=description, created_utc=created_utc or _now_utc(),
-                    fit_stats=result.stats(), ground_only=ground)
+                    fit_stats=stats, ground_only=ground, posterior=block)
 
 
 # ---------------------------------------------------------------------- store

@@ -22,6 +22,9 @@ import math
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
+
+from magstack.firmware.cal_uncertainty import parse_name
 from magstack.firmware.errors import CalTableInvalid
 
 #: Deepest nesting any valid table needs (free-form ``fit`` / ``ground_only`` included).
@@ -158,7 +161,9 @@ def _interval(where: _Path, path: str, x: Any) -> list[float]:
 
 # ------------------------------------------------------------------------ the schema
 TOP_REQUIRED = {"schema", "schema_version", "device_id", "model", "parameters", "validity", "crc32"}
-TOP_OPTIONAL = {"table_name", "description", "created_utc", "fit"}
+TOP_OPTIONAL = {"table_name", "description", "created_utc", "fit", "posterior"}
+POSTERIOR_REQUIRED = {"x", "y", "z"}
+POSTERIOR_OPTIONAL = {"sigma_uT", "bound_uT", "noise_floor_uT", "prior"}
 MODEL_REQUIRED = {"terms", "currents", "t0_c"}
 MODEL_OPTIONAL = {"name"}
 VALIDITY_REQUIRED = {"temp_c", "field_uT", "currents_A"}
@@ -221,6 +226,51 @@ def check_document(doc: dict, source: str, *, term_params: dict[str, str], units
     for name in currents:
         _interval(w, f"validity.currents_A.{name}", ca[name])
     _string(w, "crc32", doc["crc32"], nonempty=True)
+    if "posterior" in doc:
+        check_posterior(w, doc["posterior"], declared_params=declared, currents=currents)
+
+
+#: Largest posterior block per axis (parameters): Eq. 3 + currents + cubic + cross products.
+MAX_POSTERIOR_PARAMS = 64
+
+
+def check_posterior(w: _Path, post: Any, *, declared_params: set[str], currents: list[str]) -> None:
+    """The optional posterior block: per axis the flight parameter names and their covariance (square,
+    symmetric to 1e-9 relative, positive semi-definite); names must belong to declared parameters."""
+    obj = _object(w, "posterior", post, POSTERIOR_REQUIRED, POSTERIOR_OPTIONAL)
+    for key in ("sigma_uT", "noise_floor_uT"):
+        if key in obj:
+            _vector(w, f"posterior.{key}", obj[key])
+    if "bound_uT" in obj:
+        _number(w, "posterior.bound_uT", obj["bound_uT"])
+    if "prior" in obj:
+        _string(w, "posterior.prior", obj["prior"])
+    for axis in ("x", "y", "z"):
+        path = f"posterior.{axis}"
+        blk = _object(w, path, obj[axis], {"names", "cov"})
+        names = blk["names"]
+        if not isinstance(names, list) or not all(isinstance(x, str) for x in names) or not names \
+                or len(names) > MAX_POSTERIOR_PARAMS or len(set(names)) != len(names):
+            raise w.error(f"{path}.names", f"must be a list of 1..{MAX_POSTERIOR_PARAMS} distinct parameter names")
+        for k, nm in enumerate(names):
+            try:
+                par, i, _ = parse_name(nm)
+            except ValueError as exc:
+                raise w.error(f"{path}.names[{k}]", str(exc)) from None
+            base = "D" if par.startswith("D_") else par
+            if base not in declared_params or (base == "D" and par[2:] not in currents) or "xyz"[i] != axis:
+                raise w.error(f"{path}.names[{k}]", f"{nm} is not a parameter of output axis {axis} of this table")
+        cov = blk["cov"]
+        k = len(names)
+        if not isinstance(cov, list) or len(cov) != k:
+            raise w.error(f"{path}.cov", f"must be a {k}x{k} matrix")
+        rows = [_vector(w, f"{path}.cov[{r}]", row, k) for r, row in enumerate(cov)]
+        C = np.array(rows, dtype=float)
+        scale = max(float(np.max(np.abs(C))), 1e-300)
+        if np.max(np.abs(C - C.T)) > 1e-9 * scale:
+            raise w.error(f"{path}.cov", "is not symmetric")
+        if np.linalg.eigvalsh(0.5 * (C + C.T)).min() < -1e-9 * scale:
+            raise w.error(f"{path}.cov", "is not positive semi-definite")
 
 
 _SHAPES: dict[str, Callable[..., Any]] = {"3x3": _matrix, "3": _vector}

@@ -1,7 +1,10 @@
 """Apply a calibration table to a whole session (``magstack apply``, the demo, ``diagnose --table``).
 
 Every row is kept: rows that cannot be calibrated hold NaN and carry the applier's flag bits,
-shifted above the first 8 bits (``FLAG_SHIFT``) so flags already in the file survive.
+shifted above the first 8 bits (``FLAG_SHIFT``) so flags already in the file survive. Rows outside the
+table's validity box are flagged and, like the flight corrector, get no calibrated value (NaN) unless
+``extrapolate`` is asked for. A table with a posterior block adds the column ``cal_sigma_nT``: the
+posterior sd of the calibrated field's magnitude per row (:mod:`magstack.firmware.cal_uncertainty`).
 """
 from __future__ import annotations
 
@@ -16,8 +19,9 @@ from magstack.firmware.float_applier import ApplyFlag, apply_float
 FLAG_SHIFT = 8
 
 
-def calibrate_session(table, s: Session, applier: str = "float") -> Session:
-    """Calibrated copy of ``s`` (all rows kept) with flags and metadata."""
+def calibrate_session(table, s: Session, applier: str = "float", extrapolate: bool = False) -> Session:
+    """Calibrated copy of ``s`` (all rows kept) with flags, metadata and, when the table carries its
+    posterior, ``cal_sigma_nT``. ``extrapolate``: keep the value of out-of-validity rows (still flagged)."""
     missing = [k for k in table.currents if k not in s.currents_A]
     if missing:
         raise SessionFileError(f"table needs current column(s) {missing}; session has {list(s.currents_A)}")
@@ -33,14 +37,23 @@ def calibrate_session(table, s: Session, applier: str = "float") -> Session:
         flags[bad] = int(ApplyFlag.MISSING_INPUT)
     else:
         out, flags = apply_float(table, s.dut_uT, s.temp_c, cur)
+    if not extrapolate:
+        out[(flags & int(ApplyFlag.OUT_OF_VALIDITY)) != 0] = np.nan
+    extra = dict(s.extra)
+    if table.posterior is not None:
+        from magstack.firmware.cal_uncertainty import norm_sd_uT, predictive_sd_uT
+        sd = predictive_sd_uT(table.posterior, table.t0_c, s.dut_uT, s.temp_c, cur)
+        sig = norm_sd_uT(sd, out) * 1e3
+        sig[~np.all(np.isfinite(out), axis=1)] = np.nan
+        extra["cal_sigma_nT"] = sig
     old = s.flag if s.flag is not None else np.zeros(len(s), np.int64)
     meta = dict(s.metadata)
     meta.update({"calibrated": "true", "dut_field": "calibrated", "cal_device_id": table.device_id,
                  "cal_model": table.model_name, "cal_table_crc32": (f"0x{table.crc32:08x}" if table.crc32 is not None
                                      else table.to_document()["crc32"]),
-                 "cal_applier": applier,
+                 "cal_applier": applier, "cal_out_of_validity": "extrapolated" if extrapolate else "NaN",
                  "cal_flag_bits": f"{int(ApplyFlag.MISSING_INPUT) << FLAG_SHIFT}=missing_input "
                                   f"{int(ApplyFlag.OUT_OF_VALIDITY) << FLAG_SHIFT}=out_of_validity "
                                   f"{int(ApplyFlag.SATURATED) << FLAG_SHIFT}=saturated"})
     return Session(s.t_s, s.ref_uT, out, s.temp_c, s.session, dict(s.currents_A), meta,
-                   old | (flags.astype(np.int64) << FLAG_SHIFT))
+                   old | (flags.astype(np.int64) << FLAG_SHIFT), extra=extra)

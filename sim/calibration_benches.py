@@ -21,12 +21,15 @@ from magstack.sim.coil_programs import ProgramTruth, rotation_profile, sweep_pro
 from magstack.sim.error_model import ErrorModel
 from magstack.sim.presets import preset
 
-#: Eq. 3 parameters of the thermal bench (rows: output axis). K_S diagonal = the HMC1053's
-#: -2700 ppm/degC sensitivity tempco (hardware-facts); off-diagonals and K_O small.
+#: Eq. 3 parameters of the thermal bench (rows: output axis), calibration direction. The sensitivity of
+#: input axis j falls with temperature by ``alpha_j`` (HMC1053 datasheet -2700 ppm/degC typ, here -2600 /
+#: -2900 / -2500 ppm/degC: not the prior's mean), so the calibration gain rises: K_S[:, j] = -alpha_j S[:, j].
+#: K_O a few nT/degC (set/reset part).
 THERMAL_S = np.array([[1.026, -0.02, 0.01], [0.03, 1.07, 0.02], [-0.01, 0.015, 1.05]])
-THERMAL_K_S = np.array([[-2.7e-3, 3e-5, -4e-5], [4e-5, -2.5e-3, 2e-5], [-6e-5, 5e-5, -2.9e-3]])
+THERMAL_ALPHA_PER_C = np.array([-2.6e-3, -2.9e-3, -2.5e-3])
+THERMAL_K_S = -THERMAL_S * THERMAL_ALPHA_PER_C[None, :]
 THERMAL_O = np.array([0.33, 0.03, -0.47])
-THERMAL_K_O = np.array([0.01, -0.005, 0.02])
+THERMAL_K_O = np.array([0.004, -0.003, 0.005])
 
 
 def thermal_theta(model: CalModel) -> np.ndarray:
@@ -119,3 +122,44 @@ def sweep_sessions_bench(axes: Sequence[str], rotvec_rad: Mapping[int, Sequence[
     rng = np.random.default_rng(seed + 1)
     ref = truth.field_series_uT(t) + rng.normal(0, ref_noise_uT, (t.size, 3))
     return FitData(dut, ref, np.full(t.size, 25.0), 1.6e9 + t, truth.session_series(t))
+
+
+def preset_thermal_bench(*, seed: int = 0, level_uT: Sequence[float] = (44.0, 0.0, 0.0),
+                         cool_c: tuple[float, float] = (80.0, 38.0), rate_hz: float = 2.0,
+                         sweep_s: float = 40.0, cool_s: float = 3000.0, tau_s: float = 900.0,
+                         ref_noise_uT: float = 0.01, effects: Sequence[str] | None = None) -> FitData:
+    """The HMC1053 *error model* (its preset, every effect unless ``effects`` names some) on a bench like
+    the real thermal check: session 1 steps each axis through -50..+50 uT (11 levels, ``sweep_s`` each)
+    at 25 degC; session 2 holds ``level_uT`` while the unit cools exponentially from ``cool_c[0]`` to
+    ``cool_c[1]`` degC (time constant ``tau_s``). The reference is the truth plus white noise."""
+    levels = np.linspace(-50.0, 50.0, 11)
+    seg1 = 3 * levels.size * sweep_s
+    lev = np.asarray(level_uT, dtype=float)
+    hot, cold = cool_c
+
+    def field(t):
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        out = np.tile(lev, (t.size, 1))
+        k = (t // sweep_s).astype(int)
+        first = t < seg1
+        axis, step = k[first] // levels.size, k[first] % levels.size
+        b = np.zeros((int(first.sum()), 3))
+        b[np.arange(b.shape[0]), axis] = levels[step]
+        out[first] = b
+        return out
+
+    def temp(t):
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        cool = cold + (hot - cold) * np.exp(-np.maximum(t - seg1, 0.0) / tau_s)
+        return np.where(t < seg1, 25.0, cool)
+
+    duration = seg1 + cool_s
+    truth = ProgramTruth("preset-thermal", duration, field, temp, sessions=1)
+    t = np.arange(0.0, duration, 1.0 / rate_hz)
+    params = preset("hmc1053")
+    model = ErrorModel(params, seed=seed) if effects is None else ErrorModel(params, seed=seed, effects=tuple(effects))
+    dut = model.sense_series(t, truth)
+    rng = np.random.default_rng(seed + 1)
+    ref = truth.field_series_uT(t) + rng.normal(0, ref_noise_uT, (t.size, 3))
+    session = np.where(t < seg1, 1, 2)
+    return FitData(dut, ref, truth.temp_series_c(t), 1.6e9 + t, session)

@@ -96,7 +96,7 @@ def test_fit_refuses_unidentifiable_on_request(tmp_path, capsys):
     rc = main(["fit", str(tmp_path / "s.csv"), "--refuse-unidentifiable", "--out", str(tmp_path / "c.json")])
     assert rc == 3 and "cannot determine" in capsys.readouterr().err
     assert main(["fit", str(tmp_path / "s.csv"), "--out", str(tmp_path / "c.json")]) == 0
-    assert "held at prior" in capsys.readouterr().out
+    assert "determined by the prior, not the data" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("model", ["eq3", "gain_offset"])

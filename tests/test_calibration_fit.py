@@ -68,22 +68,38 @@ def test_standard_errors_match_the_scatter_of_refits():
     assert np.all((ratio > 0.6) & (ratio < 1.5)), ratio
 
 
-def test_temperature_terms_without_excursion_are_held_and_named():
+def test_temperature_terms_without_excursion_come_from_the_prior_and_are_named():
+    """At one constant temperature the data cannot determine a tempco: the datasheet prior does, with its
+    sd (not "held at 0"), and the report names them with the reason."""
+    from magstack.drivers.cal_priors import PRIORS
     rng = np.random.default_rng(3)
     m = _model(resolve_terms("eq3"))
     th = random_theta(m, rng)
-    d = make_data(m, th, N, rng, temp_span_c=(24.0, 24.5))
-    r = fit(d, options=FitOptions(holdout=False))
+    d = make_data(m, th, N, rng, temp_span_c=(24.0, 24.0))
+    r = fit(d, options=FitOptions(holdout=False, chip="hmc1053"))
     names = {h.name for h in r.held}
     assert names == {f"K_S[{i},{j}]" for i in "xyz" for j in "xyz"} | {f"K_O[{i}]" for i in "xyz"}
-    assert all(h.value == 0.0 and "temperature spans only" in h.reason for h in r.held)
-    assert all(r.theta[h.axis, h.column] == 0.0 and np.isnan(r.se[h.axis, h.column]) for h in r.held)
+    assert all("temperature spans only" in h.reason for h in r.held)
+    post = r.posterior
+    hp = PRIORS["hmc1053"]
+    S = r.params["S"]
+    for h in r.held:
+        i, c = h.axis, h.column
+        assert post.determined_by(i, c) == "prior"
+        assert r.se[i, c] == pytest.approx(post.prior.sd[i, c], rel=0.05)      # the prior's uncertainty
+        if r.model.columns[c].param == "K_S":                                  # relative tempco x fitted S
+            j = r.model.columns[c].index
+            assert abs(r.theta[i, c] - hp.k_s_rel_per_c.mean * S[i, j]) <= 0.01 * post.prior.sd[i, c]
+        else:
+            assert abs(r.theta[i, c] - hp.k_o_uT_per_c.mean) <= 0.05 * hp.k_o_uT_per_c.sd
+    assert "determined by the prior" in r.report() and "hmc1053" in r.report()
     with pytest.raises(FitError, match="K_S\\[x,x\\]"):
-        fit(d, options=FitOptions(holdout=False, on_unidentifiable="refuse"))
+        fit(d, options=FitOptions(holdout=False, chip="hmc1053", on_unidentifiable="refuse"))
 
 
 def test_temperature_gain_needs_field_and_temperature_together():
-    """Belsten sec. 3.3: X saw field while heated, Y and Z only at room temperature."""
+    """Belsten sec. 3.3: X saw field while heated, Y and Z only at room temperature: K_S[., y/z] would be
+    informed only by the DUT's noise times temperature, so they come from the prior alone."""
     rng = np.random.default_rng(4)
     m = _model(resolve_terms("eq3"))
     th = random_theta(m, rng)
@@ -93,25 +109,45 @@ def test_temperature_gain_needs_field_and_temperature_together():
     d.temp_c[~first] = 24.0                                                # second half: room temperature
     d.b_ref_uT = m.predict(th, m.design(d.b_meas_uT, d.temp_c, {}, d.session, d.t_s))
     r = fit(d, options=FitOptions(holdout=False))
-    held = {h.name for h in r.held}
-    assert held == {f"K_S[{i},{j}]" for i in "xyz" for j in "yz"}
+    gated = {h.name for h in r.held if h.rule == "temperature-no-field"}
+    assert gated == {f"K_S[{i},{j}]" for i in "xyz" for j in "yz"}
+    assert all(r.posterior.data_share[h.axis, h.column] == 0.0 for h in r.held if h.name in gated)
     kx = [c for c, col in enumerate(r.model.columns) if col.param == "K_S" and col.index == 0][0]
     np.testing.assert_allclose(r.theta[:, kx], th[:, kx], rtol=1e-3)
 
 
-def test_prior_for_held_parameter_is_used():
+def test_user_prior_and_fixed_value_are_used():
     rng = np.random.default_rng(5)
     m = _model(resolve_terms("eq3"))
     th = random_theta(m, rng)
-    d = make_data(m, th, N, rng, temp_span_c=(24.0, 24.2))
-    r = fit(d, options=FitOptions(holdout=False, priors={"K_O[z]": 0.16}))
+    d = make_data(m, th, N, rng, temp_span_c=(24.0, 24.0))
+    r = fit(d, options=FitOptions(holdout=False, priors={"K_O[z]": 0.16}))        # a number fixes it (sd 0)
     h = [x for x in r.held if x.name == "K_O[z]"][0]
-    assert h.value == 0.16 and r.params["K_O"][2] == 0.16
+    assert h.value == 0.16 and r.params["K_O"][2] == 0.16 and "held by the user" in h.reason
+    r = fit(d, options=FitOptions(holdout=False, priors={"K_O[z]": (0.2, 0.01)}))  # (mean, sd): the prior decides
+    assert r.params["K_O"][2] == pytest.approx(0.2, abs=1e-3)
+    k = [c for c, col in enumerate(r.model.columns) if col.param == "K_O"][0]
+    assert r.se[2, k] == pytest.approx(0.01, rel=0.05)
     with pytest.raises(FitError, match="unknown parameter"):
         fit(d, options=FitOptions(holdout=False, priors={"K_O[w]": 1.0}))
 
 
-def test_axis_never_excited_holds_its_gain_column_at_identity():
+def test_no_priors_is_the_unregularised_fit_and_names_what_it_cannot_determine():
+    rng = np.random.default_rng(15)
+    m = _model(resolve_terms("eq3"))
+    th = random_theta(m, rng)
+    d = make_data(m, th, N, rng, noise_uT=0.02)
+    r = fit(d, options=FitOptions(holdout=False, use_priors=False))
+    assert r.held == [] and "no-priors" in r.prior_name
+    np.testing.assert_allclose(r.theta[m.axis_mask()], th[m.axis_mask()], atol=5e-3)
+    d2 = make_data(m, th, N, rng, temp_span_c=(24.0, 24.0))
+    r2 = fit(d2, options=FitOptions(holdout=False, use_priors=False))
+    und = {h.name for h in r2.held}
+    assert {f"K_O[{a}]" for a in "xyz"} <= und                              # dT == -1: the offset's copy
+    assert all("minimum-norm" in h.reason or "data not used" in h.reason for h in r2.held)
+
+
+def test_axis_never_excited_takes_its_gain_column_from_the_prior():
     rng = np.random.default_rng(6)
     m = _model(("gain_matrix", "offset"))
     th = random_theta(m, rng)
@@ -119,12 +155,14 @@ def test_axis_never_excited_holds_its_gain_column_at_identity():
     d.b_meas_uT[:, 2] = rng.normal(0, 0.5, N)          # Z sees no field, only 0.5 uT of noise
     r = fit(d, "gain_offset", options=FitOptions(holdout=False))
     assert {h.name for h in r.held} == {"S[x,z]", "S[y,z]", "S[z,z]"}
-    assert r.params["S"][2, 2] == 1.0 and r.params["S"][0, 2] == 0.0
+    assert r.params["S"][2, 2] == 1.0 and r.params["S"][0, 2] == 0.0      # the prior means, exactly
+    assert all(r.posterior.data_share[h.axis, h.column] == 0.0 for h in r.held)
     d.b_meas_uT[:, 2] = 0.3 * d.b_meas_uT[:, 0] + rng.normal(0, 0.01, N)   # Z just follows X
     r = fit(d, "gain_offset", options=FitOptions(holdout=False))
-    # X and Z cannot be separated: the weaker (Z) is held, the X column carries the combination
-    assert {h.name for h in r.held} == {"S[x,z]", "S[y,z]", "S[z,z]"}
-    assert all("more excited axes" in h.reason for h in r.held)
+    # X and Z cannot be separated: the weaker (Z) comes from the prior, the X column carries the combination
+    gated = {h.name for h in r.held if h.rule == "field"}
+    assert gated == {"S[x,z]", "S[y,z]", "S[z,z]"}
+    assert all("more excited axes" in h.reason for h in r.held if h.name in gated)
 
 
 def test_single_axis_sweep_calibrates_its_axis_despite_cross_coupling():
@@ -145,7 +183,7 @@ def test_single_axis_sweep_calibrates_its_axis_despite_cross_coupling():
     assert r.rmse_norm_uT < 0.1 < float(np.linalg.norm(r.raw_rmse_uT))
 
 
-def test_exactly_collinear_current_is_held():
+def test_exactly_collinear_current_comes_from_the_prior():
     rng = np.random.default_rng(7)
     m = _model(resolve_terms("eq3"))
     th = random_theta(m, rng)
@@ -154,6 +192,8 @@ def test_exactly_collinear_current_is_held():
     r = fit(d, currents=("a",), options=FitOptions(holdout=False))
     assert {h.name for h in r.held} == {"D_a[x]", "D_a[y]", "D_a[z]"}
     assert all("combination" in h.reason for h in r.held)
+    # the data determine the offset + 0.7 D combination; the priors split it
+    assert all(r.posterior.determined_by(h.axis, h.column) in ("prior", "data+prior") for h in r.held)
 
 
 def test_robust_irls_ignores_outliers():

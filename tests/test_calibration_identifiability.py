@@ -38,26 +38,36 @@ def test_correlation_stats_on_a_known_pair():
     assert len(g) == 1 and set(g[0].members) == {0, 1}
 
 
-def test_one_field_thermal_run_holds_the_degenerate_pair_and_does_not_hurt_other_fields():
+def test_one_field_thermal_run_prior_splits_the_degenerate_pair_and_other_fields_stay_right():
+    """Belsten's degenerate pair: at one field, K_S[.,x] B_x dT and K_O dT are one column. The datasheet
+    prior (HMC1053 tempco -2700 +- 600 ppm/degC, offset tempco 0 +- 6 nT/degC) splits it; the truth here
+    (-2600 ppm/degC, K_O 3-5 nT/degC) is not the prior's mean: the tempco is recovered within 2 posterior
+    sd, and the error at zero field and at fields the fit never saw stays within the noise floor plus what
+    the posterior itself predicts (K_O's prior sd x dT: 6 nT/degC over up to 48 degC). The noise-floor-only
+    acceptance on the HMC1053 error model is in test_calibration_priors.py."""
     rng = np.random.default_rng(1)
-    _, _, d = thermal_bench([(50.0, 0.0, 0.0)], rng)
-    r = fit(d, "eq3", options=NO_HOLDOUT)
+    m, th, d = thermal_bench([(50.0, 0.0, 0.0)], rng)
+    r = fit(d, "eq3", options=FitOptions(holdout=False, chip="hmc1053"))
     held = {h.name: h.reason for h in r.held}
-    for i in "xyz":      # the pair is held on every output axis, and named as degenerate
-        assert "degenerate" in held[f"K_S[{i},x]"] and "degenerate" in held[f"K_O[{i}]"]
-        assert f"held with K_O[{i}]" in held[f"K_S[{i},x]"] or f"held with K_S[{i},x]" in held[f"K_O[{i}]"]
-    corr = float(re.search(r"correlates at ([-+][0-9.]+)", held["K_S[x,x]"]).group(1))
+    for i in "xyz":      # the offset tempco comes from the prior; the analysis says why
+        assert "degenerate" in held[f"K_O[{i}]"]
+    corr = float(re.search(r"correlates at ([-+][0-9.]+)", held["K_O[x]"]).group(1))
     assert corr <= -0.99
-    # the unguarded fit (what the old rule did) determines the pair only formally
-    forced = fit(d, "eq3", options=FitOptions(holdout=False, max_vif=1e12))
-    assert not any("degenerate" in h.reason for h in forced.held)
-    # held-out at field levels the fit did not see: never worse than the model without the terms
-    plain = fit(d, "gain_offset", options=NO_HOLDOUT)
+    ks_x = [c for c, col in enumerate(m.columns) if col.feature == "B_x*dT"][0]
+    z = (r.theta[:, ks_x] - th[:, ks_x]) / r.se[:, ks_x]
+    assert np.all(np.abs(z) < 2.0), z
+    floor = float(np.linalg.norm(r.noise_floor_uT))
     for level in [(0.0, 0.0, 0.0), (-30.0, 0.0, 0.0), (0.0, 0.0, 40.0)]:
         other = _at_field(level, np.random.default_rng(7))
-        assert _rms_out(r, other) <= _rms_out(plain, other) * (1 + 1e-9)
+        X = r.model.design(other.b_meas_uT, other.temp_c)
+        pred_sd = float(np.sqrt(np.mean(np.einsum("nk,ikl,nl->n", X, r.posterior.cov, X))))
+        assert _rms_out(r, other) <= 1.5 * floor + 2.0 * pred_sd, (level, _rms_out(r, other), floor, pred_sd)
+    # without the physics (generic wide priors) the split goes wrong at zero field, as the old "hold at 0"
+    # rule went wrong in the other direction; --no-priors leaves the pair to the minimum-norm solution
+    generic = fit(d, "eq3", options=NO_HOLDOUT)
+    assert _rms_out(generic, _at_field((0.0, 0.0, 0.0), np.random.default_rng(7))) > 3 * floor
     with pytest.raises(FitError, match="degenerate"):
-        fit(d, "eq3", options=FitOptions(holdout=False, on_unidentifiable="refuse"))
+        fit(d, "eq3", options=FitOptions(holdout=False, chip="hmc1053", on_unidentifiable="refuse"))
 
 
 @pytest.mark.parametrize("levels", [[(50.0, 0.0, 0.0), (0.0, 0.0, 0.0)],

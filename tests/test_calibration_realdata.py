@@ -34,7 +34,7 @@ def bench():
 
 @pytest.fixture(scope="module")
 def fits(bench):
-    o = FitOptions(exclude_ref_steps_uT=0.1)
+    o = FitOptions(exclude_ref_steps_uT=0.1, chip="hmc1053")
     return {"gain_offset": fit(bench, "gain_offset", options=o), "eq3": fit(bench, "eq3", options=o),
             "eq3+session_offset": fit(bench, "eq3", ["session_offset"], options=o)}
 
@@ -50,13 +50,20 @@ def test_raw_gain_offset_and_noise_floor_match_the_anchors(fits):
     assert np.linalg.norm(r.holdout_blocks_uT) >= 0.9 * r.rmse_norm_uT
 
 
-def test_temperature_terms_are_held_not_overfitted(fits):
+def test_temperature_terms_come_from_the_prior_not_overfitted(fits):
+    """0.72 degC in total: the datasheet prior decides the tempcos (issue 21); priors cost no accuracy
+    where the data decide: in-sample and held-out within 1 % of gain+offset (88.3 / 103.8 nT), or better."""
     r = fits["eq3"]
     held = {h.name for h in r.held}
     assert {f"K_S[{i},{j}]" for i in "xyz" for j in "xyz"} <= held
     assert {f"K_O[{i}]" for i in "xyz"} <= held
-    # holding them costs nothing in sample: they were not determined
-    assert r.rmse_norm_uT == pytest.approx(fits["gain_offset"].rmse_norm_uT, rel=1e-6)
+    post = r.posterior
+    for h in r.held:
+        assert post.data_share[h.axis, h.column] < 0.2
+    g = fits["gain_offset"]
+    assert r.rmse_norm_uT <= 1.01 * g.rmse_norm_uT
+    assert np.linalg.norm(r.holdout_blocks_uT) <= 1.01 * np.linalg.norm(g.holdout_blocks_uT)
+    assert abs(r.rmse_norm_uT - 0.0883) < 0.01 * 0.0883 and abs(np.linalg.norm(r.holdout_blocks_uT) - 0.1038) < 0.015
 
 
 def test_session_offsets_help_in_and_out_of_sample(fits):
@@ -85,14 +92,16 @@ def test_real_table_validates_and_fixed_point_matches_float(fits, bench):
 
 def test_mount_rotations_are_not_identifiable_on_single_axis_sweeps_and_say_why(bench, fits):
     # each axis is swept in exactly one session: a session's rotation is the same as that axis's
-    # gain coupling, so every angle is held (named), the sensor fit is unchanged, no verdict is claimed
-    r = fit(bench, "eq3", ["mount_rotation"], options=FitOptions(exclude_ref_steps_uT=0.1, holdout=False))
+    # gain coupling, so every angle is held (named), the sensor fit is unchanged (to the prior's small pull
+    # on the data-determined parameters, which the angle solver leaves out), no verdict is claimed
+    r = fit(bench, "eq3", ["mount_rotation"], options=FitOptions(exclude_ref_steps_uT=0.1, holdout=False,
+                                                                 chip="hmc1053"))
     assert r.mount.frame == 3 and "not fully pinned" in r.mount.frame_note
     reasons = {(k, a): why for k, a, why in r.mount.held}
     assert len(reasons) == 12                                   # sessions 4-7, three angles each
     assert "perpendicular to x" in reasons[(5, 0)]              # the X sweep cannot show a rotation about X
     assert "degenerate" in reasons[(5, 1)] and "S[z,x]" in reasons[(5, 1)]
     assert r.comparison["rotation_explains"] is None and "undecided" in r.report()
-    assert r.rmse_norm_uT == pytest.approx(fits["eq3"].rmse_norm_uT, rel=1e-9)
+    assert r.rmse_norm_uT == pytest.approx(fits["eq3"].rmse_norm_uT, rel=1e-3)
     t = table_from_fit(r, "hmc1053:av-mageval-edu")
     assert "mount_rotation" not in t.terms and validate(t).ok

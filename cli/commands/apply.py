@@ -27,6 +27,9 @@ def register(subparsers) -> None:
     p.add_argument("table", metavar="cal.json")
     p.add_argument("session", metavar="SESSION.csv")
     p.add_argument("--out", required=True, metavar="calibrated.csv", type=nonempty_path)
+    p.add_argument("--extrapolate", action="store_true",
+                   help="write values for rows outside the table's validity box (still flagged); default: no "
+                        "value (NaN), as the flight corrector publishes none")
     p.add_argument("--applier", choices=("float", "fixed"), default="float",
                    help="float64 reference (default) or the on-board integer applier")
     p.add_argument("--exclude-steps", type=finite_float(0, 1e4, lo_open=True, unit="uT"), default=None, metavar="UT",
@@ -60,7 +63,7 @@ def run(args: argparse.Namespace) -> CommandResult:
         if dev is not None and dev != table.device_id:
             raise CalTableInvalid(f"table is for device {table.device_id!r}, session is from {dev!r}")
         st.next()
-        out = calibrate_session(table, s, args.applier)
+        out = calibrate_session(table, s, args.applier, extrapolate=args.extrapolate)
         st.next()
         write_session(args.out, out)
     f = out.flag >> FLAG_SHIFT
@@ -69,15 +72,23 @@ def run(args: argparse.Namespace) -> CommandResult:
               "saturated": int(np.count_nonzero(f & ApplyFlag.SATURATED))}
     lines = [f"note: {n}" for n in notes]
     lines.append(f"wrote {args.out}: {len(out)} rows ({args.applier} applier); not calibrated (missing input) "
-                 f"{counts['missing_input']}, outside validity {counts['out_of_validity']}, saturated "
-                 f"{counts['saturated']}")
+                 f"{counts['missing_input']}, outside validity {counts['out_of_validity']}"
+                 + (" (extrapolated, flagged)" if args.extrapolate else " (no value, as on board)")
+                 + f", saturated {counts['saturated']}")
+    sig = out.extra.get("cal_sigma_nT")
+    sig_stats = None
+    if sig is not None and np.isfinite(sig).any():
+        q = np.nanpercentile(sig, [50, 95])
+        sig_stats = {"median": float(q[0]), "p95": float(q[1]), "max": float(np.nanmax(sig))}
+        lines.append(f"cal_sigma_nT (posterior sd of |B_cal|): median {q[0]:.1f}, 95 % {q[1]:.1f}, "
+                     f"max {sig_stats['max']:.1f} nT")
     score = scores(out, args.exclude_steps)
     lines += score.pop("lines")
     data = {"out": str(args.out), "rows": len(out), "applier": args.applier,
             "table_crc32": table.to_document()["crc32"], "flag_counts": counts,
             "calibrated_vs_ref_rms_nT": score["all_rows"],
             "calibrated_vs_ref_rms_away_from_steps_nT": score["away_from_steps"],
-            "rows_selected": out.metadata.get("rows_selected"), "notes": notes}
+            "rows_selected": out.metadata.get("rows_selected"), "cal_sigma_nT": sig_stats, "notes": notes}
     return CommandResult("apply", data, lines)
 
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 
 from magstack.cli.options import finite_float, float_list, nonempty_path
 from magstack.cli.output import CommandResult, say
@@ -40,20 +41,21 @@ def register(subparsers) -> None:
     p.add_argument("--exclude-steps", type=finite_float(0, 1e4, lo_open=True, unit="uT"), default=None, metavar="UT",
                    help="exclude rows next to a reference change above UT between rows (field transitions)")
     p.add_argument("--min-temp-span", type=finite_float(0, 500, unit="degC"), default=5.0, metavar="DEGC",
-                   help="temperature span needed to fit temperature terms (default 5)")
+                   help="temperature span below which the report names temperature terms as prior-determined "
+                        "(default 5; the estimator itself needs no threshold)")
     p.add_argument("--field-present", type=finite_float(0, 1e4, unit="uT"), default=5.0, metavar="UT",
                    help="|B| counted as field on an axis for coverage rules (default 5)")
     p.add_argument("--include-saturated", action="store_true",
                    help="keep rows where the reference is at/beyond its range (default: excluded, counted)")
     p.add_argument("--max-vif", type=finite_float(1, None, lo_open=True), default=FitOptions.max_vif, metavar="VIF",
-                   help=f"hold degenerate parameter groups at or above this variance inflation "
-                        f"(default {FitOptions.max_vif:g})")
+                   help=f"variance inflation at or above which a parameter group is degenerate: the data fix only "
+                        f"its combination, the prior the rest (default {FitOptions.max_vif:g})")
     p.add_argument("--mount-frame", type=int, default=None, metavar="SESSION",
                    help="with --terms mount_rotation: the session whose mount defines the sensor frame "
                         "(default: the first session in which rotations about every axis are observable)")
     add_window_options(p)
     p.add_argument("--refuse-unidentifiable", action="store_true",
-                   help="fail instead of holding undetermined parameters at their prior")
+                   help="fail (exit 3) instead of letting the prior decide what the data cannot determine")
     p.add_argument("--no-holdout", action="store_true", help="skip held-out evaluation")
     p.add_argument("--block-s", type=finite_float(0, 1e7, lo_open=True, unit="s"), default=60.0,
                    help="time-block length for held-out folds (s, default 60)")
@@ -66,8 +68,52 @@ def register(subparsers) -> None:
     p.add_argument("--validity-field", type=finite_float(0, 1e4, lo_open=True, unit="uT"), default=None,
                    metavar="UT",
                    help="table validity |B| per axis, uT (default: the data's maximum)")
+    p.add_argument("--prior", action="append", default=[], metavar="NAME=MEAN+-SD|FILE.json",
+                   help="override a parameter's prior: 'K_S[x,x]=2.7e-3+-0.5e-3', 'O[z]=0.3' (fixed), 'O[z]=flat' "
+                        "(no prior), or a JSON file {name: [mean, sd]}; repeatable")
+    p.add_argument("--no-priors", action="store_true",
+                   help="no priors at all: the unregularised least squares (for comparison)")
+    p.add_argument("--chip", default=None, metavar="CHIP",
+                   help="part whose datasheet priors apply (default: the session's dut_chip; unknown = wide "
+                        "generic priors, named in the report)")
+    p.add_argument("--validity-sd", type=finite_float(0, 1e6, lo_open=True, unit="nT"), default=None, metavar="NT",
+                   help="validity bound on the posterior sd of the calibrated field, nT (default: 2x the fit's "
+                        "noise floor)")
     p.add_argument("--out", required=True, metavar="cal.json", type=nonempty_path)
     p.set_defaults(func=run)
+
+
+def prior_overrides(items) -> dict[str, tuple[float, float]]:
+    """``--prior`` values -> {name: (mean, sd)}; a FILE.json holds {name: [mean, sd] or value}."""
+    from pathlib import Path
+
+    from magstack.data.errors import SessionFileError
+    from magstack.firmware.calibration.estimator import parse_override
+
+    out: dict[str, tuple[float, float]] = {}
+    for item in items or ():
+        if "=" not in item and item.endswith(".json"):
+            path = Path(item)
+            try:
+                if path.stat().st_size > 1 << 20:
+                    raise SessionFileError(f"{path}: prior file larger than 1 MiB")
+                doc = json.loads(path.read_text(encoding="utf-8"))
+            except (OSError, ValueError) as exc:
+                raise SessionFileError(f"{path}: cannot read the prior file ({exc})") from None
+            if not isinstance(doc, dict):
+                raise SessionFileError(f"{path}: expected a JSON object {{name: [mean, sd]}}")
+            for k, v in doc.items():
+                vals = v if isinstance(v, list) else [v]
+                if not (1 <= len(vals) <= 2) or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                                       for x in vals):
+                    raise SessionFileError(f"{path}: {k}: expected [mean, sd] or a number")
+                text = f"{k}={vals[0]!r}" + (f"+-{vals[1]!r}" if len(vals) == 2 else "")
+                name, mean, sd = parse_override(text)
+                out[name] = (mean, sd)
+        else:
+            name, mean, sd = parse_override(item)
+            out[name] = (mean, sd)
+    return out
 
 
 def run(args: argparse.Namespace) -> CommandResult:
@@ -100,7 +146,8 @@ def run(args: argparse.Namespace) -> CommandResult:
                           min_temp_span_c=args.min_temp_span, field_present_uT=args.field_present,
                           holdout=not args.no_holdout, block_s=args.block_s, exclude_ref_steps_uT=args.exclude_steps,
                           max_vif=args.max_vif, ref_range_uT=ref_range, include_saturated=args.include_saturated,
-                          mount_frame=args.mount_frame)
+                          mount_frame=args.mount_frame, use_priors=not args.no_priors,
+                          chip=args.chip or session.metadata.get("dut_chip"), priors=prior_overrides(args.prior))
         st.next()
         result = fit(FitData.from_session(session), args.model, _split(args.terms), _split([args.currents]),
                      args.t0, opts)
@@ -109,16 +156,23 @@ def run(args: argparse.Namespace) -> CommandResult:
         report = result.report()
         table = table_from_fit(result, device_id, description=args.description or
                                f"fit of {', '.join(str(p) for p in args.sessions)}",
-                               validity_temp_c=args.validity_temp, validity_field_uT=args.validity_field)
+                               validity_temp_c=args.validity_temp, validity_field_uT=args.validity_field,
+                               validity_sd_uT=None if args.validity_sd is None else args.validity_sd / 1e3)
         v = validate(table)
         if not v.ok:   # never replace a file (perhaps a good table) with one the board would refuse
             say(report)   # the report explains why; the error itself stays one line
             raise CalTableInvalid(f"fitted table fails validation, {args.out} not written: " + "; ".join(v.problems))
         save_table(table, args.out)
     crc = table.to_document()["crc32"]
+    vinfo = table.fit_stats.get("validity", {})
+    box = (f"validity: {table.validity_temp_c[0]:g}..{table.validity_temp_c[1]:g} degC"
+           if table.validity_temp_c is not None else "validity: any temperature") + \
+        f", |B_i| <= {table.validity_field_uT:g} uT ({vinfo.get('rule', 'data range')}" + \
+        (f", bound {vinfo['bound_uT'] * 1e3:.0f} nT)" if "bound_uT" in vinfo else ")")
     lines = [f"note: {n}" for n in notes] + [report,
-             f"\nwrote {args.out} (device {device_id}, crc32 {crc})",
-             f"table validates: worst-case output {v.worst_output_uT:.1f} uT, max cond {v.max_cond:.3g}"]
+             f"\nwrote {args.out} (device {device_id}, crc32 {crc})", box] + \
+        [f"  {x}" for x in vinfo.get("notes", [])] + [f"WARNING: {w}" for w in vinfo.get("warnings", [])] + \
+        [f"table validates: worst-case output {v.worst_output_uT:.1f} uT, max cond {v.max_cond:.3g}"]
     data = {"out": str(args.out), "device_id": device_id, "crc32": crc, "model": result.model.name,
             "terms": _split(args.terms), "currents": _split([args.currents]), "stats": result.stats(),
             "validation": {"ok": v.ok, "worst_output_uT": v.worst_output_uT, "max_cond": v.max_cond},

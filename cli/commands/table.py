@@ -90,5 +90,28 @@ def _show_lines(t) -> list[str]:
             p(f"fit {key}: {fs[key]}")
     for h in fs.get("held", []) if isinstance(fs.get("held"), list) else ():
         if isinstance(h, dict):
-            p(f"held {h.get('param')} = {h.get('value')}: {h.get('reason')}")
+            p(f"prior-determined {h.get('param')} = {h.get('value')}: {h.get('reason')}")
+    for line in _posterior_lines(t):
+        p(line)
     return buf.getvalue().rstrip("\n").split("\n")
+
+
+def _posterior_lines(t) -> list[str]:
+    """The posterior block: per parameter its sd, per axis the strongest correlations (|r| >= 0.5)."""
+    post = t.posterior
+    if post is None:
+        return ["posterior: none (table without the optional block)"]
+    out = [f"posterior (parameter covariance; validity bound {post.get('bound_uT', float('nan')) * 1e3:.0f} nT, "
+           f"priors: {post.get('prior', '?')}):"]
+    for a in ("x", "y", "z"):
+        names = post[a]["names"]
+        C = np.asarray(post[a]["cov"], dtype=float)
+        sd = np.sqrt(np.maximum(np.diag(C), 0.0))
+        out.append(f"  axis {a}: " + ", ".join(f"{n} sd {s:.3g}" for n, s in zip(names, sd, strict=True)))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            R = C / np.outer(sd, sd)
+        strong = [(abs(R[i, j]), names[i], names[j], R[i, j]) for i in range(len(names)) for j in range(i)
+                  if np.isfinite(R[i, j]) and abs(R[i, j]) >= 0.5]
+        if strong:
+            out.append("    correlations: " + ", ".join(f"{x}~{y} {r:+.2f}" for _, x, y, r in sorted(strong)[::-1][:6]))
+    return out

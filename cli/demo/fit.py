@@ -72,7 +72,8 @@ def fit_calibration(paired_path: Path, report_path: Path, *, exclude_steps_uT: f
     """Fit Eq. 3 (+ the optional terms that help held out) to the paired session."""
     paired = read_session(paired_path)
     fit_data = FitData.from_session(paired)
-    opts = FitOptions(exclude_ref_steps_uT=exclude_steps_uT)
+    chip = paired.metadata.get("dut_chip")
+    opts = FitOptions(exclude_ref_steps_uT=exclude_steps_uT, chip=chip)
     sel = select_terms(fit_data, candidates=CANDIDATE_TERMS, t0_c=25.0, options=opts)
     res, best, cands = sel.result, sel.best, sel.candidates
     stats = res.stats()
@@ -87,7 +88,7 @@ def fit_calibration(paired_path: Path, report_path: Path, *, exclude_steps_uT: f
         f"{', '.join(f'{s:.1f}' for s in spans)} degC (need {opts.min_temp_span_c:g})")
     held = _held(res)
     if held:
-        say(f"  identifiability: {len(held)} parameters held at their prior: "
+        say(f"  identifiability: {len(held)} parameters determined by the {chip or 'generic'} prior: "
             + "; ".join(f"{h['param']} ({h['reason']})" for h in held[:4]) + (" ..." if len(held) > 4 else ""))
     else:
         say(f"  identifiability: all {int(res.model.axis_mask().sum())} parameters of {res.model.name} determined "
@@ -102,20 +103,21 @@ def fit_calibration(paired_path: Path, report_path: Path, *, exclude_steps_uT: f
     flat = fit_data.select(mask)
     t0 = float(np.nanmin(paired.t_s))
     window = (float(flat.t_s.min() - t0), float(flat.t_s.max() - t0))
-    flat_opts = FitOptions(exclude_ref_steps_uT=exclude_steps_uT, holdout=False)
+    flat_opts = FitOptions(exclude_ref_steps_uT=exclude_steps_uT, holdout=False, chip=chip)
     try:
         slice_held = _held(fit(flat, "eq3", list(best["terms"]), (), 25.0, flat_opts))
     except FitError as exc:  # too few rows in a short session: the report says so
         slice_held = [{"param": "(all)", "value": math.nan, "reason": str(exc)}]
     try:
         fit(flat, "eq3", list(best["terms"]), (), 25.0, FitOptions(exclude_ref_steps_uT=exclude_steps_uT,
-                                                                   holdout=False, on_unidentifiable="refuse"))
+                                                                   holdout=False, on_unidentifiable="refuse",
+                                                                   chip=chip))
         refused = ""
     except FitError as exc:
         refused = str(exc)
     names = sorted({h["param"].split("[")[0] for h in slice_held})
     say(f"  same fit on the thermally flattest {len(flat)} rows (t {window[0]:.0f}..{window[1]:.0f} s, "
-        f"T span {span:.2f} degC): {len(slice_held)} parameters held ({', '.join(names) or 'none'})"
+        f"T span {span:.2f} degC): {len(slice_held)} parameters from the prior ({', '.join(names) or 'none'})"
         + (f"; with --refuse-unidentifiable: FitError ({len(refused)} chars naming them)" if refused else
            "; nothing to refuse"))
     Path(report_path).write_text(res.report() + "\n\nCandidates (held-out by time blocks, uT):\n"

@@ -55,7 +55,7 @@ def summary_rows(res: DemoResult) -> list[tuple[str, str]]:
         ("clock offset", f"{a.offset_s:+.4f} +- {a.offset_sigma_s:.4f} s"),
         ("axis skew x / y / z", " / ".join(f"{v:+.3f}" for v in a.skew_s) + " s"),
         ("axis map", "identity" if a.axis_map_identity else a.axis_map),
-        ("fit model", f"{f.model} ({len(f.held)} held)"),
+        ("fit model", f"{f.model} ({len(f.held)} from the prior)"),
         ("raw RMSE (fit session)", f"{f.raw_rmse_norm_uT:.3f} uT"),
         ("calibrated RMSE, in-sample", _nT(f.rmse_norm_uT)),
         ("calibrated RMSE, held-out time blocks", _nT(f.holdout_blocks_norm_uT)),

@@ -12,14 +12,30 @@ scalar figure is the vector norm of the three per-axis values.
 """
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg
 
+from magstack.drivers.cal_priors import priors_for
 from magstack.firmware.calibration.degeneracy import GROUP_CORR, VIF_LIMIT
-from magstack.firmware.calibration.identify import CORE_TERMS, HeldParam, identify, independent_field_rms
+from magstack.firmware.calibration.estimator import (
+    Posterior,
+    Prior,
+    apply_overrides,
+    autocorr_inflation,
+    map_solve,
+    model_prior,
+)
+from magstack.firmware.calibration.identify import (
+    CORE_TERMS,
+    GATE_RULES,
+    HeldParam,
+    identify,
+    independent_field_rms,
+)
 from magstack.firmware.calibration.linalg import RANK_RTOL, qr_r
 from magstack.firmware.calibration.model import AXES, MODELS, CalModel, resolve_terms
 from magstack.firmware.calibration.mount import MountSolution, solve_mount
@@ -107,12 +123,23 @@ class FitData:
 
 @dataclass
 class FitOptions:
-    """Fit policy. ``on_unidentifiable``: "hold" (at the prior) or "refuse" (FitError).
+    """Fit policy.
 
-    Temperature terms are determined only if the data spans ``min_temp_span_c`` degC:
+    Priors (the MAP estimator, :mod:`.estimator`): ``chip`` names the part whose datasheet priors
+    (:mod:`magstack.drivers.cal_priors`) apply (None or unknown: generic wide priors); ``prior`` replaces
+    them entirely (e.g. an active table's posterior); ``priors``: parameter name (``"K_S[y,y]"``) ->
+    value (fixed, sd 0) or ``(mean, sd)`` (sd ``inf`` = flat); ``use_priors`` False = no priors at all (the
+    unregularised least squares; undetermined directions get the minimum-norm value and are named).
+    ``autocorr``: inflate the data variance by the residual autocorrelation (:func:`.estimator.autocorr_inflation`).
+    ``validity_sd_uT``: bound on the posterior sd of the calibrated field that defines a table's validity box
+    (None: 2x the fit's noise floor).
+
+    ``on_unidentifiable``: "hold" (the prior decides what the data cannot) or "refuse" (FitError naming the
+    parameters the prior determined). The coverage rules below no longer set values: they explain *why* a
+    direction is left to the prior. Temperature terms need ``min_temp_span_c`` degC:
     ``temperature_gain`` on input axis j counts only samples with ``|B_j| >=
     field_present_uT`` (field and temperature must vary together), ``temperature_offset``
-    counts every sample. ``priors``: parameter name (e.g. ``"K_S[y,y]"``) -> held value.
+    counts every sample.
 
     ``max_vif`` / ``group_corr``: the degeneracy rule (module degeneracy). ``ref_range_uT``: the
     reference's range (uT, :func:`reference.reference_range` from the session metadata; None = no
@@ -128,7 +155,12 @@ class FitOptions:
     field_present_uT: float = 5.0
     min_field_rms_uT: float = 2.0
     min_sessions: int = 2
-    priors: dict[str, float] = field(default_factory=dict)
+    priors: dict[str, float | tuple[float, float]] = field(default_factory=dict)
+    chip: str | None = None
+    prior: Prior | None = None
+    use_priors: bool = True
+    autocorr: bool = True
+    validity_sd_uT: float | None = None
     holdout: bool = True
     block_s: float = 60.0
     n_folds: int = 5
@@ -157,6 +189,12 @@ class FitOptions:
             raise FitError(f"group_corr must be in (0, 1], got {self.group_corr!r}")
         if self.ref_range_uT is not None and not (np.isfinite(self.ref_range_uT) and self.ref_range_uT > 0):
             raise FitError(f"ref_range_uT must be finite and > 0 or None, got {self.ref_range_uT!r}")
+        if self.validity_sd_uT is not None and not (np.isfinite(self.validity_sd_uT) and self.validity_sd_uT > 0):
+            raise FitError(f"validity_sd_uT must be finite and > 0 or None, got {self.validity_sd_uT!r}")
+        for k, v in self.priors.items():
+            mean, sd = (v, 0.0) if np.isscalar(v) else tuple(v)
+            if not np.isfinite(mean) or not (sd >= 0):
+                raise FitError(f"prior {k}: mean must be finite and sd >= 0, got {v!r}")
 
 
 @dataclass
@@ -246,6 +284,9 @@ class FitResult:
     selection: dict = field(default_factory=dict)      # how rows were chosen (windows), for the table
     mount: MountSolution | None = None                 # per-session mount rotations (nuisance)
     comparison: dict = field(default_factory=dict)     # mount rotation vs a general per-session map
+    posterior: Posterior | None = None                 # the MAP estimate (covariance, prior, data share)
+    prior_name: str = ""                               # which priors were used
+    chip: str | None = None                            # the part (its operating range bounds the validity)
 
     @property
     def rmse_norm_uT(self) -> float:
@@ -277,6 +318,10 @@ class FitResult:
             "noise_floor_uT": lst(self.noise_floor_uT), "noise_floor_norm_uT": nrm(self.noise_floor_uT),
             "cond_scaled": lst(self.cond_scaled), "cond_raw": lst(self.cond_raw),
             "held": [{"param": h.name, "value": h.value, "reason": h.reason} for h in self.held],
+            "priors": self.prior_name,
+            **({"parameters": self.parameter_rows(),
+                "sigma_uT": lst(self.posterior.sigma_uT), "autocorr_inflation": lst(self.posterior.kappa)}
+               if self.posterior is not None else {}),
             "n_excluded_steps": self.n_excluded_steps,
             "ref_range_uT": self.ref_range_uT, "saturated_rows": self.n_saturated,
             "saturated_rows_excluded": bool(self.saturated_excluded and self.n_saturated),
@@ -288,6 +333,35 @@ class FitResult:
                 "step_rms_uT": lst(self.steps.step_rms_uT), "steady_rms_uT": lst(self.steps.steady_rms_uT),
                 "step_share_of_sse": self.steps.step_share}),
         }
+
+    def parameter_rows(self) -> list[dict]:
+        """Per parameter: name, value, posterior sd, prior mean and sd, data share, who determined it."""
+        m, post = self.model, self.posterior
+        out = []
+        mask = m.axis_mask()
+        for i in range(3):
+            for c, col in enumerate(m.columns):
+                if not mask[i, c]:
+                    continue
+                row = {"param": m.param_name(i, c), "value": float(self.theta[i, c]), "sd": float(self.se[i, c]),
+                       "unit": col.unit}
+                if post is not None:
+                    row.update({"prior_mean": float(post.prior.mean[i, c]), "prior_sd": float(post.prior.sd[i, c]),
+                                "data_share": float(post.data_share[i, c]),
+                                "determined_by": post.determined_by(i, c)})
+                out.append(row)
+        return out
+
+    def parameter_lines(self) -> list[str]:
+        """The parameter table of the report."""
+        L = [f"{'parameter':14s}{'value':>13s}{'post. sd':>11s}{'prior':>24s}{'data':>6s}  determined by  unit"]
+        for r in self.parameter_rows():
+            pr = f"{r['prior_mean']:.4g} +- {r['prior_sd']:.2g}" if "prior_mean" in r else ""
+            share = r.get("data_share", float("nan"))
+            sh = f"{share:5.0%}" if np.isfinite(share) else "    -"
+            L.append(f"{r['param']:14s}{r['value']:13.6g}{r['sd']:11.3g}{pr:>24s} {sh}  "
+                     f"{r.get('determined_by', ''):13s}  {r['unit']}")
+        return L
 
     def report(self) -> str:
         m = self.model
@@ -321,22 +395,19 @@ class FitResult:
         L += [row("noise floor (residual)", self.noise_floor_uT), "",
               "condition number (equilibrated / raw): " + ", ".join(
                   f"{a} {c:.3g} / {r:.3g}" for a, c, r in zip(AXES, self.cond_scaled, self.cond_raw, strict=True)), "",
-              f"{'parameter':18s}{'value':>14s}{'std err':>12s}  unit"]
-        mask = m.axis_mask()
-        held = {(h.axis, h.column) for h in self.held}
-        for i in range(3):
-            for c, col in enumerate(m.columns):
-                if not mask[i, c]:
-                    continue
-                se = "held" if (i, c) in held else f"{self.se[i, c]:12.3g}"
-                L.append(f"{m.param_name(i, c):18s}{self.theta[i, c]:14.6g}{se:>12s}  {col.unit}")
+              f"priors: {self.prior_name or 'n/a'}"]
+        L += [""] + self.parameter_lines()
         if self.mount is not None:
             L += [""] + self.mount.report_lines()
         if self.comparison:
             L += [""] + comparison_lines(self.comparison)
         if self.held:
-            L += ["", "identifiability: parameters the data cannot determine (held at prior):"]
+            L += ["", "determined by the prior, not the data (why):"]
             L += [f"  {h.name} = {h.value:g}: {h.reason}" for h in self.held]
+        if self.posterior is not None:
+            srcs = sorted({self.posterior.prior.source[h.axis][h.column] for h in self.held})
+            if srcs:
+                L += ["prior sources of those:"] + [f"  {x}" for x in srcs]
         L += [f"note: {n}" for n in self.notes]
         if st is not None and st.dominant:
             L += [f"note: rows at reference steps (change > {st.threshold_uT:.2g} uT to a neighbouring row) are "
@@ -416,47 +487,229 @@ def build_model(data: FitData, terms: Sequence[str], currents: Sequence[str], t0
     return CalModel(tuple(terms), tuple(currents), sessions, t0_c, t_ref, name)
 
 
-def _fit_core(data: FitData, model: CalModel, options: FitOptions):
+def build_prior(model: CalModel, options: FitOptions, s_hint: np.ndarray | None = None) -> Prior:
+    """The prior of ``model`` under ``options``: flat (``use_priors`` False), ``options.prior``, or the chip's
+    datasheet priors (sensitivity tempco relative to ``s_hint``), then the named overrides."""
+    if not options.use_priors:
+        prior = Prior.flat(model.n_columns)
+    elif options.prior is not None:
+        prior = options.prior
+        if prior.mean.shape != (3, model.n_columns):
+            raise FitError(f"prior has {prior.mean.shape[1]} columns, model {model.n_columns}")
+    else:
+        prior = model_prior(model, priors_for(options.chip), s_hint)
+    ov = {k: ((float(v), 0.0) if np.isscalar(v) else (float(v[0]), float(v[1]))) for k, v in options.priors.items()}
+    return apply_overrides(prior, model, ov) if ov else prior
+
+
+@dataclass
+class CoreFit:
+    """What one estimator run on some rows produced (the batch fit, each held-out fold)."""
+
+    X: np.ndarray
+    theta: np.ndarray
+    se: np.ndarray
+    held: list[HeldParam]
+    conds: np.ndarray
+    coverage: Coverage
+    mount: MountSolution | None
+    posterior: Posterior
+
+
+def prior_determined(post: Posterior, explain: Sequence[HeldParam]) -> list[HeldParam]:
+    """Parameters the prior determined: posterior sd >= 0.9 prior sd, undetermined (flat prior), fixed by
+    the user, or named by the identifiability analysis while the data reduced the prior sd by less than
+    half. ``value`` is the posterior mean; ``reason`` says why (the analysis) and by how much."""
+    model = post.model
+    why = {(h.axis, h.column): h.reason for h in explain}
+    rule = {(h.axis, h.column): h.rule for h in explain}
+    prior_sd = post.prior.sd
+    out = []
+    for i, c, name in _names(model):
+        by = post.determined_by(i, c)
+        flagged = (i, c) in why
+        if by in ("prior", "undetermined", "fixed") or (flagged and by == "data+prior"):
+            if by == "fixed":
+                reason = "held by the user (prior sd 0)"
+            elif by == "undetermined":
+                reason = why.get((i, c), "no prior and the data do not determine it") + \
+                    " (no prior: minimum-norm value)"
+            else:
+                ratio = post.sd[i, c] / prior_sd[i, c]
+                reason = (why[(i, c)] + "; " if flagged else "") + f"posterior sd {ratio:.0%} of the prior's"
+                if (i, c) in post.gated:
+                    reason += (" (no temperature change while this axis saw field" if rule.get((i, c)) ==
+                               "temperature-no-field" else " (field on this axis within the DUT's noise") + \
+                        ": data not used, errors in variables)"
+            out.append(HeldParam(i, c, name, float(post.theta[i, c]), reason, rule.get((i, c), "")))
+    return out
+
+
+def _names(model: CalModel) -> list[tuple[int, int, str]]:
+    mask = model.axis_mask()
+    return [(i, c, model.param_name(i, c)) for i in range(3) for c in range(model.n_columns) if mask[i, c]]
+
+
+def _pick_axes(posts: Sequence[Posterior]) -> Posterior:
+    """One Posterior whose axis i comes from ``posts[i]`` (per-axis robust weights)."""
+    base = posts[0]
+    out = Posterior(base.model, base.prior, base.theta.copy(), base.cov.copy(), base.sigma_uT.copy(),
+                    base.kappa.copy(), base.sse.copy(), base.dof.copy(), base.cond.copy(), base.n, [])
+    for i, q in enumerate(posts):
+        out.theta[i], out.cov[i] = q.theta[i], q.cov[i]
+        out.sigma_uT[i], out.kappa[i], out.sse[i], out.dof[i], out.cond[i] = \
+            q.sigma_uT[i], q.kappa[i], q.sse[i], q.dof[i], q.cond[i]
+        out.undetermined += [u for u in q.undetermined if u[0] == i]
+    return out
+
+
+def _fit_core(data: FitData, model: CalModel, options: FitOptions) -> CoreFit:
     X = model.design(data.b_meas_uT, data.temp_c, data.currents_A, data.session, data.t_s)
     Y = data.b_ref_uT
-    w = np.ones(len(data)) if data.weights is None else data.weights
+    n = len(data)
+    w = np.ones(n) if data.weights is None else data.weights
     sw = np.sqrt(w)[:, None]
     cov = Coverage()
     cov.update(data.b_meas_uT, data.temp_c, {k: data.currents_A[k] for k in model.currents}, data.session,
                data.t_s, options.field_present_uT, w)
-    p = model.n_columns
     R = qr_r(np.hstack([X, Y]) * sw)
-    held = identify(model, R, cov, options)
-    mask = model.axis_mask()
-    theta = np.zeros((3, p))
-    se = np.full((3, p), np.nan)
-    conds = np.full((2, 3), np.nan)
-    for i in range(3):
-        h = {x.column: x.value for x in held if x.axis == i}
-        Ri = R
-        sol = solve_axis(Ri, p, i, mask[i], h, len(data))
-        if options.robust:
+    # the identifiability analysis explains why a direction is left to the prior; it decides nothing,
+    # except for gain columns whose own field is within the DUT's noise (errors in variables, see gate_weak_fields)
+    explain = identify(model, R, cov, dataclasses.replace(options, on_unidentifiable="hold", priors={}))
+    gated = [(h.axis, h.column) for h in explain if h.rule in GATE_RULES]
+    prior = build_prior(model, options)
+    post = gate_solve(R, n, model, prior, gated, options=options)
+    if options.use_priors and options.prior is None and "temperature_gain" in model.terms:
+        # the sensitivity tempco is relative: centre K_S on the fitted gain
+        prior = build_prior(model, options, s_hint=model.unpack(post.theta)["S"])
+        post = gate_solve(R, n, model, prior, gated, options=options)
+    if options.autocorr:
+        kappa = autocorr_inflation(Y - model.predict(post.theta, X), data.t_s, data.session)
+        post = gate_solve(R, n, model, prior, gated, kappa, options)
+    if options.robust:
+        posts = []
+        for i in range(3):
+            q = post
             for _ in range(options.max_iter):
-                r = Y[:, i] - X @ sol.theta
+                r = Y[:, i] - X @ np.where(model.axis_mask()[i], q.theta[i], 0.0)
                 scale = 1.4826 * np.median(np.abs(r - np.median(r)))
                 if not scale > 0:
                     break
                 u = np.abs(r) / (options.huber_k * scale)
                 wr = np.where(u <= 1, 1.0, 1.0 / np.maximum(u, 1e-300))
                 Ri = qr_r(np.hstack([X, Y]) * np.sqrt(w * wr)[:, None])
-                new = solve_axis(Ri, p, i, mask[i], h, len(data))
-                change = np.max(np.abs(new.theta - sol.theta) / (np.abs(sol.theta) + 1e-12))
-                sol = new
+                new = gate_solve(Ri, n, model, prior, gated, post.kappa, options)
+                change = np.max(np.abs(new.theta[i] - q.theta[i]) / (np.abs(q.theta[i]) + 1e-12))
+                q = new
                 if change < 1e-10:
                     break
-        theta[i], se[i], conds[0, i], conds[1, i] = sol.theta, sol.se, sol.cond_scaled, sol.cond_raw
+            posts.append(q)
+        post = _pick_axes(posts)
+    held = prior_determined(post, explain)
+    if held and options.on_unidentifiable == "refuse":
+        raise FitError("data cannot determine (the prior would): " + "; ".join(f"{h.name} ({h.reason})" for h in held))
+    theta = post.theta.copy()
+    se = np.where(model.axis_mask(), post.sd, np.nan)
+    conds = np.vstack([post.cond, _raw_cond(R, model)])
     mount = None
     if "mount_rotation" in model.terms:
         if options.robust:
             raise FitError("robust IRLS is not available with mount_rotation")
-        theta, se, mount = solve_mount(X, Y, data.session, data.weights, model,
-                                       {(h.axis, h.column): h.value for h in held}, theta, options)
-    return X, theta, se, held, conds, cov, mount
+        theta, se2, mount = solve_mount(X, Y, data.session, data.weights, model,
+                                        {(h.axis, h.column): h.value for h in held}, theta, options)
+        for h in held:          # the prior-determined parameters keep their posterior sd
+            se2[h.axis, h.column] = se[h.axis, h.column]
+        se = se2
+    return CoreFit(X, theta, se, held, conds, cov, mount, post)
+
+
+def gate_solve(R: np.ndarray, n: int, model: CalModel, prior: Prior, gated: Sequence[tuple[int, int]],
+               kappa=None, options: FitOptions | None = None) -> Posterior:
+    """:func:`.estimator.map_solve` where the data cannot be trusted to inform some directions.
+
+    1. *Gated* parameters come from the prior alone. A gain (or cubic, cross-product) column whose input
+       axis carries less field of its own than ``min_field_rms_uT``, or a sensitivity-tempco column whose
+       axis saw (almost) no temperature span with field present (identify.GATE_TEMP_SPAN_C), is dominated by
+       the DUT's own noise in that column: errors in variables bias its least-squares information
+       (attenuation towards 0; a single-axis sweep's cross-axis copies gave S[y,y] = 0.60 +- 0.04 on real
+       data where the truth is 1.12; belsten's anomalous K_S[y,y] came from such a non-excursion). They sit
+       at the prior mean with the prior's sd (share of the data 0).
+    2. *Degenerate* directions (identify.degenerate_sets: variance inflation >= ``max_vif``) are left to the
+       prior: the data's information along the weak singular directions of each group (and its strongest
+       partner) is removed, so the data fix only the combination they determine. A thermal run at one field
+       otherwise "determines" the K_S / K_O split from second-order effects (a -2700 ppm/degC sensitivity
+       makes the DUT's own reading drift, and the linear model's curvature error picks K_O: 4 uT off at zero
+       field on the HMC1053 preset)."""
+    from magstack.firmware.calibration.identify import degenerate_sets
+
+    options = options or FitOptions(holdout=False)
+    fixed = prior
+    for i, c in gated:
+        fixed = fixed.with_values(i, c, float(prior.mean[i, c]), 0.0, prior.source[i][c])
+    sets = degenerate_sets(model, R, options, exclude=set(gated)) if options.use_priors else []
+    if not sets:
+        post = map_solve(R, n, model, fixed, kappa)
+    else:
+        posts = []
+        for i in range(3):
+            Ri = R.copy()
+            for ax, g, act in sets:
+                if ax == i:
+                    cols = [act[a] for a in g.members] + ([act[g.partner]] if g.partner is not None else [])
+                    Ri[:, cols] = _without_weak_directions(R, model, cols, options.max_vif)
+            posts.append(map_solve(Ri, n, model, fixed, kappa))
+        post = _pick_axes(posts)
+    post.prior = prior
+    post.gated = list(gated)
+    for i, c in gated:
+        post.cov[i, c, :] = 0.0
+        post.cov[i, :, c] = 0.0
+        post.cov[i, c, c] = prior.cov[i, c, c]
+    return post
+
+
+def _without_weak_directions(R: np.ndarray, model: CalModel, cols: list[int], max_vif: float) -> np.ndarray:
+    """``R[:, cols]`` with its information along the group's weak directions removed: SVD of the columns
+    (offset projected out, unit-norm), directions with ``s^2 < s_max^2 / max_vif`` dropped."""
+    off = [c for c, col in enumerate(model.columns) if col.term == "offset"]
+    A = R[:, cols]
+    scale = np.linalg.norm(A, axis=0)
+    scale[scale == 0] = 1.0
+    B = A.copy()
+    if off:
+        o = R[:, off[0]]
+        oo = float(o @ o)
+        if oo > 0:
+            B = B - np.outer(o, (o @ B) / oo)
+    _, sv, Vt = np.linalg.svd(B / scale, full_matrices=False)
+    weak = Vt[sv ** 2 < sv[0] ** 2 / max_vif]
+    if weak.size == 0:
+        return A
+    As = A / scale
+    return (As - (As @ weak.T) @ weak) * scale
+
+
+def _raw_cond(R: np.ndarray, model: CalModel) -> np.ndarray:
+    """(3,) condition number of each axis's raw (not equilibrated) weighted design."""
+    p = model.n_columns
+    mask = model.axis_mask()
+    out = np.full(3, np.nan)
+    for i in range(3):
+        A = R[:, :p][:, mask[i]]
+        if A.shape[1]:
+            sv = np.linalg.svd(A, compute_uv=False)
+            out[i] = float(sv[0] / sv[-1]) if sv[-1] > 0 else np.inf
+    return out
+
+
+def _prior_name(options: FitOptions) -> str:
+    if not options.use_priors:
+        return "none (--no-priors: unregularised least squares)"
+    if options.prior is not None:
+        return "given prior (e.g. the active table's posterior)"
+    pr = priors_for(options.chip)
+    return f"{pr.chip} ({pr.source})" + ("" if pr.chip != "generic" else
+                                         f": no prior table for chip {options.chip!r}")
 
 
 def frame_reference(data: FitData, mount: MountSolution | None) -> np.ndarray:
@@ -495,9 +748,11 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
                 why.append(f"{label} missing/flagged on {int(bad.sum())} rows")
         raise FitError(f"{len(d)} usable rows of {len(data)} for {cm.n_columns} columns: not enough data"
                        + (f" ({'; '.join(why)})" if why else ""))
-    X, theta, se, held, conds, cov, mount = _fit_core(d, cm, options)
+    core = _fit_core(d, cm, options)
+    X, theta, se, held, conds, cov, mount = (core.X, core.theta, core.se, core.held, core.conds, core.coverage,
+                                             core.mount)
     resid = frame_reference(d, mount) - cm.predict(theta, X)
-    p_i = cm.axis_mask().sum(axis=1) - np.array([sum(1 for h in held if h.axis == i) for i in range(3)])
+    p_i = len(d) - core.posterior.dof          # tr H: the parameters the data determined
     if mount is not None:   # the angles are shared by the three axes: a third of them to each
         p_i = p_i + sum(1 for k in mount.se_rad for a in range(3)
                         if k != mount.frame and np.isfinite(mount.se_rad[k][a])) / 3
@@ -505,6 +760,9 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
     raw = np.sqrt(np.mean((d.b_ref_uT - d.b_meas_uT) ** 2, axis=0))
     res = FitResult(cm, theta, se, held, len(d), int((~ok).sum()), rmse, raw, conds[0], conds[1],
                     noise_floor(resid, d.t_s, d.session, options.noise_lag_s), cov, options.robust)
+    res.posterior = core.posterior
+    res.prior_name = _prior_name(options)
+    res.chip = options.chip
     res.n_excluded_steps = n_steps
     res.mount = mount
     res.n_saturated, res.saturated_excluded, res.ref_range_uT = n_sat, not options.include_saturated, \
@@ -545,9 +803,10 @@ def _predict_out(train: FitData, test: FitData, terms, currents, t0_c, name, opt
     """Residual of ``test`` under a fit on ``train``; the names of the parameters that fit held
     are appended to ``held_names`` when given."""
     cm = build_model(train, terms, currents, t0_c, name)
-    _, theta, _, held, _, _, mount = _fit_core(train, cm, options)
+    core = _fit_core(train, cm, options)
+    theta, mount = core.theta, core.mount
     if held_names is not None:
-        held_names += [h.name for h in held]
+        held_names += [h.name for h in core.held]
     Xt = cm.design(test.b_meas_uT, test.temp_c, test.currents_A, test.session, test.t_s)
     # a session the training rows saw keeps its mount; an unseen one gets the frame's (identity)
     return frame_reference(test, mount) - cm.predict(theta, Xt)
@@ -600,7 +859,7 @@ def _holdout_sessions(d: FitData, terms, currents, t0_c, name, options, notes, f
         lost = sorted(set(held) - set(full_held))
         if lost:
             notes.append(f"session {int(s)} left out: the other sessions cannot determine {', '.join(lost)} "
-                         "(held at prior), so its held-out error measures extrapolation, not calibration quality")
+                         "(prior-determined), so its held-out error measures extrapolation, not calibration quality")
         per[int(s)] = np.sqrt(np.mean(r ** 2, axis=0))
         sq += np.sum(r ** 2, axis=0)
         cnt += r.shape[0]

@@ -19,11 +19,16 @@ from magstack.firmware.errors import FitError
 
 @dataclass
 class HeldParam:
+    """A parameter left to the prior: ``value`` (its estimate), ``reason`` (why), ``rule``: which analysis
+    named it ("temperature", "field", "sessions", "rank", "degenerate", or "" for the posterior's own
+    sd ratio / a user-held value)."""
+
     axis: int
     column: int
     name: str
     value: float
     reason: str
+    rule: str = ""
 
 
 def independent_field_rms(model: CalModel, R: np.ndarray, cov, min_rms_uT: float = 0.0) -> np.ndarray:
@@ -72,32 +77,40 @@ def identify(model: CalModel, R: np.ndarray, cov, options) -> list[HeldParam]:
             raise FitError(f"prior for unknown parameter {k!r}")
         prior[names[k]] = float(v)
     held: dict[tuple[int, int], str] = {}
+    rules: dict[tuple[int, int], str] = {}
     orth = independent_field_rms(model, R, cov, options.min_field_rms_uT)
     for c, col in enumerate(model.columns):
         reason = None
+        rule = "temperature"
         if col.term == "temperature_gain":
             span = cov.temp_span_with_field(col.index)
             if span < options.min_temp_span_c:
                 reason = (f"temperature spans only {span:.2f} degC while |B_{AXES[col.index]}| >= "
                           f"{options.field_present_uT:g} uT (need {options.min_temp_span_c:g} degC)")
+                if span < GATE_TEMP_SPAN_C:
+                    rule = "temperature-no-field"
         elif col.term == "temperature_offset":
             if cov.temp_span_c < options.min_temp_span_c:
                 reason = (f"temperature spans only {cov.temp_span_c:.2f} degC "
                           f"(need {options.min_temp_span_c:g} degC)")
         elif col.term in ("gain_matrix", "cubic") and orth[col.index] < options.min_field_rms_uT:
+            rule = "field"
             reason = (f"field on {AXES[col.index]} not explained by the more excited axes has RMS "
                       f"{orth[col.index]:.3g} uT (need {options.min_field_rms_uT:g} uT)")
         elif col.term == "cross_products":
             jj, kk = ((0, 1), (0, 2), (1, 2))[col.index]
             if min(orth[jj], orth[kk]) < options.min_field_rms_uT:
+                rule = "field"
                 reason = (f"{col.feature}: both axes need independent field RMS >= "
                           f"{options.min_field_rms_uT:g} uT")
         elif col.term == "session_offset" and len(cov.sessions) < options.min_sessions:
+            rule = "sessions"
             reason = f"only {len(cov.sessions)} session(s)"
         if reason:
             for i in range(3):
                 if mask[i, c]:
                     held[(i, c)] = reason
+                    rules[(i, c)] = rule
     norms = np.linalg.norm(R[:, :p], axis=0)
     priority = {"gain_matrix": 0, "offset": 1}
     order = sorted(range(p), key=lambda c: (priority.get(model.columns[c].term, 2), c))
@@ -122,36 +135,53 @@ def identify(model: CalModel, R: np.ndarray, cov, options) -> list[HeldParam]:
             else:
                 accepted.append(c)
     _hold_degenerate(model, R, held, options)
-    out = [HeldParam(i, c, model.param_name(i, c), float(prior[i, c]), r) for (i, c), r in sorted(held.items())]
+    out = [HeldParam(i, c, model.param_name(i, c), float(prior[i, c]), r,
+                     rules.get((i, c), "degenerate" if r.startswith("degenerate") else "rank"))
+           for (i, c), r in sorted(held.items())]
     if out and options.on_unidentifiable == "refuse":
         raise FitError("data cannot determine: " + "; ".join(f"{h.name} ({h.reason})" for h in out))
     return out
 
 
+#: A sensitivity tempco column whose input axis saw less temperature span than this (degC) with field
+#: present is informed only by near-zero fields, i.e. the DUT's noise times temperature (errors in
+#: variables): the estimator takes it from the prior alone (fit.gate_solve).
+GATE_TEMP_SPAN_C = 0.5
+#: Rules whose parameters the estimator takes from the prior alone.
+GATE_RULES = ("field", "temperature-no-field")
+
 #: Terms never held by the degeneracy rule (the core of every model; rank rules cover them).
 CORE_TERMS = ("gain_matrix", "offset")
 
 
-def _hold_degenerate(model: CalModel, R: np.ndarray, held: dict, options) -> None:
-    """Add the degenerate groups of each output axis to ``held`` (module degeneracy)."""
+def degenerate_sets(model: CalModel, R: np.ndarray, options, exclude=()) -> list[tuple[int, object, list[int]]]:
+    """``(axis, Degeneracy, active columns)`` of every degenerate group (module degeneracy), per output axis,
+    among the columns not in ``exclude`` ((axis, column) pairs) and not the offset."""
     p = model.n_columns
     mask = model.axis_mask()
     off = [c for c, col in enumerate(model.columns) if col.term == "offset"]
+    out = []
     for i in range(3):
-        act = [c for c in range(p) if mask[i, c] and (i, c) not in held and c not in off]
+        act = [c for c in range(p) if mask[i, c] and (i, c) not in exclude and c not in off]
         if not act:
             continue
-        o = R[:, off[0]] if off and (i, off[0]) not in held else None
-        groups = degenerate_groups(R[:, act], [model.columns[c].term not in CORE_TERMS for c in act], o,
-                                   options.max_vif, options.group_corr)
-        for g in groups:
-            names = [model.param_name(i, act[a]) for a in g.members]
-            partner = "" if g.partner is None else (
-                f" its estimate correlates at {g.corr:+.4f} with {model.param_name(i, act[g.partner])};")
-            for a in g.members:
-                others = [n for n in names if n != model.param_name(i, act[a])]
-                held[(i, act[a])] = (
-                    f"degenerate: variance inflation {g.vif:.3g} >= {options.max_vif:g} for "
-                    f"{model.param_name(i, act[g.worst])};{partner} the data determine only a combination"
-                    + (f" (held with {', '.join(others)})" if others else "")
-                    + " -- e.g. temperature varied at one field level only; needs two or more")
+        o = R[:, off[0]] if off and (i, off[0]) not in exclude else None
+        for g in degenerate_groups(R[:, act], [model.columns[c].term not in CORE_TERMS for c in act], o,
+                                   options.max_vif, options.group_corr):
+            out.append((i, g, act))
+    return out
+
+
+def _hold_degenerate(model: CalModel, R: np.ndarray, held: dict, options) -> None:
+    """Add the degenerate groups of each output axis to ``held`` (module degeneracy)."""
+    for i, g, act in degenerate_sets(model, R, options, exclude=set(held)):
+        names = [model.param_name(i, act[a]) for a in g.members]
+        partner = "" if g.partner is None else (
+            f" its estimate correlates at {g.corr:+.4f} with {model.param_name(i, act[g.partner])};")
+        for a in g.members:
+            others = [n for n in names if n != model.param_name(i, act[a])]
+            held[(i, act[a])] = (
+                f"degenerate: variance inflation {g.vif:.3g} >= {options.max_vif:g} for "
+                f"{model.param_name(i, act[g.worst])};{partner} the data determine only a combination"
+                + (f" (with {', '.join(others)})" if others else "")
+                + " -- e.g. temperature varied at one field level only; needs two or more")

@@ -19,25 +19,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from magstack.firmware.effects import EFFECTS
+from magstack.firmware.cal_terms import CAL_TERMS, FLIGHT_TERMS, FLOAT_ONLY_TERMS, GROUND_ONLY_TERMS, JOINT_TERMS
 from magstack.firmware.errors import FitError
 
 AXES = ("x", "y", "z")
-
-#: Every calibration term, in catalogue (pipeline) order, taken from the effect catalogue.
-CAL_TERMS: tuple[str, ...] = tuple(dict.fromkeys(e.cal_term for e in EFFECTS.values() if e.cal_term))
-
-#: Terms carried to the on-board applier (fixed point and float).
-FLIGHT_TERMS: tuple[str, ...] = ("gain_matrix", "temperature_gain", "offset", "temperature_offset", "currents")
-#: Terms the float64 applier can also apply (not the fixed-point one).
-FLOAT_ONLY_TERMS: tuple[str, ...] = ("cubic", "cross_products")
-#: Terms that explain the fit data (nuisance) but are not applied to new data:
-#: time skew needs dB/dt, session offsets are unknown for a new power cycle, drift would extrapolate,
-#: a mount rotation belongs to the bench, not to the sensor.
-GROUND_ONLY_TERMS: tuple[str, ...] = ("time_skew", "session_offset", "drift", "mount_rotation")
-#: Terms without design-matrix columns: fitted by their own solver (``mount_rotation``: the
-#: per-session angles couple the output axes; :mod:`magstack.firmware.calibration.mount`).
-JOINT_TERMS: tuple[str, ...] = ("mount_rotation",)
 
 #: Named models (sets of terms). ``currents`` is added when currents are named.
 MODELS: Mapping[str, tuple[str, ...]] = {
@@ -45,8 +30,8 @@ MODELS: Mapping[str, tuple[str, ...]] = {
     "gain_offset": ("gain_matrix", "offset"),
 }
 
-assert set(FLIGHT_TERMS + FLOAT_ONLY_TERMS + GROUND_ONLY_TERMS) == set(CAL_TERMS), \
-    "effects catalogue cal_term set changed: update calibration.model"
+__all__ = ["AXES", "CAL_TERMS", "FLIGHT_TERMS", "FLOAT_ONLY_TERMS", "GROUND_ONLY_TERMS", "JOINT_TERMS", "MODELS",
+           "Column", "CalModel", "resolve_terms", "time_derivative"]
 
 
 @dataclass(frozen=True)

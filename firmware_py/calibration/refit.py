@@ -21,11 +21,11 @@ is the smallest of its three axes' Huber weights. The held-out RMS of any parame
 set follows from the held-out R factor (``||R_h [theta; -1]||``), so the candidate and the active
 table are compared on exactly the same rows without another pass.
 
-Identifiability: the bench fit's rules (:func:`fit.identify`: temperature span, independent field
-per axis, numerical rank) plus attitude coverage: with fewer than ``min_attitude_bins`` direction
-bins the gain matrix and its temperature terms are held; ``temperature_gain`` is also held unless
-the coldest and the warmest quarter of the temperature range each saw ``min_bins_at_temp_ends``
-bins. Held parameters keep the active table's values.
+Estimation: the MAP estimator of the bench fit (:mod:`.estimator`) with the active table as the prior
+(:func:`prior_from_table`: its posterior covariance when the table carries one, else the chip's datasheet
+sds around its values): a sequential (Kalman-style) update of the table. What the orbit's coverage cannot
+determine stays at the active values with their uncertainty; no separate hold rule decides. The 192-bin
+attitude coverage is reported (it explains which directions the orbit data could inform).
 
 A candidate is proposed only if it passes :func:`cal_table.validate` and its held-out RMS (vector
 norm of the per-axis values) is below the active table's by more than ``min_improvement``.
@@ -48,10 +48,11 @@ import numpy as np
 from magstack.data import telemetry
 from magstack.firmware import cal_table
 from magstack.firmware.calibration.coverage_bins import N_BINS, AttitudeCoverage
-from magstack.firmware.calibration.fit import FitOptions, FitResult, HeldParam, identify
+from magstack.firmware.calibration.estimator import Prior, model_prior
+from magstack.firmware.calibration.fit import FitOptions, FitResult
 from magstack.firmware.calibration.housekeeping import MAX_GAP_S, interpolate_currents
 from magstack.firmware.calibration.model import FLIGHT_TERMS, FLOAT_ONLY_TERMS, CalModel, resolve_terms
-from magstack.firmware.calibration.streaming import StreamingFit, solve_axes
+from magstack.firmware.calibration.streaming import StreamingFit
 from magstack.firmware.errors import FitError
 from magstack.firmware.reference import frames, geomag
 
@@ -92,8 +93,6 @@ class RefitOptions:
     max_current_gap_s: float = MAX_GAP_S
     block_rows: int = telemetry.BLOCK_ROWS
     dut1_s: float = 0.0
-    min_attitude_bins: int = 12
-    min_bins_at_temp_ends: int = 8
     min_holdout_rows: int = 100
     min_improvement: float = 0.0                 # fraction of the active held-out RMS
     min_temp_span_c: float = 5.0
@@ -144,6 +143,7 @@ class Plan:
     model: CalModel
     options: RefitOptions
     theta_active: np.ndarray
+    prior: Prior | None = None
 
 
 @dataclass
@@ -366,54 +366,47 @@ def holdout_rms(R: np.ndarray, theta: np.ndarray, model: CalModel, n: int) -> np
     return out / np.sqrt(max(n, 1))
 
 
-def solve(stats: PassStats, plan: Plan, extra_holds: Mapping[tuple[int, int], str]) -> FitResult:
-    """Solve the accumulated pass: bench identifiability + ``extra_holds`` ((axis, column) -> reason),
-    held parameters at the active table's values."""
-    model, opt = plan.model, plan.options
+def prior_from_table(model: CalModel, table: cal_table.CalTable, chip: str | None = None) -> Prior:
+    """The prior of a refit: the active table's values, with its posterior covariance where the table
+    carries one (parameters it lacks: the chip's datasheet sd around the table's value, or 0 for terms the
+    table does not have), else the chip's datasheet sds around the table's values."""
+    from magstack.drivers.cal_priors import priors_for
+
+    chip_prior = model_prior(model, priors_for(chip or table.device_id), table.S)
+    mean = theta_from_table(model, table)
+    cov = chip_prior.cov.copy()
+    src = [list(r) for r in chip_prior.source]
+    block = table.posterior
+    if block is not None:
+        for i, a in enumerate(("x", "y", "z")):
+            names = list(block[a]["names"])
+            C = np.asarray(block[a]["cov"], dtype=float)
+            idx = {model.param_name(i, c): c for c in range(model.n_columns) if model.axis_mask()[i, c]}
+            have = [k for k, nm in enumerate(names) if nm in idx]
+            cols = [idx[names[k]] for k in have]
+            for c in cols:   # replace the chip prior by the table's posterior for these parameters
+                cov[i, c, :] = 0.0
+                cov[i, :, c] = 0.0
+            cov[i][np.ix_(cols, cols)] = C[np.ix_(have, have)]
+            for c in cols:
+                src[i][c] = f"active table posterior ({table.description or table.table_name})"
+    return Prior(mean, cov, tuple(tuple(r) for r in src))
+
+
+def solve(stats: PassStats, plan: Plan) -> FitResult:
+    """The MAP candidate of the accumulated pass: prior = the active table (:func:`prior_from_table`), so
+    what the orbit's coverage cannot determine stays at the active values with their uncertainty."""
+    model = plan.model
     sf = stats.fit
     p = model.n_columns
     if sf.n_used <= p:
         raise FitError(f"{sf.n_used} usable fit rows for {p} columns: not enough data "
                        f"(excluded: {dict(stats.counts) or 'none'})")
-    mask = model.axis_mask()
-    priors = {model.param_name(i, c): float(plan.theta_active[i, c]) for i in range(3) for c in range(p)
-              if mask[i, c]}
-    fo = FitOptions(holdout=False, priors=priors, min_temp_span_c=opt.min_temp_span_c,
-                    min_field_rms_uT=opt.min_field_rms_uT)
-    held = {(h.axis, h.column): h for h in identify(model, sf.R, sf.coverage, fo)}
-    for (i, c), reason in extra_holds.items():   # the coverage reason is the root cause: it wins
-        held[(i, c)] = HeldParam(i, c, model.param_name(i, c), float(plan.theta_active[i, c]), reason)
-    held_list = [held[k] for k in sorted(held)]
-    theta, se, conds, rmse = solve_axes(sf.R, p, mask, held_list, sf.n_used)
-    raw = np.sqrt(sf._raw_sq / sf.n_used)
-    return FitResult(model, theta, se, held_list, sf.n_used, sf.n_excluded, rmse, raw, conds[0], conds[1],
-                     np.full(3, np.nan), sf.coverage, robust=False)
-
-
-def coverage_holds(model: CalModel, stats: PassStats, opt: RefitOptions) -> dict[tuple[int, int], str]:
-    """Attitude-coverage rules (see the module docstring): (axis, column) -> reason."""
-    out: dict[tuple[int, int], str] = {}
-    bins = stats.bins
-    cov = stats.fit.coverage
-    mask = model.axis_mask()
-    if bins.bins_filled < opt.min_attitude_bins:
-        why = (f"field directions fill only {bins.bins_filled} of {N_BINS} attitude bins "
-               f"(need {opt.min_attitude_bins})")
-        for c, col in enumerate(model.columns):
-            if col.term in ("gain_matrix", "temperature_gain"):
-                out.update({(i, c): why for i in range(3) if mask[i, c]})
-        return out
-    if "temperature_gain" in model.terms and cov.temp_span_c > 0:
-        q = cov.temp_span_c / 4.0
-        cold = bins.bins_in_temp(cov.temp_min_c, cov.temp_min_c + q)
-        warm = bins.bins_in_temp(cov.temp_max_c - q, cov.temp_max_c)
-        if min(cold, warm) < opt.min_bins_at_temp_ends:
-            why = (f"field directions in the coldest / warmest quarter of {cov.temp_min_c:.1f}..{cov.temp_max_c:.1f} "
-                   f"degC fill {cold} / {warm} bins (need {opt.min_bins_at_temp_ends} each)")
-            for c, col in enumerate(model.columns):
-                if col.term == "temperature_gain":
-                    out.update({(i, c): why for i in range(3) if mask[i, c]})
-    return out
+    sf.options = dataclasses.replace(sf.options, prior=plan.prior, min_temp_span_c=plan.options.min_temp_span_c,
+                                     min_field_rms_uT=plan.options.min_field_rms_uT)
+    res = sf.solve()
+    res.notes.clear()
+    return res
 
 
 @dataclass
@@ -485,7 +478,7 @@ class RefitResult:
         if self.fit is not None:
             L.append(f"fitted ({len(d['fitted'])}): " + ", ".join(d["fitted"]))
             if self.fit.held:
-                L.append(f"held at the active table's values ({len(self.fit.held)}):")
+                L.append(f"determined by the prior (the active table), not the orbit data ({len(self.fit.held)}):")
                 L += [f"  {h.name} = {h.value:g}: {h.reason}" for h in self.fit.held]
         if self.holdout_candidate_uT is not None:
             def row(label, v):
@@ -525,7 +518,7 @@ def make_plan(paths: Sequence[str], active: cal_table.CalTable, options: RefitOp
     extra = [t for t in active.terms if t in FLIGHT_TERMS + FLOAT_ONLY_TERMS and t != "currents"]
     terms = resolve_terms(options.model, extra, currents)
     model = CalModel(terms, currents, (), active.t0_c, 0.0, options.model)
-    return Plan(model, options, theta_from_table(model, active))
+    return Plan(model, options, theta_from_table(model, active), prior_from_table(model, active))
 
 
 def local_mapper(paths: Sequence[str], fn: Callable[[str], PassStats]) -> PassStats:
@@ -566,15 +559,14 @@ def refit(paths: Sequence[str], active: cal_table.CalTable | None = None, option
         return mapper(paths, lambda p: file_pass(p, plan, theta, sigma, cb, cache))
 
     first = run(None, None, 1)
-    holds = coverage_holds(plan.model, first, options)
-    res = solve(first, plan, holds)
+    res = solve(first, plan)
     scale = res.rmse_uT
     for k in range(2, n_pass + 1):
         stats = run(res.theta, scale, k)   # same rows as pass 1 (Huber weights are never 0)
         scale = stats.robust_scale_uT()
         if scale is None:
             break
-        res = solve(stats, plan, holds)
+        res = solve(stats, plan)
         res.robust = True
     hold = first.hold
     h_cand = holdout_rms(hold.R, res.theta, plan.model, hold.n_used)

@@ -3,8 +3,9 @@
 Each block's weighted ``[X | Y]`` is stacked under the running upper-triangular ``R``
 (``(p+3) x (p+3)``) and re-factorised, so ``R^T R`` always equals the Gram matrix of all
 rows seen (QR avoids squaring the condition number, unlike normal equations). Solving
-uses the same identifiability rules and per-axis solver as the batch :func:`fit`, so
-the two agree to rounding on the same data.
+uses the same MAP estimator (:mod:`.estimator`), priors and gating as the batch :func:`fit`;
+the residual autocorrelation cannot be measured from R alone, so rows count as independent
+(``kappa`` 1) unless ``kappa`` is given to :meth:`StreamingFit.solve`.
 
 Limits (raise FitError): the model is fixed before the first block (sessions for
 ``session_offset`` and ``t_ref_s`` for ``drift`` must be given up front); ``time_skew``
@@ -14,9 +15,23 @@ not produced here.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
-from magstack.firmware.calibration.fit import Coverage, FitOptions, FitResult, identify, qr_r, solve_axis
+from magstack.firmware.calibration.fit import (
+    Coverage,
+    FitOptions,
+    FitResult,
+    _prior_name,
+    build_prior,
+    gate_solve,
+    identify,
+    prior_determined,
+    qr_r,
+    solve_axis,
+)
+from magstack.firmware.calibration.identify import GATE_RULES
 from magstack.firmware.calibration.model import CalModel
 from magstack.firmware.errors import FitError
 
@@ -128,15 +143,30 @@ class StreamingFit:
         """Size of the accumulated state (constant in the number of rows)."""
         return self._R.nbytes + self._raw_sq.nbytes
 
-    def solve(self) -> FitResult:
+    def solve(self, kappa=None) -> FitResult:
+        """The MAP fit of the rows seen (``kappa`` (3,): residual variance inflation, default 1)."""
         p = self.model.n_columns
         if self.n_used <= p:
             raise FitError(f"{self.n_used} usable rows for {p} columns: not enough data")
-        held = identify(self.model, self._R, self.coverage, self.options)
+        opts = self.options
+        explain = identify(self.model, self._R, self.coverage,
+                           dataclasses.replace(opts, on_unidentifiable="hold", priors={}))
+        gated = [(h.axis, h.column) for h in explain if h.rule in GATE_RULES]
+        prior = build_prior(self.model, opts)
+        post = gate_solve(self._R, self.n_used, self.model, prior, gated, kappa, opts)
+        if opts.use_priors and opts.prior is None and "temperature_gain" in self.model.terms:
+            prior = build_prior(self.model, opts, s_hint=self.model.unpack(post.theta)["S"])
+            post = gate_solve(self._R, self.n_used, self.model, prior, gated, kappa, opts)
+        held = prior_determined(post, explain)
+        if held and opts.on_unidentifiable == "refuse":
+            raise FitError("data cannot determine (the prior would): " + "; ".join(h.name for h in held))
         mask = self.model.axis_mask()
-        theta, se, conds, rmse = solve_axes(self._R, p, mask, held, self.n_used)
-        res = FitResult(self.model, theta, se, held, self.n_used, self.n_excluded, rmse,
-                        np.sqrt(self._raw_sq / self.n_used), conds[0], conds[1], np.full(3, np.nan),
-                        self.coverage)
+        rmse = np.sqrt(post.sse / np.maximum(post.dof, 1.0))
+        res = FitResult(self.model, post.theta.copy(), np.where(mask, post.sd, np.nan), held, self.n_used,
+                        self.n_excluded, rmse, np.sqrt(self._raw_sq / self.n_used), post.cond, np.full(3, np.nan),
+                        np.full(3, np.nan), self.coverage)
+        res.posterior = post
+        res.prior_name = _prior_name(opts)
+        res.chip = opts.chip
         res.notes.append("streaming fit: RMSE is the weighted in-sample value; no held-out or noise floor")
         return res
