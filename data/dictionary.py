@@ -242,6 +242,7 @@ CHANNEL_FIELDS: tuple[FieldDef, ...] = (
     FieldDef("table_crc32", "uint", 32, "", 1.0, "table_crc32", 0, "CRC-32 of the table used; 0 = none"),
     FieldDef("error_count", "uint", 32, "", 1.0, "error_count", None, "channel's total faults so far"),
 )
+_STR = "string"
 GROUP_HK_FIELDS: tuple[FieldDef, ...] = (
     FieldDef("runs", "uint", 32, "", meaning="cycles run"),
     FieldDef("overruns", "uint", 32, "", meaning="cycles longer than the period"),
@@ -257,9 +258,17 @@ APP_HK_FIELDS: tuple[FieldDef, ...] = (
     FieldDef("tc_wrong_apid", "uint", 32, meaning="not addressed to this application"),
     FieldDef("tc_replayed", "uint", 32, meaning="sequence count not newer than the last accepted"),
     FieldDef("tc_unauthorised", "uint", 32, meaning="source address or PUS source id not configured"),
+    FieldDef("tc_invalid", "uint", 32, meaning="unknown service, function id or bad arguments"),
     FieldDef("tm_send_errors", "uint", 32, meaning="packets the stream could not write or send"),
 )
-_STR = "string"
+ID_FIELDS: tuple[FieldDef, ...] = (
+    FieldDef("apid", "uint", 16, meaning="the APID described"),
+    FieldDef("kind", "uint", 8, meaning="1 channel, 2 rate group"),
+    FieldDef("run_id", "uint", 32, meaning="the flight run (session column)"),
+    FieldDef("name", _STR, 8, meaning="channel or rate group name"),
+    FieldDef("device_id", _STR, 8, meaning="the channel's device id"),
+    FieldDef("chip", _STR, 8, meaning="the channel's chip"),
+)
 EVENT_FIELDS: tuple[FieldDef, ...] = (
     FieldDef("event_id", "uint", 16, meaning="EVENTS id"),
     FieldDef("severity", "uint", 8, meaning="Severity"),
@@ -274,6 +283,7 @@ TM_PACKETS: tuple[PacketDef, ...] = (
     PacketDef("channel", 3, 25, "channel", CHANNEL_FIELDS, "one magnetometer record per cycle"),
     PacketDef("group_hk", 3, 25, "group", GROUP_HK_FIELDS, "rate-group housekeeping every hk_period_s"),
     PacketDef("app_hk", 3, 25, "app", APP_HK_FIELDS, "telecommand counters every hk_period_s"),
+    PacketDef("apid_map", 3, 128, "app", ID_FIELDS, "names each channel/group APID (at start, every hk_period_s)"),
     PacketDef("event", 5, 0, "app", EVENT_FIELDS, "every event; subtype 1..4 from the severity"),
     PacketDef("accept_ok", 1, 1, "app", _REQ, "telecommand accepted"),
     PacketDef("accept_fail", 1, 2, "app", _REQ + _FAIL, "telecommand refused"),
