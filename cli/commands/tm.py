@@ -11,6 +11,7 @@ from pathlib import Path
 from magstack.cli.options import int_range, nonempty_path
 from magstack.cli.output import CommandResult
 from magstack.data.dictionary import APP_APID, COMMAND, TC_FUNCTION, TC_PING
+from magstack.data.dictionary_doc import BEGIN, END, dictionary_markdown
 from magstack.data.errors import SessionFileError
 from magstack.data.packets import SEQ_MODULO, encode_command_args, pack_tc
 from magstack.data.xtce import xtce_document
@@ -27,6 +28,8 @@ def register(subparsers) -> None:
     x = sub.add_parser("xtce", help="print the XTCE 1.2 document of the packets a flight configuration produces")
     x.add_argument("--config", required=True, type=nonempty_path, help="flight.toml")
     x.set_defaults(func=run_xtce)
+    m = sub.add_parser("dictionary", help="print the flight dictionary's tables (docs/ccsds.md) as Markdown")
+    m.set_defaults(func=run_dictionary)
     d = sub.add_parser("decode", help="packet stream(s) -> session files, events.jsonl, housekeeping.jsonl")
     d.add_argument("packets", nargs="+", type=nonempty_path, help="packet files (e.g. telemetry/packets-0001.bin)")
     d.add_argument("--out", required=True, type=nonempty_path, help="output directory")
@@ -50,6 +53,11 @@ def run_xtce(args: argparse.Namespace) -> CommandResult:
     cfg = load_config(args.config)
     doc = xtce_document(apid_map(cfg), name=cfg.name)
     return CommandResult("tm", {"action": "xtce", "xtce": doc}, [doc.rstrip("\n")])
+
+
+def run_dictionary(args: argparse.Namespace) -> CommandResult:
+    text = dictionary_markdown()
+    return CommandResult("tm", {"action": "dictionary", "markdown": text}, [BEGIN, text.rstrip("\n"), END])
 
 
 def run_decode(args: argparse.Namespace) -> CommandResult:
