@@ -49,7 +49,8 @@ class _Doc:
             return "STRING"
         if f.lsb == 1.0:
             return self.int_type(f.bits, f.kind == "int")
-        name = f"{'I' if f.kind == 'int' else 'U'}{f.bits}_x{f.lsb:g}_{f.unit or 'one'}"
+        lsb = f"{f.lsb:g}".replace(".", "p").replace("-", "m")      # XTCE names take no "."
+        name = f"{'I' if f.kind == 'int' else 'U'}{f.bits}_x{lsb}_{f.unit or 'one'}"
         if name not in self._types:
             self._types.add(name)
             t = _el(self.types, "FloatParameterType", name=name, sizeInBits=64)

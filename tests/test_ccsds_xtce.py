@@ -20,6 +20,17 @@ def _raw(v):
     return getattr(v, "raw_value", v)
 
 
+def test_xtce_document_is_valid_against_the_xtce_1_2_schema(tmp_path, capsys):
+    from pathlib import Path
+
+    assert main(["tm", "xtce", "--config", str(sim_config(tmp_path))]) == 0
+    (tmp_path / "tm.xml").write_text(capsys.readouterr().out)
+    xsd = Path(spp.__file__).parent / "xtce" / "schemas" / "SpaceSystem.xsd"       # shipped with the package
+    res = spp.validate_xtce(tmp_path / "tm.xml", local_xsd=xsd, allow_schema_download=False, raise_on_error=False,
+                            print_results=False)
+    assert res.valid, [str(e) for e in res.errors][:5]
+
+
 @pytest.mark.slow
 def test_space_packet_parser_reproduces_every_field_of_a_10_minute_run(tmp_path, capsys):
     cfg = sim_config(tmp_path)
