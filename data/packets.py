@@ -15,8 +15,8 @@ import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
-from spacepackets.ecss.tc import PusTc
-from spacepackets.ecss.tm import InvalidTmCrc16Error, PusTm
+from spacepackets.ecss.tc import PusTc, generate_crc
+from spacepackets.ecss.tm import PusTm
 
 from magstack.data.dictionary import (
     APP_APID,
@@ -198,6 +198,11 @@ class TmPacket:
     raw: dict[str, int | str]
 
 
+def pec_ok(packet: bytes) -> bool:
+    """The PUS packet error control (CRC-16/CCITT-FALSE over all but the last 2 bytes) is right."""
+    return len(packet) > CRC_BYTES and generate_crc(bytearray(packet[:-CRC_BYTES]))[-CRC_BYTES:] == packet[-CRC_BYTES:]
+
+
 def tm_header(data: bytes, at: int = 0) -> tuple[int, int, int] | None:
     """(APID, sequence count, total length) if ``data[at:]`` starts with a plausible TM header of ours."""
     if len(data) - at < 6:
@@ -220,10 +225,10 @@ def decode_tm(data: bytes) -> TmPacket:
         raise PacketError("not a CCSDS version-1 TM packet with a secondary header")
     if hdr[2] + 7 != len(data):
         raise PacketError(f"length field says {hdr[2] + 7} bytes, packet has {len(data)}", "length")
+    if not pec_ok(data):      # first: a corrupt header must count as a CRC error, not as malformed
+        raise PacketError("packet error control (CRC-16) wrong", "crc")
     try:
         tm = PusTm.unpack(data, timestamp_len=CUC.size)
-    except InvalidTmCrc16Error:
-        raise PacketError("packet error control (CRC-16) wrong", "crc") from None
     except Exception as exc:  # noqa: BLE001 - spacepackets raises ValueError subclasses and its CRC error
         raise PacketError(f"{type(exc).__name__}: {exc}"[:160]) from None
     sh = tm.pus_tm_sec_header

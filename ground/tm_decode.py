@@ -74,6 +74,14 @@ def _whole_packet_at(data: bytes, at: int) -> int:
     return h[2]
 
 
+def _next_whole(data: bytes, start: int, stop: int) -> int:
+    """First offset in [start, stop) where a whole valid packet starts, else ``stop``."""
+    j = start
+    while j < stop and not _whole_packet_at(data, j):
+        j += 1
+    return j
+
+
 def iter_packets(data: bytes, report: DecodeReport) -> Iterator[TmPacket]:
     """Yield every good packet of ``data``; count every bad one in ``report``. Never raises."""
     report.bytes += len(data)
@@ -86,12 +94,13 @@ def iter_packets(data: bytes, report: DecodeReport) -> Iterator[TmPacket]:
                 p = decode_tm(data[i:i + h[2]])
             except PacketError as exc:
                 nxt = i + h[2]
-                if exc.kind in ("unknown", "malformed"):
+                if exc.kind in ("unknown", "malformed"):       # CRC right: the length is right too
                     setattr(report, exc.kind, getattr(report, exc.kind) + 1)
                     i = nxt
                     continue
-                if exc.kind == "crc" and (nxt == n or _whole_packet_at(data, nxt)):
-                    report.bad_crc += 1            # the length was right: skip exactly this packet
+                # a CRC error: trust the length only if no whole packet starts inside it and one follows it
+                if _next_whole(data, i + 1, nxt) == nxt and (nxt == n or _whole_packet_at(data, nxt)):
+                    report.bad_crc += 1
                     i = nxt
                     continue
             else:
@@ -109,10 +118,8 @@ def iter_packets(data: bytes, report: DecodeReport) -> Iterator[TmPacket]:
                 i += h[2]
                 yield p
                 continue
-        # the length cannot be trusted (or the stream ends inside the packet): find the next whole packet
-        j = i + 1
-        while j < n and not _whole_packet_at(data, j):
-            j += 1
+        # the length cannot be trusted (or the stream ends inside the packet): go to the next whole packet
+        j = _next_whole(data, i + 1, n)
         if j >= n and h is not None and i + h[2] > n:
             report.truncated += 1
         else:
@@ -150,7 +157,7 @@ def decode_files(paths, out_dir: str | os.PathLike) -> DecodeReport:
                 sev = int(r["severity"])
                 events.append({"t_s": pkt.t_s, "id": int(r["event_id"]),
                                "name": _EVENT_NAME.get(int(r["event_id"]), "UNKNOWN"),
-                               "severity": Severity(sev).name if sev in iter(Severity) else str(sev),
+                               "severity": Severity(sev).name if sev <= max(Severity) else str(sev),
                                "source": r["source"], "message": r["message"]})
             else:
                 hk.append({"t_s": pkt.t_s, "apid": pkt.apid, "packet": name, "seq_count": pkt.seq_count,

@@ -181,3 +181,16 @@ def test_decode_of_a_file_without_packets_is_bad_input(tmp_path, capsys):
     assert "no valid packet" in capsys.readouterr().err
     rep = decode_files([tmp_path / "x.bin"], tmp_path / "d2")
     assert rep.bad_length == 1 and rep.skipped_bytes == 18
+
+
+def test_a_packet_that_cannot_be_sent_is_counted_and_reported_not_raised():
+    from magstack.data.packets import ApidMap
+    from magstack.firmware.flight.ccsds import PacketStream
+
+    errors = []
+    s = PacketStream(ApidMap(("m",), ("g",)), path=None, udp=("256.0.0.1", 9), on_error=errors.append)
+    for _ in range(5):
+        s.emit("ping_reply", APP_APID, 0.0, {})
+    s.close()
+    s.emit("ping_reply", APP_APID, 0.0, {})        # after close: counted too
+    assert s.send_errors == 6 and s.sent == 0 and len(errors) == 3     # events at the 1st, 2nd and 4th

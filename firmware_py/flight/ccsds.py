@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 import os
 import socket
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -101,9 +102,9 @@ class PacketStream:
         self.sent = 0
         self.bytes = 0
         self.send_errors = 0
+        self._lock = threading.Lock()
 
-    def send(self, data: bytes, *, report: bool = True) -> None:
-        """Write/send one packet; a failure is counted (and, unless ``report`` is False, an event)."""
+    def _write(self, data: bytes) -> str:
         try:
             if self._fh is not None:
                 self._fh.write(data)
@@ -114,19 +115,21 @@ class PacketStream:
                 self._sock.sendto(data, self._udp)
         except (OSError, ValueError) as exc:     # ValueError: written after close
             self.send_errors += 1
-            first_of_power_of_two = (self.send_errors & (self.send_errors - 1)) == 0      # events at 1, 2, 4, 8 ...
-            if report and self.on_error is not None and first_of_power_of_two:
-                self.on_error(f"packet stream: {type(exc).__name__}: {exc} ({self.send_errors} so far)"[:200])
-            return
+            if self.send_errors & (self.send_errors - 1) == 0:          # an event at the 1st, 2nd, 4th, 8th ...
+                return f"packet stream: {type(exc).__name__}: {exc} ({self.send_errors} so far)"[:200]
+            return ""
         self.sent += 1
         self.bytes += len(data)
-
-    def pack(self, name: str, apid: int, t_s: float, values: dict, subtype: int | None = None) -> bytes:
-        return self.encoder.pack(TM_PACKET[name], apid, t_s, values, subtype)
+        return ""
 
     def emit(self, name: str, apid: int, t_s: float, values: dict, subtype: int | None = None,
              report: bool = True) -> None:
-        self.send(self.pack(name, apid, t_s, values, subtype), report=report)
+        """Pack (sequence count of ``apid``) and send one packet; thread-safe (rate groups run in threads)."""
+        with self._lock:
+            data = self.encoder.pack(TM_PACKET[name], apid, t_s, values, subtype)
+            err = self._write(data)
+        if err and report and self.on_error is not None:
+            self.on_error(err)
 
     # -------------------------------------------------------------------- what the application produces
     def record(self, rec) -> None:
@@ -158,15 +161,16 @@ class PacketStream:
                                                   "name": g, "device_id": "", "chip": ""})
 
     def close(self) -> None:
-        if self._fh is not None and not self._fh.closed:
-            try:
-                self._fh.flush()
-                os.fsync(self._fh.fileno())
-            except OSError:
-                self.send_errors += 1
-            self._fh.close()
-        if self._sock is not None:
-            self._sock.close()
+        with self._lock:
+            if self._fh is not None and not self._fh.closed:
+                try:
+                    self._fh.flush()
+                    os.fsync(self._fh.fileno())
+                except OSError:
+                    self.send_errors += 1
+                self._fh.close()
+            if self._sock is not None:
+                self._sock.close()
 
 
 def _tee(*sinks):

@@ -28,10 +28,10 @@ import struct
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from spacepackets.ecss.tc import InvalidTcCrc16Error, PusTc
+from spacepackets.ecss.tc import PusTc
 
 from magstack.data.dictionary import APP_APID, COMMAND_BY_OPCODE, TC_FUNCTION, TC_PING, TcFailure
-from magstack.data.packets import CRC_BYTES, PRIMARY_HEADER_BYTES, SEQ_MODULO, TC_SECONDARY_BYTES
+from magstack.data.packets import CRC_BYTES, PRIMARY_HEADER_BYTES, SEQ_MODULO, TC_SECONDARY_BYTES, pec_ok
 from magstack.firmware.flight.commands import Command
 from magstack.firmware.flight.events import EventId
 
@@ -179,10 +179,10 @@ class TelecommandReceiver:
         header = (w0, w1)
         if length + 7 != len(data):
             raise _Reject(TcFailure.MALFORMED, f"length field says {length + 7} bytes, got {len(data)}", header)
+        if not pec_ok(data):
+            raise _Reject(TcFailure.BAD_CRC, "packet error control (CRC-16) wrong", header)
         try:
             tc = PusTc.unpack(data)
-        except InvalidTcCrc16Error:
-            raise _Reject(TcFailure.BAD_CRC, "packet error control (CRC-16) wrong", header) from None
         except Exception as exc:  # noqa: BLE001 - spacepackets raises ValueError subclasses for a bad header
             raise _Reject(TcFailure.MALFORMED, f"{type(exc).__name__}: {exc}"[:120], header) from None
         if tc.apid != APP_APID:
