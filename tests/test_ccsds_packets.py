@@ -20,10 +20,11 @@ from magstack.ground.tm_decode import DecodeReport, decode_files, iter_packets
 FIELD = {f.name: f for f in CHANNEL_FIELDS}
 
 
-def sim_config(tmp_path: Path, *, extra: str = "", csv: bool = True, table: bool = True) -> Path:
+def sim_config(tmp_path: Path, *, csv: bool = True, table: bool = True) -> Path:
     """The shipped example configuration on simulated buses (its [ccsds] table included)."""
     from magstack.firmware.flight.config import example_config_text
 
+    tmp_path.mkdir(parents=True, exist_ok=True)
     text = example_config_text().replace("spi0.0,start=6,reset=13,drdy=19,sr=5", "sim").replace('bus = "1"',
                                                                                                  'bus = "sim"')
     if not csv:
@@ -35,7 +36,7 @@ def sim_config(tmp_path: Path, *, extra: str = "", csv: bool = True, table: bool
     else:
         text = text.replace('table = "tables/hmc1053.json"', "")
     p = tmp_path / "flight.toml"
-    p.write_text(text + extra)
+    p.write_text(text)
     return p
 
 
@@ -194,3 +195,17 @@ def test_a_packet_that_cannot_be_sent_is_counted_and_reported_not_raised():
     s.close()
     s.emit("ping_reply", APP_APID, 0.0, {})        # after close: counted too
     assert s.send_errors == 6 and s.sent == 0 and len(errors) == 3     # events at the 1st, 2nd and 4th
+
+
+def test_ccsds_config_errors_name_the_key(tmp_path, capsys):
+    cases = [('tm_udp = "localhost"', "ccsds.tm_udp: must be"), ('tc_udp = "127.0.0.1:0"', "ccsds.tc_udp: must be"),
+             ("bogus = 1", "ccsds: unknown key(s) ['bogus']")]
+    for k, (line, expect) in enumerate(cases):
+        cfg = sim_config(tmp_path / str(k))
+        cfg.write_text(cfg.read_text().replace("[ccsds]\n", f"[ccsds]\n{line}\n"))
+        assert main(["run", "--config", str(cfg), "--duration", "1"]) == 3
+        assert expect in capsys.readouterr().err
+    cfg = sim_config(tmp_path / "nocmd")
+    cfg.write_text(cfg.read_text().replace('command_dir = "commands"', ""))
+    assert main(["run", "--config", str(cfg), "--duration", "1"]) == 3
+    assert "need flight.command_dir" in capsys.readouterr().err

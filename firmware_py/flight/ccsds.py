@@ -51,7 +51,7 @@ def _address(c, key: str, v: Any) -> tuple[str, int]:
     return host, int(port)
 
 
-def parse_ccsds(c, obj: Any, base: Path) -> CcsdsConfig | None:
+def parse_ccsds(c, obj: Any, base: Path, has_command_dir: bool = True) -> CcsdsConfig | None:
     """``[ccsds]`` -> CcsdsConfig (``c`` is the config module's error context)."""
     if obj is None:
         return None
@@ -76,6 +76,8 @@ def parse_ccsds(c, obj: Any, base: Path) -> CcsdsConfig | None:
         tc_udp=_address(c, "ccsds.tc_udp", t["tc_udp"]) if "tc_udp" in t else None,
         tc_dir=base / _str(c, "ccsds.tc_dir", t["tc_dir"]) if "tc_dir" in t else None,
         tc_hosts=tuple(hosts), tc_source_ids=tuple(ids))
+    if (cfg.tc_udp is not None or cfg.tc_dir is not None) and not has_command_dir:
+        raise c.err("ccsds", "telecommands (tc_udp, tc_dir) need flight.command_dir: results are filed there")
     if not (cfg.csv or cfg.packets or cfg.tm_udp):
         raise c.err("ccsds", "csv, packets and tm_udp are all off: the run would record no telemetry")
     return cfg
@@ -235,11 +237,6 @@ def attach_ccsds(app) -> CcsdsLink | None:
     cfg = getattr(app.cfg, "ccsds", None)
     if cfg is None:
         return None
-    if (cfg.tc_udp is not None or cfg.tc_dir is not None) and app.spool is None:
-        from magstack.firmware.errors import FlightConfigError
-
-        raise FlightConfigError(f"{app.cfg.path}: ccsds: telecommands need flight.command_dir (results are filed "
-                                "there, as for command files)")
     link = CcsdsLink(app, cfg)
     for slot in app.slots.values():
         slot.channel.sink = _tee(slot.channel.sink if cfg.csv else None, link.stream.record)

@@ -228,7 +228,8 @@ def parse_config(doc: dict, path: Path) -> FlightConfig:
         command_dir=None if cmd is None else base / _str(c, "flight.command_dir", cmd),
         rotate_bytes=int(_num(c, "flight.rotate_mb", fl.get("rotate_mb", 16), 0.01, 4096) * (1 << 20)),
         block_rows=int(_num(c, "flight.block_rows", fl.get("block_rows", 50), 1, 100_000, integer=True)),
-        rate_groups=tuple(groups), sensors=tuple(sensors), ccsds=parse_ccsds(c, top.get("ccsds"), base))
+        rate_groups=tuple(groups), sensors=tuple(sensors), ccsds=parse_ccsds(c, top.get("ccsds"), base,
+                                                                   cmd is not None))
 
 
 def load_config(path: str | Path) -> FlightConfig:
