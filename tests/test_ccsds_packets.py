@@ -14,29 +14,18 @@ from magstack.cli.main import main
 from magstack.data.dictionary import APP_APID, CHANNEL_FIELDS, FIELD_LSB_UT, TM_PACKET
 from magstack.data.packets import PacketError, TmEncoder, cuc_bytes, cuc_seconds, decode_tm, from_raw, pack_tc
 from magstack.data.session import read_session
-from magstack.firmware import cal_table as ct
 from magstack.ground.tm_decode import DecodeReport, decode_files, iter_packets
+from tests.test_flight_run_cli import _sim_config
 
 FIELD = {f.name: f for f in CHANNEL_FIELDS}
 
 
 def sim_config(tmp_path: Path, *, csv: bool = True, table: bool = True) -> Path:
     """The shipped example configuration on simulated buses (its [ccsds] table included)."""
-    from magstack.firmware.flight.config import example_config_text
-
     tmp_path.mkdir(parents=True, exist_ok=True)
-    text = example_config_text().replace("spi0.0,start=6,reset=13,drdy=19,sr=5", "sim").replace('bus = "1"',
-                                                                                                 'bus = "sim"')
+    p = _sim_config(tmp_path, table=table)
     if not csv:
-        text = text.replace("csv = true ", "csv = false")
-    if table:
-        (tmp_path / "tables").mkdir(exist_ok=True)
-        ct.save_table(ct.CalTable(device_id="hmc1053:sn1", terms=("gain_matrix", "offset"), S=np.eye(3),
-                                  O=[0.1, 0.2, 0.3], validity_field_uT=100.0), tmp_path / "tables/hmc1053.json")
-    else:
-        text = text.replace('table = "tables/hmc1053.json"', "")
-    p = tmp_path / "flight.toml"
-    p.write_text(text)
+        p.write_text(p.read_text().replace("csv = true ", "csv = false"))
     return p
 
 
