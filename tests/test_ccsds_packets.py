@@ -198,3 +198,26 @@ def test_ccsds_config_errors_name_the_key(tmp_path, capsys):
     cfg.write_text(cfg.read_text().replace('command_dir = "commands"', ""))
     assert main(["run", "--config", str(cfg), "--duration", "1"]) == 3
     assert "need flight.command_dir" in capsys.readouterr().err
+
+
+def test_a_failing_csv_writer_does_not_stop_the_packets(tmp_path):
+    from magstack.firmware.flight.app import FlightApp
+    from magstack.firmware.flight.config import load_config
+
+    app = FlightApp(load_config(sim_config(tmp_path)), virtual=True, simulate=True, telemetry_dir=tmp_path / "tlm",
+                    run_id=1)
+    slot = app.slots["hmc1053"]
+
+    def disk_full(_rec):
+        raise OSError(28, "No space left on device")
+
+    from magstack.firmware.flight.ccsds import _tee
+
+    slot.channel.sink = _tee(disk_full, app.ccsds.stream.record)     # the CSV writer replaced by a full disk
+    try:
+        app.run(3.0)
+    finally:
+        app.close()
+    rep = DecodeReport()
+    chans = [p for p in iter_packets((tmp_path / "tlm/packets-0001.bin").read_bytes(), rep) if p.apid == 0x100]
+    assert len(chans) == 3 and slot.channel.health.telemetry_errors == 3

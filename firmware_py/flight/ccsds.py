@@ -176,11 +176,19 @@ class PacketStream:
 
 
 def _tee(*sinks):
+    """One sink feeding several; each gets every item even if another raised (the first error is re-raised:
+    the channel counts it as a telemetry error)."""
     sinks = tuple(s for s in sinks if s is not None)
 
     def sink(item) -> None:
+        error = None
         for s in sinks:
-            s(item)
+            try:
+                s(item)
+            except Exception as exc:  # noqa: BLE001 - re-raised below, after the other sinks had the item
+                error = error or exc
+        if error is not None:
+            raise error
     return sink
 
 
