@@ -131,6 +131,7 @@ class ApidMap:
 
     channels: tuple[str, ...]
     groups: tuple[str, ...]
+    telecommands: bool = True          # the application takes telecommands (sends 1,x and 17,2 reports)
 
     def __post_init__(self) -> None:
         if len(self.channels) > MAX_CHANNELS or len(self.groups) > MAX_GROUPS:
@@ -146,7 +147,8 @@ class ApidMap:
         """Every (APID, packet, name) this configuration produces, in document order."""
         out = [(self.channel(c), TM_PACKET["channel"], c) for c in self.channels]
         out += [(self.group(g), TM_PACKET["group_hk"], g) for g in self.groups]
-        out += [(APP_APID, p, "app") for p in TM_PACKET.values() if p.apid == "app"]
+        out += [(APP_APID, p, "app") for p in TM_PACKET.values()
+                if p.apid == "app" and (self.telecommands or p.service not in (1, 17))]
         return out
 
 

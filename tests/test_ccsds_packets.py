@@ -104,9 +104,14 @@ def test_xtce_names_exactly_the_configured_packets(tmp_path, capsys):
     for name in ("TM_CHANNEL_hmc1053", "TM_CHANNEL_lis3mdl", "TM_GROUP_HK_slow", "TM_GROUP_HK_fast", "TM_EVENT",
                  "TM_ACCEPT_FAIL", "TM_APP_HK"):
         assert f'name="{name}"' in doc
-    cfg.write_text(cfg.read_text().replace('name = "lis3mdl"', 'name = "mag2"'))
+    cfg.write_text(cfg.read_text().replace('name = "lis3mdl"', 'name = "mag2"').replace('tc_dir = "telecommands"', ""))
     assert main(["tm", "xtce", "--config", str(cfg)]) == 0
-    assert 'name="TM_CHANNEL_mag2"' in capsys.readouterr().out
+    doc = capsys.readouterr().out
+    assert 'name="TM_CHANNEL_mag2"' in doc and "TM_CHANNEL_lis3mdl" not in doc
+    assert "TM_ACCEPT_OK" not in doc and "TM_PING_REPLY" not in doc and "TM_EVENT" in doc   # no telecommand input
+    cfg.write_text(cfg.read_text().split("[ccsds]")[0])
+    assert main(["tm", "xtce", "--config", str(cfg)]) == 3
+    assert "produces no packets" in capsys.readouterr().err
 
 
 def _stream(n: int = 12) -> list[bytes]:

@@ -51,6 +51,8 @@ def register(subparsers) -> None:
 
 def run_xtce(args: argparse.Namespace) -> CommandResult:
     cfg = load_config(args.config)
+    if cfg.ccsds is None:
+        raise FlightConfigError(f"{args.config}: no [ccsds] table: this configuration produces no packets")
     doc = xtce_document(apid_map(cfg), name=cfg.name)
     return CommandResult("tm", {"action": "xtce", "xtce": doc}, [doc.rstrip("\n")])
 

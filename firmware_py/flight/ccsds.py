@@ -84,8 +84,10 @@ def parse_ccsds(c, obj: Any, base: Path, has_command_dir: bool = True) -> CcsdsC
 
 
 def apid_map(cfg) -> ApidMap:
-    """The APIDs a flight configuration produces (sensors and rate groups in file order)."""
-    return ApidMap(tuple(s.name for s in cfg.sensors), tuple(g.name for g in cfg.rate_groups))
+    """The APIDs and packets a flight configuration produces (sensors and rate groups in file order)."""
+    cc = cfg.ccsds
+    return ApidMap(tuple(s.name for s in cfg.sensors), tuple(g.name for g in cfg.rate_groups),
+                   telecommands=cc is not None and (cc.tc_udp is not None or cc.tc_dir is not None))
 
 
 class PacketStream:
