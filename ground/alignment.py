@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from magstack.data.dictionary import FLAG
 from magstack.data.pairing import finite_rows, sort_unique, split_streams
 from magstack.ground.errors import AlignmentError
 
@@ -812,7 +813,7 @@ def aligned_session(session, report: AlignmentReport, *, correct_skew: bool = Fa
     """Pair a raw bench session (interleaved DUT and reference rows) using ``report``.
 
     Output rows are the DUT rows; the reference is interpolated at ``t - offset_s`` (never
-    extrapolated, never across a gap longer than ``max_gap_s``; such rows get NaN and flag bit 1,
+    extrapolated, never across a gap longer than ``max_gap_s``; such rows get NaN and flag bit NO_REF,
     or are dropped with ``gaps="drop"``). With ``correct_skew`` each DUT axis whose skew is
     determined is re-sampled at ``t - skew_i`` (interpolating the DUT stream itself). Temperature,
     session id and currents come from the DUT rows. Metadata records what was applied.
@@ -842,7 +843,7 @@ def aligned_session(session, report: AlignmentReport, *, correct_skew: bool = Fa
                 dut[:, i] = col
                 ok &= ok_i
                 applied.append(f"dut_{AXES[i]} re-sampled for skew {e.value:+.4f} s")
-    flag = np.where(ok, 0, 1).astype(np.int64)
+    flag = np.where(ok, 0, FLAG["NO_REF"].value).astype(np.int64)
     meta = dict(session.metadata)
     meta["alignment_applied"] = "; ".join(applied)
     meta["axis_map_estimated"] = report.axis_map.describe()

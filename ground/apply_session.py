@@ -1,22 +1,24 @@
 """Apply a calibration table to a whole session (``magstack apply``, the demo, ``diagnose --table``).
 
 Every row is kept: rows that cannot be calibrated hold NaN and carry the applier's flag bits,
-shifted above the first 8 bits (``FLAG_SHIFT``) so flags already in the file survive. Rows outside the
-table's validity box are flagged and, like the flight corrector, get no calibrated value (NaN) unless
-``extrapolate`` is asked for. A table with a posterior block adds the column ``cal_sigma_nT``: the
-posterior sd of the calibrated field's magnitude per row (:mod:`magstack.firmware.cal_uncertainty`).
+shifted to the dictionary's APPLY_* bits (``FLAG_SHIFT``) so flags already in the file survive. Rows
+outside the table's validity box are flagged and, like the flight corrector, get no calibrated value
+(NaN) unless ``extrapolate`` is asked for. A table with a posterior block adds the column
+``cal_sigma_nT``: the posterior sd of the calibrated field's magnitude per row
+(:mod:`magstack.firmware.cal_uncertainty`).
 """
 from __future__ import annotations
 
 import numpy as np
 
+from magstack.data.dictionary import APPLY, APPLY_FLAG_SHIFT, flag_legend
 from magstack.data.errors import SessionFileError
 from magstack.data.session import Session
 from magstack.firmware.fixed_point import FixedPointTable, output_to_uT, to_fixed_inputs
 from magstack.firmware.float_applier import ApplyFlag, apply_float
 
-#: apply's status bits sit above the first 8 bits so flags already in the file are kept.
-FLAG_SHIFT = 8
+#: apply's status bits (``ApplyFlag`` << this) are the dictionary's APPLY_* bits, clear of every other owner's.
+FLAG_SHIFT = APPLY_FLAG_SHIFT
 
 
 def calibrate_session(table, s: Session, applier: str = "float", extrapolate: bool = False) -> Session:
@@ -52,8 +54,6 @@ def calibrate_session(table, s: Session, applier: str = "float", extrapolate: bo
                  "cal_model": table.model_name, "cal_table_crc32": (f"0x{table.crc32:08x}" if table.crc32 is not None
                                      else table.to_document()["crc32"]),
                  "cal_applier": applier, "cal_out_of_validity": "extrapolated" if extrapolate else "NaN",
-                 "cal_flag_bits": f"{int(ApplyFlag.MISSING_INPUT) << FLAG_SHIFT}=missing_input "
-                                  f"{int(ApplyFlag.OUT_OF_VALIDITY) << FLAG_SHIFT}=out_of_validity "
-                                  f"{int(ApplyFlag.SATURATED) << FLAG_SHIFT}=saturated"})
+                 "cal_flag_bits": flag_legend(APPLY)})
     return Session(s.t_s, s.ref_uT, out, s.temp_c, s.session, dict(s.currents_A), meta,
                    old | (flags.astype(np.int64) << FLAG_SHIFT), extra=extra)

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from magstack.data.dictionary import FLAG
 from magstack.data.errors import SessionFileError
 from magstack.data.pairing import sort_unique
 from magstack.data.session import Session, data_row_line, parse_table, read_file_bytes
@@ -44,9 +45,9 @@ AUTHORS_AXIS_MAP: tuple[tuple[int, int], ...] = ((1, 1), (0, 1), (2, -1))
 #: Authors' hand-picked clock correction, seconds added to the reference clock.
 AUTHORS_OFFSET_S = 4 * 3600 - 0.5
 KELVIN_OFFSET = 273.15
-#: flag bits in the returned Session
-FLAG_NO_REF = 1
-FLAG_NO_DUT = 2
+#: flag bits in the returned Session (the one flag definition, :data:`magstack.data.dictionary.FLAG_BITS`)
+FLAG_NO_REF = FLAG["NO_REF"].value
+FLAG_NO_DUT = FLAG["NO_DUT"].value
 
 
 #: Physical range of each kind of column; a value outside it is refused with its line (issue 17 item 3).
@@ -180,7 +181,7 @@ def import_mageval(data_csv: str | os.PathLike, ref_csv: str | os.PathLike, *,
         reference times, shifted to the DUT clock) or a grid step in s (both onto a uniform grid
         over the overlap, the authors' method with 0.25).
     max_gap_s: a target inside a source gap longer than this is a gap (NaN), never bridged.
-    gaps: ``"nan"`` keeps gap rows with NaN and ``flag`` bits (1: no reference, 2: no DUT);
+    gaps: ``"nan"`` keeps gap rows with NaN and ``flag`` bits (``FLAG_NO_REF``, ``FLAG_NO_DUT``);
         ``"drop"`` removes them. Either way the count is in the metadata.
     bad_lines: ``"raise"`` (SessionFileError naming the line) or ``"skip"`` (counted in metadata).
     progress: ``progress(stage, fraction)`` callback of the clock-offset search (see alignment).

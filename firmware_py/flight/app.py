@@ -21,6 +21,7 @@ from magstack.drivers.registry import open_chip
 from magstack.firmware.cal_table import CalTableStore, load_table, save_table, validate
 from magstack.firmware.corrector import TableCorrector
 from magstack.firmware.errors import CalTableInvalid
+from magstack.firmware.flight.ccsds import attach_ccsds
 from magstack.firmware.flight.channel import ChannelLimits, MagChannel
 from magstack.firmware.flight.commands import Command, CommandSpool
 from magstack.firmware.flight.config import FlightConfig, SensorConfig
@@ -139,6 +140,7 @@ class FlightApp:
                                       lambda: self.epoch_of(any_clock.monotonic_s()))
             fastest = max(groups, key=lambda x: x.rate_hz)
             fastest.boundary.insert(0, self.spool.poll)
+        self.ccsds = attach_ccsds(self)     # [ccsds]: packet stream + telecommands (None without the table)
 
     # ------------------------------------------------------------------ construction
     def _next_run_id(self) -> int:
@@ -310,6 +312,8 @@ class FlightApp:
                     close()
                 except Exception:  # noqa: BLE001 - closing must not hide the run's result
                     pass
+        if getattr(self, "ccsds", None) is not None:
+            self.ccsds.close()
         sink = getattr(self, "_event_sink", None)
         if sink is not None:
             sink.close()

@@ -28,25 +28,16 @@ from enum import IntFlag
 
 import numpy as np
 
+from magstack.data.dictionary import DISQUALIFYING, FLIGHT, flags_of
 from magstack.drivers.errors import BusError, BusTimeout, MagError, SelfTestFailed, StaleData
 from magstack.drivers.magnetometer import Magnetometer, MagSample
 from magstack.firmware.corrector import Correction, TableCorrector
 from magstack.firmware.flight.events import EventId, EventLog
 from magstack.firmware.health import HealthCounters
 
-
-class TlmFlag(IntFlag):
-    """Bits of a telemetry record's ``flags`` (and of the telemetry file's ``flag`` column)."""
-
-    NO_SAMPLE = 1           # the read failed: no field in this record
-    STALE = 2               # the sample is not new
-    OVERFLOW = 4            # an axis saturated
-    IMPLAUSIBLE = 8         # beyond the sensor's range or an impossible rate of change
-    UNCALIBRATED = 16       # no calibrated field (no table, missing input, saturated applier)
-    OUT_OF_VALIDITY = 32    # outside the active table's validity box: not calibrated
-    DEGRADED = 64           # the channel is marked degraded
-    OVERRUN = 128           # the chip reported samples lost before this one (informational)
-    REPEATED = 256          # equal to the previous sample, within what the sensor's resolution makes likely
+#: Bits of a telemetry record's ``flags`` (and of the telemetry file's ``flag`` column): the flight
+#: channel's bits of the one flag definition, :data:`magstack.data.dictionary.FLAG_BITS`.
+TlmFlag = IntFlag("TlmFlag", flags_of(FLIGHT), module=__name__)
 
 
 #: Longest run of exact repeats ever accepted as new data (a very coarse sensor in a static field).
@@ -55,7 +46,7 @@ STALE_MAX_REPEATS = 5
 STALE_FALSE_ALARM = 1e-4
 
 #: Flags that make a sample not good (its field must not be used).
-BAD = TlmFlag.NO_SAMPLE | TlmFlag.STALE | TlmFlag.OVERFLOW | TlmFlag.IMPLAUSIBLE
+BAD = TlmFlag(DISQUALIFYING & sum(TlmFlag))
 
 
 @dataclass(frozen=True)

@@ -35,17 +35,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from magstack.data.dictionary import COMMANDS as COMMAND_DEFS
 from magstack.firmware.flight.events import EventId, EventLog
 
-COMMANDS = {
-    "load_table": {"channel", "path"},
-    "validate_table": {"channel", "path"},
-    "activate_table": {"channel"},
-    "set_rate_group": {"channel", "group"},
-    "dump_counters": set(),
-    "start_refit": {"channel", "files"},
-    "stop_refit": {"channel"},
-}
+#: Command name -> its argument names, from the flight dictionary (:data:`magstack.data.dictionary.COMMANDS`).
+COMMANDS = {c.name: {a.name for a in c.args} for c in COMMAND_DEFS}
 MAX_COMMAND_BYTES = 64 * 1024
 
 

@@ -57,6 +57,7 @@ class FlightConfig:
     block_rows: int
     rate_groups: tuple[RateGroupConfig, ...]
     sensors: tuple[SensorConfig, ...]
+    ccsds: Any = None          # CcsdsConfig of the [ccsds] table (firmware/flight/ccsds.py), None without one
 
     def group(self, name: str) -> RateGroupConfig:
         return next(g for g in self.rate_groups if g.name == name)
@@ -154,7 +155,7 @@ def _bus_key(bus: str) -> str:
 
 def parse_config(doc: dict, path: Path) -> FlightConfig:
     c = _Ctx(path)
-    top = _table(c, "document", doc, {"flight", "rate_group", "sensor"}, set())
+    top = _table(c, "document", doc, {"flight", "rate_group", "sensor"}, {"ccsds"})
     fl = _table(c, "flight", top["flight"], {"name", "telemetry_dir"}, {"command_dir", "rotate_mb", "block_rows"})
     base = path.parent
     groups_raw = top["rate_group"]
@@ -220,13 +221,15 @@ def parse_config(doc: dict, path: Path) -> FlightConfig:
         if not all(ch.isalnum() or ch in "_-" for ch in s.name):
             raise c.err("sensor.name", f"{s.name!r}: use letters, digits, '_' or '-' (it names telemetry files)")
     cmd = fl.get("command_dir")
+    from magstack.firmware.flight.ccsds import parse_ccsds  # it uses this module's checks
     return FlightConfig(
         path=path, name=_str(c, "flight.name", fl["name"]),
         telemetry_dir=base / _str(c, "flight.telemetry_dir", fl["telemetry_dir"]),
         command_dir=None if cmd is None else base / _str(c, "flight.command_dir", cmd),
         rotate_bytes=int(_num(c, "flight.rotate_mb", fl.get("rotate_mb", 16), 0.01, 4096) * (1 << 20)),
         block_rows=int(_num(c, "flight.block_rows", fl.get("block_rows", 50), 1, 100_000, integer=True)),
-        rate_groups=tuple(groups), sensors=tuple(sensors))
+        rate_groups=tuple(groups), sensors=tuple(sensors), ccsds=parse_ccsds(c, top.get("ccsds"), base,
+                                                                   cmd is not None))
 
 
 def load_config(path: str | Path) -> FlightConfig:

@@ -1,8 +1,8 @@
 """Events with stable numeric ids and severities (F' / cFE style), counted and logged.
 
-Ids never change meaning once released: ground tools and tests key on them. Ranges:
-0x01xx executive, 0x02xx magnetometer channels, 0x03xx calibration tables, 0x04xx commands,
-0x05xx refit, 0x06xx telemetry. Severities follow F' (DIAGNOSTIC .. FATAL).
+Ids, severities and texts are declared once in the flight dictionary
+(:data:`magstack.data.dictionary.EVENTS`); ids never change meaning once released: ground tools and
+tests key on them. Severities follow F' (DIAGNOSTIC .. FATAL).
 """
 from __future__ import annotations
 
@@ -15,69 +15,12 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 from pathlib import Path
 
+from magstack.data.dictionary import EVENTS, Severity
 
-class Severity(IntEnum):
-    DIAGNOSTIC = 0
-    ACTIVITY_LO = 1
-    ACTIVITY_HI = 2
-    WARNING_LO = 3
-    WARNING_HI = 4
-    FATAL = 5
-
-
-class EventId(IntEnum):
-    EXEC_STARTED = 0x0100
-    EXEC_STOPPED = 0x0101
-    RATE_GROUP_OVERRUN = 0x0110      # a group's execution took longer than its period
-    RATE_GROUP_SLIP = 0x0111         # slots skipped (schedule re-anchored, no catch-up burst)
-    CLOCK_STEPPED_BACK = 0x0112      # the tick source went backwards: schedule re-anchored
-    CHAN_BUS_ERROR = 0x0200
-    CHAN_TIMEOUT = 0x0201
-    CHAN_STALE = 0x0202              # no new data: chip said so, or the sample repeats the last one
-    CHAN_OVERFLOW = 0x0203
-    CHAN_IMPLAUSIBLE = 0x0204        # beyond the sensor range or a physically impossible rate of change
-    CHAN_SELF_TEST_FAILED = 0x0205
-    CHAN_EXCEPTION = 0x0206          # a non-magstack exception caught at the component boundary
-    CHAN_OTHER_ERROR = 0x0207        # any other typed magstack error
-    CHAN_OUT_OF_VALIDITY = 0x0208    # outside the active table's validity: published uncalibrated
-    CHAN_REINIT = 0x0210
-    CHAN_REINIT_FAILED = 0x0211
-    CHAN_DEGRADED = 0x0212
-    CHAN_RECOVERED = 0x0213
-    TABLE_LOADED = 0x0300
-    TABLE_REJECTED = 0x0301
-    TABLE_ACTIVATED = 0x0302
-    CMD_ACCEPTED = 0x0400
-    CMD_REJECTED = 0x0401
-    CMD_COMPLETED = 0x0402
-    REFIT_STARTED = 0x0500
-    REFIT_FINISHED = 0x0501
-    REFIT_FAILED = 0x0502
-    TLM_FILE_ROTATED = 0x0600
-    TLM_WRITE_ERROR = 0x0601
-
-
+#: Event ids, derived from the flight dictionary (:data:`magstack.data.dictionary.EVENTS`).
+EventId = IntEnum("EventId", {e.name: e.id for e in EVENTS}, module=__name__)
 #: Severity of each event id (the event definition, like an F' .fppi entry).
-SEVERITY: dict[EventId, Severity] = {
-    EventId.EXEC_STARTED: Severity.ACTIVITY_HI, EventId.EXEC_STOPPED: Severity.ACTIVITY_HI,
-    EventId.RATE_GROUP_OVERRUN: Severity.WARNING_LO, EventId.RATE_GROUP_SLIP: Severity.WARNING_LO,
-    EventId.CLOCK_STEPPED_BACK: Severity.WARNING_HI,
-    EventId.CHAN_BUS_ERROR: Severity.WARNING_LO, EventId.CHAN_TIMEOUT: Severity.WARNING_LO,
-    EventId.CHAN_STALE: Severity.WARNING_LO, EventId.CHAN_OVERFLOW: Severity.WARNING_LO,
-    EventId.CHAN_IMPLAUSIBLE: Severity.WARNING_LO, EventId.CHAN_SELF_TEST_FAILED: Severity.WARNING_HI,
-    EventId.CHAN_EXCEPTION: Severity.WARNING_HI, EventId.CHAN_OTHER_ERROR: Severity.WARNING_LO,
-    EventId.CHAN_OUT_OF_VALIDITY: Severity.DIAGNOSTIC,
-    EventId.CHAN_REINIT: Severity.ACTIVITY_HI, EventId.CHAN_REINIT_FAILED: Severity.WARNING_HI,
-    EventId.CHAN_DEGRADED: Severity.WARNING_HI, EventId.CHAN_RECOVERED: Severity.ACTIVITY_HI,
-    EventId.TABLE_LOADED: Severity.ACTIVITY_HI, EventId.TABLE_REJECTED: Severity.WARNING_HI,
-    EventId.TABLE_ACTIVATED: Severity.ACTIVITY_HI,
-    EventId.CMD_ACCEPTED: Severity.ACTIVITY_LO, EventId.CMD_REJECTED: Severity.WARNING_LO,
-    EventId.CMD_COMPLETED: Severity.ACTIVITY_LO,
-    EventId.REFIT_STARTED: Severity.ACTIVITY_HI, EventId.REFIT_FINISHED: Severity.ACTIVITY_HI,
-    EventId.REFIT_FAILED: Severity.WARNING_HI,
-    EventId.TLM_FILE_ROTATED: Severity.DIAGNOSTIC, EventId.TLM_WRITE_ERROR: Severity.WARNING_HI,
-}
-assert set(SEVERITY) == set(EventId), "every event id needs a severity"
+SEVERITY: dict[EventId, Severity] = {EventId(e.id): e.severity for e in EVENTS}
 
 
 @dataclass(frozen=True)
