@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
+from magstack.data.dictionary import usable
 from magstack.drivers.cal_priors import priors_for
 from magstack.firmware.calibration.degeneracy import GROUP_CORR, VIF_LIMIT
 from magstack.firmware.calibration.estimator import (
@@ -63,7 +64,7 @@ __all__ = ["FitData", "FitOptions", "FitResult", "Coverage", "HeldParam", "AxisS
 class FitData:
     """Paired samples for a fit. b_meas_uT: DUT (N,3) uT; b_ref_uT: reference (N,3) uT;
     temp_c (N,) degC; t_s (N,) s; session (N,) int; currents_A {name: (N,) A};
-    weights (N,) >= 0 or None; flag (N,) int, rows with flag != 0 are not used."""
+    weights (N,) >= 0 or None; flag (N,) int, rows with a disqualifying flag bit are not used."""
 
     b_meas_uT: np.ndarray
     b_ref_uT: np.ndarray
@@ -105,7 +106,7 @@ class FitData:
                        None if self.flag is None else self.flag[mask])
 
     def usable(self, terms: Sequence[str], currents: Sequence[str]) -> np.ndarray:
-        """Rows whose every quantity the model needs is finite and whose flag is 0."""
+        """Rows whose every quantity the model needs is finite and whose flag has no disqualifying bit."""
         ok = np.all(np.isfinite(self.b_meas_uT), axis=1) & np.all(np.isfinite(self.b_ref_uT), axis=1)
         ok &= np.isfinite(self.t_s)
         if {"temperature_gain", "temperature_offset"} & set(terms):
@@ -115,7 +116,7 @@ class FitData:
                 raise FitError(f"data has no current {name!r} (have {sorted(self.currents_A)})")
             ok &= np.isfinite(self.currents_A[name])
         if self.flag is not None:
-            ok &= self.flag == 0
+            ok &= usable(self.flag)        # the dictionary's one rule: informational bits keep a row
         if self.weights is not None:
             ok &= self.weights > 0
         return ok
@@ -743,7 +744,8 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
         for label, bad in (("DUT field", ~np.all(np.isfinite(data.b_meas_uT), axis=1)),
                            ("reference field", ~np.all(np.isfinite(data.b_ref_uT), axis=1)),
                            ("temperature", ~np.isfinite(data.temp_c)),
-                           ("flag != 0", (data.flag != 0) if data.flag is not None else np.zeros(len(data), bool))):
+                           ("disqualifying flag", ~usable(data.flag) if data.flag is not None
+                            else np.zeros(len(data), bool))):
             if bad.any():
                 why.append(f"{label} missing/flagged on {int(bad.sum())} rows")
         raise FitError(f"{len(d)} usable rows of {len(data)} for {cm.n_columns} columns: not enough data"
