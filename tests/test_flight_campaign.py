@@ -246,3 +246,79 @@ def test_telemetry_files_read_back_as_sessions(campaign):
         rows = sum(len(read_session(p)) for p in slot.telemetry.files)
         assert rows == len(records[name])
         assert all(not str(p).endswith(".part") for p in slot.telemetry.files)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Issue 24 item 9: register corruptions right after an outage (0.2-0.6 s after the last good sample), when a
+# rate limit that grows with the gap would let them through.
+class OutageThenCorruption:
+    """Wraps a driver: on a seeded schedule 1-5 reads fail (NACK), then one sample comes back with a
+    corrupted register (one axis 150-700 uT off, clipped to the range like a saturated high byte)."""
+
+    def __init__(self, mag, seed: int, rate: float):
+        self.mag, self.name, self.range_uT = mag, mag.name, getattr(mag, "range_uT", None)
+        self.rng = np.random.default_rng(seed)
+        self.rate = rate
+        self.failing = 0
+        self.corrupt_next = False
+        self.corrupted_t: set[float] = set()
+        self.episodes = 0
+
+    def data_ready(self):
+        return True
+
+    def reinit(self):
+        self.mag.reinit()
+
+    def read(self):
+        if self.failing == 0 and not self.corrupt_next and self.rng.random() < self.rate:
+            self.failing = int(self.rng.integers(1, 6))
+            self.episodes += 1
+        if self.failing:
+            self.failing -= 1
+            self.corrupt_next = self.failing == 0
+            raise BusError("injected NACK", address=0x1C, operation="read")
+        s = self.mag.read()
+        if self.corrupt_next:
+            self.corrupt_next = False
+            b = list(s.b_uT)
+            ax = int(self.rng.integers(3))
+            b[ax] = float(np.clip(b[ax] + self.rng.choice([-1, 1]) * self.rng.uniform(150.0, 700.0), -399.0, 399.0))
+            s = replace(s, b_uT=tuple(b), extra={**s.extra, "repeats": 0})
+            self.corrupted_t.add(round(s.t_s, 6))
+        return s
+
+
+def test_corruptions_after_an_outage_are_never_published_as_good(tmp_path):
+    cfg_doc = {"flight": {"name": "outage", "telemetry_dir": "tlm", "block_rows": 500},
+               "rate_group": [{"name": "fast", "rate_hz": 10.0}],
+               "sensor": [{"name": "lis3mdl", "chip": "lis3mdl", "bus": "sim", "rate_group": "fast",
+                           "device_id": "lis3mdl:sn1", "options": {"odr_hz": 40.0}, "max_rate_uT_per_s": 1000.0,
+                           "reinit_after": 10}]}
+    cfg = parse_config(cfg_doc, tmp_path / "flight.toml")
+    truth = program("rotation", 1210.0, sessions=1)
+    app = FlightApp(cfg, virtual=True, simulate=True, run_id=1,
+                    chip_options=lambda s, clock: {"bench": default_bench(clock, truth, seed=5)})
+    ch = app.slots["lis3mdl"].channel
+    inj = OutageThenCorruption(ch.mag, seed=77, rate=0.1)
+    ch.mag = inj
+    records = []
+    sink = ch.sink
+
+    def tee(rec):
+        records.append(rec)
+        sink(rec)
+    ch.sink = tee
+    app.run(1200.0)
+    app.close()
+    t0 = 1767225600.0
+    corrupt = [r for r in records if r.raw_uT is not None and round(r.t_s - t0, 6) in inj.corrupted_t]
+    published = [r for r in corrupt if r.good]
+    good_rejected = [r for r in records
+                     if r.flags & TlmFlag.IMPLAUSIBLE and round(r.t_s - t0, 6) not in inj.corrupted_t]
+    print(f"outage campaign: {inj.episodes} episodes, {len(corrupt)} corrupt samples, {len(published)} published "
+          f"as good, {len(good_rejected)} real samples held back")
+    assert inj.episodes > 500 and len(corrupt) == len(inj.corrupted_t) >= inj.episodes - 1
+    assert published == []
+    # a real sample is held back only when the field moved beyond one period's change during an outage
+    assert len(good_rejected) <= 0.02 * len(records)

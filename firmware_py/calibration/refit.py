@@ -5,7 +5,8 @@ Per block of telemetry rows (memory flat in the number of rows; :mod:`.streaming
 1. housekeeping currents interpolated from their own rates (:mod:`.housekeeping`);
 2. reference field: IGRF-14 at ``pos_ecef`` and ``t_s``, rotated ITRS -> GCRS -> body by
    ``q_body_eci`` (:mod:`magstack.firmware.reference`); sensor frame = body frame;
-3. selection: flag == 0, finite inputs, geodetic latitude band, temperature band, eclipse state;
+3. selection: no flag bit but the informational ones (flight ``INFORMATIONAL``), finite inputs, geodetic
+   latitude band, temperature band, eclipse state;
 4. split: rows in every ``holdout_every``-th time block of ``holdout_block_s`` (absolute time, so
    independent of files and blocks) are held out; the rest are fitted;
 5. accumulate: the fit rows' weighted ``[X | Y]`` (Eq. 3 plus currents, :class:`CalModel`), the
@@ -53,6 +54,7 @@ from magstack.firmware.calibration.housekeeping import MAX_GAP_S, interpolate_cu
 from magstack.firmware.calibration.model import FLIGHT_TERMS, FLOAT_ONLY_TERMS, CalModel, resolve_terms
 from magstack.firmware.calibration.streaming import StreamingFit, solve_axes
 from magstack.firmware.errors import FitError
+from magstack.firmware.flight.channel import INFORMATIONAL
 from magstack.firmware.reference import frames, geomag
 
 #: Histogram of |residual| per axis (robust scale without keeping residuals): log bins, uT.
@@ -308,7 +310,7 @@ def _prepare_block(st: PassStats, blk: telemetry.TelemetryBlock, plan: Plan):
     use = np.ones(n, dtype=bool)
     checks = []
     if blk.flag is not None:
-        checks.append((blk.flag != 0, "flag != 0"))
+        checks.append(((blk.flag & ~np.int64(INFORMATIONAL)) != 0, "flag: not a good sample"))
     checks += [(~np.all(np.isfinite(blk.dut_uT), 1), "no sensor sample"),
                (~np.all(np.isfinite(b_ref), 1), "no or implausible position/attitude"),
                (~np.isfinite(blk.temp_c), "no temperature")]

@@ -56,6 +56,10 @@ STALE_FALSE_ALARM = 1e-4
 
 #: Flags that make a sample not good (its field must not be used).
 BAD = TlmFlag.NO_SAMPLE | TlmFlag.STALE | TlmFlag.OVERFLOW | TlmFlag.IMPLAUSIBLE
+#: Flags that describe a good raw sample without disqualifying it (ground tools such as ``refit`` keep
+#: such rows: the raw field is sound, only the on-board calibration was not applied or a sample was lost
+#: before it). Every other bit (BAD, DEGRADED, unknown bits) disqualifies the row.
+INFORMATIONAL = TlmFlag.UNCALIBRATED | TlmFlag.OUT_OF_VALIDITY | TlmFlag.OVERRUN | TlmFlag.REPEATED
 
 
 @dataclass(frozen=True)
@@ -89,9 +93,19 @@ class ChannelLimits:
     max_rate_uT_per_s: float = 2000.0     # fastest physical change (rotation + torquer switching)
     reinit_after: int = 3                 # consecutive faults before re-initialising the driver
     degrade_after: int = 3                # re-initialisations without a good sample before "degraded"
+    rate_horizon_s: float = 1.0           # longest gap the rate bound is extrapolated over (the app: one period)
+    noise_uT: float = 2.0                 # sample-to-sample noise allowed on top of the rate bound
+
+    def allowed_change_uT(self, dt_s: float, range_uT: float) -> float:
+        """Largest plausible change of a component between two samples ``dt_s`` apart.
+
+        ``noise_uT + max_rate_uT_per_s * min(dt_s, rate_horizon_s)``, at most the sensor range: the
+        allowance does not grow with the gap beyond one horizon (a sample after an outage that moved
+        further is accepted once the next sample confirms it)."""
+        return min(self.noise_uT + self.max_rate_uT_per_s * min(max(dt_s, 1e-3), self.rate_horizon_s), range_uT)
 
     def __post_init__(self) -> None:
-        for name in ("max_field_uT", "max_rate_uT_per_s"):
+        for name in ("max_field_uT", "max_rate_uT_per_s", "rate_horizon_s", "noise_uT"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
@@ -116,7 +130,7 @@ class MagChannel:
     degraded: bool = False
     cycles: int = 0
     _last_good: tuple[float, tuple[float, float, float]] | None = None
-    _rejected: tuple[float, tuple[float, float, float]] | None = None
+    _rejected: tuple[float, tuple[float, float, float], int] | None = None   # (t, field, cycle)
     _last_raw: tuple[float, float, float] | None = None
     _reinits_since_good: int = 0
     _repeat_run: int = 0
@@ -292,19 +306,23 @@ class MagChannel:
         if self._last_good is None:
             return ""
         t0, b0 = self._last_good
-        dt = max(t_s - t0, 1e-3)
+        dt = t_s - t0
         jump = max(abs(x - y) for x, y in zip(b, b0, strict=True))
-        if jump <= lim.max_rate_uT_per_s * dt:
+        allowed = lim.allowed_change_uT(dt, max_field)
+        if jump <= allowed:
             self._rejected = None
             return ""
-        # a step the next sample confirms is real (torquer switched); a lone spike is not
+        # a step the very next read confirms is real (torquer switched, field moved during an outage); a lone
+        # spike is not, nor are two corruptions with failed reads between them
         if self._rejected is not None:
-            tr, br = self._rejected
-            if max(abs(x - y) for x, y in zip(b, br, strict=True)) <= lim.max_rate_uT_per_s * max(t_s - tr, 1e-3):
+            tr, br, cycle = self._rejected
+            if cycle == self.cycles - 1 and \
+                    max(abs(x - y) for x, y in zip(b, br, strict=True)) <= lim.allowed_change_uT(t_s - tr, max_field):
                 self._rejected = None
                 return ""
-        self._rejected = (t_s, b)
-        return f"change of {jump:.1f} uT in {dt:.3f} s exceeds {lim.max_rate_uT_per_s:g} uT/s"
+        self._rejected = (t_s, b, self.cycles)
+        return (f"change of {jump:.1f} uT in {dt:.3f} s exceeds {allowed:.1f} uT ({lim.max_rate_uT_per_s:g} uT/s "
+                f"over at most {lim.rate_horizon_s:g} s + {lim.noise_uT:g} uT noise)")
 
     def _correct(self, b, temp_c) -> Correction:
         if self.corrector is None:
