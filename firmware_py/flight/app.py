@@ -36,7 +36,7 @@ from magstack.firmware.flight.telemetry import ChannelTelemetry
 
 #: Name of the command spool's own rate group (not configurable: it is not a sensor timeline).
 COMMAND_GROUP = "_commands"
-#: Commands waiting for one channel's boundary; more are rejected ("queue full").
+#: Commands waiting for one channel's boundary; more wait in the spool (back-pressure).
 CHANNEL_QUEUE = 16
 #: Files of the telemetry directory that hold a run id: <channel>-<run>-<index>.csv[.part],
 #: events-<run>.jsonl, summary-<run>.json.
@@ -215,19 +215,19 @@ class FlightApp:
                                      f"crc32 0x{a.crc32:08x}" if a.crc32 is not None else "unsaved table")
         return hook
 
-    def _dispatch(self, cmd: Command) -> None:
+    def _dispatch(self, cmd: Command) -> bool:
+        """Execute a channel-less command now, queue a channel's to its group; False when that queue is full."""
         if cmd.channel is None:
             self._execute(None, cmd)
-            return
+            return True
         slot = self.slots.get(cmd.channel)
         if slot is None:
             self.spool.finish(cmd.source, ok=False, message=f"no channel {cmd.channel!r}; have {sorted(self.slots)}")
-            return
+            return True
         if len(slot.pending) >= CHANNEL_QUEUE:
-            self.spool.finish(cmd.source, ok=False, message=f"channel {cmd.channel} has {CHANNEL_QUEUE} commands "
-                                                            "waiting; not queued (send it again later)")
-            return
+            return False
         slot.pending.append(cmd)
+        return True
 
     def _execute(self, slot: ChannelSlot | None, cmd: Command) -> None:
         ok, msg, payload = True, "done", None

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -103,12 +104,13 @@ class CommandSpool:
 
     directory: Path
     events: EventLog
-    dispatch: Callable[[Command], None]
+    dispatch: Callable[[Command], bool]            # False: cannot be queued now, offer it again later
     epoch_now: Callable[[], float]
     per_poll: int = 8
     accepted: int = 0
     rejected: int = 0
     _refused: set = field(default_factory=set)     # (name, inode, mtime) of files already reported unclaimable
+    _waiting: deque = field(default_factory=deque)  # parsed commands their channel could not queue yet
 
     def __post_init__(self) -> None:
         self.directory = Path(self.directory)
@@ -130,13 +132,24 @@ class CommandSpool:
         return n
 
     def poll(self, _now_s: float = 0.0) -> int:
-        """Take up to ``per_poll`` complete command files (sorted by name); returns how many were taken."""
+        """Take up to ``per_poll`` complete command files (sorted by name); returns how many were taken.
+
+        ``dispatch`` returns False when the command's channel cannot queue it now: the command waits here
+        (claimed, not executed) and no new file is taken until it is handed on (back-pressure: the files
+        stay in the directory while the application is busy)."""
+        taken = 0
+        while self._waiting and taken < self.per_poll:
+            if not self.dispatch(self._waiting[0]):
+                return taken
+            self._waiting.popleft()
+            taken += 1
+        if self._waiting:
+            return taken
         try:
             with os.scandir(self.directory) as it:
                 names = sorted(e.name for e in it if e.name.endswith(".json") and not e.name.startswith("."))
         except OSError:
-            return 0
-        taken = 0
+            return taken
         for name in names:
             if taken >= self.per_poll:
                 break
@@ -151,7 +164,9 @@ class CommandSpool:
                 continue
             self.accepted += 1
             self.events.emit(self.epoch_now(), EventId.CMD_ACCEPTED, name, cmd.name)
-            self.dispatch(cmd)
+            if not self.dispatch(cmd):
+                self._waiting.append(cmd)
+                break
         return taken
 
     def _claim(self, name: str) -> bool:

@@ -70,6 +70,7 @@ class ChannelTelemetry:
         self._lost_in_outage = 0
         self._handed = 0                # rows given to the current writer
         self._last_t = 0.0
+        self._in_writer = False         # the current record was given to the writer
 
     def _open(self) -> SessionWriter:
         """The next file of the series; an existing file or ``.part`` is never reused (its index is skipped)."""
@@ -110,11 +111,14 @@ class ChannelTelemetry:
                                  f"writing {self.files[-1].name}; {self._lost_in_outage} rows lost")
             self._lost_in_outage = 0
 
-    def _fail(self, t_s: float, exc: Exception) -> None:
+    def _fail(self, t_s: float, exc: Exception, *, current: bool = True) -> None:
+        """Count what is lost: the current record (``current``) and the rows the failed writer did not write."""
         w, self._writer = self._writer, None
-        lost = 1                                       # the record that could not be written
+        lost = 1 if current and not self._in_writer else 0    # the record never reached a writer
         if w is not None:
-            lost = max(1, self._handed - w.rows_written)   # the rows of the block that failed, too
+            block = self._handed - w.rows_written             # handed to the writer, never written
+            lost += block
+            self.rows -= block - (1 if current and self._in_writer else 0)
             self.broken.append(w.part_path)
             if self.files and self.files[-1] == w.path:
                 self.files.pop()
@@ -132,6 +136,7 @@ class ChannelTelemetry:
         self._failed_at = t_s
 
     def _write(self, rec: TelemetryRecord) -> None:
+        self._in_writer = False
         if self._writer is None:
             self._writer = self._open()
         elif self._bytes >= self.rotate_bytes:
@@ -141,6 +146,7 @@ class ChannelTelemetry:
             self._writer = self._open()
         cal = rec.cal_uT or _NAN3
         self._handed += 1
+        self._in_writer = True
         self._writer.write_row(rec.t_s, _NAN3, rec.raw_uT or _NAN3,
                                math.nan if rec.temp_c is None else rec.temp_c, self.run_id, flag=rec.flags,
                                extra={"cal_x_uT": cal[0], "cal_y_uT": cal[1], "cal_z_uT": cal[2],
@@ -163,7 +169,7 @@ class ChannelTelemetry:
             try:
                 self._writer.close()
             except (OSError, ValueError) as exc:
-                self._fail(self._last_t, exc)
+                self._fail(self._last_t, exc, current=False)
             self._writer = None
 
 
