@@ -30,8 +30,8 @@ MAX_TABLE_BYTES = 1 << 20
 
 def device_mismatch(table_id: str, channel: str, channel_id: str, source: str) -> str:
     """The one message for a table fitted for another device than the channel's."""
-    return (f"{source}: table is for device {table_id!r}, channel {channel} serves {channel_id!r}; device ids must "
-            f"match exactly (fit with --device-id {channel_id}, or set device_id = {table_id!r} in flight.toml)")
+    return (f"table is for device {table_id!r}, channel {channel} serves {channel_id!r}: device ids must match "
+            f"exactly (fit --device-id {channel_id}, or device_id = {table_id!r} in flight.toml); {source}")
 
 
 def read_table(path: str | os.PathLike, roots: Sequence[Path], base: Path) -> CalTable:
