@@ -221,3 +221,18 @@ def test_ctrl_c_while_the_command_line_loads_is_one_line(monkeypatch, capsys):
     monkeypatch.setattr(cli_main, "build_parser", interrupted)
     assert cli_main.main(["run", "--example-config"]) == 130
     assert capsys.readouterr().err.strip() == "magstack: interrupted"
+
+
+def test_a_configured_table_with_a_huge_integer_is_a_warning_not_a_crash(tmp_path, capsys):
+    """Issue 24 item 1: a 400-digit integer in the start-up table raised OverflowError out of `run`."""
+    cfg = _sim_config(tmp_path)
+    path = tmp_path / "tables/hmc1053.json"
+    doc = json.loads(path.read_text())
+    doc["parameters"]["O"]["value"][0] = 10 ** 400
+    doc.pop("crc32")
+    doc["crc32"] = f"0x{ct._crc(doc):08x}"          # a well-formed file: only the number is hostile
+    path.write_text(json.dumps(doc))
+    assert main(["run", "--config", str(cfg), "--duration", "3", "--out", str(tmp_path / "tlm")]) == 1
+    out, err = capsys.readouterr()
+    assert "Traceback" not in err and "TABLE_REJECTED hmc1053" in err and "OverflowError" in err
+    assert "DEGRADED: channel hmc1053: configured table rejected" in out
