@@ -373,6 +373,9 @@ def _check_recovered(app, tlm_dir, duration_s):
     for line in (tlm_dir / "events-0001.jsonl").read_text().splitlines():
         json.loads(line)                                                                # no partial event line
     assert any("telemetry rows could not be written" in r for r in app.degraded_reasons())
+    print(f"full disk: {app.slots['lis3mdl'].channel.cycles} cycles, {tlm.rows} rows written, {tlm.rows_lost} "
+          f"counted lost in {tlm.write_errors} outage(s), {app.events.count(EventId.TLM_RECOVERED)} recovered, "
+          f"{app._event_sink.lost} events lost, {len(tlm.files)} complete files")
     summary = app.write_summary(tlm_dir / "summary-0001.json")
     assert json.loads(summary.read_text())["channels"]["lis3mdl"]["telemetry"]["rows_lost"] == tlm.rows_lost
     return tlm

@@ -157,7 +157,7 @@ class FlightApp:
             # never lands on a sensor group's critical path
             cmd_clock = self.clocks[COMMAND_GROUP]
             try:
-                self.spool = CommandSpool(cfg.command_dir, self.events, self._dispatch,
+                self.spool = CommandSpool(cfg.command_dir, self.events, self.submit,
                                           lambda: self.epoch_of(cmd_clock.monotonic_s()),
                                           per_poll=cfg.commands_per_cycle)
             except (UnsafeInput, OSError) as exc:
@@ -215,14 +215,16 @@ class FlightApp:
                                      f"crc32 0x{a.crc32:08x}" if a.crc32 is not None else "unsaved table")
         return hook
 
-    def _dispatch(self, cmd: Command) -> bool:
-        """Execute a channel-less command now, queue a channel's to its group; False when that queue is full."""
+    def submit(self, cmd: Command) -> bool:
+        """Hand over a parsed command (from the command directory or any other command source): a channel-less
+        command runs now, a channel's is queued to its group; False when that queue is full (offer it later).
+        The outcome goes to ``cmd.reply`` (default: the command directory's result files)."""
         if cmd.channel is None:
             self._execute(None, cmd)
             return True
         slot = self.slots.get(cmd.channel)
         if slot is None:
-            self.spool.finish(cmd.source, ok=False, message=f"no channel {cmd.channel!r}; have {sorted(self.slots)}")
+            self._finish(cmd, ok=False, message=f"no channel {cmd.channel!r}; have {sorted(self.slots)}")
             return True
         if len(slot.pending) >= CHANNEL_QUEUE:
             return False
@@ -262,7 +264,15 @@ class FlightApp:
                 self.events.emit(self._now(slot), EventId.TABLE_REJECTED, slot.sensor.name, msg[:200])
         except Exception as exc:  # noqa: BLE001 - any failure of a command is a counted, evented rejection
             ok, msg = False, f"{type(exc).__name__}: {str(exc)[:300]}"
-        self.spool.finish(cmd.source, ok=ok, message=msg, payload=payload)
+        self._finish(cmd, ok=ok, message=msg, payload=payload)
+
+    def _finish(self, cmd: Command, *, ok: bool, message: str, payload: dict | None = None) -> None:
+        reply = cmd.reply or (self.spool.finish if self.spool is not None else None)
+        if reply is None:               # a source without a reply path: the outcome is at least an event
+            self.events.emit(self._now(None), EventId.CMD_COMPLETED if ok else EventId.CMD_REJECTED, cmd.source,
+                             message[:200])
+            return
+        reply(cmd.source, ok=ok, message=message, payload=payload)
 
     def _now(self, slot: ChannelSlot | None) -> float:
         clk = self.clocks[slot.group] if slot is not None else next(iter(self.clocks.values()))

@@ -62,7 +62,10 @@ MAX_COMMAND_BYTES = 64 * 1024
 class Command:
     name: str
     args: dict[str, Any]
-    source: str                 # file name, for results and events
+    source: str                 # file name (or packet id), for results and events
+    #: ``reply(source, ok=, message=, payload=)`` records the outcome; None: the command directory's results.
+    #: A packet command source (telecommands) passes its own, so its acceptance/completion reports go back to it.
+    reply: Callable[..., None] | None = field(default=None, compare=False)
 
     @property
     def channel(self) -> str | None:
@@ -150,8 +153,8 @@ class CommandSpool:
                 names = sorted(e.name for e in it if e.name.endswith(".json") and not e.name.startswith("."))
         except OSError:
             return taken
-        for name in names:
-            if taken >= self.per_poll:
+        for attempt, name in enumerate(names):
+            if taken >= self.per_poll or attempt >= 4 * self.per_poll:   # unclaimable files cost little, too
                 break
             if not self._claim(name):
                 continue

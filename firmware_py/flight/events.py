@@ -155,12 +155,6 @@ class EventLog:
             items = sorted(self.counts.items())
         return {f"{i.name}/{s}": n for (i, s), n in items}
 
-    def worst(self) -> Severity | None:
-        """Highest severity seen so far (None before the first event)."""
-        with self._lock:
-            ids = {i for i, _ in self.counts}
-        return max((SEVERITY[i] for i in ids), default=None)
-
 
 class EventFileSink:
     """Append events as JSON lines to ``path`` (one ``write`` per line on an ``O_APPEND`` descriptor),

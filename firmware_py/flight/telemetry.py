@@ -26,6 +26,7 @@ import os
 from collections.abc import Mapping
 from pathlib import Path
 
+from magstack.data.errors import FileWriteError
 from magstack.data.session import SessionWriter
 from magstack.firmware.flight.channel import TelemetryRecord, TlmFlag
 from magstack.firmware.flight.events import EventId, EventLog
@@ -83,8 +84,8 @@ class ChannelTelemetry:
                 "flag_bits": flag_legend(), "dut_field": "raw"}
         try:
             w = SessionWriter(path, meta, with_flag=True, block_rows=self.block_rows, extra_names=EXTRA_COLUMNS)
-        except Exception:
-            self.index -= 1                 # nothing usable was made: the index is free again
+        except FileWriteError:              # the header could not be written: remove the empty .part we made
+            self.index -= 1
             _remove(path.with_name(path.name + ".part"))
             raise
         self.files.append(path)
