@@ -6,6 +6,7 @@ import json
 import os
 import stat
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -175,3 +176,18 @@ def test_a_fresh_run_id_never_overwrites_telemetry(tmp_path):
     app.close()
     assert app.run_id == 3
     assert {p.name: p.read_bytes() for p in (tmp_path / "tlm").glob("lis3mdl-0001-*.csv")} == first
+
+
+def test_allowed_directories_with_relative_paths(tmp_path, monkeypatch):
+    """A config given by a relative path (`magstack run --config flight.toml`) names relative roots."""
+    from magstack.firmware.flight.intake import UnsafeInput, inside_roots
+
+    _table(tmp_path / "tables" / "t.json")
+    os.symlink(tmp_path / "tables", tmp_path / "linked")
+    monkeypatch.chdir(tmp_path)
+    base, roots = Path("."), (Path("."),)
+    assert inside_roots("tables/t.json", roots, base) == tmp_path.resolve() / "tables" / "t.json"
+    for bad, why in (("../x.json", "outside"), ("tables/../../x.json", "outside"), ("/etc/passwd", "outside"),
+                     ("linked/t.json", "symbolic link")):
+        with pytest.raises(UnsafeInput, match=why):
+            inside_roots(bad, roots, base)

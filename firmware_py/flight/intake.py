@@ -31,7 +31,7 @@ def inside_roots(path: str | os.PathLike, roots: Sequence[Path], base: Path) -> 
     the root is a symbolic link.
     """
     p = Path(path)
-    lexical = Path(os.path.normpath(p if p.is_absolute() else base / p))
+    lexical = Path(os.path.abspath(p if p.is_absolute() else base / p))     # normalised, absolute
     real = Path(os.path.realpath(lexical))
     for root in roots:
         root_lex = Path(os.path.normpath(os.path.abspath(root)))
