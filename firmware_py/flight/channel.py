@@ -9,8 +9,9 @@ interface and publishes exactly one :class:`TelemetryRecord`, good or not. Fault
   logged with its type (the flight loop must survive a driver bug);
 * a sample is **good** only if it is new (the chip's data-ready said so and it does not repeat the
   previous sample bit for bit), no axis overflowed, it is within the sensor's range, and its change
-  since the last good sample is physically possible (``max_rate_uT_per_s``; a step that the next
-  sample confirms is accepted, a one-sample spike is not);
+  since the last good sample is physically possible (:meth:`ChannelLimits.allowed_change_uT`: noise +
+  ``max_rate_uT_per_s`` over at most one period, not growing with the gap; a step that the very next
+  read confirms is accepted, a one-sample spike is not);
 * a good sample is **calibrated** only inside the active table's validity (:mod:`.corrector`).
 
 After ``reinit_after`` consecutive faults the driver's ``reinit()`` is called (a failure there is
