@@ -1,9 +1,10 @@
-"""Graceful stop of long-running commands on SIGTERM / SIGINT.
+"""Graceful stop of long-running commands on SIGTERM / SIGINT / SIGHUP.
 
 ``with graceful_stop() as stop:`` installs handlers that set ``stop`` (a ``threading.Event``)
 and remember which signal arrived (``stop.signal_name``); the command passes ``stop`` to the
 library function (``run_bench(..., stop=stop)``), which ends its loop at the next sample and
-closes its output. A second SIGINT raises KeyboardInterrupt as usual (the default handler is
+closes its output. SIGHUP (the terminal or SSH session went away) is handled like SIGTERM.
+A second SIGINT raises KeyboardInterrupt as usual (the default handler is
 back after the first). Outside the main thread (tests running commands in threads) nothing is
 installed and ``stop`` is simply never set.
 """
@@ -17,7 +18,7 @@ from contextlib import contextmanager
 __all__ = ["StopEvent", "graceful_stop", "EXIT_FOR_SIGNAL"]
 
 #: Exit status after a graceful stop: 128 + signal number (shell convention).
-EXIT_FOR_SIGNAL = {"SIGINT": 130, "SIGTERM": 143}
+EXIT_FOR_SIGNAL = {"SIGHUP": 129, "SIGINT": 130, "SIGTERM": 143}
 
 
 class StopEvent(threading.Event):
@@ -27,7 +28,7 @@ class StopEvent(threading.Event):
 
 
 @contextmanager
-def graceful_stop(signals=(signal.SIGTERM, signal.SIGINT)) -> Iterator[StopEvent]:
+def graceful_stop(signals=(signal.SIGTERM, signal.SIGINT, signal.SIGHUP)) -> Iterator[StopEvent]:
     stop = StopEvent()
     if threading.current_thread() is not threading.main_thread():
         yield stop

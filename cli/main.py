@@ -70,7 +70,7 @@ def _error(args: argparse.Namespace, json_mode: bool, message: str, code: int, k
     return code
 
 
-def main(argv: list[str] | None = None) -> int:
+def _main(argv: list[str] | None) -> int:
     parser = build_parser()
     argv = sys.argv[1:] if argv is None else list(argv)
     CommandParser.last_error = None
@@ -105,6 +105,51 @@ def main(argv: list[str] | None = None) -> int:
         return _error(args, json_mode, f"{exc.strerror or exc}{where}", EXIT_DEVICE)
     except KeyboardInterrupt:
         return _error(args, json_mode, "interrupted", 130, kind="")
+
+
+class _PipeSafe:
+    """stdout for the command line: once the reader has gone (``magstack demo | head``), further output is
+    dropped quietly (fd 1 goes to /dev/null) and the command finishes its work and exits with its own status,
+    instead of dying in BrokenPipeError half-way."""
+
+    def __init__(self, stream) -> None:
+        self._stream = stream
+
+    def _closed(self) -> None:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.__stdout__.fileno() if sys.__stdout__ is not None else 1)
+        os.close(devnull)
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            self._closed()
+            return len(text)
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            self._closed()
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The ``magstack`` entry point: :func:`_main` under the Unix conventions every command shares (issue 24
+    item 10): a reader closing stdout ends output quietly (:class:`_PipeSafe`); Ctrl-C before a command has
+    installed its own handler (while the command modules load) is one line and exit 130, never a traceback."""
+    saved = sys.stdout
+    sys.stdout = _PipeSafe(saved) if saved is not None and not isinstance(saved, _PipeSafe) else saved
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        print("magstack: interrupted", file=sys.stderr)
+        return 130
+    finally:
+        sys.stdout = saved
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -38,7 +38,7 @@ FLAG_BITS: tuple[FlagBit, ...] = (
             "no calibrated field published (no table, missing input, saturated applier); raw field good"),
     FlagBit("OUT_OF_VALIDITY", 1 << 5, FLIGHT, False,
             "outside the active table's validity box: not calibrated on board; raw field good"),
-    FlagBit("DEGRADED", 1 << 6, FLIGHT, False, "the channel is marked degraded"),
+    FlagBit("DEGRADED", 1 << 6, FLIGHT, True, "the channel is marked degraded (its samples are not trusted)"),
     FlagBit("OVERRUN", 1 << 7, FLIGHT, False, "the chip reported samples lost before this one"),
     FlagBit("REPEATED", 1 << 8, FLIGHT, False,
             "equal to the previous sample, within what the sensor's resolution makes likely"),
@@ -66,9 +66,14 @@ def flag_legend(owner: str | None = None) -> str:
     return " ".join(f"{b.value}={b.name.lower()}" for b in FLAG_BITS if owner is None or b.owner == owner)
 
 
+#: Bits that describe a good row without disqualifying it; any other bit (also one no owner declares) does.
+INFORMATIONAL = sum(b.value for b in FLAG_BITS if not b.disqualifies)
+
+
 def usable(flag):
-    """True where no disqualifying bit is set (works on ints and numpy arrays)."""
-    return (flag & DISQUALIFYING) == 0
+    """True where no bit but the informational ones is set (works on ints and numpy arrays); an unknown
+    bit disqualifies the row."""
+    return (flag & ~INFORMATIONAL) == 0
 
 
 # ----------------------------------------------------------------------------------------------- events
@@ -133,6 +138,7 @@ EVENTS: tuple[EventDef, ...] = (
     EventDef("REFIT_FAILED", 0x0502, _S.WARNING_HI, "on-orbit refit failed or stopped"),
     EventDef("TLM_FILE_ROTATED", 0x0600, _S.DIAGNOSTIC, "telemetry file rotated"),
     EventDef("TLM_WRITE_ERROR", 0x0601, _S.WARNING_HI, "a telemetry record or packet could not be written"),
+    EventDef("TLM_RECOVERED", 0x0602, _S.ACTIVITY_HI, "telemetry writing resumed after a write error"),
     EventDef("TC_REJECTED", 0x0410, _S.WARNING_LO,
              "a telecommand packet was malformed, corrupt, replayed or unauthorised: counted, not executed"),
 )

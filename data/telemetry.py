@@ -197,6 +197,12 @@ def _block(hdr: TelemetryHeader, first: int, a: np.ndarray) -> TelemetryBlock:
     flag = None
     if "flag" in idx:
         fl = col("flag")
+        odd = np.isfinite(fl) & ((fl != np.round(fl)) | (fl < 0) | (fl >= 2.0 ** 62))
+        if odd.any():
+            k = int(np.flatnonzero(odd)[0])
+            raise SessionFileError(f"{hdr.path}: data row {first + k + 1} after the header (line "
+                                   f"{hdr.header_line}): 'flag' must be a non-negative integer (bit set), "
+                                   f"got {fl[k]!r}")
         flag = np.where(np.isfinite(fl), fl, 0).astype(np.int64)
     return TelemetryBlock(
         hdr.path, first, col("t_s").copy(), np.column_stack([col(c) for c in DUT_COLUMNS]), col("temp_c").copy(),

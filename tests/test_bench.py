@@ -211,8 +211,10 @@ def test_stop_request_ends_the_session_with_a_complete_file(tmp_path):
         get_instrument("t_stop")
 
 
-def test_cli_bench_sigterm_stops_with_message_and_complete_file(tmp_path):
-    """Issue 17 item 12: SIGTERM used to kill `bench` silently, leaving only the .part file."""
+@pytest.mark.parametrize("signame, code", [("SIGTERM", 143), ("SIGHUP", 129)])
+def test_cli_bench_sigterm_stops_with_message_and_complete_file(tmp_path, signame, code):
+    """Issue 17 item 12: SIGTERM used to kill `bench` silently, leaving only the .part file; issue 24
+    item 10: SIGHUP likewise."""
     import signal
     import subprocess
     import sys
@@ -225,10 +227,10 @@ def test_cli_bench_sigterm_stops_with_message_and_complete_file(tmp_path):
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and (not part.exists() or part.stat().st_size < 5000):
         time.sleep(0.05)
-    proc.send_signal(signal.SIGTERM)
+    proc.send_signal(getattr(signal, signame))
     stdout, stderr = proc.communicate(timeout=60)
-    assert proc.returncode == 143, stderr
-    assert "stopped by SIGTERM after" in stdout and "is complete with the" in stdout
+    assert proc.returncode == code, stderr
+    assert f"stopped by {signame} after" in stdout and "is complete with the" in stdout
     assert "stopped on request" in stderr   # the library's warning on the log
     assert out.exists() and not part.exists()
     s = read_session(out)

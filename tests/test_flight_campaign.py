@@ -246,3 +246,233 @@ def test_telemetry_files_read_back_as_sessions(campaign):
         rows = sum(len(read_session(p)) for p in slot.telemetry.files)
         assert rows == len(records[name])
         assert all(not str(p).endswith(".part") for p in slot.telemetry.files)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Issue 24 item 9: register corruptions right after an outage (0.2-0.6 s after the last good sample), when a
+# rate limit that grows with the gap would let them through.
+class OutageThenCorruption:
+    """Wraps a driver: on a seeded schedule 1-5 reads fail (NACK), then one sample comes back with a
+    corrupted register (one axis 150-700 uT off, clipped to the range like a saturated high byte)."""
+
+    def __init__(self, mag, seed: int, rate: float):
+        self.mag, self.name, self.range_uT = mag, mag.name, getattr(mag, "range_uT", None)
+        self.rng = np.random.default_rng(seed)
+        self.rate = rate
+        self.failing = 0
+        self.corrupt_next = False
+        self.corrupted_t: set[float] = set()
+        self.episodes = 0
+
+    def data_ready(self):
+        return True
+
+    def reinit(self):
+        self.mag.reinit()
+
+    def read(self):
+        if self.failing == 0 and not self.corrupt_next and self.rng.random() < self.rate:
+            self.failing = int(self.rng.integers(1, 6))
+            self.episodes += 1
+        if self.failing:
+            self.failing -= 1
+            self.corrupt_next = self.failing == 0
+            raise BusError("injected NACK", address=0x1C, operation="read")
+        s = self.mag.read()
+        if self.corrupt_next:
+            self.corrupt_next = False
+            b = list(s.b_uT)
+            ax = int(self.rng.integers(3))
+            b[ax] = float(np.clip(b[ax] + self.rng.choice([-1, 1]) * self.rng.uniform(150.0, 700.0), -399.0, 399.0))
+            s = replace(s, b_uT=tuple(b), extra={**s.extra, "repeats": 0})
+            self.corrupted_t.add(round(s.t_s, 6))
+        return s
+
+
+def test_corruptions_after_an_outage_are_never_published_as_good(tmp_path):
+    cfg_doc = {"flight": {"name": "outage", "telemetry_dir": "tlm", "block_rows": 500},
+               "rate_group": [{"name": "fast", "rate_hz": 10.0}],
+               "sensor": [{"name": "lis3mdl", "chip": "lis3mdl", "bus": "sim", "rate_group": "fast",
+                           "device_id": "lis3mdl:sn1", "options": {"odr_hz": 40.0}, "max_rate_uT_per_s": 1000.0,
+                           "reinit_after": 10}]}
+    cfg = parse_config(cfg_doc, tmp_path / "flight.toml")
+    truth = program("rotation", 1210.0, sessions=1)
+    app = FlightApp(cfg, virtual=True, simulate=True, run_id=1,
+                    chip_options=lambda s, clock: {"bench": default_bench(clock, truth, seed=5)})
+    ch = app.slots["lis3mdl"].channel
+    inj = OutageThenCorruption(ch.mag, seed=77, rate=0.1)
+    ch.mag = inj
+    records = []
+    sink = ch.sink
+
+    def tee(rec):
+        records.append(rec)
+        sink(rec)
+    ch.sink = tee
+    app.run(1200.0)
+    app.close()
+    t0 = 1767225600.0
+    corrupt = [r for r in records if r.raw_uT is not None and round(r.t_s - t0, 6) in inj.corrupted_t]
+    published = [r for r in corrupt if r.good]
+    good_rejected = [r for r in records
+                     if r.flags & TlmFlag.IMPLAUSIBLE and round(r.t_s - t0, 6) not in inj.corrupted_t]
+    print(f"outage campaign: {inj.episodes} episodes, {len(corrupt)} corrupt samples, {len(published)} published "
+          f"as good, {len(good_rejected)} real samples held back")
+    assert inj.episodes > 500 and len(corrupt) == len(inj.corrupted_t) >= inj.episodes - 1
+    assert published == []
+    # a real sample is held back only when the field moved beyond one period's change during an outage
+    assert len(good_rejected) <= 0.02 * len(records)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Issue 24 item 3: a full disk. Telemetry loss is counted, the loop keeps every slot, the event log keeps no
+# partial line, writing resumes by itself when space returns, the summary is written.
+ONE_CHANNEL = {"flight": {"name": "disk", "telemetry_dir": "tlm", "block_rows": 10},
+               "rate_group": [{"name": "fast", "rate_hz": 10.0}],
+               "sensor": [{"name": "lis3mdl", "chip": "lis3mdl", "bus": "sim", "rate_group": "fast",
+                           "device_id": "lis3mdl:sn1", "options": {"odr_hz": 40.0}}]}
+
+
+class At:
+    """A component running ``action`` once when its group's time passes ``t_s``."""
+
+    name = "at"
+
+    def __init__(self, t_s, action):
+        self.t_s, self.action, self.done = t_s, action, False
+
+    def run(self, now_s):
+        if not self.done and now_s >= self.t_s:
+            self.done = True
+            self.action()
+
+
+def _disk_app(root, tlm_dir, duration_s, actions, **flight):
+    cfg = parse_config({**ONE_CHANNEL, "flight": {**ONE_CHANNEL["flight"], **flight}}, root / "flight.toml")
+    truth = program("rotation", duration_s + 10, sessions=1)
+    app = FlightApp(cfg, virtual=True, simulate=True, run_id=1, telemetry_dir=tlm_dir,
+                    chip_options=lambda s, clock: {"bench": default_bench(clock, truth, seed=6)})
+    fast = app.executive.group("fast")
+    for t_s, action in actions:
+        fast.components.insert(0, At(t_s, action))
+    return app
+
+
+def _check_recovered(app, tlm_dir, duration_s):
+    from magstack.data.session import read_session
+
+    tlm = app.slots["lis3mdl"].telemetry
+    st = app.executive.group("fast").stats
+    assert st.runs == pytest.approx(10 * duration_s, abs=1) and st.missed_slots == 0    # the loop kept running
+    assert tlm.rows_lost > 0 and tlm.write_errors >= 1
+    assert app.events.count(EventId.TLM_WRITE_ERROR, "lis3mdl") == tlm.write_errors
+    assert app.events.count(EventId.TLM_RECOVERED, "lis3mdl") == tlm.write_errors
+    assert tlm.rows + tlm.rows_lost == app.slots["lis3mdl"].channel.cycles            # every row written or counted
+    assert tlm.files and all(len(read_session(p)) for p in tlm.files)                 # closed files read back
+    assert sum(len(read_session(p)) for p in tlm.files) <= tlm.rows
+    for line in (tlm_dir / "events-0001.jsonl").read_text().splitlines():
+        json.loads(line)                                                                # no partial event line
+    assert any("telemetry rows could not be written" in r for r in app.degraded_reasons())
+    print(f"full disk: {app.slots['lis3mdl'].channel.cycles} cycles, {tlm.rows} rows written, {tlm.rows_lost} "
+          f"counted lost in {tlm.write_errors} outage(s), {app.events.count(EventId.TLM_RECOVERED)} recovered, "
+          f"{app._event_sink.lost} events lost, {len(tlm.files)} complete files")
+    summary = app.write_summary(tlm_dir / "summary-0001.json")
+    assert json.loads(summary.read_text())["channels"]["lis3mdl"]["telemetry"]["rows_lost"] == tlm.rows_lost
+    return tlm
+
+
+def test_full_disk_with_a_patched_writer(tmp_path, monkeypatch):
+    import errno
+    import os
+
+    from magstack.data.io import write_error
+    from magstack.data.session import SessionWriter
+
+    disk = {"full": False}
+    orig_write, orig_os_write = SessionWriter._write, os.write
+
+    def write(self, data):
+        if disk["full"]:
+            raise write_error(self.part_path, OSError(errno.ENOSPC, "No space left on device"))
+        return orig_write(self, data)
+
+    app_box = {}
+
+    def os_write(fd, data):
+        sink = app_box.get("sink")
+        if disk["full"] and sink is not None and fd == sink._fd:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return orig_os_write(fd, data)
+    monkeypatch.setattr(SessionWriter, "_write", write)
+    monkeypatch.setattr(os, "write", os_write)
+    app = _disk_app(tmp_path, tmp_path / "tlm", 120.0, [(30.0, lambda: disk.update(full=True)),
+                                                        (60.0, lambda: disk.update(full=False))])
+    app_box["sink"] = app._event_sink
+    app.run(120.0)
+    app.close()
+    tlm = _check_recovered(app, tmp_path / "tlm", 120.0)
+    assert tlm.write_errors == 1 and 290 <= tlm.rows_lost <= 360     # 30 s at 10 Hz (+ the failed block)
+    assert app._event_sink.lost >= 1
+
+
+def test_full_disk_on_a_small_tmpfs(tmp_path):
+    import os
+    import subprocess
+
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(disk)],
+                                           capture_output=True).returncode != 0:
+        pytest.skip("cannot mount a tmpfs here (needs root)")
+    try:
+        filler = disk / "filler"
+        st = os.statvfs(disk)
+        filler.write_bytes(b"\0" * (st.f_bavail * st.f_frsize - 48 * 1024))   # leave 48 KiB: ~30 s of rows
+        app = _disk_app(tmp_path, disk / "tlm", 150.0, [(100.0, filler.unlink)])
+        try:
+            app.run(150.0)
+        finally:
+            app.close()
+        _check_recovered(app, disk / "tlm", 150.0)
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=False)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Issue 24 item 5: a burst of 1,000 commands, each costing the group that handles it 5 ms (virtual time),
+# must not make the sensor group skip a slot.
+def test_a_burst_of_commands_does_not_starve_the_fast_group(tmp_path):
+    root = tmp_path
+    (root / "cmd").mkdir(mode=0o700)
+    _table("lis3mdl:sn1", root / "lis3mdl.json")
+    cfg = parse_config({**ONE_CHANNEL, "flight": {**ONE_CHANNEL["flight"], "command_dir": "cmd"}},
+                       root / "flight.toml")
+    truth = program("rotation", 200.0, sessions=1)
+    app = FlightApp(cfg, virtual=True, simulate=True, run_id=1,
+                    chip_options=lambda s, clock: {"bench": default_bench(clock, truth, seed=6)})
+    for k in range(1000):
+        (root / "cmd" / f"{k:04d}.json").write_text(json.dumps({"cmd": "validate_table", "channel": "lis3mdl",
+                                                                "path": "lis3mdl.json"}))
+    cost_s = 0.005
+    # whichever group polls the spool or executes a command pays 5 ms of its own time per command
+    for g in app.executive.groups:
+        for i, hook in enumerate(g.boundary):
+            if getattr(hook, "__self__", None) is app.spool:
+                def polled(now_s, _hook=hook, _clock=g.clock):
+                    n = _hook(now_s)
+                    _clock.sleep_s(cost_s * n)
+                    return n
+                g.boundary[i] = polled
+    execute = app._execute
+
+    def costly(slot, cmd):
+        app.clocks[slot.group if slot is not None else "fast"].sleep_s(cost_s)
+        execute(slot, cmd)
+    app._execute = costly
+    app.run(160.0)
+    app.close()
+    fast = app.executive.group("fast").stats
+    print(f"command burst: {app.spool.accepted} accepted, fast group {fast.runs} runs, "
+          f"{fast.missed_slots} skipped slots")
+    assert app.events.count(EventId.CMD_COMPLETED) == 1000           # every command executed, once
+    assert fast.missed_slots == 0 and fast.runs == 1600

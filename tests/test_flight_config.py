@@ -77,3 +77,35 @@ def test_fuzzed_configs_raise_only_config_errors(tmp_path, data):
         parse_config(doc, tmp_path / "flight.toml")
     except FlightConfigError:
         pass
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda t: t.replace("rotate_mb = 16", "rotate_mb = " + "9" * 400), "invalid value"),     # float() overflows
+    (lambda t: t.replace("rotate_mb = 16", "rotate_mb = " + "9" * 5000), "not a usable TOML document"),
+    (lambda t: t.replace("rotate_mb = 16", "rotate_mb = " + "[" * 5000 + "]" * 5000), "not a usable TOML"),
+    (lambda t: t.replace('telemetry_dir = "telemetry"', 'telemetry_dir = "telemetry"\ntable_roots = []'),
+     r"flight.table_roots: must be a non-empty array"),
+    (lambda t: t.replace('telemetry_dir = "telemetry"', 'telemetry_dir = "telemetry"\ncommands_per_cycle = 0'),
+     r"flight.commands_per_cycle: must be an integer"),
+])
+def test_hostile_configs_are_one_line_errors(tmp_path, edit, match):
+    """Issue 24 (fuzz acceptance): huge integers and deep nesting in flight.toml are config errors, not crashes."""
+    with pytest.raises(FlightConfigError, match=match):
+        load_config(_write(tmp_path, edit(example_config_text())))
+
+
+def test_a_config_that_is_not_a_regular_file_never_blocks(tmp_path):
+    import os
+
+    fifo = tmp_path / "flight.toml"
+    os.mkfifo(fifo)
+    with pytest.raises(FlightConfigError, match="not a regular file"):
+        load_config(fifo)
+    with pytest.raises(FlightConfigError, match="not a regular file"):
+        load_config("/dev/zero")
+
+
+def test_roots_default_to_the_config_directory(tmp_path):
+    cfg = load_config(_write(tmp_path, example_config_text()))
+    assert cfg.table_roots == (tmp_path,) and cfg.refit_roots == (tmp_path,)
+    assert cfg.command_rate_hz == 2.0 and cfg.commands_per_cycle == 8

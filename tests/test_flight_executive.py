@@ -1,9 +1,11 @@
 """Executive: rate groups on their own timelines, overruns, skipped slots (no catch-up bursts), clock steps."""
 from __future__ import annotations
 
+import threading
+
 import pytest
 
-from magstack.drivers.clock import VirtualClock
+from magstack.drivers.clock import SystemClock, VirtualClock
 from magstack.firmware.flight.events import EventId, EventLog
 from magstack.firmware.flight.executive import Executive, RateGroup
 
@@ -19,11 +21,6 @@ class Recorder:
     def run(self, now_s):
         self.starts.append(now_s)
         self.clock.sleep_s(self.block_at.get(len(self.starts), self.block_s))
-
-
-class SteppableClock(VirtualClock):
-    def step_back(self, dt_s):
-        self._t_s -= dt_s
 
 
 def _exec(*groups):
@@ -62,19 +59,70 @@ def test_overrun_skips_slots_and_never_bursts():
     assert comp.starts[-1] == pytest.approx(round(comp.starts[-1] / 0.1) * 0.1)
 
 
-def test_clock_stepped_back_reanchors_instead_of_stalling():
-    clk = SteppableClock()
-    comp = Recorder("c", clk, 0.0)
-    g = RateGroup("g", 0.1, clk, [comp])
+class SteppedSystemClock(SystemClock):
+    """The system clock plus an offset the test can step back: real sleeps, a monotonic time that jumps."""
+
+    offset_s = 0.0
+
+    def monotonic_s(self):
+        return super().monotonic_s() + self.offset_s
+
+
+def test_threaded_runner_reanchors_after_a_clock_step_back():
+    """Issue 24 item 8: the threaded runner itself (not a hand-forced slot) meets a clock stepped back an
+    hour; before, the group waited out the step (a 5 s step was a 5.1 s gap) and counted nothing."""
+    clk = SteppedSystemClock()
+
+    class Stepper:
+        name = "stepper"
+        runs = after = 0
+
+        def run(self, now_s):
+            self.runs += 1
+            if self.runs == 5:
+                clk.offset_s -= 3600.0
+            elif self.runs > 5:
+                self.after += 1
+                if self.after == 10:
+                    ex.stop()
+
+    comp = Stepper()
+    g = RateGroup("g", 0.02, clk, [comp])
     ex, ev = _exec(g)
-    for _ in range(5):
-        g.run_once(ev, lambda t: t)
-        clk.sleep_s(g.due_in_s())
-    clk.step_back(30.0)
-    assert g.due_in_s() > 29          # the old schedule would now wait 30 s
-    g.run_once(ev, lambda t: t)      # the executive runs it when due; here we force one slot
-    assert ev.count(EventId.CLOCK_STEPPED_BACK) == 1 and g.stats.clock_steps_back == 1
-    assert 0 < g.due_in_s() <= 0.1 + 1e-9   # re-anchored: next slot one period away, no 30 s stall
+    watchdog = threading.Timer(30.0, ex.stop)      # only ends the old behaviour's hour-long wait
+    watchdog.start()
+    try:
+        ex.run_threads(None)
+    finally:
+        watchdog.cancel()
+    assert comp.after == 10
+    assert g.stats.clock_steps_back == 1 and ev.count(EventId.CLOCK_STEPPED_BACK) == 1
+
+
+def test_threaded_duration_counts_forward_progress_only():
+    """A clock step back cannot stretch ``run_threads(duration_s)`` by the size of the step."""
+    clk = SteppedSystemClock()
+
+    class Stepper:
+        name = "stepper"
+        runs = 0
+
+        def run(self, now_s):
+            self.runs += 1
+            if self.runs == 3:
+                clk.offset_s -= 3600.0
+
+    comp = Stepper()
+    g = RateGroup("g", 0.02, clk, [comp])
+    ex, ev = _exec(g)
+    watchdog = threading.Timer(30.0, ex.stop)
+    watchdog.start()
+    try:
+        ex.run_threads(0.3)
+    finally:
+        stopped_by_watchdog = not watchdog.is_alive() or watchdog.finished.is_set()
+        watchdog.cancel()
+    assert not stopped_by_watchdog and g.stats.clock_steps_back == 1
 
 
 def test_stop_and_validation():

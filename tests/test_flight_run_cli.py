@@ -78,18 +78,22 @@ def _wait_rows(out: Path, n: int, timeout_s: float = 30.0) -> None:
     raise AssertionError("no telemetry rows appeared")
 
 
+def _stop_cleanly(cfg: Path, out: Path, signum: int, code: int) -> None:
+    """A real-time run stopped by ``signum``: the exit code, a message, every file closed and renamed."""
+    proc = _start(cfg, out)
+    _wait_rows(out, 40)
+    proc.send_signal(signum)
+    stdout, _ = proc.communicate(timeout=30)
+    name = signal.Signals(signum).name
+    assert proc.returncode == code and f"{name}: stopped after the cycles under way" in stdout
+    assert not list(out.glob("*.part")) and read_session(next(out.glob("lis3mdl-*.csv")))
+
+
 @pytest.mark.slow
 def test_sigterm_stops_cleanly_and_kill_loses_nothing_flushed(tmp_path):
     cfg = _sim_config(tmp_path, table=False)
     cfg.write_text(cfg.read_text().replace("block_rows = 50", "block_rows = 5"))
-    # SIGTERM: a message, files closed and renamed
-    out = tmp_path / "a"
-    proc = _start(cfg, out)
-    _wait_rows(out, 40)
-    proc.send_signal(signal.SIGTERM)
-    stdout, _ = proc.communicate(timeout=30)
-    assert proc.returncode == 143 and "SIGTERM: stopped after the cycles under way" in stdout
-    assert not list(out.glob("*.part")) and read_session(next(out.glob("lis3mdl-*.csv")))
+    _stop_cleanly(cfg, tmp_path / "a", signal.SIGTERM, 143)
     # SIGKILL: every flushed block stays readable in the .part file
     out = tmp_path / "b"
     proc = _start(cfg, out)
@@ -137,3 +141,86 @@ def test_refit_commands_over_recorded_telemetry(tmp_path):
         assert res["ok"] is False and "no refit running" in res["message"]
     finally:
         app.close()
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Issue 23 seam 2: warnings on the console, an exit status that says "degraded", one device-id rule.
+def test_a_table_for_another_device_id_is_rejected_loudly_and_the_run_exits_1(tmp_path, capsys):
+    cfg = _sim_config(tmp_path, table=False)
+    (tmp_path / "tables").mkdir()
+    # what `magstack fit` writes without --device-id for a bench session: the chip name
+    ct.save_table(ct.CalTable(device_id="hmc1053", terms=("gain_matrix", "offset"), S=np.eye(3), O=[0.1, 0.2, 0.3],
+                              validity_field_uT=100.0), tmp_path / "tables/hmc1053.json")
+    cfg.write_text(cfg.read_text().replace('rate_group = "slow"\n',
+                                           'rate_group = "slow"\ntable = "tables/hmc1053.json"\n'))
+    assert main(["run", "--config", str(cfg), "--duration", "5", "--out", str(tmp_path / "tlm")]) == 1
+    out, err = capsys.readouterr()
+    assert "TABLE_REJECTED hmc1053" in err and "table is for device 'hmc1053', channel hmc1053 serves " \
+                                              "'hmc1053:sn1'" in err and "fit --device-id hmc1053:sn1" in err
+    assert "table none (configured table rejected)" in out and "DEGRADED: channel hmc1053: configured table" in out
+    # the documented recipe: fit with --device-id as the config names it -> accepted, exit 0
+    ct.save_table(ct.CalTable(device_id="hmc1053:sn1", terms=("gain_matrix", "offset"), S=np.eye(3),
+                              O=[0.1, 0.2, 0.3], validity_field_uT=100.0), tmp_path / "tables/hmc1053.json")
+    assert main(["run", "--config", str(cfg), "--duration", "5", "--out", str(tmp_path / "tlm")]) == 0
+    out, err = capsys.readouterr()
+    assert "TABLE_REJECTED" not in err and "DEGRADED" not in out
+
+
+def test_warning_events_reach_the_console_rate_limited(caplog):
+    from magstack.firmware.flight.events import EventId, EventLog
+
+    log = EventLog()
+    with caplog.at_level("WARNING", logger="magstack.flight"):
+        for _ in range(1000):
+            log.emit(0.0, EventId.CHAN_EXCEPTION, "lis3mdl", "ValueError: boom")
+            log.emit(0.0, EventId.CHAN_BUS_ERROR, "lis3mdl", "NACK")       # WARNING_LO: counted, not shown
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 6 and all(x.startswith("CHAN_EXCEPTION lis3mdl: ValueError: boom") for x in lines)
+    assert lines[-1].endswith("(1000 so far)") and log.count(EventId.CHAN_BUS_ERROR) == 1000
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Issue 24 item 10: SIGHUP like SIGTERM, stdout closed by the reader, Ctrl-C at start-up.
+@pytest.mark.slow
+def test_sighup_stops_run_with_complete_files(tmp_path):
+    """SIGHUP (the SSH session went away) killed `run` silently, leaving .part files (`bench`: test_bench.py)."""
+    cfg = _sim_config(tmp_path, table=False)
+    cfg.write_text(cfg.read_text().replace("block_rows = 50", "block_rows = 5"))
+    _stop_cleanly(cfg, tmp_path / "a", signal.SIGHUP, 129)
+
+
+def test_a_reader_closing_stdout_ends_output_quietly(tmp_path):
+    """`magstack ... | true` (the reader is gone before the first write): no BrokenPipeError, no traceback,
+    the command completes (a run still writes every file) and exits with its own status, 0."""
+    cfg = _sim_config(tmp_path)
+    for args in (["run", "--example-config"],
+                 ["run", "--config", str(cfg), "--duration", "3", "--out", str(tmp_path / "tlm")]):
+        cmd = " ".join([sys.executable, "-m", "magstack", *args]) + " | true; echo rc=${PIPESTATUS[0]}"
+        res = subprocess.run(["bash", "-c", cmd], capture_output=True, text=True, timeout=300)
+        assert res.stdout.strip() == "rc=0" and res.stderr == "", (args, res.stdout, res.stderr)
+    assert (tmp_path / "tlm" / "summary-0001.json").exists() and not list((tmp_path / "tlm").glob("*.part"))
+
+
+def test_ctrl_c_while_the_command_line_loads_is_one_line(monkeypatch, capsys):
+    import magstack.cli.main as cli_main
+
+    def interrupted():
+        raise KeyboardInterrupt
+    monkeypatch.setattr(cli_main, "build_parser", interrupted)
+    assert cli_main.main(["run", "--example-config"]) == 130
+    assert capsys.readouterr().err.strip() == "magstack: interrupted"
+
+
+def test_a_configured_table_with_a_huge_integer_is_a_warning_not_a_crash(tmp_path, capsys):
+    """Issue 24 item 1: a 400-digit integer in the start-up table raised OverflowError out of `run`."""
+    cfg = _sim_config(tmp_path)
+    path = tmp_path / "tables/hmc1053.json"
+    doc = json.loads(path.read_text())
+    doc["parameters"]["O"]["value"][0] = 10 ** 400
+    doc.pop("crc32")
+    doc["crc32"] = f"0x{ct._crc(doc):08x}"          # a well-formed file: only the number is hostile
+    path.write_text(json.dumps(doc))
+    assert main(["run", "--config", str(cfg), "--duration", "3", "--out", str(tmp_path / "tlm")]) == 1
+    out, err = capsys.readouterr()
+    assert "Traceback" not in err and "TABLE_REJECTED hmc1053" in err and "OverflowError" in err
+    assert "DEGRADED: channel hmc1053: configured table rejected" in out

@@ -4,6 +4,12 @@ On the Raspberry Pi it opens the configured buses and runs until Ctrl-C / SIGTER
 With ``--sim`` (or a config whose buses are all ``sim``) the sensors are simulated: with
 ``--duration`` in virtual time (a simulated day takes minutes at most), without it in real time.
 ``--example-config`` prints the shipped example configuration.
+
+Events of severity WARNING_HI and worse (a table rejected, a channel degraded, telemetry that cannot be
+written, ...) are shown on stderr while the application runs (rate-limited). Exit status: 0 the run
+ended healthy; 1 it ran but ended degraded (a channel degraded at the end, a configured table rejected
+and no table active since, telemetry rows or events that could not be written: the reasons are printed);
+3 bad configuration; 129 / 130 / 143 stopped by SIGHUP / SIGINT / SIGTERM (files complete).
 """
 from __future__ import annotations
 
@@ -16,6 +22,9 @@ from magstack.cli.output import CommandResult
 from magstack.drivers.errors import ConfigurationError
 from magstack.firmware.flight.app import FlightApp
 from magstack.firmware.flight.config import example_config_text, load_config
+
+#: Exit status of a run that ended degraded (the reasons are printed and in ``degraded``).
+EXIT_DEGRADED = 1
 
 
 def register(subparsers) -> None:
@@ -71,11 +80,16 @@ def run(args: argparse.Namespace) -> CommandResult:
             app.run(args.duration)
         finally:
             app.close()
-            summary = app.write_summary(Path(app.telemetry_dir) / f"summary-{app.run_id:04d}.json")
+            try:
+                summary = app.write_summary(Path(app.telemetry_dir) / f"summary-{app.run_id:04d}.json")
+            except OSError as exc:          # the disk is still full: the counters are printed below anyway
+                summary, summary_error = None, f"{exc.strerror or exc}"
+            else:
+                summary_error = ""
     counters = app.counters()
     mode = "virtual time" if virtual else "real time"
     lines = [f"flight run {app.run_id} ({'simulated sensors, ' if simulate else ''}{mode}); telemetry in "
-             f"{app.telemetry_dir}; summary {summary}"]
+             f"{app.telemetry_dir}; summary {summary or 'NOT WRITTEN: ' + summary_error}"]
     if stop.signal_name:
         lines.insert(0, f"{stop.signal_name}: stopped after the cycles under way; every telemetry file closed")
     for g in app.executive.groups:
@@ -85,10 +99,16 @@ def run(args: argparse.Namespace) -> CommandResult:
     for name, slot in app.slots.items():
         c = slot.channel.counters()
         cal = slot.channel.corrector.status.get("ok", 0)
-        table = f"0x{slot.store.active.crc32:08x}" if slot.store.active else "none"
+        table = f"0x{slot.store.active.crc32:08x}" if slot.store.active else \
+            "none (configured table rejected)" if slot.table_rejected else "none"
+        lost = slot.telemetry.rows_lost
         lines.append(f"  {name:<12} {c['cycles']} cycles: {c['samples_ok']} good, {cal} calibrated, "
-                     f"{c['error_count']} faults{' (DEGRADED)' if c['degraded'] else ''}; table {table}")
-    data = {"run_id": app.run_id, "telemetry_dir": str(app.telemetry_dir), "summary": str(summary),
-            "virtual_time": virtual, "simulated": simulate, "stopped_by": stop.signal_name, **counters}
-    code = EXIT_FOR_SIGNAL.get(stop.signal_name, 130) if stop.signal_name else 0
+                     f"{c['error_count']} faults{' (DEGRADED)' if c['degraded'] else ''}; table {table}"
+                     + (f"; {lost} telemetry rows lost" if lost else ""))
+    degraded = counters["degraded"]
+    lines += [f"  DEGRADED: {why}" for why in degraded]
+    data = {"run_id": app.run_id, "telemetry_dir": str(app.telemetry_dir),
+            "summary": None if summary is None else str(summary), "virtual_time": virtual, "simulated": simulate,
+            "stopped_by": stop.signal_name, **counters}
+    code = EXIT_FOR_SIGNAL.get(stop.signal_name, 130) if stop.signal_name else EXIT_DEGRADED if degraded else 0
     return CommandResult("run", data, lines, code)

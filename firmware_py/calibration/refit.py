@@ -5,7 +5,8 @@ Per block of telemetry rows (memory flat in the number of rows; :mod:`.streaming
 1. housekeeping currents interpolated from their own rates (:mod:`.housekeeping`);
 2. reference field: IGRF-14 at ``pos_ecef`` and ``t_s``, rotated ITRS -> GCRS -> body by
    ``q_body_eci`` (:mod:`magstack.firmware.reference`); sensor frame = body frame;
-3. selection: flag == 0, finite inputs, geodetic latitude band, temperature band, eclipse state;
+3. selection: no disqualifying flag bit (the dictionary's one rule, ``data.dictionary.usable``), finite inputs, geodetic
+   latitude band, temperature band, eclipse state;
 4. split: rows in every ``holdout_every``-th time block of ``holdout_block_s`` (absolute time, so
    independent of files and blocks) are held out; the rest are fitted;
 5. accumulate: the fit rows' weighted ``[X | Y]`` (Eq. 3 plus currents, :class:`CalModel`), the
@@ -46,6 +47,7 @@ from typing import Any
 import numpy as np
 
 from magstack.data import telemetry
+from magstack.data.dictionary import usable
 from magstack.firmware import cal_table
 from magstack.firmware.calibration.coverage_bins import N_BINS, AttitudeCoverage
 from magstack.firmware.calibration.estimator import Prior, model_prior
@@ -308,7 +310,7 @@ def _prepare_block(st: PassStats, blk: telemetry.TelemetryBlock, plan: Plan):
     use = np.ones(n, dtype=bool)
     checks = []
     if blk.flag is not None:
-        checks.append((blk.flag != 0, "flag != 0"))
+        checks.append((~usable(blk.flag), "flag: not a good sample"))
     checks += [(~np.all(np.isfinite(blk.dut_uT), 1), "no sensor sample"),
                (~np.all(np.isfinite(b_ref), 1), "no or implausible position/attitude"),
                (~np.isfinite(blk.temp_c), "no temperature")]

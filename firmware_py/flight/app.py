@@ -10,24 +10,38 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import re
 import threading
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from magstack.data.io import atomic_write_text
 from magstack.drivers.clock import SystemClock, VirtualClock
 from magstack.drivers.registry import open_chip
-from magstack.firmware.cal_table import CalTableStore, load_table, save_table, validate
+from magstack.firmware.cal_table import save_table, validate
 from magstack.firmware.corrector import TableCorrector
-from magstack.firmware.errors import CalTableInvalid
+from magstack.firmware.errors import CalTableInvalid, FlightConfigError
 from magstack.firmware.flight.ccsds import attach_ccsds
 from magstack.firmware.flight.channel import ChannelLimits, MagChannel
 from magstack.firmware.flight.commands import Command, CommandSpool
 from magstack.firmware.flight.config import FlightConfig, SensorConfig
 from magstack.firmware.flight.events import EventFileSink, EventId, EventLog
 from magstack.firmware.flight.executive import Executive, RateGroup
+from magstack.firmware.flight.intake import UnsafeInput, inside_roots
+from magstack.firmware.flight.tables import FlightTableStore
 from magstack.firmware.flight.telemetry import ChannelTelemetry
+
+#: Name of the command spool's own rate group (not configurable: it is not a sensor timeline).
+COMMAND_GROUP = "_commands"
+#: Commands waiting for one channel's boundary; more wait in the spool (back-pressure).
+CHANNEL_QUEUE = 16
+#: Files of the telemetry directory that hold a run id: <channel>-<run>-<index>.csv[.part],
+#: events-<run>.jsonl, summary-<run>.json.
+_RUN_FILE = re.compile(r"^(?:.+-(\d{4,})-\d{4,}\.csv(?:\.part)?|(?:events|summary)-(\d{4,})\.jsonl?)$")
 
 #: ``chip_options(sensor, clock) -> extra open_chip keyword arguments`` (the simulator's truth source ...).
 ChipOptions = Callable[[SensorConfig, Any], dict]
@@ -39,10 +53,11 @@ class ChannelSlot:
 
     sensor: SensorConfig
     channel: MagChannel
-    store: CalTableStore
+    store: FlightTableStore
     telemetry: ChannelTelemetry
     group: str
-    pending: list[Command] = field(default_factory=list)
+    pending: deque = field(default_factory=deque)      # commands for the next boundaries (thread-safe ends)
+    table_rejected: str = ""                           # why the configured table was refused at start
 
 
 class _Cancelled(Exception):
@@ -115,11 +130,14 @@ class FlightApp:
         shared = None if virtual else SystemClock()
         self.clocks: dict[str, Any] = {}
         groups = []
-        for g in cfg.rate_groups:
+        periods = [(g.name, g.period_s) for g in cfg.rate_groups]
+        if cfg.command_dir is not None:
+            periods.append((COMMAND_GROUP, 1.0 / cfg.command_rate_hz))
+        for name, period_s in periods:
             clk = VirtualClock(**({} if start_epoch_s is None else {"start_epoch_s": start_epoch_s})) \
                 if virtual else shared
-            self.clocks[g.name] = clk
-            groups.append(RateGroup(g.name, g.period_s, clk))
+            self.clocks[name] = clk
+            groups.append(RateGroup(name, period_s, clk))
         any_clock = next(iter(self.clocks.values()))
         offset = any_clock.epoch_s() - any_clock.monotonic_s()
         self.epoch_of = (lambda t: t + offset) if virtual else (lambda t: t - shared.monotonic_s() + shared.epoch_s())
@@ -136,30 +154,42 @@ class FlightApp:
             g.boundary.append(self._boundary_hook(g))
         self.spool = None
         if cfg.command_dir is not None:
-            self.spool = CommandSpool(cfg.command_dir, self.events, self._dispatch,
-                                      lambda: self.epoch_of(any_clock.monotonic_s()))
-            fastest = max(groups, key=lambda x: x.rate_hz)
-            fastest.boundary.insert(0, self.spool.poll)
+            # its own slow rate group (thread), a bounded number of files per cycle: a burst of commands
+            # never lands on a sensor group's critical path
+            cmd_clock = self.clocks[COMMAND_GROUP]
+            try:
+                self.spool = CommandSpool(cfg.command_dir, self.events, self.submit,
+                                          lambda: self.epoch_of(cmd_clock.monotonic_s()),
+                                          per_poll=cfg.commands_per_cycle)
+            except (UnsafeInput, OSError) as exc:
+                self.close()
+                raise FlightConfigError(f"{cfg.path}: flight.command_dir: {exc}") from None
+            self.spool.recover()
+            self.executive.group(COMMAND_GROUP).boundary.insert(0, self.spool.poll)
         self.ccsds = attach_ccsds(self)     # [ccsds]: packet stream + telecommands (None without the table)
 
     # ------------------------------------------------------------------ construction
     def _next_run_id(self) -> int:
-        ids = [int(p.stem.split("-")[1]) for p in self.telemetry_dir.glob("events-*.jsonl")
-               if p.stem.split("-")[1].isdigit()]
+        """One more than any run id on disk (telemetry files and ``.part`` files, event logs, summaries)."""
+        ids = [int(m.group(1) or m.group(2)) for n in os.listdir(self.telemetry_dir) if (m := _RUN_FILE.match(n))]
         return max(ids, default=0) + 1
+
+    def _table_roots(self) -> tuple[Path, ...]:
+        return (*self.cfg.table_roots, self.telemetry_dir / "refit")
 
     def _add_channel(self, s: SensorConfig, chip_options: ChipOptions | None) -> None:
         clock = self.clocks[s.rate_group]
         bus = "sim" if self.simulate else s.bus
         extra = dict(chip_options(s, clock)) if chip_options is not None else {}
         mag = open_chip(s.chip, bus, clock, **{**s.options, **extra})
-        store = CalTableStore(s.device_id)
+        store = FlightTableStore(s.device_id, s.name, self._table_roots(), self.cfg.path.parent)
         meta = {"device_id": s.device_id, "dut_chip": s.chip, "bus": bus, "flight_config": self.cfg.name,
                 "run_id": str(self.run_id), "rate_group": s.rate_group, "source": "magstack run"}
         tlm = ChannelTelemetry(self.telemetry_dir, s.name, run_id=self.run_id, metadata=meta,
                                rotate_bytes=self.cfg.rotate_bytes, block_rows=self.cfg.block_rows, events=self.events)
         ch = MagChannel(s.name, mag, TableCorrector(store), self.events, sink=tlm,
-                        limits=ChannelLimits(s.max_field_uT, s.max_rate_uT_per_s, s.reinit_after, s.degrade_after),
+                        limits=ChannelLimits(s.max_field_uT, s.max_rate_uT_per_s, s.reinit_after, s.degrade_after,
+                                             rate_horizon_s=self.cfg.group(s.rate_group).period_s),
                         epoch_of=self.epoch_of)
         slot = ChannelSlot(s, ch, store, tlm, s.rate_group)
         self.slots[s.name] = slot
@@ -170,6 +200,7 @@ class FlightApp:
                 self.events.emit(self.epoch_of(clock.monotonic_s()), EventId.TABLE_ACTIVATED, s.name,
                                  f"{s.table} crc32 0x{store.active.crc32:08x}")
             except CalTableInvalid as exc:
+                slot.table_rejected = str(exc)
                 self.events.emit(self.epoch_of(clock.monotonic_s()), EventId.TABLE_REJECTED, s.name, str(exc)[:200])
 
     # ------------------------------------------------------------------ boundaries and commands
@@ -178,23 +209,29 @@ class FlightApp:
             for slot in self.slots.values():
                 if slot.group != group.name:
                     continue
-                while slot.pending:
-                    self._execute(slot, slot.pending.pop(0))
+                if slot.pending:                 # one command per boundary: bounded work between two cycles
+                    self._execute(slot, slot.pending.popleft())
                 if slot.store.cycle_boundary():
                     a = slot.store.active
                     self.events.emit(self.epoch_of(now_s), EventId.TABLE_ACTIVATED, slot.sensor.name,
                                      f"crc32 0x{a.crc32:08x}" if a.crc32 is not None else "unsaved table")
         return hook
 
-    def _dispatch(self, cmd: Command) -> None:
+    def submit(self, cmd: Command) -> bool:
+        """Hand over a parsed command (from the command directory or any other command source): a channel-less
+        command runs now, a channel's is queued to its group; False when that queue is full (offer it later).
+        The outcome goes to ``cmd.reply`` (default: the command directory's result files)."""
         if cmd.channel is None:
             self._execute(None, cmd)
-            return
+            return True
         slot = self.slots.get(cmd.channel)
         if slot is None:
-            self.spool.finish(cmd.source, ok=False, message=f"no channel {cmd.channel!r}; have {sorted(self.slots)}")
-            return
+            self._finish(cmd, ok=False, message=f"no channel {cmd.channel!r}; have {sorted(self.slots)}")
+            return True
+        if len(slot.pending) >= CHANNEL_QUEUE:
+            return False
         slot.pending.append(cmd)
+        return True
 
     def _execute(self, slot: ChannelSlot | None, cmd: Command) -> None:
         ok, msg, payload = True, "done", None
@@ -203,16 +240,12 @@ class FlightApp:
                 payload = self.counters()
                 msg = "counters dumped"
             elif cmd.name == "load_table":
-                res = slot.store.load(self._path(cmd.args["path"]))
+                res = slot.store.load(cmd.args["path"])
                 self.events.emit(self._now(slot),
                                  EventId.TABLE_LOADED, slot.sensor.name, f"{cmd.args['path']} staged")
                 msg = f"staged (worst-case output {res.worst_output_uT:.1f} uT); activate with activate_table"
             elif cmd.name == "validate_table":
-                table = load_table(self._path(cmd.args["path"]))
-                if table.device_id != slot.sensor.device_id:
-                    raise CalTableInvalid(f"table is for device {table.device_id!r}, channel serves "
-                                          f"{slot.sensor.device_id!r}")
-                v = validate(table)
+                v = validate(slot.store.read(cmd.args["path"]))
                 ok, msg = v.ok, "valid" if v.ok else "invalid: " + "; ".join(v.problems)
             elif cmd.name == "activate_table":
                 slot.store.request_activation()
@@ -231,13 +264,17 @@ class FlightApp:
             ok, msg = False, str(exc)
             if cmd.name == "load_table":
                 self.events.emit(self._now(slot), EventId.TABLE_REJECTED, slot.sensor.name, msg[:200])
-        except (KeyError, ValueError, OSError) as exc:
-            ok, msg = False, f"{type(exc).__name__}: {exc}"
-        self.spool.finish(cmd.source, ok=ok, message=msg, payload=payload)
+        except Exception as exc:  # noqa: BLE001 - any failure of a command is a counted, evented rejection
+            ok, msg = False, f"{type(exc).__name__}: {str(exc)[:300]}"
+        self._finish(cmd, ok=ok, message=msg, payload=payload)
 
-    def _path(self, p: str) -> Path:
-        q = Path(p)
-        return q if q.is_absolute() else self.cfg.path.parent / q
+    def _finish(self, cmd: Command, *, ok: bool, message: str, payload: dict | None = None) -> None:
+        reply = cmd.reply or (self.spool.finish if self.spool is not None else None)
+        if reply is None:               # a source without a reply path: the outcome is at least an event
+            self.events.emit(self._now(None), EventId.CMD_COMPLETED if ok else EventId.CMD_REJECTED, cmd.source,
+                             message[:200])
+            return
+        reply(cmd.source, ok=ok, message=message, payload=payload)
 
     def _now(self, slot: ChannelSlot | None) -> float:
         clk = self.clocks[slot.group] if slot is not None else next(iter(self.clocks.values()))
@@ -249,9 +286,12 @@ class FlightApp:
         if self.virtual and self.clocks[group] is not self.clocks[slot.group]:
             # in virtual time the driver is bound to its group's clock: only same-timeline moves are exact
             raise ValueError("in virtual time a channel cannot change timelines; restart with the new config")
+        if group == COMMAND_GROUP:
+            raise ValueError(f"{group!r} is the command spool's group, not a sensor timeline")
         old = self.executive.group(slot.group)
         old.components.remove(slot.channel)
         self.executive.group(group).components.append(slot.channel)
+        slot.channel.limits.rate_horizon_s = self.executive.group(group).period_s
         prev, slot.group = slot.group, group
         return f"moved from {prev} to {group}"
 
@@ -264,9 +304,14 @@ class FlightApp:
         if job is not None and job.thread.is_alive():
             raise ValueError("a refit is already running on this channel (stop_refit first)")
         base = self.cfg.path.parent
-        files = sorted(glob.glob(pattern if Path(pattern).is_absolute() else str(base / pattern)))
-        if not files:
+        roots = (*self.cfg.refit_roots, self.telemetry_dir)
+        matches = sorted(glob.glob(pattern if Path(pattern).is_absolute() else str(base / pattern)))
+        if not matches:
             raise ValueError(f"no telemetry files match {pattern!r}")
+        files = [str(inside_roots(f, roots, base)) for f in matches]      # UnsafeInput: outside the roots
+        odd = [f for f in files if not os.path.isfile(f)]
+        if odd:
+            raise ValueError(f"{odd[0]}: not a regular file ({len(odd)} of {len(files)} matches)")
         job = RefitJob(name, files, slot.store.active, slot.sensor.device_id, self.telemetry_dir / "refit",
                        self.events, lambda: self._now(slot))
         self.refits[name] = job
@@ -286,13 +331,34 @@ class FlightApp:
         self.executive.stop()
 
     def counters(self) -> dict:
+        sink = getattr(self, "_event_sink", None)
         return {"channels": {n: s.channel.counters() | {"corrector": dict(s.channel.corrector.status),
-                                                         "table": s.store.telemetry()}
+                                                         "table": s.store.telemetry(),
+                                                         "telemetry": s.telemetry.stats()}
                              for n, s in self.slots.items()},
                 "rate_groups": {g.name: {"rate_hz": g.rate_hz, **g.stats.to_dict()} for g in self.executive.groups},
                 "events": self.events.snapshot(),
+                "events_lost": (0 if sink is None else sink.lost) + self.events.sink_errors,
                 "commands": None if self.spool is None else {"accepted": self.spool.accepted,
-                                                             "rejected": self.spool.rejected}}
+                                                             "rejected": self.spool.rejected},
+                "degraded": self.degraded_reasons()}
+
+    def degraded_reasons(self) -> list[str]:
+        """Why the run ended degraded (``magstack run`` exits 1): a channel degraded at the end, a configured
+        table refused at start and none active since, telemetry rows or events that could not be written."""
+        out = []
+        for n, s in self.slots.items():
+            if s.channel.degraded:
+                out.append(f"channel {n} degraded")
+            if s.table_rejected and s.store.active is None:
+                out.append(f"channel {n}: configured table rejected, running uncalibrated ({s.table_rejected})")
+            if s.telemetry.rows_lost:
+                out.append(f"channel {n}: {s.telemetry.rows_lost} telemetry rows could not be written")
+        sink = getattr(self, "_event_sink", None)
+        lost = (0 if sink is None else sink.lost) + self.events.sink_errors
+        if lost:
+            out.append(f"{lost} events could not be written to the event log")
+        return out
 
     def wait_refits(self, timeout_s: float | None = None) -> None:
         """Wait for running refits (tests, and a clean shutdown)."""
@@ -319,6 +385,5 @@ class FlightApp:
             sink.close()
 
     def write_summary(self, path: str | Path) -> Path:
-        p = Path(path)
-        p.write_text(json.dumps(self.counters(), indent=1, sort_keys=True, default=str) + "\n", encoding="utf-8")
-        return p
+        """Write the counters atomically (FileWriteError, an OSError, when the disk is still full)."""
+        return atomic_write_text(path, json.dumps(self.counters(), indent=1, sort_keys=True, default=str) + "\n")

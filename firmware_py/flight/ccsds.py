@@ -206,8 +206,14 @@ class CcsdsLink:
         self.stream = PacketStream(apid_map(app.cfg), path=path, udp=cfg.tm_udp, on_error=self._error)
         self.receiver = None
         if cfg.tc_udp is not None or cfg.tc_dir is not None:
-            self.receiver = TelecommandReceiver(cfg, app.events, self.stream, app._dispatch, self._now)
+            self.receiver = TelecommandReceiver(cfg, app.events, self.stream, self._submit, self._now)
         self._next_hk: dict[str, float] = {}
+
+    def _submit(self, cmd) -> None:
+        """Hand an accepted telecommand to the application (``FlightApp.submit``); a full channel queue is
+        a rejection (its CMD_REJECTED event becomes the 1,8 report)."""
+        if not self.app.submit(cmd):
+            self.app.events.emit(self._now(), EventId.CMD_REJECTED, cmd.source, "channel command queue full")
 
     def _now(self) -> float:
         clk = next(iter(self.app.clocks.values()))

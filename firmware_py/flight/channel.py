@@ -9,8 +9,9 @@ interface and publishes exactly one :class:`TelemetryRecord`, good or not. Fault
   logged with its type (the flight loop must survive a driver bug);
 * a sample is **good** only if it is new (the chip's data-ready said so and it does not repeat the
   previous sample bit for bit), no axis overflowed, it is within the sensor's range, and its change
-  since the last good sample is physically possible (``max_rate_uT_per_s``; a step that the next
-  sample confirms is accepted, a one-sample spike is not);
+  since the last good sample is physically possible (:meth:`ChannelLimits.allowed_change_uT`: noise +
+  ``max_rate_uT_per_s`` over at most one period, not growing with the gap; a step that the very next
+  read confirms is accepted, a one-sample spike is not);
 * a good sample is **calibrated** only inside the active table's validity (:mod:`.corrector`).
 
 After ``reinit_after`` consecutive faults the driver's ``reinit()`` is called (a failure there is
@@ -29,6 +30,7 @@ from enum import IntFlag
 import numpy as np
 
 from magstack.data.dictionary import DISQUALIFYING, FLIGHT, flags_of
+from magstack.data.dictionary import INFORMATIONAL as _INFORMATIONAL_BITS
 from magstack.drivers.errors import BusError, BusTimeout, MagError, SelfTestFailed, StaleData
 from magstack.drivers.magnetometer import Magnetometer, MagSample
 from magstack.firmware.corrector import Correction, TableCorrector
@@ -47,6 +49,9 @@ STALE_FALSE_ALARM = 1e-4
 
 #: Flags that make a sample not good (its field must not be used).
 BAD = TlmFlag(DISQUALIFYING & sum(TlmFlag))
+#: Flags that describe a good raw sample without disqualifying it (the dictionary's non-disqualifying bits:
+#: ground tools such as ``refit`` keep such rows). Every other bit disqualifies the row.
+INFORMATIONAL = TlmFlag(sum(TlmFlag) & _INFORMATIONAL_BITS)
 
 
 @dataclass(frozen=True)
@@ -80,9 +85,19 @@ class ChannelLimits:
     max_rate_uT_per_s: float = 2000.0     # fastest physical change (rotation + torquer switching)
     reinit_after: int = 3                 # consecutive faults before re-initialising the driver
     degrade_after: int = 3                # re-initialisations without a good sample before "degraded"
+    rate_horizon_s: float = 1.0           # longest gap the rate bound is extrapolated over (the app: one period)
+    noise_uT: float = 2.0                 # sample-to-sample noise allowed on top of the rate bound
+
+    def allowed_change_uT(self, dt_s: float, range_uT: float) -> float:
+        """Largest plausible change of a component between two samples ``dt_s`` apart.
+
+        ``noise_uT + max_rate_uT_per_s * min(dt_s, rate_horizon_s)``, at most the sensor range: the
+        allowance does not grow with the gap beyond one horizon (a sample after an outage that moved
+        further is accepted once the next sample confirms it)."""
+        return min(self.noise_uT + self.max_rate_uT_per_s * min(max(dt_s, 1e-3), self.rate_horizon_s), range_uT)
 
     def __post_init__(self) -> None:
-        for name in ("max_field_uT", "max_rate_uT_per_s"):
+        for name in ("max_field_uT", "max_rate_uT_per_s", "rate_horizon_s", "noise_uT"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
@@ -107,7 +122,7 @@ class MagChannel:
     degraded: bool = False
     cycles: int = 0
     _last_good: tuple[float, tuple[float, float, float]] | None = None
-    _rejected: tuple[float, tuple[float, float, float]] | None = None
+    _rejected: tuple[float, tuple[float, float, float], int] | None = None   # (t, field, cycle)
     _last_raw: tuple[float, float, float] | None = None
     _reinits_since_good: int = 0
     _repeat_run: int = 0
@@ -283,19 +298,23 @@ class MagChannel:
         if self._last_good is None:
             return ""
         t0, b0 = self._last_good
-        dt = max(t_s - t0, 1e-3)
+        dt = t_s - t0
         jump = max(abs(x - y) for x, y in zip(b, b0, strict=True))
-        if jump <= lim.max_rate_uT_per_s * dt:
+        allowed = lim.allowed_change_uT(dt, max_field)
+        if jump <= allowed:
             self._rejected = None
             return ""
-        # a step the next sample confirms is real (torquer switched); a lone spike is not
+        # a step the very next read confirms is real (torquer switched, field moved during an outage); a lone
+        # spike is not, nor are two corruptions with failed reads between them
         if self._rejected is not None:
-            tr, br = self._rejected
-            if max(abs(x - y) for x, y in zip(b, br, strict=True)) <= lim.max_rate_uT_per_s * max(t_s - tr, 1e-3):
+            tr, br, cycle = self._rejected
+            if cycle == self.cycles - 1 and \
+                    max(abs(x - y) for x, y in zip(b, br, strict=True)) <= lim.allowed_change_uT(t_s - tr, max_field):
                 self._rejected = None
                 return ""
-        self._rejected = (t_s, b)
-        return f"change of {jump:.1f} uT in {dt:.3f} s exceeds {lim.max_rate_uT_per_s:g} uT/s"
+        self._rejected = (t_s, b, self.cycles)
+        return (f"change of {jump:.1f} uT in {dt:.3f} s exceeds {allowed:.1f} uT ({lim.max_rate_uT_per_s:g} uT/s "
+                f"over at most {lim.rate_horizon_s:g} s + {lim.noise_uT:g} uT noise)")
 
     def _correct(self, b, temp_c) -> Correction:
         if self.corrector is None:

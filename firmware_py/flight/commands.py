@@ -1,9 +1,16 @@
 """Commands to the flight application, applied at cycle boundaries.
 
 Transport: a **command directory** (spool). A client writes one JSON object per file and renames
-it to ``*.json`` when complete (rename is atomic, so a half-written command is never read); the
-executive polls the directory at its rate-group boundaries, moves each file to ``done/`` and writes
-``done/<name>.result.json`` with the outcome. Why a directory and not a socket: it needs no
+it to ``*.json`` when complete (rename is atomic, so a half-written command is never read). The
+spool runs in its own slow rate group (never on a fast group's critical path) and takes at most
+``per_poll`` files per cycle, in name order. Each file is first **claimed**: renamed into
+``processing/`` (a command that cannot be claimed is never executed, and reported once); only then is it
+read (:func:`~magstack.firmware.flight.intake.read_bounded`: regular file, at most 64 KiB, owned by the
+application's user and writable by nobody else, no symlink, a FIFO never blocks), parsed and handed on;
+its outcome goes to ``done/<name>.result.json`` and the file to ``done/``. So every command runs at most
+once, also across a crash: a file still in ``processing/`` at start-up is reported as interrupted and
+not run again. Every rejection is counted and evented. The directory is created 0700 and refused when
+another user owns it or others may write it. Why a directory and not a socket: it needs no
 thread or open port on the flight computer, it works identically in virtual time (tests and
 simulation are deterministic), it survives a restart (unprocessed commands wait), and it is what an
 uplink file transfer delivers anyway. ``magstack`` tools or ``mv`` are the only client needed.
@@ -30,6 +37,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +45,7 @@ from typing import Any
 
 from magstack.data.dictionary import COMMANDS as COMMAND_DEFS
 from magstack.firmware.flight.events import EventId, EventLog
+from magstack.firmware.flight.intake import UnsafeInput, check_private_dir, read_bounded
 
 #: Command name -> its argument names, from the flight dictionary (:data:`magstack.data.dictionary.COMMANDS`).
 COMMANDS = {c.name: {a.name for a in c.args} for c in COMMAND_DEFS}
@@ -47,7 +56,10 @@ MAX_COMMAND_BYTES = 64 * 1024
 class Command:
     name: str
     args: dict[str, Any]
-    source: str                 # file name, for results and events
+    source: str                 # file name (or packet id), for results and events
+    #: ``reply(source, ok=, message=, payload=)`` records the outcome; None: the command directory's results.
+    #: A packet command source (telecommands) passes its own, so its acceptance/completion reports go back to it.
+    reply: Callable[..., None] | None = field(default=None, compare=False)
 
     @property
     def channel(self) -> str | None:
@@ -85,48 +97,101 @@ def parse_command(raw: bytes, source: str) -> Command:
 
 @dataclass
 class CommandSpool:
-    """Polls ``directory`` for ``*.json`` commands; hands each to ``dispatch``; files results in ``done/``."""
+    """Polls ``directory`` for ``*.json`` commands; claims, reads, parses and hands each to ``dispatch``."""
 
     directory: Path
     events: EventLog
-    dispatch: Callable[[Command], None]
+    dispatch: Callable[[Command], bool]            # False: cannot be queued now, offer it again later
     epoch_now: Callable[[], float]
+    per_poll: int = 8
     accepted: int = 0
     rejected: int = 0
-    _seen: set[str] = field(default_factory=set)
+    _refused: set = field(default_factory=set)     # (name, inode, mtime) of files already reported unclaimable
+    _waiting: deque = field(default_factory=deque)  # parsed commands their channel could not queue yet
 
     def __post_init__(self) -> None:
         self.directory = Path(self.directory)
-        (self.directory / "done").mkdir(parents=True, exist_ok=True)
+        for d in (self.directory, self.directory / "processing", self.directory / "done"):
+            why = check_private_dir(d)
+            if why:
+                raise UnsafeInput(f"command directory refused: {why}")
+
+    def recover(self) -> int:
+        """Report commands left in ``processing/`` by a stop or crash as interrupted (never run again)."""
+        n = 0
+        for name in sorted(os.listdir(self.directory / "processing")):
+            if (self.directory / "done" / f"{name}.result.json").exists():
+                self._file_away(name)        # finished; only the move to done/ was lost
+                continue
+            n += 1
+            self.finish(name, ok=False, message="interrupted by a stop or crash while being executed; "
+                                                "not executed again (at most once)")
+        return n
 
     def poll(self, _now_s: float = 0.0) -> int:
-        """Pick up every complete command file (sorted by name); returns how many were taken."""
+        """Take up to ``per_poll`` complete command files (sorted by name); returns how many were taken.
+
+        ``dispatch`` returns False when the command's channel cannot queue it now: the command waits here
+        (claimed, not executed) and no new file is taken until it is handed on (back-pressure: the files
+        stay in the directory while the application is busy)."""
+        taken = 0
+        while self._waiting and taken < self.per_poll:
+            if not self.dispatch(self._waiting[0]):
+                return taken
+            self._waiting.popleft()
+            taken += 1
+        if self._waiting:
+            return taken
         try:
-            names = sorted(p.name for p in self.directory.iterdir() if p.suffix == ".json" and p.is_file())
+            with os.scandir(self.directory) as it:
+                names = sorted(e.name for e in it if e.name.endswith(".json") and not e.name.startswith("."))
         except OSError:
-            return 0
-        for name in names:
-            path = self.directory / name
+            return taken
+        for attempt, name in enumerate(names):
+            if taken >= self.per_poll or attempt >= 4 * self.per_poll:   # unclaimable files cost little, too
+                break
+            if not self._claim(name):
+                continue
+            taken += 1
             try:
-                raw = path.read_bytes()
-            except OSError:
-                continue   # vanished or unreadable now; try at the next boundary
-            try:
-                cmd = parse_command(raw, name)
-            except CommandRejected as exc:
+                cmd = parse_command(read_bounded(self.directory / "processing" / name, MAX_COMMAND_BYTES,
+                                                 own_only=True), name)
+            except (CommandRejected, UnsafeInput) as exc:
                 self.finish(name, ok=False, message=str(exc))
                 continue
             self.accepted += 1
             self.events.emit(self.epoch_now(), EventId.CMD_ACCEPTED, name, cmd.name)
-            self._move_to_done(name)
-            self.dispatch(cmd)
-        return len(names)
+            if not self.dispatch(cmd):
+                self._waiting.append(cmd)
+                break
+        return taken
 
-    def _move_to_done(self, name: str) -> None:
+    def _claim(self, name: str) -> bool:
+        """Rename ``name`` into ``processing/`` before anything is read (at most once); False if impossible."""
+        src = self.directory / name
         try:
-            os.replace(self.directory / name, self.directory / "done" / name)
+            os.rename(src, self.directory / "processing" / name)
+            return True
+        except OSError as exc:
+            try:
+                st = os.lstat(src)
+            except OSError:
+                return False                 # gone meanwhile (the client took it back)
+            key = (name, st.st_ino, st.st_mtime_ns)
+            if key not in self._refused:
+                if len(self._refused) > 10_000:
+                    self._refused.clear()
+                self._refused.add(key)
+                self.rejected += 1
+                self.events.emit(self.epoch_now(), EventId.CMD_REJECTED, name,
+                                 f"cannot claim the command file ({exc.strerror or exc}): not executed")
+            return False
+
+    def _file_away(self, name: str) -> None:
+        try:
+            os.replace(self.directory / "processing" / name, self.directory / "done" / name)
         except OSError:
-            pass
+            pass                             # stays in processing/: never taken again, reported at restart
 
     def finish(self, name: str, *, ok: bool, message: str, payload: dict | None = None) -> None:
         """Record a command's outcome: event, ``done/<name>`` and ``done/<name>.result.json``."""
@@ -134,12 +199,11 @@ class CommandSpool:
             self.rejected += 1
         self.events.emit(self.epoch_now(), EventId.CMD_COMPLETED if ok else EventId.CMD_REJECTED, name,
                          message[:200])
-        if (self.directory / name).exists():
-            self._move_to_done(name)
+        self._file_away(name)
         result = {"command": name, "ok": ok, "message": message, **({"result": payload} if payload else {})}
         tmp = self.directory / "done" / f".{name}.result.tmp"
         try:
             tmp.write_text(json.dumps(result, indent=1, sort_keys=True, default=str) + "\n", encoding="utf-8")
             os.replace(tmp, self.directory / "done" / f"{name}.result.json")
-        except OSError:
+        except (OSError, ValueError):
             pass

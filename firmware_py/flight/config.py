@@ -16,8 +16,11 @@ from pathlib import Path
 from typing import Any
 
 from magstack.firmware.errors import FlightConfigError
+from magstack.firmware.flight.intake import UnsafeInput, read_bounded
 
 EXAMPLE_NAME = "flight.example.toml"
+#: Largest configuration file read.
+MAX_CONFIG_BYTES = 1 << 20
 I2C_CHIPS = ("lis3mdl", "hmc5983", "lsm303dlhc")
 CHIPS = (*I2C_CHIPS, "hmc1053")
 
@@ -58,6 +61,10 @@ class FlightConfig:
     rate_groups: tuple[RateGroupConfig, ...]
     sensors: tuple[SensorConfig, ...]
     ccsds: Any = None          # CcsdsConfig of the [ccsds] table (firmware/flight/ccsds.py), None without one
+    table_roots: tuple[Path, ...] = ()              # tables may only be read inside these (default: config dir)
+    refit_roots: tuple[Path, ...] = ()              # start_refit inputs only inside these (default: config dir)
+    command_rate_hz: float = 2.0                    # the command spool's own rate group
+    commands_per_cycle: int = 8                     # command files taken per spool cycle
 
     def group(self, name: str) -> RateGroupConfig:
         return next(g for g in self.rate_groups if g.name == name)
@@ -156,7 +163,9 @@ def _bus_key(bus: str) -> str:
 def parse_config(doc: dict, path: Path) -> FlightConfig:
     c = _Ctx(path)
     top = _table(c, "document", doc, {"flight", "rate_group", "sensor"}, {"ccsds"})
-    fl = _table(c, "flight", top["flight"], {"name", "telemetry_dir"}, {"command_dir", "rotate_mb", "block_rows"})
+    fl = _table(c, "flight", top["flight"], {"name", "telemetry_dir"},
+                {"command_dir", "rotate_mb", "block_rows", "table_roots", "refit_roots", "command_rate_hz",
+                 "commands_per_cycle"})
     base = path.parent
     groups_raw = top["rate_group"]
     if not isinstance(groups_raw, list) or not groups_raw:
@@ -222,6 +231,12 @@ def parse_config(doc: dict, path: Path) -> FlightConfig:
             raise c.err("sensor.name", f"{s.name!r}: use letters, digits, '_' or '-' (it names telemetry files)")
     cmd = fl.get("command_dir")
     from magstack.firmware.flight.ccsds import parse_ccsds  # it uses this module's checks
+
+    def roots(key: str) -> tuple[Path, ...]:
+        v = fl.get(key, ["."])
+        if not isinstance(v, list) or not v:
+            raise c.err(f"flight.{key}", "must be a non-empty array of directories (relative to this file)")
+        return tuple(base / _str(c, f"flight.{key}[{i}]", d) for i, d in enumerate(v))
     return FlightConfig(
         path=path, name=_str(c, "flight.name", fl["name"]),
         telemetry_dir=base / _str(c, "flight.telemetry_dir", fl["telemetry_dir"]),
@@ -229,23 +244,34 @@ def parse_config(doc: dict, path: Path) -> FlightConfig:
         rotate_bytes=int(_num(c, "flight.rotate_mb", fl.get("rotate_mb", 16), 0.01, 4096) * (1 << 20)),
         block_rows=int(_num(c, "flight.block_rows", fl.get("block_rows", 50), 1, 100_000, integer=True)),
         rate_groups=tuple(groups), sensors=tuple(sensors), ccsds=parse_ccsds(c, top.get("ccsds"), base,
-                                                                   cmd is not None))
+                                                                   cmd is not None),
+        table_roots=roots("table_roots"), refit_roots=roots("refit_roots"),
+        command_rate_hz=float(_num(c, "flight.command_rate_hz", fl.get("command_rate_hz", 2.0), 0.01, 100.0)),
+        commands_per_cycle=int(_num(c, "flight.commands_per_cycle", fl.get("commands_per_cycle", 8), 1, 1000,
+                                    integer=True)))
 
 
 def load_config(path: str | Path) -> FlightConfig:
     """Read and validate ``path``; FlightConfigError names the file and key on any problem."""
     p = Path(path)
     try:
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise FlightConfigError(f"{p}: cannot read ({exc.strerror or exc})") from None
+        raw = read_bounded(p, MAX_CONFIG_BYTES)      # a FIFO or /dev/zero named as the config never blocks
+    except UnsafeInput as exc:
+        raise FlightConfigError(str(exc)) from None
     try:
         doc = tomllib.loads(raw.decode("utf-8"))
     except UnicodeDecodeError as exc:
         raise FlightConfigError(f"{p}: not UTF-8 text ({exc})") from None
     except tomllib.TOMLDecodeError as exc:
         raise FlightConfigError(f"{p}: not valid TOML: {exc}") from None
-    return parse_config(doc, p)
+    except (ValueError, RecursionError, MemoryError) as exc:   # a 5,000-digit integer, deep nesting
+        raise FlightConfigError(f"{p}: not a usable TOML document ({type(exc).__name__}: {str(exc)[:120]})") from None
+    try:
+        return parse_config(doc, p)
+    except FlightConfigError:
+        raise
+    except (ArithmeticError, ValueError, TypeError, RecursionError) as exc:   # e.g. int too large for a float
+        raise FlightConfigError(f"{p}: invalid value ({type(exc).__name__}: {str(exc)[:120]})") from None
 
 
 def example_config_text() -> str:

@@ -83,9 +83,15 @@ class RateGroup:
         return self.clock.monotonic_s()
 
     def due_in_s(self) -> float:
-        """Seconds until the next slot on this group's clock (<= 0: due now)."""
+        """Seconds until the next slot on this group's clock (<= 0: due now).
+
+        A clock that went back since the last run makes the slot due at once (``run_once`` then counts
+        the step and re-anchors): waiting for the old schedule would stall the group for the size of the
+        step (the threaded runner and the virtual one both ask here)."""
         now = self._now()
         if self.next_due_s is None:
+            return 0.0
+        if self._last_seen_s is not None and now < self._last_seen_s:
             return 0.0
         return self.next_due_s - now
 
@@ -94,11 +100,7 @@ class RateGroup:
         start = self._now()
         st = self.stats
         if self._last_seen_s is not None and start < self._last_seen_s:
-            st.clock_steps_back += 1
-            events.emit(epoch_of(start), EventId.CLOCK_STEPPED_BACK, self.name,
-                        f"clock went back {self._last_seen_s - start:.6f} s: schedule re-anchored")
-            self.next_due_s = start
-            self._last_start_s = None
+            self._stepped_back(events, epoch_of, self._last_seen_s, start)
         if self.next_due_s is None:
             self.next_due_s = start
         if self._last_start_s is not None:
@@ -110,6 +112,9 @@ class RateGroup:
             comp.run(self._now())
         end = self._now()
         self._last_seen_s = end
+        if end < start:                 # the clock went back while the group ran
+            self._stepped_back(events, epoch_of, start, end)
+            start = end
         took = end - start
         st.runs += 1
         st.exec_total_s += took
@@ -125,6 +130,15 @@ class RateGroup:
             nxt += k * self.period_s
             events.emit(epoch_of(end), EventId.RATE_GROUP_SLIP, self.name, f"{k} slot(s) skipped")
         self.next_due_s = nxt
+
+    def _stepped_back(self, events: EventLog, epoch_of: Callable[[float], float], before_s: float,
+                      now_s: float) -> None:
+        """Count a backward step of the clock and re-anchor the schedule at ``now_s`` (no stall)."""
+        self.stats.clock_steps_back += 1
+        events.emit(epoch_of(now_s), EventId.CLOCK_STEPPED_BACK, self.name,
+                    f"clock went back {before_s - now_s:.6f} s: schedule re-anchored")
+        self.next_due_s = now_s
+        self._last_start_s = None
 
 
 class Executive:
@@ -187,9 +201,12 @@ class Executive:
         errors: list[BaseException] = []
 
         def worker(g: RateGroup) -> None:
+            elapsed, last = 0.0, t0[g.name]     # forward progress only: a clock step back cannot extend the run
             try:
                 while not self._stop.is_set():
-                    if duration_s is not None and g.clock.monotonic_s() - t0[g.name] >= duration_s:
+                    now = g.clock.monotonic_s()
+                    elapsed, last = elapsed + max(0.0, now - last), now
+                    if duration_s is not None and elapsed >= duration_s:
                         return
                     wait = g.due_in_s()
                     if wait > 0:

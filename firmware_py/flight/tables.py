@@ -1,0 +1,87 @@
+"""The flight application's calibration-table store: every table is read through the flight intake.
+
+:class:`FlightTableStore` is a :class:`~magstack.firmware.cal_table.CalTableStore` whose ``load`` reads
+the file with :func:`~magstack.firmware.flight.intake.read_bounded` (regular file, at most
+``MAX_TABLE_BYTES``, no symlink, a FIFO never blocks) at a path checked by
+:func:`~magstack.firmware.flight.intake.inside_roots`, and turns *every* failure of parsing or
+validation (huge integers, deep nesting, a foreign device, ...) into
+:class:`~magstack.firmware.errors.CalTableInvalid`: the active table stays in force.
+
+Device ids (docs/flight.md): a table is accepted only by a channel whose ``device_id`` is exactly the
+table's (``magstack fit --device-id hmc1053:sn1`` for ``device_id = "hmc1053:sn1"``); a mismatch names
+both ids and the fix.
+"""
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+from magstack.firmware import fixed_point
+from magstack.firmware.cal_table import CalTable, CalTableStore, ValidationResult, table_from_document, validate
+from magstack.firmware.calibration.model import GROUND_ONLY_TERMS
+from magstack.firmware.errors import CalTableInvalid
+from magstack.firmware.flight.intake import UnsafeInput, inside_roots, read_bounded
+from magstack.firmware.table_schema import parse_table_json
+
+#: Largest table file read (a table is a few KiB; `magstack table validate` has the same 1 MiB limit).
+MAX_TABLE_BYTES = 1 << 20
+
+
+def device_mismatch(table_id: str, channel: str, channel_id: str, source: str) -> str:
+    """The one message for a table fitted for another device than the channel's."""
+    return (f"table is for device {table_id!r}, channel {channel} serves {channel_id!r}: device ids must match "
+            f"exactly (fit --device-id {channel_id}, or device_id = {table_id!r} in flight.toml); {source}")
+
+
+def read_table(path: str | os.PathLike, roots: Sequence[Path], base: Path) -> CalTable:
+    """Parse a table file inside ``roots``; any failure is :class:`CalTableInvalid` naming the file."""
+    src = str(path)
+    try:
+        real = inside_roots(path, roots, base)
+        raw = read_bounded(real, MAX_TABLE_BYTES)
+        return table_from_document(parse_table_json(raw, src), src)
+    except CalTableInvalid:
+        raise
+    except UnsafeInput as exc:
+        raise CalTableInvalid(str(exc)) from None
+    except Exception as exc:  # noqa: BLE001 - OverflowError (a 400-digit integer), RecursionError, MemoryError ...
+        raise CalTableInvalid(f"{src}: malformed table ({type(exc).__name__}: {str(exc)[:120]})") from None
+
+
+class FlightTableStore(CalTableStore):
+    """A CalTableStore for one channel whose loads go through :func:`read_table` (bounded, inside roots)."""
+
+    def __init__(self, device_id: str, channel: str, roots: Sequence[Path], base: Path) -> None:
+        super().__init__(device_id)
+        self.channel, self.roots, self.base = channel, tuple(roots), base
+
+    def read(self, path: str | os.PathLike) -> CalTable:
+        """Parse and check the device id (nothing staged)."""
+        table = read_table(path, self.roots, self.base)
+        if table.device_id != self.device_id:
+            raise CalTableInvalid(device_mismatch(table.device_id, self.channel, self.device_id, str(path)))
+        return table
+
+    def load(self, path: str | os.PathLike) -> ValidationResult:
+        """Read, check, validate and stage into the inactive slot; CalTableInvalid on any failure."""
+        try:
+            table = self.read(path)
+            res = validate(table)
+            self.last_validation = res
+            res.raise_if_bad(str(path))
+            # the staging below mirrors CalTableStore.load (which reads the path itself, unbounded)
+            fixed = fixed_point.FixedPointTable.from_table(table) if all(
+                t in fixed_point.FIXED_POINT_TERMS or t in GROUND_ONLY_TERMS for t in table.terms) else None
+        except CalTableInvalid as exc:
+            self.reject_count += 1
+            self.last_error = str(exc)
+            raise
+        except Exception as exc:  # noqa: BLE001 - validation of a hostile table must not escape either
+            self.reject_count += 1
+            self.last_error = f"{path}: invalid table ({type(exc).__name__}: {str(exc)[:120]})"
+            raise CalTableInvalid(self.last_error) from None
+        self._staged = (table, fixed)
+        self._activation_requested = False
+        self.load_count += 1
+        return res
