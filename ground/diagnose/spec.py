@@ -80,7 +80,7 @@ def table_gap(s, table, description: str):
     from magstack.ground.apply_session import calibrate_session
     from magstack.ground.diagnose.gap import fixed_gap
 
-    cal = calibrate_session(table, s)
+    cal = calibrate_session(table, s, extrapolate=True)   # the table's prediction on every row
     # candidate columns from the reference (the calibrated reading carries the DUT noise that is in the gap)
     g = fixed_gap(s, s.ref_uT - cal.dut_uT, s.ref_uT, modelled_by_terms(table.terms), description, (),
                   float(table.t0_c))
