@@ -180,62 +180,85 @@ class FixedPointTable:
     # ----------------------------------------------------------- vectorised (same integers)
     def apply_block(self, b_nT, temp_cdeg=None, currents_mA=None) -> tuple[np.ndarray, np.ndarray]:
         """(N,3) int nT, (N,) centi-degC, (N,k) mA -> ((N,3) int64 nT*2**8, (N,) flags).
-        Bit-identical to :meth:`apply_sample`; int64 throughout (no overflow, see module doc)."""
+        Bit-identical to :meth:`apply_sample`; int64 throughout (no overflow, see module doc).
+
+        The per-temperature terms ``G_ij = S_ij + rdiv(K_S,ij dTc, 12800)`` and ``(O_i << 19) +
+        rdiv(K_O,i dTc << 11, 100)`` are computed once per distinct ``dTc`` of the block (a table over
+        the block's temperature span when it is shorter than the block), then gathered per row."""
         b = np.asarray(b_nT)
         if not np.issubdtype(b.dtype, np.integer):
             raise TypeError("b_nT must be an integer array")
-        b = b.astype(np.int64).reshape(-1, 3)
+        b = b.astype(np.int64, copy=False).reshape(-1, 3)
         n = b.shape[0]
         if temp_cdeg is None and self.uses_temperature:
             raise ValueError("table has temperature terms: temp_cdeg is required")
-        t = np.zeros(n, np.int64) + self.t0_cdeg if temp_cdeg is None else np.asarray(temp_cdeg)
+        t = np.full(n, self.t0_cdeg, np.int64) if temp_cdeg is None else np.asarray(temp_cdeg)
         if not np.issubdtype(t.dtype, np.integer):
             raise TypeError("temp_cdeg must be an integer array")
-        t = t.astype(np.int64).reshape(n)
+        t = t.astype(np.int64, copy=False).reshape(n)
         cur = np.zeros((n, 0), np.int64) if currents_mA is None else np.asarray(currents_mA)
         if cur.size and not np.issubdtype(cur.dtype, np.integer):
             raise TypeError("currents_mA must be an integer array")
-        cur = cur.astype(np.int64).reshape(n, -1)
+        cur = cur.astype(np.int64, copy=False).reshape(n, -1)
         if cur.shape[1] != len(self.D):
             raise ValueError(f"expected {len(self.D)} currents, got {cur.shape[1]}")
-        status = np.zeros(n, np.int64)
         bc = np.clip(b, -B_LIMIT_nT, B_LIMIT_nT)
         tc = np.clip(t, -T_LIMIT_cdeg, T_LIMIT_cdeg)
         cc = np.clip(cur, -I_LIMIT_mA, I_LIMIT_mA)
-        sat = np.any(bc != b, axis=1) | (tc != t) | np.any(cc != cur, axis=1)
-        status[sat] |= int(ApplyFlag.SATURATED)
-        oov = np.any(np.abs(bc) > self.field_limit_nT, axis=1)
+        sat = (bc != b).any(axis=1) | (tc != t) | (cc != cur).any(axis=1)
+        oov = (np.abs(bc) > self.field_limit_nT).any(axis=1)
         if self.temp_range_cdeg is not None:
             oov |= (tc < self.temp_range_cdeg[0]) | (tc > self.temp_range_cdeg[1])
         for k, (lo, hi) in enumerate(self.current_ranges_mA):
             oov |= (cc[:, k] < lo) | (cc[:, k] > hi)
-        status[oov] |= int(ApplyFlag.OUT_OF_VALIDITY)
-        dtc = tc - self.t0_cdeg
-        S = np.array(self.S, np.int64)
-        K = np.array(self.K_S, np.int64)
+        gain, const, row = self._temperature_terms(tc - self.t0_cdeg)
+        D = np.array(self.D, np.int64).reshape(-1, 3) << (ACC_FRAC - D_FRAC)
+        half = np.int64(1) << (ACC_FRAC - OUT_FRAC - 1)
         out = np.empty((n, 3), np.int64)
         for i in range(3):
-            acc = np.zeros(n, np.int64)
-            for j in range(3):
-                acc += (S[i, j] + _rdiv_v(K[i, j] * dtc, 12800)) * bc[:, j]
-            acc += np.int64(self.O[i]) << (ACC_FRAC - O_FRAC)
-            acc += _rdiv_v((np.int64(self.K_O[i]) * dtc) << (ACC_FRAC - K_O_FRAC), 100)
+            if row is None:   # one temperature for the whole block: scalar coefficients
+                acc = gain[0, i, 0] * bc[:, 0] + gain[0, i, 1] * bc[:, 1] + gain[0, i, 2] * bc[:, 2] + const[0, i]
+            else:
+                acc = gain[row, i, 0] * bc[:, 0]
+                acc += gain[row, i, 1] * bc[:, 1]
+                acc += gain[row, i, 2] * bc[:, 2]
+                acc += const[row, i]
             for k in range(cc.shape[1]):
-                acc += (np.int64(self.D[k][i]) * cc[:, k]) << (ACC_FRAC - D_FRAC)
-            o = _rshift_round_v(acc, ACC_FRAC - OUT_FRAC)
-            hit = (o > INT32_MAX) | (o < INT32_MIN)
-            status[hit] |= int(ApplyFlag.SATURATED)
-            out[:, i] = np.clip(o, INT32_MIN, INT32_MAX)
-        return out, status
+                acc += D[k, i] * cc[:, k]
+            # rshift_round: (|acc| + half) >> 19 with the sign, == (acc + half - (acc < 0)) >> 19
+            acc += half
+            acc -= acc < half
+            acc >>= ACC_FRAC - OUT_FRAC
+            sat |= (acc > INT32_MAX) | (acc < INT32_MIN)
+            np.clip(acc, INT32_MIN, INT32_MAX, out=out[:, i])
+        status = np.where(sat, int(ApplyFlag.SATURATED), 0) | np.where(oov, int(ApplyFlag.OUT_OF_VALIDITY), 0)
+        return out, status.astype(np.int64)
+
+    def _temperature_terms(self, dtc: np.ndarray):
+        """(G (M,3,3), const (M,3), row (N,) or None) with G and the constant term for M temperatures
+        and each sample's row among them (None: every sample has the single temperature)."""
+        if dtc.size == 0:
+            lo = hi = 0
+        else:
+            lo, hi = int(dtc.min()), int(dtc.max())
+        if lo == hi:
+            levels, row = np.array([lo], np.int64), None
+        elif hi - lo < dtc.size:
+            levels, row = np.arange(lo, hi + 1, dtype=np.int64), dtc - lo
+        else:
+            levels, row = np.unique(dtc, return_inverse=True)
+        S = np.array(self.S, np.int64)
+        K = np.array(self.K_S, np.int64)
+        gain = S[None] + _rdiv_v(K[None] * levels[:, None, None], 12800)
+        const = (np.array(self.O, np.int64) << (ACC_FRAC - O_FRAC))[None] + _rdiv_v(
+            (np.array(self.K_O, np.int64)[None] * levels[:, None]) << (ACC_FRAC - K_O_FRAC), 100)
+        if row is not None:   # contiguous per coefficient for the gathers
+            gain = np.ascontiguousarray(gain)
+        return gain, const, row
 
 
 def _rdiv_v(a: np.ndarray, d: int) -> np.ndarray:
     q = (np.abs(a) + d // 2) // d
-    return np.where(a >= 0, q, -q)
-
-
-def _rshift_round_v(a: np.ndarray, n: int) -> np.ndarray:
-    q = (np.abs(a) + (np.int64(1) << (n - 1))) >> n
     return np.where(a >= 0, q, -q)
 
 
