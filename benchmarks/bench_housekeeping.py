@@ -12,21 +12,15 @@ from __future__ import annotations
 
 import argparse
 import os
-import time
+import sys
 
 import numpy as np
 
 from magstack.data.telemetry import iter_telemetry, read_header
 from magstack.firmware.calibration.housekeeping import interpolate_currents
 
-
-def _best(fn, repeat):
-    best = float("inf")
-    for _ in range(repeat):
-        t0 = time.process_time()
-        fn()
-        best = min(best, time.process_time() - t0)
-    return best
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _timing import best_cpu  # noqa: E402  (sibling module; scripts run from benchmarks/)
 
 
 def main() -> None:
@@ -52,7 +46,7 @@ def main() -> None:
             out[k] = np.interp(t, t[ok], x[ok])
         return out
 
-    c_ours, c_base = _best(ours, args.repeat), _best(baseline, args.repeat)
+    (_, c_ours), (_, c_base) = best_cpu(ours, args.repeat), best_cpu(baseline, args.repeat)
     got = {k: np.concatenate([c[k] for c in ours()]) for k in names}
     ref = baseline()
     both = {k: np.isfinite(got[k]) for k in names}

@@ -19,7 +19,6 @@ import contextlib
 import datetime as dt
 import os
 import sys
-import time
 
 import numpy as np
 
@@ -27,7 +26,8 @@ from magstack.firmware import blas
 from magstack.firmware.reference import geomag
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from baselines import igrf_numpy  # noqa: E402  (sibling package; scripts run from benchmarks/)
+from _timing import best_cpu  # noqa: E402  (sibling modules; scripts run from benchmarks/)
+from baselines import igrf_numpy  # noqa: E402
 
 
 def _orbit(n: int):
@@ -70,15 +70,6 @@ def _numpy_baseline(t, p):
     return geomag.spherical_to_ecef(th, ph, *igrf_numpy.igrf_spherical_nT(r, th, ph, s, w))
 
 
-def _cpu(fn, repeat):
-    best, out = float("inf"), None
-    for _ in range(repeat):
-        t0 = time.process_time()
-        out = fn()
-        best = min(best, time.process_time() - t0)
-    return out, best
-
-
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--n", type=int, default=86_400)
@@ -91,9 +82,9 @@ def main() -> None:
     for label, limit in (("BLAS 1 thread", True), ("BLAS default threads", False)):
         ctx = blas.single_thread() if limit else contextlib.nullcontext()
         with ctx:
-            ours, c_ours = _cpu(lambda: geomag.igrf_ecef_nT(t, p), args.repeat)
-            base, c_base = _cpu(lambda: _numpy_baseline(t, p), args.repeat)
-            pp, c_pp = _cpu(lambda: _ppigrf_batched(t, p), 1)
+            ours, c_ours = best_cpu(lambda: geomag.igrf_ecef_nT(t, p), args.repeat)
+            base, c_base = best_cpu(lambda: _numpy_baseline(t, p), args.repeat)
+            pp, c_pp = best_cpu(lambda: _ppigrf_batched(t, p), 1)
         us = 1e6 / args.n
         print(f"[{label}] geomag {c_ours:.3f} s ({c_ours * us:.2f} us/sample) | plain numpy baseline "
               f"{c_base:.3f} s ({c_base * us:.2f} us/sample) -> ratio {c_ours / c_base:.2f}x | ppigrf batched "

@@ -42,7 +42,7 @@ from magstack.firmware.calibration.refit import RefitOptions, reference_block, r
 from magstack.firmware.reference import geomag
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _timing import measure  # noqa: E402  (sibling module; scripts run from benchmarks/)
+from _timing import best_cpu, measure  # noqa: E402  (sibling module; scripts run from benchmarks/)
 from baselines.refit_plain import plain_refit  # noqa: E402
 
 
@@ -126,15 +126,6 @@ def _simulate(path: Path, seconds: float, t0: int) -> None:
     print(f"simulate {seconds:g} s at 1 Hz: {time.perf_counter() - c0:.1f} s, {path.stat().st_size / 2**20:.1f} MiB")
 
 
-def _cpu(fn, repeat: int):
-    best, out = float("inf"), None
-    for _ in range(repeat):
-        c0 = time.process_time()
-        out = fn()
-        best = min(best, time.process_time() - c0)
-    return out, best
-
-
 def _child_cpu(cmd: list[str], env: dict | None = None) -> float:
     """CPU seconds (user + system) of a child process run to completion."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -146,9 +137,9 @@ def _child_cpu(cmd: list[str], env: dict | None = None) -> float:
 def plain(day: Path, work: Path, repeat: int) -> None:
     for label, ctx in (("BLAS default threads", contextlib.nullcontext), ("BLAS 1 thread", blas.single_thread)):
         with ctx():
-            coef, c_plain = _cpu(lambda: plain_refit(str(day)), repeat)
-            res, c_refit = _cpu(lambda: refit([day]), repeat)
-        s_plain, s_refit = coef[:, :3], np.asarray(res.table.S)
+            coef, c_plain = best_cpu(lambda: plain_refit(str(day)), repeat)
+            res, c_refit = best_cpu(lambda: refit([day]), repeat)
+        s_plain, s_refit = coef[:, :3], np.asarray(res.candidate.S)
         print(f"[{label}] refit in process {c_refit:.2f} s CPU | plain pipeline {c_plain:.2f} s CPU | ratio "
               f"{c_refit / c_plain:.2f}x | gain matrices differ by {np.abs(s_plain - s_refit).max():.1e} "
               f"(plain has no holds or coverage rules)", flush=True)
@@ -194,13 +185,24 @@ def dask_vs_local(work: Path, n_files: int, hours: float, repeat: int) -> None:
             _simulate(p, hours * 3600 - 1, 1780272000 + int(k * hours * 3600))
         paths.append(p)
     rows = sum(len(b) for p in paths for b in iter_telemetry(p))
-    local, c_local = _cpu(lambda: refit(paths), repeat)
-    w0 = time.perf_counter()
-    dsk, c_dask = _cpu(lambda: refit(paths, mapper=dask_mapper(None)), repeat)
-    print(f"{n_files} files x {hours:g} h ({rows} rows), 5 passes: in process {c_local:.2f} s CPU | dask local "
-          f"scheduler {c_dask:.2f} s CPU | ratio {c_dask / c_local:.2f}x | same candidate: "
-          f"{np.allclose(dsk.fit.theta, local.fit.theta, rtol=1e-9, atol=1e-12)} "
-          f"(wall of the dask runs {time.perf_counter() - w0:.1f} s)")
+
+    def timed(fn, ctx=contextlib.nullcontext):
+        best = (float("inf"), float("inf"), None)
+        for _ in range(repeat):
+            with ctx():
+                w, c = time.perf_counter(), time.process_time()
+                out = fn()
+                best = min(best, (time.process_time() - c, time.perf_counter() - w, out), key=lambda x: x[0])
+        return best
+
+    c_loc, w_loc, local = timed(lambda: refit(paths))
+    c_one, w_one, _ = timed(lambda: refit(paths), blas.single_thread)
+    c_dsk, w_dsk, dsk = timed(lambda: refit(paths, mapper=dask_mapper(None)))
+    print(f"{n_files} files x {hours:g} h ({rows} rows), 5 passes, CPU s / wall s: in process, BLAS default threads "
+          f"{c_loc:.2f} / {w_loc:.2f}; in process, BLAS 1 thread {c_one:.2f} / {w_one:.2f}; dask local scheduler "
+          f"(BLAS 1 thread) {c_dsk:.2f} / {w_dsk:.2f} -> dask / in-process (1 thread): CPU {c_dsk / c_one:.2f}x, "
+          f"wall {w_dsk / w_one:.2f}x; same candidate: "
+          f"{np.allclose(dsk.fit.theta, local.fit.theta, rtol=1e-9, atol=1e-12)}")
 
 
 if __name__ == "__main__":
