@@ -202,29 +202,35 @@ class FixedPointTable:
         cur = cur.astype(np.int64, copy=False).reshape(n, -1)
         if cur.shape[1] != len(self.D):
             raise ValueError(f"expected {len(self.D)} currents, got {cur.shape[1]}")
-        bc = np.clip(b, -B_LIMIT_nT, B_LIMIT_nT)
+        # one contiguous array per axis / current: row-wise reductions over 3 columns are slow in numpy
+        bcol, ccol = np.ascontiguousarray(b.T), np.ascontiguousarray(cur.T)
+        bc = np.clip(bcol, -B_LIMIT_nT, B_LIMIT_nT)
         tc = np.clip(t, -T_LIMIT_cdeg, T_LIMIT_cdeg)
-        cc = np.clip(cur, -I_LIMIT_mA, I_LIMIT_mA)
-        sat = (bc != b).any(axis=1) | (tc != t) | (cc != cur).any(axis=1)
-        oov = (np.abs(bc) > self.field_limit_nT).any(axis=1)
+        cc = np.clip(ccol, -I_LIMIT_mA, I_LIMIT_mA)
+        sat = tc != t
+        oov = np.zeros(n, bool)
+        for j in range(3):
+            sat |= bc[j] != bcol[j]
+            oov |= np.abs(bc[j]) > self.field_limit_nT
+        for k, (lo, hi) in enumerate(self.current_ranges_mA):
+            sat |= cc[k] != ccol[k]
+            oov |= (cc[k] < lo) | (cc[k] > hi)
         if self.temp_range_cdeg is not None:
             oov |= (tc < self.temp_range_cdeg[0]) | (tc > self.temp_range_cdeg[1])
-        for k, (lo, hi) in enumerate(self.current_ranges_mA):
-            oov |= (cc[:, k] < lo) | (cc[:, k] > hi)
         gain, const, row = self._temperature_terms(tc - self.t0_cdeg)
         D = np.array(self.D, np.int64).reshape(-1, 3) << (ACC_FRAC - D_FRAC)
         half = np.int64(1) << (ACC_FRAC - OUT_FRAC - 1)
         out = np.empty((n, 3), np.int64)
         for i in range(3):
             if row is None:   # one temperature for the whole block: scalar coefficients
-                acc = gain[0, i, 0] * bc[:, 0] + gain[0, i, 1] * bc[:, 1] + gain[0, i, 2] * bc[:, 2] + const[0, i]
+                acc = gain[3 * i] * bc[0] + gain[3 * i + 1] * bc[1] + gain[3 * i + 2] * bc[2] + const[i]
             else:
-                acc = gain[row, i, 0] * bc[:, 0]
-                acc += gain[row, i, 1] * bc[:, 1]
-                acc += gain[row, i, 2] * bc[:, 2]
-                acc += const[row, i]
-            for k in range(cc.shape[1]):
-                acc += D[k, i] * cc[:, k]
+                acc = np.take(gain[3 * i], row) * bc[0]
+                acc += np.take(gain[3 * i + 1], row) * bc[1]
+                acc += np.take(gain[3 * i + 2], row) * bc[2]
+                acc += np.take(const[i], row)
+            for k in range(cc.shape[0]):
+                acc += D[k, i] * cc[k]
             # rshift_round: (|acc| + half) >> 19 with the sign, == (acc + half - (acc < 0)) >> 19
             acc += half
             acc -= acc < half
@@ -235,25 +241,22 @@ class FixedPointTable:
         return out, status.astype(np.int64)
 
     def _temperature_terms(self, dtc: np.ndarray):
-        """(G (M,3,3), const (M,3), row (N,) or None) with G and the constant term for M temperatures
-        and each sample's row among them (None: every sample has the single temperature)."""
-        if dtc.size == 0:
-            lo = hi = 0
-        else:
-            lo, hi = int(dtc.min()), int(dtc.max())
+        """(G (9, M), const (3, M), row (N,) or None): G_ij (row 3 i + j) and the constant term of each
+        axis for M temperatures, and each sample's column among them (None: M = 1, every sample)."""
+        lo, hi = (int(dtc.min()), int(dtc.max())) if dtc.size else (0, 0)
         if lo == hi:
             levels, row = np.array([lo], np.int64), None
         elif hi - lo < dtc.size:
             levels, row = np.arange(lo, hi + 1, dtype=np.int64), dtc - lo
         else:
             levels, row = np.unique(dtc, return_inverse=True)
-        S = np.array(self.S, np.int64)
-        K = np.array(self.K_S, np.int64)
-        gain = S[None] + _rdiv_v(K[None] * levels[:, None, None], 12800)
-        const = (np.array(self.O, np.int64) << (ACC_FRAC - O_FRAC))[None] + _rdiv_v(
-            (np.array(self.K_O, np.int64)[None] * levels[:, None]) << (ACC_FRAC - K_O_FRAC), 100)
-        if row is not None:   # contiguous per coefficient for the gathers
-            gain = np.ascontiguousarray(gain)
+        S = np.array(self.S, np.int64).reshape(9, 1)
+        K = np.array(self.K_S, np.int64).reshape(9, 1)
+        gain = S + _rdiv_v(K * levels[None, :], 12800)
+        const = (np.array(self.O, np.int64) << (ACC_FRAC - O_FRAC))[:, None] + _rdiv_v(
+            (np.array(self.K_O, np.int64)[:, None] * levels[None, :]) << (ACC_FRAC - K_O_FRAC), 100)
+        if row is None:
+            return gain[:, 0], const[:, 0], None
         return gain, const, row
 
 
