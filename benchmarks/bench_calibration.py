@@ -1,6 +1,6 @@
 """Benchmarks for issues 6 and 13: speed/memory of the fits and appliers; accuracy on real and simulated benches.
 
-Run: ``python benchmarks/bench_calibration.py [--n 1000000] [--part speed|accuracy|all]``. Peak memory is
+Run: ``python benchmarks/bench_calibration.py [--n 1000000] [--part speed|applier|accuracy|all]``. Peak memory is
 measured with tracemalloc (numpy allocations included), time with perf_counter; ratios are against
 baselines measured in the same process.
 
@@ -30,6 +30,7 @@ from magstack.sim.synthetic_calibration import make_data, random_theta
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _timing import measure  # noqa: E402  (sibling module; scripts run from benchmarks/)
+from baselines import fixed_point_before  # noqa: E402
 
 CURRENTS = ("solar", "heater")
 TERMS = resolve_terms("eq3", currents=CURRENTS)
@@ -39,7 +40,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--n", type=int, default=1_000_000)
     ap.add_argument("--block", type=int, default=50_000)
-    ap.add_argument("--part", choices=("speed", "accuracy", "all"), default="all")
+    ap.add_argument("--part", choices=("speed", "applier", "accuracy", "all"), default="all")
     args = ap.parse_args()
     if args.part in ("accuracy", "all"):
         accuracy()
@@ -60,13 +61,19 @@ def main() -> None:
           f"({peak_batch * 2 ** 20 / n:.0f} B/sample), rmse {res.rmse_norm_uT * 1e3:.1f} nT (noise 52 nT), "
           f"held {len(res.held)}, max |theta - truth| {np.abs(res.theta - theta).max():.2e}")
 
-    print(f"== streaming fit, blocks of {args.block} rows generated on the fly (memory flat in N?)")
+    if args.part != "applier":
+        streaming(model, theta, n, args.block, dt_batch, peak_batch)
+    appliers(res, data, n)
+
+
+def streaming(model, theta, n, block, dt_batch, peak_batch) -> None:
+    print(f"== streaming fit, blocks of {block} rows generated on the fly (memory flat in N?)")
     for n_s in (n // 10, n // 2, n):
         def run(n_s=n_s):
             sf = StreamingFit(model)
             r = np.random.default_rng(1)
-            for k in range(0, n_s, args.block):
-                d = make_data(model, theta, min(args.block, n_s - k), r, noise_uT=0.03, t0_s=k * 0.25)
+            for k in range(0, n_s, block):
+                d = make_data(model, theta, min(block, n_s - k), r, noise_uT=0.03, t0_s=k * 0.25)
                 sf.add(d.b_meas_uT, d.b_ref_uT, d.temp_c, d.currents_A, d.session, d.t_s)
                 del d
             return sf.solve(), sf.state_bytes
@@ -75,6 +82,8 @@ def main() -> None:
               f"max |theta - truth| {np.abs(rs.theta - theta).max():.2e}")
     print(f"streaming vs batch time at N={n}: {dt / dt_batch:.2f}x, peak memory {peak / peak_batch:.3f}x")
 
+
+def appliers(res, data, n) -> None:
     print("== appliers (same table, same inputs)")
     table = table_from_fit(res, "bench", validity_temp_c=(-40.0, 85.0), validity_field_uT=100.0,
                            validity_currents_A={"solar": (-5.0, 5.0), "heater": (-5.0, 5.0)})
@@ -89,10 +98,26 @@ def main() -> None:
     for _ in range(reps):
         ref, _ = apply_float(table, b_uT, t_c, cur_A)
     dt_f = (time.perf_counter() - t0) / reps
+    S, K, O, KO = (np.asarray(x) for x in (table.S, table.K_S, table.O, table.K_O))
+    D = np.array([d for _, d in table.D])
+    cur_m = np.column_stack([cur_A[k] for k, _ in table.D])
+
+    def bare():   # the arithmetic alone: no validity, missing-input or saturation flags
+        dT = (t_c - table.t0_c)[:, None]
+        return b_uT @ S.T + dT * (b_uT @ K.T) + O + dT * KO + cur_m @ D
+
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        bare()
+    dt_bare = (time.perf_counter() - t0) / reps
     t0 = time.perf_counter()
     for _ in range(reps):
         q, _ = fx.apply_block(bi, ti, ci)
     dt_v = (time.perf_counter() - t0) / reps
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        q_before, _ = fixed_point_before.apply_block(fx, bi, ti, ci)
+    dt_b = (time.perf_counter() - t0) / reps
     k = 20_000
     rows = [(tuple(int(x) for x in bi[i]), int(ti[i]), tuple(int(x) for x in ci[i])) for i in range(k)]
     t0 = time.perf_counter()
@@ -102,7 +127,11 @@ def main() -> None:
     err = np.abs(q / 256 - ref * 1e3).max()
     f_rate, v_rate, s_rate = m / dt_f, m / dt_v, 1 / dt_s
     print(f"float64 numpy (baseline): {f_rate:,.0f} samples/s")
+    print(f"float64 numpy arithmetic alone (no flags): {m / dt_bare:,.0f} samples/s; fixed-point vectorised "
+          f"{v_rate * dt_bare / m:.3f}x of it; max |bare - apply_float| {np.abs(bare() - ref).max():.1e} uT")
     print(f"fixed-point vectorised  : {v_rate:,.0f} samples/s  ({v_rate / f_rate:.3f}x baseline)")
+    print(f"fixed-point vectorised before issue 25 (baselines/fixed_point_before.py): {m / dt_b:,.0f} samples/s "
+          f"({m / dt_b / f_rate:.3f}x baseline); identical output: {np.array_equal(q, q_before)}")
     print(f"fixed-point per sample  : {s_rate:,.0f} samples/s  ({s_rate / f_rate:.5f}x baseline), "
           f"{dt_s * 1e6:.1f} us/sample in CPython")
     print(f"max |fixed - float| over {m} samples: {err:.4f} nT")

@@ -210,3 +210,75 @@ def _block(hdr: TelemetryHeader, first: int, a: np.ndarray) -> TelemetryBlock:
         np.column_stack([col(c) for c in QUAT_COLUMNS]),
         {m.group(1): col(c).copy() for c in hdr.columns if (m := _CURRENT_RE.match(c))},
         np.column_stack([col(c) for c in REF_COLUMNS]) if hdr.has_ref else None, flag)
+
+
+# ------------------------------------------------------------------------ ADCS files (magstack merge)
+#: Columns of an ADCS file (``magstack merge``): time, position and attitude, as in telemetry.
+ADCS_REQUIRED = ("t_s", *POS_COLUMNS, *QUAT_COLUMNS)
+#: ``flag`` bit of a merged telemetry row that got no ADCS position/attitude within the tolerance
+#: (above the flight telemetry's TlmFlag bits and ``apply``'s bits at 256..1024).
+NO_ADCS_FLAG = 4096
+
+
+@dataclass
+class AdcsTrack:
+    """Time-ordered ADCS samples of one file: ``t_s`` (N,), ``pos_ecef_km`` (N, 3), ``q_body_eci`` (N, 4)
+    scalar first; ``dropped`` rows had an empty or non-finite cell (no fix) and are not in the arrays."""
+
+    path: str
+    t_s: np.ndarray
+    pos_ecef_km: np.ndarray
+    q_body_eci: np.ndarray
+    dropped: int = 0
+
+
+def read_adcs(path: str | os.PathLike) -> AdcsTrack:
+    """An ADCS file: ``#`` metadata lines, a header with :data:`ADCS_REQUIRED` (other columns ignored),
+    rows in time order. Bad cells, a missing column, time going backwards or repeating, or a
+    quaternion that is not unit (norm off by more than 1e-3: scalar last?) raise SessionFileError
+    naming file and line."""
+    name = str(path)
+    raw = _session.read_file_bytes(path, "ADCS file")
+    pos, lineno = 0, 1
+    while pos < len(raw):
+        end = raw.find(b"\n", pos)
+        end = len(raw) if end < 0 else end
+        line = raw[pos:end].strip()
+        if line and not line.startswith(b"#"):
+            break
+        pos, lineno = end + 1, lineno + 1
+    else:
+        raise SessionFileError(f"{name}: no header row (file empty or only comments)")
+    try:
+        header = [c.strip() for c in line.decode("utf-8").split(",")]
+    except UnicodeDecodeError:
+        raise SessionFileError(f"{name}: not a text ADCS file") from None
+    missing = [c for c in ADCS_REQUIRED if c not in header]
+    if missing:
+        raise SessionFileError(f"{name}: header (line {lineno}) lacks ADCS columns {missing}")
+    body_start = end + 1
+    table = _session.parse_table(raw, lineno + 1, header, name, start=body_start)
+    cols = [header.index(c) for c in ADCS_REQUIRED]
+    a = table[:, cols]
+    t = a[:, 0]
+
+    def line_of(k: int) -> int:
+        return _session.data_row_line(raw[body_start:], lineno + 1, k)
+
+    if not np.all(np.isfinite(t)):
+        k = int(np.flatnonzero(~np.isfinite(t))[0])
+        raise SessionFileError(f"{name}: line {line_of(k)}: column 't_s' is empty or not finite")
+    back = np.flatnonzero(np.diff(t) <= 0)
+    if back.size:
+        k = int(back[0]) + 1
+        raise SessionFileError(f"{name}: line {line_of(k)}: t_s {t[k]!r} does not increase "
+                               f"(previous row {t[k - 1]!r}); ADCS rows must be in time order without repeats")
+    ok = np.all(np.isfinite(a), axis=1)
+    q = a[:, 4:8]
+    with np.errstate(invalid="ignore"):
+        bad_q = ok & (np.abs(np.linalg.norm(q, axis=1) - 1.0) > 1e-3)
+    if bad_q.any():
+        k = int(np.flatnonzero(bad_q)[0])
+        raise SessionFileError(f"{name}: line {line_of(k)}: quaternion norm {np.linalg.norm(q[k]):.6f} is not 1 "
+                               "(columns q_body_eci_w,x,y,z, scalar first)")
+    return AdcsTrack(name, t[ok].copy(), a[ok, 1:4].copy(), q[ok].copy(), int((~ok).sum()))

@@ -180,62 +180,88 @@ class FixedPointTable:
     # ----------------------------------------------------------- vectorised (same integers)
     def apply_block(self, b_nT, temp_cdeg=None, currents_mA=None) -> tuple[np.ndarray, np.ndarray]:
         """(N,3) int nT, (N,) centi-degC, (N,k) mA -> ((N,3) int64 nT*2**8, (N,) flags).
-        Bit-identical to :meth:`apply_sample`; int64 throughout (no overflow, see module doc)."""
+        Bit-identical to :meth:`apply_sample`; int64 throughout (no overflow, see module doc).
+
+        The per-temperature terms ``G_ij = S_ij + rdiv(K_S,ij dTc, 12800)`` and ``(O_i << 19) +
+        rdiv(K_O,i dTc << 11, 100)`` are computed once per distinct ``dTc`` of the block (a table over
+        the block's temperature span when it is shorter than the block), then gathered per row."""
         b = np.asarray(b_nT)
         if not np.issubdtype(b.dtype, np.integer):
             raise TypeError("b_nT must be an integer array")
-        b = b.astype(np.int64).reshape(-1, 3)
+        b = b.astype(np.int64, copy=False).reshape(-1, 3)
         n = b.shape[0]
         if temp_cdeg is None and self.uses_temperature:
             raise ValueError("table has temperature terms: temp_cdeg is required")
-        t = np.zeros(n, np.int64) + self.t0_cdeg if temp_cdeg is None else np.asarray(temp_cdeg)
+        t = np.full(n, self.t0_cdeg, np.int64) if temp_cdeg is None else np.asarray(temp_cdeg)
         if not np.issubdtype(t.dtype, np.integer):
             raise TypeError("temp_cdeg must be an integer array")
-        t = t.astype(np.int64).reshape(n)
+        t = t.astype(np.int64, copy=False).reshape(n)
         cur = np.zeros((n, 0), np.int64) if currents_mA is None else np.asarray(currents_mA)
         if cur.size and not np.issubdtype(cur.dtype, np.integer):
             raise TypeError("currents_mA must be an integer array")
-        cur = cur.astype(np.int64).reshape(n, -1)
+        cur = cur.astype(np.int64, copy=False).reshape(n, -1)
         if cur.shape[1] != len(self.D):
             raise ValueError(f"expected {len(self.D)} currents, got {cur.shape[1]}")
-        status = np.zeros(n, np.int64)
-        bc = np.clip(b, -B_LIMIT_nT, B_LIMIT_nT)
+        # one contiguous array per axis / current: row-wise reductions over 3 columns are slow in numpy
+        bcol, ccol = np.ascontiguousarray(b.T), np.ascontiguousarray(cur.T)
+        bc = np.clip(bcol, -B_LIMIT_nT, B_LIMIT_nT)
         tc = np.clip(t, -T_LIMIT_cdeg, T_LIMIT_cdeg)
-        cc = np.clip(cur, -I_LIMIT_mA, I_LIMIT_mA)
-        sat = np.any(bc != b, axis=1) | (tc != t) | np.any(cc != cur, axis=1)
-        status[sat] |= int(ApplyFlag.SATURATED)
-        oov = np.any(np.abs(bc) > self.field_limit_nT, axis=1)
+        cc = np.clip(ccol, -I_LIMIT_mA, I_LIMIT_mA)
+        sat = tc != t
+        oov = np.zeros(n, bool)
+        for j in range(3):
+            sat |= bc[j] != bcol[j]
+            oov |= np.abs(bc[j]) > self.field_limit_nT
+        for k, (lo, hi) in enumerate(self.current_ranges_mA):
+            sat |= cc[k] != ccol[k]
+            oov |= (cc[k] < lo) | (cc[k] > hi)
         if self.temp_range_cdeg is not None:
             oov |= (tc < self.temp_range_cdeg[0]) | (tc > self.temp_range_cdeg[1])
-        for k, (lo, hi) in enumerate(self.current_ranges_mA):
-            oov |= (cc[:, k] < lo) | (cc[:, k] > hi)
-        status[oov] |= int(ApplyFlag.OUT_OF_VALIDITY)
-        dtc = tc - self.t0_cdeg
-        S = np.array(self.S, np.int64)
-        K = np.array(self.K_S, np.int64)
+        gain, const, row = self._temperature_terms(tc - self.t0_cdeg)
+        D = np.array(self.D, np.int64).reshape(-1, 3) << (ACC_FRAC - D_FRAC)
+        half = np.int64(1) << (ACC_FRAC - OUT_FRAC - 1)
         out = np.empty((n, 3), np.int64)
         for i in range(3):
-            acc = np.zeros(n, np.int64)
-            for j in range(3):
-                acc += (S[i, j] + _rdiv_v(K[i, j] * dtc, 12800)) * bc[:, j]
-            acc += np.int64(self.O[i]) << (ACC_FRAC - O_FRAC)
-            acc += _rdiv_v((np.int64(self.K_O[i]) * dtc) << (ACC_FRAC - K_O_FRAC), 100)
-            for k in range(cc.shape[1]):
-                acc += (np.int64(self.D[k][i]) * cc[:, k]) << (ACC_FRAC - D_FRAC)
-            o = _rshift_round_v(acc, ACC_FRAC - OUT_FRAC)
-            hit = (o > INT32_MAX) | (o < INT32_MIN)
-            status[hit] |= int(ApplyFlag.SATURATED)
-            out[:, i] = np.clip(o, INT32_MIN, INT32_MAX)
-        return out, status
+            if row is None:   # one temperature for the whole block: scalar coefficients
+                acc = gain[3 * i] * bc[0] + gain[3 * i + 1] * bc[1] + gain[3 * i + 2] * bc[2] + const[i]
+            else:
+                acc = np.take(gain[3 * i], row) * bc[0]
+                acc += np.take(gain[3 * i + 1], row) * bc[1]
+                acc += np.take(gain[3 * i + 2], row) * bc[2]
+                acc += np.take(const[i], row)
+            for k in range(cc.shape[0]):
+                acc += D[k, i] * cc[k]
+            # rshift_round: (|acc| + half) >> 19 with the sign, == (acc + half - (acc < 0)) >> 19
+            acc += half
+            acc -= acc < half
+            acc >>= ACC_FRAC - OUT_FRAC
+            sat |= (acc > INT32_MAX) | (acc < INT32_MIN)
+            np.clip(acc, INT32_MIN, INT32_MAX, out=out[:, i])
+        status = np.where(sat, int(ApplyFlag.SATURATED), 0) | np.where(oov, int(ApplyFlag.OUT_OF_VALIDITY), 0)
+        return out, status.astype(np.int64)
+
+    def _temperature_terms(self, dtc: np.ndarray):
+        """(G (9, M), const (3, M), row (N,) or None): G_ij (row 3 i + j) and the constant term of each
+        axis for M temperatures, and each sample's column among them (None: M = 1, every sample)."""
+        lo, hi = (int(dtc.min()), int(dtc.max())) if dtc.size else (0, 0)
+        if lo == hi:
+            levels, row = np.array([lo], np.int64), None
+        elif hi - lo < dtc.size:
+            levels, row = np.arange(lo, hi + 1, dtype=np.int64), dtc - lo
+        else:
+            levels, row = np.unique(dtc, return_inverse=True)
+        S = np.array(self.S, np.int64).reshape(9, 1)
+        K = np.array(self.K_S, np.int64).reshape(9, 1)
+        gain = S + _rdiv_v(K * levels[None, :], 12800)
+        const = (np.array(self.O, np.int64) << (ACC_FRAC - O_FRAC))[:, None] + _rdiv_v(
+            (np.array(self.K_O, np.int64)[:, None] * levels[None, :]) << (ACC_FRAC - K_O_FRAC), 100)
+        if row is None:
+            return gain[:, 0], const[:, 0], None
+        return gain, const, row
 
 
 def _rdiv_v(a: np.ndarray, d: int) -> np.ndarray:
     q = (np.abs(a) + d // 2) // d
-    return np.where(a >= 0, q, -q)
-
-
-def _rshift_round_v(a: np.ndarray, n: int) -> np.ndarray:
-    q = (np.abs(a) + (np.int64(1) << (n - 1))) >> n
     return np.where(a >= 0, q, -q)
 
 

@@ -14,6 +14,7 @@ import numpy as np
 from magstack.data.dictionary import APPLY, APPLY_FLAG_SHIFT, flag_legend
 from magstack.data.errors import SessionFileError
 from magstack.data.session import Session
+from magstack.firmware.calibration.housekeeping import merge_currents
 from magstack.firmware.fixed_point import FixedPointTable, output_to_uT, to_fixed_inputs
 from magstack.firmware.float_applier import ApplyFlag, apply_float
 
@@ -27,7 +28,7 @@ def calibrate_session(table, s: Session, applier: str = "float", extrapolate: bo
     missing = [k for k in table.currents if k not in s.currents_A]
     if missing:
         raise SessionFileError(f"table needs current column(s) {missing}; session has {list(s.currents_A)}")
-    cur = {k: s.currents_A[k] for k in table.currents}
+    cur = merge_currents(s.t_s, s.session, s.currents_A, table.currents)   # refit's rule (issue 23 seam 3)
     if applier == "fixed":
         fx = FixedPointTable.from_table(table)
         need_t = bool({"temperature_gain", "temperature_offset"} & set(table.terms))

@@ -7,12 +7,17 @@ address the local threaded scheduler runs it; with one (``tcp://host:8786``) a
 ``dask.distributed`` cluster does, and every worker must have magstack installed and read the
 files at the same paths (shared storage). Dask is an optional extra (``pip install
 magstack[dask]``, ``magstack[distributed]`` for clusters); nothing here schedules on its own.
+
+On the local scheduler the tasks run in this process's threads, one per core, so BLAS is held to
+one thread while they run (:func:`magstack.firmware.blas.single_thread`): the per-block QR
+factorisations are small, and threaded BLAS under threaded tasks only oversubscribes the cores.
 """
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
 from magstack.drivers.errors import ConfigurationError
+from magstack.firmware import blas
 
 
 def _merge(a, b):
@@ -32,7 +37,8 @@ def dask_mapper(address: str | None = None) -> Callable:
             parts = [dask.delayed(_merge)(parts[k], parts[k + 1]) if k + 1 < len(parts) else parts[k]
                      for k in range(0, len(parts), 2)]
         if address is None:
-            return dask.compute(parts[0], scheduler="threads")[0]
+            with blas.single_thread():
+                return dask.compute(parts[0], scheduler="threads")[0]
         try:
             from dask.distributed import Client
         except ImportError:

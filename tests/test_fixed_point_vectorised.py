@@ -1,0 +1,77 @@
+"""The vectorised fixed-point applier is bit-identical to the implementation before issue 25.
+
+The frozen reference is ``benchmarks/baselines/fixed_point_before.py`` (``apply_block`` of commit f5b2a93).
+"""
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from magstack.firmware import fixed_point as fp
+
+_spec = importlib.util.spec_from_file_location(
+    "fixed_point_before", Path(__file__).resolve().parent.parent / "benchmarks" / "baselines" / "fixed_point_before.py")
+before = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(before)
+
+I32 = st.integers(fp.INT32_MIN, fp.INT32_MAX)
+
+
+def _tables(n_currents: int):
+    return st.builds(
+        fp.FixedPointTable,
+        S=st.tuples(*[st.tuples(I32, I32, I32)] * 3), K_S=st.tuples(*[st.tuples(I32, I32, I32)] * 3),
+        O=st.tuples(I32, I32, I32), K_O=st.tuples(I32, I32, I32),
+        D=st.tuples(*[st.tuples(I32, I32, I32)] * n_currents),
+        t0_cdeg=st.integers(-30_000, 30_000), field_limit_nT=st.integers(0, 2 ** 25),
+        temp_range_cdeg=st.one_of(st.none(), st.tuples(st.integers(-40_000, 0), st.integers(0, 40_000))),
+        current_ranges_mA=st.tuples(*[st.tuples(st.integers(-2 ** 21, 0), st.integers(0, 2 ** 21))] * n_currents))
+
+
+@st.composite
+def _cases(draw):
+    k = draw(st.integers(0, fp.MAX_CURRENTS))
+    table = draw(_tables(k))
+    n = draw(st.integers(1, 60))
+    seed = draw(st.integers(0, 2 ** 32 - 1))
+    rng = np.random.default_rng(seed)
+    span = draw(st.sampled_from([0, 1, 50, 5000, 2 ** 17]))     # one temperature ... wider than the clip
+    mid = draw(st.integers(-40_000, 40_000))
+    b_lim = draw(st.sampled_from([1000, 100_000, 2 ** 24, 2 ** 31]))
+    b = rng.integers(-b_lim, b_lim + 1, size=(n, 3))
+    t = mid + rng.integers(-span, span + 1, size=n)
+    c = rng.integers(-(2 ** 21), 2 ** 21 + 1, size=(n, k))
+    b[0] = [2 ** 24, -(2 ** 24) - 1, 0]      # exactly at / past the input clips
+    return table, b, t, c
+
+
+@settings(max_examples=300, deadline=None)
+@given(case=_cases())
+def test_bit_identical_to_the_frozen_applier(case):
+    table, b, t, c = case
+    q_new, s_new = table.apply_block(b, t, c)
+    q_old, s_old = before.apply_block(table, b, t, c)
+    assert q_new.dtype == q_old.dtype and s_new.dtype == s_old.dtype
+    assert np.array_equal(q_new, q_old)
+    assert np.array_equal(s_new, s_old)
+
+
+def test_bit_identical_on_the_shipped_vector_shapes():
+    rng = np.random.default_rng(0)
+    S = ((2 ** 27, 1234, -999), (-5, 2 ** 27 + 77, 3), (0, 1, 2 ** 27 - 4))
+    K = ((12345, -678, 9), (0, 4444, -1), (7, 7, -99999))
+    table = fp.FixedPointTable(S, K, (256_000, -512_000, 13), (6_553_600, -123, 0), ((2 ** 20, -77, 5),), 2500,
+                               100_000, (-4000, 8500), ((-5000, 5000),))
+    b = rng.integers(-120_000, 120_001, size=(10_000, 3))
+    for t in (np.full(10_000, 2500), rng.integers(-4000, 8501, size=10_000), rng.integers(-40_000, 40_000, 10_000)):
+        c = rng.integers(-6000, 6001, size=(10_000, 1))
+        q_new, s_new = table.apply_block(b, t, c)
+        q_old, s_old = before.apply_block(table, b, t, c)
+        assert np.array_equal(q_new, q_old) and np.array_equal(s_new, s_old)
+    # no temperature given, table without temperature terms
+    flat = fp.FixedPointTable(S, ((0, 0, 0),) * 3, (1, 2, 3), (0, 0, 0), (), 2500, 100_000, None, ())
+    assert np.array_equal(flat.apply_block(b)[0], before.apply_block(flat, b)[0])
