@@ -27,7 +27,7 @@ class FlagBit:
     meaning: str
 
 
-FLIGHT, APPLY, IMPORT = "flight channel", "ground apply", "ground import/alignment"
+FLIGHT, APPLY, IMPORT, MERGE = "flight channel", "ground apply", "ground import/alignment", "ground merge"
 
 FLAG_BITS: tuple[FlagBit, ...] = (
     FlagBit("NO_SAMPLE", 1 << 0, FLIGHT, True, "the read failed: no field in this record"),
@@ -48,6 +48,7 @@ FLAG_BITS: tuple[FlagBit, ...] = (
     FlagBit("APPLY_SATURATED", 1 << 11, APPLY, True, "`apply`: fixed-point input clipped or output saturated"),
     FlagBit("NO_REF", 1 << 12, IMPORT, True, "no reference field at this row (a gap in the reference source)"),
     FlagBit("NO_DUT", 1 << 13, IMPORT, True, "no DUT field at this row (a gap in the DUT source)"),
+    FlagBit("NO_ADCS", 1 << 14, MERGE, True, "`merge`: no ADCS position/attitude within the tolerance"),
 )
 FLAG = {b.name: b for b in FLAG_BITS}
 #: Bits that make a row's DUT field unusable; ``flag & DISQUALIFYING == 0`` is the one usability rule.

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from magstack.data import session as _session
+from magstack.data.dictionary import FLAG
 from magstack.data.errors import SessionFileError
 
 POS_COLUMNS = ("pos_ecef_x_km", "pos_ecef_y_km", "pos_ecef_z_km")
@@ -216,8 +217,8 @@ def _block(hdr: TelemetryHeader, first: int, a: np.ndarray) -> TelemetryBlock:
 #: Columns of an ADCS file (``magstack merge``): time, position and attitude, as in telemetry.
 ADCS_REQUIRED = ("t_s", *POS_COLUMNS, *QUAT_COLUMNS)
 #: ``flag`` bit of a merged telemetry row that got no ADCS position/attitude within the tolerance
-#: (above the flight telemetry's TlmFlag bits and ``apply``'s bits at 256..1024).
-NO_ADCS_FLAG = 4096
+#: (the flight dictionary's ``NO_ADCS``: one owner per bit).
+NO_ADCS_FLAG = FLAG["NO_ADCS"].value
 
 
 @dataclass

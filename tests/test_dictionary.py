@@ -16,7 +16,7 @@ def test_flag_bits_are_distinct_powers_of_two_with_one_owner_each():
     values = [b.value for b in d.FLAG_BITS]
     assert all(v > 0 and v & (v - 1) == 0 for v in values)
     assert len(set(values)) == len(values) and len({b.name for b in d.FLAG_BITS}) == len(values)
-    assert {b.owner for b in d.FLAG_BITS} == {d.FLIGHT, d.APPLY, d.IMPORT}
+    assert {b.owner for b in d.FLAG_BITS} == {d.FLIGHT, d.APPLY, d.IMPORT, d.MERGE}
 
 
 def test_the_three_flag_schemes_no_longer_collide():

@@ -22,7 +22,7 @@ parameters the data determine), until it changes by less than 0.1 %.
 
 ``data_share = 1 - var_post / var_prior`` per parameter says who determined it: near 1 the data, near 0 the
 prior. Solved by QR of the stacked, column-equilibrated system (never normal equations), with BLAS limited
-to one thread around these small solves (:mod:`magstack.firmware.blas_threads`).
+to one thread around these small solves (:mod:`magstack.firmware.blas`).
 """
 from __future__ import annotations
 
@@ -327,7 +327,7 @@ def map_solve(R: np.ndarray, n: int, model: CalModel, prior: Prior, kappa=None,
     ``kappa`` (3,): variance inflation of autocorrelated residuals (1 = independent rows).
     ``sigma_uT`` (3,): a known residual scale (skips the sigma iteration).
     """
-    from magstack.firmware.blas_threads import single_threaded_blas
+    from magstack.firmware.blas import single_thread
 
     p = model.n_columns
     if R.shape[1] != p + 3:
@@ -343,7 +343,7 @@ def map_solve(R: np.ndarray, n: int, model: CalModel, prior: Prior, kappa=None,
     dof = np.zeros(3)
     cond = np.zeros(3)
     und: list[tuple[int, int]] = []
-    with single_threaded_blas():
+    with single_thread():
         for i in range(3):
             var = np.diag(prior.cov[i])
             if sigma_uT is not None:
