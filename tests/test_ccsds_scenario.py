@@ -7,6 +7,8 @@ telemetry (the second table is fitted on a second bench session instead) and no 
 telemetry has no reference field until it is merged)."""
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -32,8 +34,9 @@ def test_bench_fit_flight_packets_decode_and_table_swap_by_telecommand(tmp_path,
     first, second = (ct.load_table(tables / n).crc32 for n in ("hmc1053.json", "second.json"))
     assert first != second
     cfg = sim_config(tmp_path, table=False)
-    cfg.write_text(cfg.read_text().replace('device_id = "hmc1053:sn1"\n',
-                                           'device_id = "hmc1053:sn1"\ntable = "tables/hmc1053.json"\n'))
+    text, n = re.subn(r'(device_id = "hmc1053:sn1"[^\n]*\n)', r'\1table = "tables/hmc1053.json"\n', cfg.read_text())
+    assert n == 1
+    cfg.write_text(text)
     app = FlightApp(load_config(cfg), virtual=True, simulate=True, telemetry_dir=tmp_path / "tlm", run_id=1)
     try:
         app.run(20.0)

@@ -230,7 +230,7 @@ class CcsdsLink:
             self._next_hk[group.name] = now_s + self.cfg.hk_period_s if due is None else \
                 due + self.cfg.hk_period_s * max(1, math.ceil((now_s - due) / self.cfg.hk_period_s))
             t = self.app.epoch_of(now_s)
-            if group is self.app.executive.groups[0]:
+            if group.name == self.app.cfg.rate_groups[0].name:
                 self.stream.apid_announcements(t, self.app.run_id, self.app.cfg.sensors)
                 self.stream.emit("app_hk", APP_APID, t, self.tc_counters())
             self.stream.group_hk(group, t)
@@ -260,9 +260,13 @@ def attach_ccsds(app) -> CcsdsLink | None:
         link.stream.event(ev)
     app.events.sink = _tee(app.events.sink, link.stream.event,
                            link.receiver.on_event if link.receiver is not None else None)
-    for g in app.executive.groups:
+    configured = {g.name for g in app.cfg.rate_groups}
+    groups = [g for g in app.executive.groups if g.name in configured]   # not the command spool's own group
+    for g in groups:
         g.boundary.append(link.hk_hook(g))
     if link.receiver is not None:
-        fastest = max(app.executive.groups, key=lambda x: x.rate_hz)
-        fastest.boundary.insert(0, link.receiver.poll)
+        # telecommands are taken where the command files are: the spool's own rate group, off the sensors' path
+        spool = [g for g in app.executive.groups if g.name not in configured]
+        host = spool[0] if spool else max(groups, key=lambda x: x.rate_hz)
+        host.boundary.insert(0, link.receiver.poll)
     return link
