@@ -47,4 +47,5 @@ def dask_mapper(address: str | None = None) -> Callable:
         with Client(address) as client:
             return client.compute(parts[0]).result()
 
+    mapper.in_process = address is None      # threaded local scheduler: refit shares its fit-row cache
     return mapper

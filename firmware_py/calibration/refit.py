@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -231,30 +232,34 @@ class FitRowCache:
     budget is not kept (its passes re-read it), so memory stays below ``budget_mb``."""
 
     def __init__(self, budget_mb: float) -> None:
+        self._lock = threading.Lock()        # tasks of a threaded scheduler add concurrently
         self.left = int(budget_mb * 1e6)
         self.files: dict[str, list[tuple]] = {}
         self.complete: set[str] = set()
         self._open: set[str] = set()
 
     def start(self, path: str) -> None:
-        self.files[path] = []
-        self._open.add(path)
+        with self._lock:
+            self.files[path] = []
+            self._open.add(path)
 
     def add(self, path: str, arrays: tuple) -> None:
-        if path not in self._open:
-            return
-        size = _nbytes(arrays)
-        if size > self.left:   # does not fit: give this file's rows back, re-read it later
-            self.left += sum(_nbytes(x) for x in self.files.pop(path))
-            self._open.discard(path)
-            return
-        self.left -= size
-        self.files[path].append(arrays)
+        with self._lock:
+            if path not in self._open:
+                return
+            size = _nbytes(arrays)
+            if size > self.left:   # does not fit: give this file's rows back, re-read it later
+                self.left += sum(_nbytes(x) for x in self.files.pop(path))
+                self._open.discard(path)
+                return
+            self.left -= size
+            self.files[path].append(arrays)
 
     def finish(self, path: str) -> None:
-        if path in self._open:
-            self._open.discard(path)
-            self.complete.add(path)
+        with self._lock:
+            if path in self._open:
+                self._open.discard(path)
+                self.complete.add(path)
 
 
 def file_pass(path: str, plan: Plan, theta: np.ndarray | None = None, sigma_uT: np.ndarray | None = None,
@@ -554,7 +559,10 @@ def refit(paths: Sequence[str], active: cal_table.CalTable | None = None, option
     mapper = mapper or local_mapper
     n_pass = 1 + (options.robust_passes if options.robust else 0)
 
-    cache = FitRowCache(options.cache_mb) if mapper is local_mapper and options.cache_mb > 0 else None
+    # a mapper whose tasks run in this process (the in-process default, Dask's threaded scheduler) shares the
+    # fit-row cache, so the robust passes do not re-read the files and re-evaluate the reference field
+    same_process = mapper is local_mapper or getattr(mapper, "in_process", False)
+    cache = FitRowCache(options.cache_mb) if same_process and options.cache_mb > 0 else None
 
     def run(theta, sigma, k):
         cb = None if progress is None else (lambda n: progress(n, f"pass {k}/{n_pass}"))
