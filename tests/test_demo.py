@@ -225,7 +225,7 @@ def test_cli_rejects_bad_parameters(tmp_path, capsys):
     assert main(["demo", "--out-dir", str(tmp_path), "--seed", "-1"]) == 2
     assert "argument --seed: must be within [0, 4294967295], got '-1'" in capsys.readouterr().err
     assert main(["demo", "--out-dir", ""]) == 2
-    assert "argument --out-dir: expected a directory name" in capsys.readouterr().err
+    assert "argument --out/--out-dir: expected a directory name" in capsys.readouterr().err
     (tmp_path / "file").write_text("x")
     assert main(["demo", "--out-dir", str(tmp_path / "file")]) == 2
     assert "exists and is not a directory" in capsys.readouterr().err

@@ -1,16 +1,17 @@
 """One self-contained HTML page: headings, paragraphs, tables and PNG figures embedded as base64.
 
-Figures come from matplotlib with the Agg backend (no display needed; the ``plot`` extra). The page
-is written whole or not at all (``.part`` file, fsync, rename). Text is HTML-escaped.
+Figures come from matplotlib with the Agg backend (no display needed; a core dependency). The page
+is written whole or not at all (:func:`magstack.data.io.atomic_write_text`: exclusive temp file,
+fsync, rename). Text is HTML-escaped.
 """
 from __future__ import annotations
 
 import base64
 import html
 import io
-import os
 from pathlib import Path
 
+from magstack.data.io import atomic_write_text
 from magstack.drivers.errors import ConfigurationError
 
 _CSS = ("body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}"
@@ -75,11 +76,4 @@ class Report:
 
     def write(self, path) -> Path:
         """Write the page atomically; returns the path."""
-        path = Path(path)
-        part = path.with_name(path.name + ".part")
-        with open(part, "w", encoding="utf-8") as fh:
-            fh.write(self.render())
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(part, path)
-        return path
+        return atomic_write_text(path, self.render())
