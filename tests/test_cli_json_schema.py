@@ -221,7 +221,7 @@ def test_read_json_bounded_limits():
 
     assert parse_json_bounded(b'\xef\xbb\xbf{"a": [1, 2.5, "x]]"]}', "f") == {"a": [1, 2.5, "x]]"]}
     for raw, msg in ((b'{"a": NaN}', "NaN"), (b'{"a": 1' + b"0" * 40 + b"}", "digits"), (b"[" * 40, "nested"),
-                     (b'{"a": ', "not JSON"), (b"\xff", "UTF-8")):
+                     (b'{"a": ', "not valid JSON"), (b"\xff", "UTF-8")):
         with pytest.raises(InputDataError, match=msg):
             parse_json_bounded(raw, "f")
 
@@ -278,3 +278,44 @@ def test_import_mageval_numbers_are_numbers(tmp_path, capsys):
     assert isinstance(doc["gap_rows"], int) and isinstance(doc["clock_offset_s"], float)
     assert doc["gap_policy"] == "nan"     # a policy name stays text
     assert np.isfinite(doc["clock_offset_sigma_s"])
+
+
+def test_verbose_logs_the_decisions_and_quiet_silences_warnings(files, tmp_path, capsys):
+    """Issue 26 item 2: -v / -vv printed nothing for the main commands."""
+    s = str(files["session"])
+    expect = {("fit", s, "--no-holdout", "--out", str(tmp_path / "c.json")): ["fit: model eq3", "fit: rows used"],
+              ("apply", str(files["table"]), s, "--out", str(tmp_path / "a.csv")): ["apply: table 0x",
+                                                                                   "apply: not calibrated"],
+              ("diagnose", s, "--block-s", "60"): ["diagnose: simulator --model", "diagnose: verdict"],
+              ("align", s): ["align: model"],
+              ("simulate", "--program", "steps_x", "--seconds", "20", "--out", str(tmp_path / "x.csv")):
+                  ["simulate: effects on:"],
+              ("refit", str(files["tlm"]), "--out", str(tmp_path / "cand.json")): ["refit: rows selected:"]}
+    for argv, texts in expect.items():
+        main([*argv, "-v"])
+        err = capsys.readouterr().err
+        assert all(f"magstack: INFO: {t}" in err for t in texts), (argv[0], err)
+        assert "DEBUG" not in err
+    main(["simulate", "--program", "steps_x", "--seconds", "20", "--out", str(tmp_path / "y.csv"), "-vv"])
+    assert "magstack: DEBUG: simulate: error-model parameters" in capsys.readouterr().err
+
+
+def test_fit_warns_when_the_field_cannot_support_the_table(tmp_path, capsys):
+    """Issue 26 item 6: a zero-field session gave a 'valid' table without a word."""
+    from magstack.data.session import read_session, write_session
+
+    src = tmp_path / "s.csv"
+    assert main(["simulate", "--program", "steps_xyz", "--seconds", "120", "--out", str(src), "-q"]) == 0
+    s = read_session(src)
+    s.ref_uT[:] = 0.02 * np.random.default_rng(0).standard_normal(s.ref_uT.shape)
+    s.dut_uT[:] = s.ref_uT + 0.3
+    write_session(tmp_path / "zero.csv", s)
+    capsys.readouterr()
+    assert main(["fit", str(tmp_path / "zero.csv"), "--no-holdout", "--model", "gain_offset", "--out",
+                 str(tmp_path / "c.json"), "--json"]) == 0
+    cap = capsys.readouterr()
+    assert "magstack: WARNING: fit: the reference field never reaches 5 uT on axis x, y, z" in cap.err
+    assert any("never reaches" in n for n in strict_json(cap.out)["notes"])
+    assert main(["fit", str(tmp_path / "zero.csv"), "--no-holdout", "--model", "gain_offset", "--out",
+                 str(tmp_path / "c.json"), "-q"]) == 0
+    assert "WARNING" not in capsys.readouterr().err

@@ -48,7 +48,8 @@ def run(args: argparse.Namespace) -> CommandResult:
         table = load_table(args.table)
         validate(table).raise_if_bad(str(args.table))
         log.info("apply: table %s for %s, terms %s, valid for temp_c %s and |B| <= %g uT; %s applier",
-                 "none" if table.crc32 is None else f"0x{table.crc32:08x}", table.device_id, ", ".join(table.terms), table.validity_temp_c,
+                 "none" if table.crc32 is None else f"0x{table.crc32:08x}", table.device_id, ", ".join(table.terms),
+                 table.validity_temp_c,
                  table.validity_field_uT, args.applier)
         refuse_overwriting_inputs(args.out, [args.session, args.table])
         st.next()
