@@ -2,7 +2,9 @@
 
 Each sub-command lives in its own module under :mod:`magstack.cli.commands` and exposes
 ``register(subparsers)``, which adds its parser and sets ``func(args)``. Modules are discovered,
-so adding a command never edits this file. Conventions every command follows (docs/cli.md):
+so adding a command never edits this file; only the module of the command being run is imported
+(``magstack --help`` reads the command names and help lines from the modules' source).
+Conventions every command follows (docs/cli.md):
 
 * ``func(args)`` returns a :class:`magstack.cli.output.CommandResult` (text lines, ``to_dict()``
   for ``--json``, exit code); an int is still accepted as a bare exit code;
@@ -22,29 +24,83 @@ import importlib
 import os
 import pkgutil
 import sys
+from pathlib import Path
 
 from magstack.cli.options import CommandParser, common_flags, declared_paths, split_json_flag
 from magstack.cli.output import CommandResult, configure_logging, dumps, set_json_mode
 from magstack.cli.progress import set_progress_policy
 from magstack.errors import EXIT_DEVICE, EXIT_USAGE, MagError
 
+#: ``build_parser(load=ALL)``: register every command module (tests, docs); the default of ``main``
+#: loads only the command named on the command line (start-up time, issue 26 item 3).
+ALL = "*"
 
-def build_parser() -> argparse.ArgumentParser:
+
+def command_index() -> dict[str, tuple[str, str]]:
+    """``{command: (module, one-line help)}`` for every module in :mod:`magstack.cli.commands`, read
+    from the source of its ``subparsers.add_parser("name", help="...")`` call, without importing it:
+    ``magstack --help`` lists the commands without importing what they use."""
     import magstack.cli.commands as commands
 
+    index: dict[str, tuple[str, str]] = {}
+    for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
+        if info.name.startswith("_"):
+            continue
+        name, helptext = _declared_command(Path(info.module_finder.path) / f"{info.name}.py")
+        index[name or info.name.replace("_", "-")] = (info.name, helptext)
+    return index
+
+
+def _declared_command(source: Path) -> tuple[str | None, str]:
+    """(name, help) of the first ``add_parser("name", help="...")`` call in ``source`` (None if not literal)."""
+    import ast
+
+    try:
+        tree = ast.parse(source.read_text(encoding="utf-8"))
+    except (OSError, SyntaxError, UnicodeDecodeError):
+        return None, ""
+    for node in ast.walk(tree):
+        if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "add_parser"
+                and node.args and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)):
+            helptext = next((k.value.value for k in node.keywords if k.arg == "help"
+                             and isinstance(k.value, ast.Constant) and isinstance(k.value.value, str)), "")
+            return node.args[0].value, helptext
+    return None, ""
+
+
+def build_parser(load: str | None = ALL) -> argparse.ArgumentParser:
+    """The ``magstack`` parser. ``load``: :data:`ALL` registers every command module; a command name
+    registers that command's module and lists the others by name and help only; None lists them all."""
     parser = argparse.ArgumentParser(prog="magstack", description="magstack: AMR magnetometer sensor stack",
                                      epilog="exit status: 0 ok, 1 ran but the answer is negative, 2 usage error, "
                                             "3 bad input data, 4 device or system error, 130/143 interrupted "
                                             "(SIGINT/SIGTERM). Every command takes --json [FILE.json], -v/--verbose, "
                                             "-q/--quiet.")
-    parser.add_argument("--version", action="version", version=f"magstack {version()}")
+    parser.add_argument("--version", action=_VersionAction)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=CommandParser)
-    for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
-        if info.name.startswith("_"):
-            continue
-        module = importlib.import_module(f"magstack.cli.commands.{info.name}")
-        module.register(sub)
+    for name, (module_name, helptext) in command_index().items():
+        if load == ALL or load == name:
+            importlib.import_module(f"magstack.cli.commands.{module_name}").register(sub)
+        else:
+            sub.add_parser(name, help=helptext)
     return parser
+
+
+def _command_named(argv: list[str]) -> str | None:
+    """The command word of ``argv`` (the first argument that is not an option), if any."""
+    return next((a for a in argv if not a.startswith("-")), None)
+
+
+class _VersionAction(argparse.Action):
+    """``--version``: the version is looked up only when asked for (importlib.metadata is slow to import)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest, nargs=0, default=default,
+                         help=help or "show program's version number and exit")
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"magstack {version()}")
+        parser.exit()
 
 
 def version() -> str:
@@ -87,8 +143,8 @@ def check_outputs(parser: argparse.ArgumentParser, args: argparse.Namespace) -> 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
     argv = split_json_flag(sys.argv[1:] if argv is None else list(argv))
+    parser = build_parser(load=_command_named(argv))
     CommandParser.last_error = None
     try:
         args = parser.parse_args(argv)

@@ -24,8 +24,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 __all__ = ["CommandResult", "json_safe", "dumps", "say", "configure_logging", "set_json_mode"]
 
 _state = {"json": False, "quiet": False}
@@ -54,17 +52,22 @@ def json_safe(x: Any) -> Any:
     tuples/sets -> lists, dataclasses -> dicts, enums -> their value, bytes -> hex."""
     if x is None or isinstance(x, (bool, str)):
         return x
+    np = sys.modules.get("numpy")   # numpy values exist only once numpy is imported: never import it here
+    if np is not None:
+        if isinstance(x, np.bool_):
+            return bool(x)
+        if isinstance(x, np.integer):
+            return int(x)
+        if isinstance(x, np.floating):
+            x = float(x)
+        elif isinstance(x, np.ndarray):
+            return json_safe(x.tolist())
     if isinstance(x, enum.Enum):
         return json_safe(x.value)
-    if isinstance(x, (int, np.integer)) and not isinstance(x, np.bool_):
+    if isinstance(x, int):
         return int(x)
-    if isinstance(x, np.bool_):
-        return bool(x)
-    if isinstance(x, (float, np.floating)):
-        v = float(x)
-        return v if math.isfinite(v) else None
-    if isinstance(x, np.ndarray):
-        return json_safe(x.tolist())
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
     if isinstance(x, Path):
         return str(x)
     if isinstance(x, (bytes, bytearray)):

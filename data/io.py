@@ -200,8 +200,8 @@ def parse_json_bounded(raw: bytes | str, source: str, *, max_depth: int = JSON_M
     try:
         return json.loads(raw, parse_int=parse_int, parse_constant=refuse_constant)
     except json.JSONDecodeError as exc:
-        raise InputDataError(f"{source}:{exc.lineno}:{exc.colno}: not valid JSON (corrupt or truncated: "
-                             f"{exc.msg})") from None
+        raise InputDataError(f"{source}: line {exc.lineno}: column {exc.colno}: not valid JSON (corrupt or "
+                             f"truncated: {exc.msg})") from None
     except (RecursionError, ValueError, OverflowError) as exc:   # belt and braces: nothing escapes as a traceback
         if isinstance(exc, InputDataError):
             raise

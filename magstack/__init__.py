@@ -29,5 +29,10 @@ def _version() -> str:
         return "0.0.0+checkout"
 
 
-#: Installed distribution version (``0.0.0+checkout`` when not installed).
-__version__ = _version()
+def __getattr__(name: str) -> str:
+    """``__version__``: the installed distribution version (``0.0.0+checkout`` when not installed),
+    looked up on first use (importlib.metadata costs start-up time every command would pay)."""
+    if name == "__version__":
+        globals()["__version__"] = v = _version()
+        return v
+    raise AttributeError(f"module 'magstack' has no attribute {name!r}")

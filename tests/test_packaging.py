@@ -25,9 +25,11 @@ def test_every_package_folder_is_listed():
     assert found == listed
 
 
-def test_python_dash_m_magstack_runs():
+def test_python_dash_m_magstack_runs(tmp_path):
+    """Run from a neutral directory: from the checkout's parent a folder named ``magstack`` (the
+    checkout itself, when cloned under that name) would shadow the installed package."""
     out = subprocess.run([sys.executable, "-m", "magstack", "--version"], capture_output=True, text=True,
-                         cwd=ROOT.parent, timeout=60)
+                         cwd=tmp_path, timeout=60)
     assert out.returncode == 0 and out.stdout.startswith("magstack ")
 
 
