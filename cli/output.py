@@ -19,6 +19,7 @@ import json
 import logging
 import math
 import sys
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -117,6 +118,13 @@ def configure_logging(verbose: int = 0, quiet: bool = False) -> None:
     logger.addHandler(handler)
     logger.setLevel(level)
     logger.propagate = False
+    warnings.showwarning = _log_warning
+
+
+def _log_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Python warnings (numpy's ``RuntimeWarning: invalid value encountered``) are details of a
+    computation, not messages for the user: logged at DEBUG (``-vv``) instead of written to stderr."""
+    logging.getLogger("magstack.warnings").debug("%s:%s: %s: %s", filename, lineno, category.__name__, message)
 
 
 class _TqdmAwareHandler(logging.Handler):

@@ -54,6 +54,11 @@ DECIMAL_RE = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?"
 #: Optional non-current columns that v1 readers understand.
 OPTIONAL_COLUMNS = ("flag",)
 _BOM = b"\xef\xbb\xbf"
+#: Physical range of the field columns (uT): 100 gauss, far beyond every sensor of the stack (LIS3MDL
+#: +-1600 uT at its widest); a value outside is a corrupt cell, not a measurement.
+FIELD_LIMIT_UT = 1e4
+#: Physical range of ``temp_c`` (degC): absolute zero .. far beyond any electronics.
+TEMP_RANGE_C = (-273.15, 500.0)
 _END_PREFIX = f"# {END_KEY}:".encode()
 _END_RE = re.compile(r"#\s*magstack-end:\s*rows=(\d+)\s+crc32=0x([0-9a-fA-F]{8})\s*")
 #: Bytes a body of plain decimals and gaps consists of (fast path); ``nan`` letters checked apart.
@@ -608,6 +613,7 @@ def _session_from_table(arr: np.ndarray, header: list[str], current_cols: list[s
     def col(c: str) -> np.ndarray:
         return arr[:, idx[c]]
 
+    _check_physical_range(arr, header, name, locate)
     sess = col("session")
     _check_integer_column(sess, "session", name, header_line=header_line, allow_empty=False, locate=locate)
     flag = None
@@ -624,6 +630,22 @@ def _session_from_table(arr: np.ndarray, header: list[str], current_cols: list[s
                 metadata, flag, extra={c: col(c) for c in extra_cols}, source=name)
     s.warnings.extend(warnings)
     return s
+
+
+def _check_physical_range(arr: np.ndarray, header: list[str], name: str, locate: Callable[[int], int]) -> None:
+    """SessionFileError naming line and column of the first field cell beyond +-FIELD_LIMIT_UT or
+    temperature outside TEMP_RANGE_C (empty cells are gaps, not errors)."""
+    checks = [(k, -FIELD_LIMIT_UT, FIELD_LIMIT_UT, "uT") for k, c in enumerate(header)
+              if c.startswith(("ref_", "dut_")) and c.endswith("_uT")]
+    if "temp_c" in header:
+        checks.append((header.index("temp_c"), *TEMP_RANGE_C, "degC"))
+    for k, lo, hi, unit in checks:
+        v = arr[:, k]
+        with np.errstate(invalid="ignore"):
+            bad = np.flatnonzero((v < lo) | (v > hi))
+        if bad.size:
+            raise SessionFileError(f"{name}: line {locate(int(bad[0]))}: column {header[k]!r}: {v[bad[0]]:g} {unit} "
+                                   f"is outside the physical range [{lo:g}, {hi:g}] {unit} ({bad.size} such rows)")
 
 
 def row_line(s: Session, k: int) -> int | None:

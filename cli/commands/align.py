@@ -52,6 +52,7 @@ def register(subparsers) -> None:
 def _load(inputs: list[str], prior: float | None, halfwidth: float | None):
     if len(inputs) == 1:
         st = split_streams(read_session(inputs[0]))
+        st.require_increasing()   # as --out does: out-of-order rows are bad input, never sorted silently
         if prior is None and halfwidth is None:
             prior, halfwidth = 0.0, 10.0
         return st.t_dut_s, st.dut_uT, st.t_ref_s, st.ref_uT, prior, halfwidth, st.temp_dut_c

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import logging
 
+import numpy as np
+
 from magstack.cli.inputs import check_params_file, check_table_file
 from magstack.cli.options import finite_float, int_range, nonempty_dir
 from magstack.cli.output import CommandResult
@@ -58,6 +60,19 @@ def model_text(text: str) -> str:
     return text
 
 
+def _check_blocks(s, block_s: float, folds: int) -> None:
+    """ConfigurationError (exit 2) when the kept rows span fewer --block-s blocks than --folds: each
+    fold must hold out at least one block (``--block-s 86400`` on a 20-minute session)."""
+    from magstack.drivers.errors import ConfigurationError
+    from magstack.ground.diagnose.gap import time_blocks
+
+    n = int(np.unique(time_blocks(s.t_s, s.session, block_s)).size) if len(s) else 0
+    if n < folds:
+        raise ConfigurationError(f"--block-s {block_s:g} s cuts the {len(s)} usable rows into {n} time block(s), "
+                                 f"fewer than --folds {folds}: lower --block-s (the session spans "
+                                 f"{np.ptp(s.t_s) if len(s) else 0:.0f} s) or --folds")
+
+
 def run(args: argparse.Namespace) -> CommandResult:
     opts = Options(block_s=args.block_s, n_folds=args.folds, alpha=args.alpha,
                    exclude_bends=None if args.keep_bends else 10.0, null=args.null)
@@ -72,6 +87,7 @@ def run(args: argparse.Namespace) -> CommandResult:
             session = session.select(sel)
         full, keep, more = check_rows(session, exclude_bends=opts.exclude_bends)
         s = full.select(keep)
+        _check_blocks(s, args.block_s, args.folds)
         log.info("diagnose: %d rows read, %d kept (%s)", len(session), int(keep.sum()),
                  "; ".join(more) if more else "no row left out")
         log.info("diagnose: simulator %s; held-out blocks of %g s in %d folds, alpha %g, null model %s",
