@@ -36,6 +36,8 @@ MAX_ROWS = 10_000_000
 MIN_ROWS_PER_SESSION = 5
 #: Rows generated and written per block (fixed: the output depends on it only by rounding).
 BLOCK_ROWS = 20_000
+#: The progress bar advances every this many rows written.
+PROGRESS_ROWS = 1000
 
 
 log = logging.getLogger(__name__)
@@ -175,8 +177,10 @@ def run(args) -> CommandResult:
                 for i in range(t.size):
                     writer.write_row(t[i], ref[i], blk.dut_uT[i], blk.temp_c[i], session[i],
                                      {k: v[i] for k, v in cur.items()}, extra={k: v[i] for k, v in extra.items()})
+                    if i % PROGRESS_ROWS == PROGRESS_ROWS - 1:
+                        pbar.update(PROGRESS_ROWS)   # by work done: rows written, not blocks finished
                 writer.flush()
-                pbar.update(t.size)
+                pbar.update(t.size % PROGRESS_ROWS)
                 if stop.is_set():
                     stopped = stop.signal_name
                     break
