@@ -54,9 +54,9 @@ DECIMAL_RE = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?"
 #: Optional non-current columns that v1 readers understand.
 OPTIONAL_COLUMNS = ("flag",)
 _BOM = b"\xef\xbb\xbf"
-#: Physical range of the field columns (uT): 100 gauss, far beyond every sensor of the stack (LIS3MDL
+#: Physical range of the field columns (uT): 0.1 T, far beyond every sensor of the stack (LIS3MDL
 #: +-1600 uT at its widest); a value outside is a corrupt cell, not a measurement.
-FIELD_LIMIT_UT = 1e4
+FIELD_LIMIT_UT = 1e5
 #: Physical range of ``temp_c`` (degC): absolute zero .. far beyond any electronics.
 TEMP_RANGE_C = (-273.15, 500.0)
 _END_PREFIX = f"# {END_KEY}:".encode()
