@@ -49,3 +49,15 @@ def test_wheel_installs_only_magstack(tmp_path):
                    "magstack/sim/backends.py", "magstack/ground/alignment.py", "magstack/hil/bench.py",
                    "magstack/cli/main.py", "magstack/cli/commands/demo.py"):
         assert module in names
+
+
+def test_license_typing_marker_changelog_and_extras():
+    """Issue 26 "Packaging": the MIT licence pyproject names ships, the package is marked typed, the
+    empty `plot` extra is gone."""
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    assert project["license"] == {"text": "MIT"}
+    text = (ROOT / "LICENSE").read_text()
+    assert text.startswith("MIT License") and "magstack developers" in text
+    assert (ROOT / "magstack" / "py.typed").is_file() and "py.typed" in CONFIG["package-data"]["magstack"]
+    assert "plot" not in project["optional-dependencies"]
+    assert (ROOT / "CHANGELOG.md").read_text().startswith("# Changelog")
