@@ -23,6 +23,9 @@ CASES = {
     "magstack --help": ["-m", "magstack.cli.main", "--help"],
     "magstack run --example-config": ["-m", "magstack.cli.main", "run", "--example-config"],
     "magstack fit --help": ["-m", "magstack.cli.main", "fit", "--help"],
+    # what `magstack --help` cost before issue 26: every command module imported to build the parser
+    "every command module (old --help)": ["-c", "from magstack.cli.main import ALL, build_parser; "
+                                                "build_parser(ALL).format_help()"],
 }
 
 
