@@ -165,12 +165,13 @@ class SessionWriter:
     :meth:`flush`/:meth:`close`); each block is formatted in one vectorised step. On clean close
     the closing line (row count, CRC-32 of the row bytes) is written and ``<path>.part`` is renamed
     to ``path``. A write that fails (file too large, disk full) raises
-    :class:`~magstack.data.errors.FileWriteError` naming the ``.part`` file.
+    :class:`~magstack.data.errors.FileWriteError` naming the ``.part`` file. Extra columns named in
+    ``integer_extras`` hold integers (a table CRC-32, a count) and are written without decimals.
     """
 
     def __init__(self, path: str | os.PathLike, metadata: Mapping[str, str] | None = None, *,
                  current_names: Sequence[str] = (), with_flag: bool = False, block_rows: int = 50,
-                 extra_names: Sequence[str] = ()) -> None:
+                 extra_names: Sequence[str] = (), integer_extras: Sequence[str] = ()) -> None:
         self.path = Path(path)
         if not self.path.name or self.path.is_dir():
             raise SessionFileError(f"{path}: is a directory, not a session file name")
@@ -186,8 +187,9 @@ class SessionWriter:
         _check_metadata(meta)
         cols = (list(REQUIRED_COLUMNS) + [f"current_{n}_A" for n in self.current_names] + self.extra_names
                 + (["flag"] if with_flag else []))
-        n_float = len(self.current_names) + len(self.extra_names)
-        self._row_fmt = ",".join(["%.6f"] * 7 + ["%.4f", "%d"] + ["%.6f"] * n_float
+        # integer_extras (a CRC-32, a count) are written without decimals ("%.0f": an empty cell stays empty)
+        extra_fmt = ["%.0f" if n in set(integer_extras) else "%.6f" for n in self.extra_names]
+        self._row_fmt = ",".join(["%.6f"] * 7 + ["%.4f", "%d"] + ["%.6f"] * len(self.current_names) + extra_fmt
                                  + (["%d"] if with_flag else [])) + "\n"
         self._int_cols = [8] + ([len(cols) - 1] if with_flag else [])
         self._ncols = len(cols)

@@ -122,3 +122,18 @@ def test_telemetry_with_a_byte_order_mark_is_read(tmp_path):
     bom.write_bytes(b"\xef\xbb\xbf" + p.read_bytes())
     rows = sum(b.t_s.size for b in iter_telemetry(bom))
     assert rows == len(read_session(p)) == sum(b.t_s.size for b in iter_telemetry(p))
+
+
+def test_integer_extra_columns_are_written_as_integers(tmp_path):
+    """Issue 26 item 5: flight telemetry wrote `table_crc32` as 3350503024.000000."""
+    import numpy as np
+
+    from magstack.data.session import SessionWriter
+
+    with SessionWriter(tmp_path / "t.csv", extra_names=["table_crc32", "x"], integer_extras=["table_crc32"]) as w:
+        w.write_block(np.array([[1.0, 0, 0, 0, 0, 0, 0, 25.0, 0, 3350503024.0, 0.5],
+                                [2.0, 0, 0, 0, 0, 0, 0, 25.0, 0, np.nan, 0.5]]))
+    rows = [ln for ln in (tmp_path / "t.csv").read_text().splitlines() if ln[:1].isdigit()]
+    assert rows[0].endswith(",3350503024,0.500000") and rows[1].endswith(",,0.500000")
+    s = read_session(tmp_path / "t.csv")
+    assert s.extra["table_crc32"][0] == 3350503024 and np.isnan(s.extra["table_crc32"][1])
