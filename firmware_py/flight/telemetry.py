@@ -58,7 +58,8 @@ class ChannelTelemetry:
         path = self.directory / f"{self.channel}-{self.run_id:04d}-{self.index:04d}.csv"
         meta = {**self.metadata, "telemetry_channel": self.channel, "telemetry_file_index": str(self.index),
                 "flag_bits": flag_legend(), "dut_field": "raw"}
-        w = SessionWriter(path, meta, with_flag=True, block_rows=self.block_rows, extra_names=EXTRA_COLUMNS)
+        w = SessionWriter(path, meta, with_flag=True, block_rows=self.block_rows, extra_names=EXTRA_COLUMNS,
+                          integer_extras=("table_crc32", "error_count"))
         self.files.append(path)
         self._bytes = 0
         return w
