@@ -319,3 +319,16 @@ def test_fit_warns_when_the_field_cannot_support_the_table(tmp_path, capsys):
     assert main(["fit", str(tmp_path / "zero.csv"), "--no-holdout", "--model", "gain_offset", "--out",
                  str(tmp_path / "c.json"), "-q"]) == 0
     assert "WARNING" not in capsys.readouterr().err
+
+
+def test_a_missing_output_directory_is_a_system_error_for_every_writer(files, tmp_path, capsys):
+    """Issue 26 item 4: `simulate --out no/s.csv` exited 3 (bad input) where file-system errors are 4."""
+    no = tmp_path / "no"
+    for argv in (["simulate", "--program", "steps_x", "--seconds", "20", "--out", str(no / "s.csv")],
+                 ["bench", "--dut", "lis3mdl", "--seconds", "2", "--out", str(no / "b.csv")],
+                 ["apply", str(files["table"]), str(files["session"]), "--out", str(no / "c.csv")],
+                 ["import-mageval", str(DATA / "data5.csv"), str(DATA / "ref5.csv"), "--out", str(no / "m.csv")],
+                 ["probe", "--json", str(no / "p.json")]):
+        assert main(argv) == 4, argv
+        assert "does not exist" in capsys.readouterr().err
+    assert not no.exists()
