@@ -216,7 +216,7 @@ def test_cli_demo_runs_and_is_deterministic(tmp_path, capsys):
     for name in ("session.csv", "session-paired.csv", "cal.json", "holdout-calibrated.csv", "flight-loop.csv"):
         assert (a / name).read_bytes() == (b / name).read_bytes(), name
     html = (a / "report.html").read_text()
-    assert html.startswith("<!DOCTYPE html>") and html.count("data:image/png;base64,") == 4
+    assert html.startswith("<!DOCTYPE html>") and html.count("data:image/png;base64,") == 6
     assert "Flight executive" in html and "Held-out session" in html
 
 
