@@ -2,13 +2,17 @@
 
 Each sub-command lives in its own module under :mod:`magstack.cli.commands` and exposes
 ``register(subparsers)``, which adds its parser and sets ``func(args)``. Modules are discovered,
-so adding a command never edits this file. Conventions every command follows (docs/cli.md):
+so adding a command never edits this file; only the module of the command being run is imported
+(``magstack --help`` reads the command names and help lines from the modules' source).
+Conventions every command follows (docs/cli.md):
 
 * ``func(args)`` returns a :class:`magstack.cli.output.CommandResult` (text lines, ``to_dict()``
   for ``--json``, exit code); an int is still accepted as a bare exit code;
-* the common flags ``--json``, ``-v/--verbose``, ``-q/--quiet`` come from one parent parser
+* the common flags ``--json [FILE]``, ``-v/--verbose``, ``-q/--quiet`` come from one parent parser
   (:class:`magstack.cli.options.CommandParser`); option values are validated at parse time by
   the types in :mod:`magstack.cli.options` (usage error, exit 2, option named);
+* one output-path rule for every command (:func:`magstack.data.io.check_output_paths`), applied
+  here before the command runs: no output may be an input or another output;
 * errors: a :class:`~magstack.errors.MagError` becomes one line ``magstack <command>: error: ...``
   on stderr and its ``exit_code`` (table in docs/architecture.md), never a traceback; under
   ``--json`` stdout also gets ``{"command", "exit_code", "error"}``.
@@ -20,28 +24,83 @@ import importlib
 import os
 import pkgutil
 import sys
+from pathlib import Path
 
-from magstack.cli.options import CommandParser, common_flags
+from magstack.cli.options import CommandParser, common_flags, declared_paths, split_json_flag
 from magstack.cli.output import CommandResult, configure_logging, dumps, set_json_mode
 from magstack.cli.progress import set_progress_policy
 from magstack.errors import EXIT_DEVICE, EXIT_USAGE, MagError
 
+#: ``build_parser(load=ALL)``: register every command module (tests, docs); the default of ``main``
+#: loads only the command named on the command line (start-up time, issue 26 item 3).
+ALL = "*"
 
-def build_parser() -> argparse.ArgumentParser:
+
+def command_index() -> dict[str, tuple[str, str]]:
+    """``{command: (module, one-line help)}`` for every module in :mod:`magstack.cli.commands`, read
+    from the source of its ``subparsers.add_parser("name", help="...")`` call, without importing it:
+    ``magstack --help`` lists the commands without importing what they use."""
     import magstack.cli.commands as commands
 
-    parser = argparse.ArgumentParser(prog="magstack", description="magstack: AMR magnetometer sensor stack",
-                                     epilog="exit status: 0 ok, 1 ran but the answer is negative, 2 usage error, "
-                                            "3 bad input data, 4 device or system error, 130/143 interrupted "
-                                            "(SIGINT/SIGTERM). Every command takes --json, -v/--verbose, -q/--quiet.")
-    parser.add_argument("--version", action="version", version=f"magstack {version()}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=CommandParser)
+    index: dict[str, tuple[str, str]] = {}
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
         if info.name.startswith("_"):
             continue
-        module = importlib.import_module(f"magstack.cli.commands.{info.name}")
-        module.register(sub)
+        name, helptext = _declared_command(Path(info.module_finder.path) / f"{info.name}.py")
+        index[name or info.name.replace("_", "-")] = (info.name, helptext)
+    return index
+
+
+def _declared_command(source: Path) -> tuple[str | None, str]:
+    """(name, help) of the first ``add_parser("name", help="...")`` call in ``source`` (None if not literal)."""
+    import ast
+
+    try:
+        tree = ast.parse(source.read_text(encoding="utf-8"))
+    except (OSError, SyntaxError, UnicodeDecodeError):
+        return None, ""
+    for node in ast.walk(tree):
+        if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "add_parser"
+                and node.args and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)):
+            helptext = next((k.value.value for k in node.keywords if k.arg == "help"
+                             and isinstance(k.value, ast.Constant) and isinstance(k.value.value, str)), "")
+            return node.args[0].value, helptext
+    return None, ""
+
+
+def build_parser(load: str | None = ALL) -> argparse.ArgumentParser:
+    """The ``magstack`` parser. ``load``: :data:`ALL` registers every command module; a command name
+    registers that command's module and lists the others by name and help only; None lists them all."""
+    parser = argparse.ArgumentParser(prog="magstack", description="magstack: AMR magnetometer sensor stack",
+                                     epilog="exit status: 0 ok, 1 ran but the answer is negative, 2 usage error, "
+                                            "3 bad input data, 4 device or system error, 130/143 interrupted "
+                                            "(SIGINT/SIGTERM). Every command takes --json [FILE.json], -v/--verbose, "
+                                            "-q/--quiet.")
+    parser.add_argument("--version", action=_VersionAction)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=CommandParser)
+    for name, (module_name, helptext) in command_index().items():
+        if load == ALL or load == name:
+            importlib.import_module(f"magstack.cli.commands.{module_name}").register(sub)
+        else:
+            sub.add_parser(name, help=helptext)
     return parser
+
+
+def _command_named(argv: list[str]) -> str | None:
+    """The command word of ``argv`` (the first argument that is not an option), if any."""
+    return next((a for a in argv if not a.startswith("-")), None)
+
+
+class _VersionAction(argparse.Action):
+    """``--version``: the version is looked up only when asked for (importlib.metadata is slow to import)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest, nargs=0, default=default,
+                         help=help or "show program's version number and exit")
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"magstack {version()}")
+        parser.exit()
 
 
 def version() -> str:
@@ -50,50 +109,65 @@ def version() -> str:
     return __version__
 
 
-def _emit(result, args: argparse.Namespace, json_mode: bool) -> int:
-    if isinstance(result, CommandResult) or hasattr(result, "to_dict"):
-        if json_mode:
-            print(dumps(result.to_dict()))
-        else:
-            text = result.text() if hasattr(result, "text") else ""
-            if text:
-                print(text)
-        return int(getattr(result, "exit_code", 0))
-    return int(result or 0)
+def _emit(result, json_target: str | None) -> int:
+    """Print the result (text, or JSON on stdout) and write ``--json FILE``; returns the exit code."""
+    if not (isinstance(result, CommandResult) or hasattr(result, "to_dict")):
+        return int(result or 0)
+    if json_target == "-":
+        print(dumps(result.to_dict()))
+    else:
+        text = result.text() if hasattr(result, "text") else ""
+        if text:
+            print(text)
+        if json_target:
+            from magstack.data.io import atomic_write_text
+
+            atomic_write_text(json_target, dumps(result.to_dict()) + "\n")
+    return int(getattr(result, "exit_code", 0))
 
 
-def _error(args: argparse.Namespace, json_mode: bool, message: str, code: int, kind: str = "error") -> int:
+def _error(args: argparse.Namespace, json_target: str | None, message: str, code: int, kind: str = "error") -> int:
     print(f"magstack {args.command}: {kind}: {message}" if kind else f"magstack {args.command}: {message}",
           file=sys.stderr)
-    if json_mode:
+    if json_target == "-":   # a failed command writes no --json FILE (outputs appear whole or not at all)
         print(dumps({"command": args.command, "exit_code": code, "error": message}))
     return code
 
 
+def check_outputs(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """The shared output-path rule (data/io.py) on every path the command line names."""
+    from magstack.data.io import check_output_paths
+
+    files, dirs, inputs = declared_paths(parser, args)
+    check_output_paths({**files, **dirs}, inputs, directories=set(dirs))
+
+
 def _main(argv: list[str] | None) -> int:
-    parser = build_parser()
-    argv = sys.argv[1:] if argv is None else list(argv)
+    argv = split_json_flag(sys.argv[1:] if argv is None else list(argv))
+    parser = build_parser(load=_command_named(argv))
     CommandParser.last_error = None
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # usage error (2) or --help / --version (0)
         if exc.code in (0, None):
             return 0
-        if "--json" in argv and CommandParser.last_error is not None:
+        if "--json=-" in argv and CommandParser.last_error is not None:
             command = next((a for a in argv if not a.startswith("-")), None)
             print(dumps({"command": command, "exit_code": EXIT_USAGE, "error": CommandParser.last_error}))
         return EXIT_USAGE
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return EXIT_USAGE
-    json_mode, verbose, quiet = common_flags(args)
+    json_target, verbose, quiet = common_flags(args)
+    json_mode = json_target == "-"   # stdout holds only the JSON object
     set_json_mode(json_mode, quiet)
     set_progress_policy(json_mode, quiet)
     configure_logging(verbose, quiet)
     try:
-        return _emit(args.func(args), args, json_mode)
+        check_outputs(parser, args)
+        return _emit(args.func(args), json_target)
     except MagError as exc:
-        return _error(args, json_mode, str(exc), exc.exit_code)
+        return _error(args, json_target, str(exc), exc.exit_code)
     except BrokenPipeError:
         # output piped into a reader that stopped (``| head``): files are already written
         devnull = os.open(os.devnull, os.O_WRONLY)
@@ -102,9 +176,9 @@ def _main(argv: list[str] | None) -> int:
     except OSError as exc:
         # a file-system problem outside the typed tree (missing output directory, permissions)
         where = f" ({exc.filename})" if exc.filename else ""
-        return _error(args, json_mode, f"{exc.strerror or exc}{where}", EXIT_DEVICE)
+        return _error(args, json_target, f"{exc.strerror or exc}{where}", EXIT_DEVICE)
     except KeyboardInterrupt:
-        return _error(args, json_mode, "interrupted", 130, kind="")
+        return _error(args, json_target, "interrupted", 130, kind="")
 
 
 class _PipeSafe:

@@ -4,7 +4,8 @@ Every sub-command parser gets the common flags automatically (:class:`CommandPar
 ``parser_class`` of the sub-command registry, so a command module that calls
 ``subparsers.add_parser(...)`` needs nothing extra):
 
-``--json``            print the command's result object (``to_dict()``) as strict JSON on stdout
+``--json [FILE]``     the command's result object (``to_dict()``) as strict JSON: on stdout without
+                      FILE or with ``-``, else written atomically to FILE (which must end in ``.json``)
 ``-v/--verbose``      more log output on stderr (repeat for debug)
 ``-q/--quiet``        only errors on stderr, no progress bar
 
@@ -27,11 +28,14 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
-__all__ = ["CommandParser", "common_parser", "common_flags", "finite_float", "int_range", "nonempty_path",
+__all__ = ["CommandParser", "common_parser", "common_flags", "json_target", "split_json_flag", "declared_paths",
+           "nonempty_text",
+           "finite_float", "int_range", "nonempty_path",
            "nonempty_dir", "float_list", "name_list", "named_vector"]
 
 
@@ -39,8 +43,9 @@ def common_parser() -> argparse.ArgumentParser:
     """The parent parser holding the flags every sub-command has (defaults suppressed, so that a
     nested sub-command does not reset a flag given to its parent; read them with :func:`common_flags`)."""
     p = argparse.ArgumentParser(add_help=False)
-    p.add_argument("--json", action="store_true", default=argparse.SUPPRESS,
-                   help="print the result as one strict JSON object on stdout (non-finite numbers -> null)")
+    p.add_argument("--json", nargs="?", const="-", metavar="FILE.json", type=json_target, default=argparse.SUPPRESS,
+                   help="the result as one strict JSON object (numbers as numbers, missing values null): on "
+                        "stdout without FILE or with '-', else written atomically to FILE.json")
     v = p.add_mutually_exclusive_group()
     v.add_argument("-v", "--verbose", action="count", default=argparse.SUPPRESS,
                    help="more log messages on stderr (-vv: debug)")
@@ -49,10 +54,43 @@ def common_parser() -> argparse.ArgumentParser:
     return p
 
 
-def common_flags(args: argparse.Namespace) -> tuple[bool, int, bool]:
-    """(json, verbose count, quiet) of parsed arguments, with their defaults filled in."""
-    return (bool(getattr(args, "json", False)), int(getattr(args, "verbose", 0) or 0),
+def common_flags(args: argparse.Namespace) -> tuple[str | None, int, bool]:
+    """(json target, verbose count, quiet) of parsed arguments, with their defaults filled in; the
+    json target is None (no --json), ``"-"`` (stdout) or a file path."""
+    target = getattr(args, "json", None)
+    return (None if target is None else str(target), int(getattr(args, "verbose", 0) or 0),
             bool(getattr(args, "quiet", False)))
+
+
+def json_target(text: str) -> str:
+    """argparse type of ``--json [FILE]``: ``-`` (stdout) or a file name ending in ``.json``."""
+    if text == "-":
+        return text
+    if not text.strip() or not text.endswith(".json") or text.endswith(("/", os.sep)) or Path(text).is_dir():
+        raise argparse.ArgumentTypeError(f"expected '-' or a file name ending in .json, got {text!r}")
+    return text
+
+
+json_target.is_output = True  # type: ignore[attr-defined]
+
+
+def split_json_flag(argv: list[str]) -> list[str]:
+    """``--json X`` takes X as its FILE only when X is ``-`` or ends in ``.json``; otherwise X is the
+    command's own argument (``align --json session.csv``) and ``--json`` means stdout."""
+    out: list[str] = []
+    for i, a in enumerate(argv):
+        if a == "--":
+            return out + argv[i:]
+        if a == "--json":
+            nxt = argv[i + 1] if i + 1 < len(argv) else None
+            if nxt is None or not (nxt == "-" or (nxt.endswith(".json") and not nxt.startswith("-"))):
+                a = "--json=-"
+        out.append(a)
+    return out
+
+
+#: An argument starting with '-' that is a value: a negative number or a comma list starting with one.
+_NEGATIVE_VALUE = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?(,[-+]?[\d.eE+-]*)*$")
 
 
 class CommandParser(argparse.ArgumentParser):
@@ -69,6 +107,8 @@ class CommandParser(argparse.ArgumentParser):
         kw["parents"] = [*kw.get("parents", ()), common_parser()]
         kw.setdefault("conflict_handler", "resolve")
         super().__init__(*a, **kw)
+        # negative numbers and lists of them are values, not options: --validity-temp -20,60
+        self._negative_number_matcher = _NEGATIVE_VALUE
 
     def error(self, message: str):
         CommandParser.last_error = message
@@ -150,6 +190,16 @@ def nonempty_path(text: str) -> Path:
     return p
 
 
+nonempty_path.is_output = True  # type: ignore[attr-defined]
+
+
+def nonempty_text(text: str) -> str:
+    """argparse type: a name that is not empty or blank (a device id)."""
+    if not text or not text.strip():
+        raise argparse.ArgumentTypeError("expected a non-empty name, got an empty string")
+    return text
+
+
 def nonempty_dir(text: str) -> Path:
     """argparse type: an output directory (may not exist yet); not empty, not an existing file."""
     if not text or not text.strip():
@@ -158,6 +208,10 @@ def nonempty_dir(text: str) -> Path:
     if p.exists() and not p.is_dir():
         raise argparse.ArgumentTypeError(f"{text!r} exists and is not a directory")
     return p
+
+
+nonempty_dir.is_output = True  # type: ignore[attr-defined]
+nonempty_dir.is_directory = True  # type: ignore[attr-defined]
 
 
 def float_list(n: int | Iterable[int], lo: float | None = None, hi: float | None = None, *,
@@ -215,3 +269,40 @@ def named_vector(n: int = 3, lo: float | None = None, hi: float | None = None, *
 
     parse.__name__ = "named_vector"
     return parse
+
+
+def declared_paths(parser: argparse.ArgumentParser, args: argparse.Namespace) -> tuple[dict, dict, dict]:
+    """(output files, output directories, inputs) named on a parsed command line, each ``{label: path}``.
+
+    Outputs are the values of options whose type is marked ``is_output`` (:func:`nonempty_path`,
+    :func:`nonempty_dir`, ``--json FILE``); every other string or path value that names an existing
+    file or directory counts as an input. ``main`` hands them to
+    :func:`magstack.data.io.check_output_paths`: one rule for every command.
+    """
+    files: dict = {}
+    dirs: dict = {}
+    inputs: dict = {}
+    for action in _all_actions(parser, args):
+        value = getattr(args, action.dest, None)
+        label = action.option_strings[-1] if action.option_strings else action.metavar or action.dest
+        label = label if isinstance(label, str) else action.dest
+        if getattr(action.type, "is_output", False):
+            if value is not None and str(value) != "-":
+                (dirs if getattr(action.type, "is_directory", False) else files)[label] = value
+            continue
+        values = value if isinstance(value, (list, tuple)) else [value]
+        for i, v in enumerate(values):
+            if isinstance(v, (str, os.PathLike)) and str(v) and os.path.exists(v):
+                inputs[f"{label}[{i}]" if len(values) > 1 else label] = v
+    return files, dirs, inputs
+
+
+def _all_actions(parser: argparse.ArgumentParser, args: argparse.Namespace):
+    """The actions of ``parser`` and of the sub-command parsers ``args`` selected."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            chosen = getattr(args, action.dest, None) if action.dest != argparse.SUPPRESS else None
+            if chosen in action.choices:
+                yield from _all_actions(action.choices[chosen], args)
+        elif action.dest not in (argparse.SUPPRESS, "help", "version"):
+            yield action

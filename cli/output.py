@@ -19,12 +19,11 @@ import json
 import logging
 import math
 import sys
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 __all__ = ["CommandResult", "json_safe", "dumps", "say", "configure_logging", "set_json_mode"]
 
@@ -54,17 +53,22 @@ def json_safe(x: Any) -> Any:
     tuples/sets -> lists, dataclasses -> dicts, enums -> their value, bytes -> hex."""
     if x is None or isinstance(x, (bool, str)):
         return x
+    np = sys.modules.get("numpy")   # numpy values exist only once numpy is imported: never import it here
+    if np is not None:
+        if isinstance(x, np.bool_):
+            return bool(x)
+        if isinstance(x, np.integer):
+            return int(x)
+        if isinstance(x, np.floating):
+            x = float(x)
+        elif isinstance(x, np.ndarray):
+            return json_safe(x.tolist())
     if isinstance(x, enum.Enum):
         return json_safe(x.value)
-    if isinstance(x, (int, np.integer)) and not isinstance(x, np.bool_):
+    if isinstance(x, int):
         return int(x)
-    if isinstance(x, np.bool_):
-        return bool(x)
-    if isinstance(x, (float, np.floating)):
-        v = float(x)
-        return v if math.isfinite(v) else None
-    if isinstance(x, np.ndarray):
-        return json_safe(x.tolist())
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
     if isinstance(x, Path):
         return str(x)
     if isinstance(x, (bytes, bytearray)):
@@ -114,6 +118,13 @@ def configure_logging(verbose: int = 0, quiet: bool = False) -> None:
     logger.addHandler(handler)
     logger.setLevel(level)
     logger.propagate = False
+    warnings.showwarning = _log_warning
+
+
+def _log_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Python warnings (numpy's ``RuntimeWarning: invalid value encountered``) are details of a
+    computation, not messages for the user: logged at DEBUG (``-vv``) instead of written to stderr."""
+    logging.getLogger("magstack.warnings").debug("%s:%s: %s: %s", filename, lineno, category.__name__, message)
 
 
 class _TqdmAwareHandler(logging.Handler):

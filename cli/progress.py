@@ -17,8 +17,10 @@ from __future__ import annotations
 import sys
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from typing import TYPE_CHECKING
 
-from tqdm import tqdm
+if TYPE_CHECKING:
+    from tqdm import tqdm
 
 __all__ = ["progress_enabled", "set_progress_policy", "bar", "stages", "Stages", "fraction_bar"]
 
@@ -43,6 +45,8 @@ def progress_enabled(stream=None) -> bool:
 def bar(total: float | None, desc: str, unit: str = "it", *, enabled: bool = True, **kw) -> tqdm:
     """A tqdm bar on stderr, disabled per :func:`progress_enabled` (or ``enabled=False``, e.g. a
     command's own ``--no-progress``). Use as a context manager."""
+    from tqdm import tqdm
+
     return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, disable=not (enabled and progress_enabled()),
                 dynamic_ncols=True, leave=False, **kw)
 

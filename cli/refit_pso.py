@@ -1,8 +1,9 @@
 """CLI glue for ``magstack refit --method pso --paper-model N [--seed S] --json OUT.json``.
 
-Not a discovered command (cli/commands/ holds those): the ``refit`` command module adds these
-arguments with :func:`add_paper_model_arguments` and, when ``args.paper_model`` is set, hands
-over to :func:`run_paper_model_cli`. The JSON holds at least ``fitness``, ``S_mc``,
+Not a discovered command (cli/commands/ holds those): the ``refit`` command hands over to
+:func:`paper_model_result` when ``--paper-model`` is set (its ``--json [FILE]`` is the common one);
+:func:`add_paper_model_arguments` + :func:`run_paper_model_cli` serve a stand-alone parser.
+The JSON holds at least ``fitness``, ``S_mc``,
 ``offset_nT`` and ``runtime_s`` (the full record is ``PaperModelResult.to_dict()``, see
 docs/refit-pso.md); it is written whole or not at all (temp file, fsync, rename).
 """
@@ -10,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -30,21 +30,15 @@ def add_paper_model_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _write_json_atomic(path: Path, doc: dict) -> None:
-    text = json.dumps(doc, indent=1, sort_keys=True, allow_nan=False) + "\n"
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with open(tmp, "w", encoding="utf-8") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    from magstack.data.io import atomic_write_text
+
+    atomic_write_text(path, json.dumps(doc, indent=1, sort_keys=True, allow_nan=False) + "\n")
 
 
-def run_paper_model_cli(args: argparse.Namespace) -> int:
-    """Run ``args.paper_model`` with ``args.seed``; print a summary; write ``args.json``."""
+def paper_model_result(args: argparse.Namespace):
+    """Run ``args.paper_model`` with ``args.seed`` (``args.iterations`` PSO iterations, None = the
+    paper's); the result as a :class:`~magstack.cli.output.CommandResult` of ``refit``."""
+    from magstack.cli.output import CommandResult
     from magstack.firmware.calibration.pso import PsoOptions
 
     if getattr(args, "method", "pso") != "pso":
@@ -55,19 +49,26 @@ def run_paper_model_cli(args: argparse.Namespace) -> int:
         raise ConfigurationError(f"--seed must be >= 0, got {args.seed}")
     if args.iterations is not None and args.iterations < 1:
         raise ConfigurationError(f"--iterations must be >= 1, got {args.iterations}")
+    opts = PsoOptions() if args.iterations is None else PsoOptions(k_max=args.iterations)
+    doc = run_paper_model(args.paper_model, args.seed, opts).to_dict()
+    line = (f"paper model {doc['model']} seed {doc['seed']}: PSO fitness {doc['fitness']:.2f} nT "
+            f"(paper {doc['paper']['fitness']} nT, at truth {doc['fitness_at_truth']:.2f} nT, noise floor "
+            f"{doc['noise_floor_nT']:.0f} nT) in {doc['runtime_s']:.2f} s; |dS|_F {doc['dS_fro']:.3f}, "
+            f"|d off| {doc['doff_nT']:.0f} nT; least squares: fitness {doc['least_squares']['fitness']:.2f} nT, "
+            f"|dS|_F {doc['least_squares']['dS_fro']:.3f}, |d off| {doc['least_squares']['doff_nT']:.0f} nT "
+            f"in {doc['least_squares']['runtime_s']:.4f} s")
+    return CommandResult("refit", doc, [line])
+
+
+def run_paper_model_cli(args: argparse.Namespace) -> int:
+    """:func:`paper_model_result` for a stand-alone parser (:func:`add_paper_model_arguments`): prints the
+    summary and writes ``args.json``."""
     out = Path(args.json) if args.json else None
     if out is not None and not out.parent.is_dir():
         raise ConfigurationError(f"--json: directory {out.parent} does not exist")
-    opts = PsoOptions() if args.iterations is None else PsoOptions(k_max=args.iterations)
-    res = run_paper_model(args.paper_model, args.seed, opts)
-    doc = res.to_dict()
-    print(f"paper model {doc['model']} seed {doc['seed']}: PSO fitness {doc['fitness']:.2f} "
-          f"(paper {doc['paper']['fitness']}, at truth {doc['fitness_at_truth']:.2f}, noise floor "
-          f"{doc['noise_floor_nT']:.0f}) in {doc['runtime_s']:.2f} s; |dS|_F {doc['dS_fro']:.3f}, "
-          f"|d off| {doc['doff_nT']:.0f} nT; least squares: fitness {doc['least_squares']['fitness']:.2f}, "
-          f"|dS|_F {doc['least_squares']['dS_fro']:.3f}, |d off| {doc['least_squares']['doff_nT']:.0f} nT "
-          f"in {doc['least_squares']['runtime_s']:.4f} s")
+    res = paper_model_result(args)
+    print(res.text())
     if out is not None:
-        _write_json_atomic(out, doc)
+        _write_json_atomic(out, res.data)
         print(f"wrote {out}", file=sys.stderr)
     return 0

@@ -11,19 +11,30 @@
   Python's default ``NaN``/``Infinity`` tokens are rejected by strict parsers).
 * :func:`write_error` - an ``OSError`` from writing (``File too large``, ``No space left on
   device``) re-raised as :class:`~magstack.data.errors.FileWriteError` naming the file.
+* :func:`check_output_paths` - the one output-path rule of every command: an output is never an
+  input nor another output of the same command, and its directory exists.
+* :func:`open_exclusive` - create a temporary output exclusively (``O_EXCL``, a symlink in its
+  place is refused, never followed).
+* :func:`read_json_bounded` - read a small JSON document from a regular file with bounds checked
+  before and while reading (size, nesting depth, integer digits): hostile input is one
+  :class:`~magstack.errors.InputDataError`, never a hang, a MemoryError or a RecursionError.
 """
 from __future__ import annotations
 
 import json
 import math
 import os
-from collections.abc import Mapping
+import re
+import stat as stat_mod
+from collections.abc import Iterable, Mapping
 from pathlib import Path, PurePath
 from typing import Any
 
 import numpy as np
 
 from magstack.data.errors import FileWriteError
+from magstack.drivers.errors import ConfigurationError
+from magstack.errors import InputDataError
 
 
 def write_error(path: str | os.PathLike, exc: OSError) -> FileWriteError:
@@ -51,21 +62,167 @@ def atomic_write_text(path: str | os.PathLike, text: str, *, encoding: str = "ut
     """
     p = Path(path)
     tmp = p.with_name(f".{p.name}.tmp-{os.getpid()}")
+    created = False
     try:
-        with open(tmp, "w", encoding=encoding, newline="") as fh:
+        with open_exclusive(tmp, "w", encoding=encoding, newline="") as fh:
+            created = True
             fh.write(text)
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, p)
+        created = False
         fsync_dir(p.parent)
     except FileWriteError:
         raise
     except OSError as exc:
         raise write_error(p, exc) from exc
     finally:
-        if tmp.exists():
-            tmp.unlink()
+        if created:
+            tmp.unlink(missing_ok=True)
     return p
+
+
+def open_exclusive(path: str | os.PathLike, mode: str = "w", **kwargs: Any):
+    """Open a new file for writing, created exclusively (``O_CREAT | O_EXCL | O_NOFOLLOW``).
+
+    A file or a symlink already at ``path`` is never truncated nor followed: ``FileExistsError``.
+    ``mode`` is ``"w"`` (text, kwargs go to :func:`open`) or ``"wb"``.
+    """
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+    fd = os.open(path, flags, 0o666)
+    try:
+        return open(fd, mode, **kwargs)
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    if a.resolve() == b.resolve():
+        return True
+    try:
+        return os.path.samefile(a, b)   # hard links, bind mounts
+    except OSError:
+        return False
+
+
+def check_output_paths(outputs: Mapping[str, str | os.PathLike | None],
+                       inputs: Mapping[str, str | os.PathLike | None] | None = None, *,
+                       directories: Iterable[str] = ()) -> None:
+    """The output-path rule of every command, checked before anything is read or written.
+
+    ``outputs`` and ``inputs`` map a label (the option, e.g. ``"--json"``, or ``"input"``) to a path
+    (None = not given). :class:`ConfigurationError` (exit 2) when an output names an input or another
+    output (also through symlinks or hard links); :class:`FileWriteError` (exit 4) when an output
+    file's directory does not exist. Labels in ``directories`` are output directories (created by
+    the command, so their parent need not exist yet).
+    """
+    directories = set(directories)
+    outs = [(k, Path(v)) for k, v in outputs.items() if v is not None and str(v) != "-"]
+    ins = [(k, Path(v)) for k, v in (inputs or {}).items() if v is not None and str(v) != "-"]
+    for i, (name, out) in enumerate(outs):
+        for in_name, p in ins:
+            if _same_file(out, p):
+                raise ConfigurationError(f"{name} {out} is the {in_name} {p}: write the result elsewhere")
+        for other, q in outs[i + 1:]:
+            if _same_file(out, q):
+                raise ConfigurationError(f"{name} {out} and {other} {q} name the same file: give two paths")
+    for name, out in outs:
+        if name in directories:
+            continue
+        parent = out.parent
+        if not parent.is_dir():
+            raise FileWriteError(f"{name} {out}: directory {parent} does not exist")
+
+
+#: Default bounds of :func:`read_json_bounded`.
+JSON_MAX_BYTES = 1 << 20
+JSON_MAX_DEPTH = 32
+JSON_MAX_INT_DIGITS = 30
+
+
+def read_json_bounded(path: str | os.PathLike, *, max_bytes: int = JSON_MAX_BYTES, max_depth: int = JSON_MAX_DEPTH,
+                      max_int_digits: int = JSON_MAX_INT_DIGITS, what: str = "JSON file") -> Any:
+    """Parse a small JSON document from ``path`` with every bound checked before it can hurt.
+
+    * only a regular file (``stat`` before opening; a FIFO, device or directory is refused, opened
+      with ``O_NONBLOCK`` so that a FIFO swapped in after the check cannot block);
+    * at most ``max_bytes`` (checked on the size and again while reading: ``/dev/zero`` never fills memory);
+    * integers of at most ``max_int_digits`` digits (a 400-digit integer would overflow a float later);
+    * nesting at most ``max_depth`` deep; no ``NaN``/``Infinity`` tokens (RFC 8259).
+
+    Any violation, an unreadable file or bad JSON raises :class:`InputDataError` naming the file
+    (and line/column for syntax errors).
+    """
+    p = Path(path)
+    try:
+        st = os.stat(p)
+    except OSError as exc:
+        raise InputDataError(f"{p}: cannot read {what} ({exc.strerror or exc})") from None
+    if not stat_mod.S_ISREG(st.st_mode):
+        raise InputDataError(f"{p}: not a regular file (a {what} must be one)")
+    if st.st_size > max_bytes:
+        raise InputDataError(f"{p}: {st.st_size} bytes, more than the {max_bytes} a {what} may have")
+    try:
+        fd = os.open(p, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+        with open(fd, "rb") as fh:
+            if not stat_mod.S_ISREG(os.fstat(fh.fileno()).st_mode):
+                raise InputDataError(f"{p}: not a regular file (a {what} must be one)")
+            raw = fh.read(max_bytes + 1)
+    except OSError as exc:
+        raise InputDataError(f"{p}: cannot read {what} ({exc.strerror or exc})") from None
+    if len(raw) > max_bytes:
+        raise InputDataError(f"{p}: more than {max_bytes} bytes, too large for a {what}")
+    return parse_json_bounded(raw, str(p), max_depth=max_depth, max_int_digits=max_int_digits, what=what)
+
+
+def parse_json_bounded(raw: bytes | str, source: str, *, max_depth: int = JSON_MAX_DEPTH,
+                       max_int_digits: int = JSON_MAX_INT_DIGITS, what: str = "JSON file") -> Any:
+    """The parsing half of :func:`read_json_bounded` (bytes or text already in memory)."""
+    if isinstance(raw, bytes):
+        try:
+            raw = raw.decode("utf-8-sig")
+        except UnicodeDecodeError as exc:
+            raise InputDataError(f"{source}: byte {exc.start}: not UTF-8 text") from None
+    depth = _max_nesting(raw)
+    if depth > max_depth:
+        raise InputDataError(f"{source}: nested {depth} levels deep, more than the {max_depth} a {what} may have")
+
+    def parse_int(text: str) -> int:
+        if len(text.lstrip("-")) > max_int_digits:
+            raise InputDataError(f"{source}: an integer of {len(text.lstrip('-'))} digits "
+                                 f"(at most {max_int_digits} allowed)")
+        return int(text)
+
+    def refuse_constant(name: str):
+        raise InputDataError(f"{source}: {name} is not JSON (RFC 8259)")
+
+    try:
+        return json.loads(raw, parse_int=parse_int, parse_constant=refuse_constant)
+    except json.JSONDecodeError as exc:
+        raise InputDataError(f"{source}: line {exc.lineno}: column {exc.colno}: not valid JSON (corrupt or "
+                             f"truncated: {exc.msg})") from None
+    except (RecursionError, ValueError, OverflowError) as exc:   # belt and braces: nothing escapes as a traceback
+        if isinstance(exc, InputDataError):
+            raise
+        raise InputDataError(f"{source}: unreadable {what} ({type(exc).__name__})") from None
+
+
+#: A JSON string literal (skipped when counting nesting).
+_JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"')
+_NOT_BRACKET = re.compile(r"[^\[\]{}]+")
+
+
+def _max_nesting(text: str) -> int:
+    """Deepest ``[``/``{`` nesting of JSON text, strings skipped (linear, no recursion)."""
+    depth = best = 0
+    for ch in _NOT_BRACKET.sub("", _JSON_STRING.sub("", text)):
+        if ch in "[{":
+            depth += 1
+            best = max(best, depth)
+        else:
+            depth -= 1
+    return best
 
 
 def json_safe(x: Any) -> Any:

@@ -20,6 +20,8 @@ from magstack.data.session import Session, row_line
 def finite_rows(t_s: np.ndarray, *arrays: np.ndarray) -> np.ndarray:
     """Mask of rows where ``t_s`` and every column of each array are finite."""
     ok = np.isfinite(np.asarray(t_s, float)).reshape(-1)
+    if not ok.size:   # no rows (a header-only file): reshape(0, -1) is undefined
+        return ok
     for a in arrays:
         a = np.asarray(a, float)
         ok &= np.all(np.isfinite(a.reshape(ok.size, -1)), axis=1)

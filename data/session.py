@@ -54,6 +54,11 @@ DECIMAL_RE = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?"
 #: Optional non-current columns that v1 readers understand.
 OPTIONAL_COLUMNS = ("flag",)
 _BOM = b"\xef\xbb\xbf"
+#: Physical range of the field columns (uT): 0.1 T, far beyond every sensor of the stack (LIS3MDL
+#: +-1600 uT at its widest); a value outside is a corrupt cell, not a measurement.
+FIELD_LIMIT_UT = 1e5
+#: Physical range of ``temp_c`` (degC): absolute zero .. far beyond any electronics.
+TEMP_RANGE_C = (-273.15, 500.0)
 _END_PREFIX = f"# {END_KEY}:".encode()
 _END_RE = re.compile(r"#\s*magstack-end:\s*rows=(\d+)\s+crc32=0x([0-9a-fA-F]{8})\s*")
 #: Bytes a body of plain decimals and gaps consists of (fast path); ``nan`` letters checked apart.
@@ -160,12 +165,13 @@ class SessionWriter:
     :meth:`flush`/:meth:`close`); each block is formatted in one vectorised step. On clean close
     the closing line (row count, CRC-32 of the row bytes) is written and ``<path>.part`` is renamed
     to ``path``. A write that fails (file too large, disk full) raises
-    :class:`~magstack.data.errors.FileWriteError` naming the ``.part`` file.
+    :class:`~magstack.data.errors.FileWriteError` naming the ``.part`` file. Extra columns named in
+    ``integer_extras`` hold integers (a table CRC-32, a count) and are written without decimals.
     """
 
     def __init__(self, path: str | os.PathLike, metadata: Mapping[str, str] | None = None, *,
                  current_names: Sequence[str] = (), with_flag: bool = False, block_rows: int = 50,
-                 extra_names: Sequence[str] = ()) -> None:
+                 extra_names: Sequence[str] = (), integer_extras: Sequence[str] = ()) -> None:
         self.path = Path(path)
         if not self.path.name or self.path.is_dir():
             raise SessionFileError(f"{path}: is a directory, not a session file name")
@@ -181,8 +187,9 @@ class SessionWriter:
         _check_metadata(meta)
         cols = (list(REQUIRED_COLUMNS) + [f"current_{n}_A" for n in self.current_names] + self.extra_names
                 + (["flag"] if with_flag else []))
-        n_float = len(self.current_names) + len(self.extra_names)
-        self._row_fmt = ",".join(["%.6f"] * 7 + ["%.4f", "%d"] + ["%.6f"] * n_float
+        # integer_extras (a CRC-32, a count) are written without decimals ("%.0f": an empty cell stays empty)
+        extra_fmt = ["%.0f" if n in set(integer_extras) else "%.6f" for n in self.extra_names]
+        self._row_fmt = ",".join(["%.6f"] * 7 + ["%.4f", "%d"] + ["%.6f"] * len(self.current_names) + extra_fmt
                                  + (["%d"] if with_flag else [])) + "\n"
         self._int_cols = [8] + ([len(cols) - 1] if with_flag else [])
         self._ncols = len(cols)
@@ -608,6 +615,7 @@ def _session_from_table(arr: np.ndarray, header: list[str], current_cols: list[s
     def col(c: str) -> np.ndarray:
         return arr[:, idx[c]]
 
+    _check_physical_range(arr, header, name, locate)
     sess = col("session")
     _check_integer_column(sess, "session", name, header_line=header_line, allow_empty=False, locate=locate)
     flag = None
@@ -624,6 +632,22 @@ def _session_from_table(arr: np.ndarray, header: list[str], current_cols: list[s
                 metadata, flag, extra={c: col(c) for c in extra_cols}, source=name)
     s.warnings.extend(warnings)
     return s
+
+
+def _check_physical_range(arr: np.ndarray, header: list[str], name: str, locate: Callable[[int], int]) -> None:
+    """SessionFileError naming line and column of the first field cell beyond +-FIELD_LIMIT_UT or
+    temperature outside TEMP_RANGE_C (empty cells are gaps, not errors)."""
+    checks = [(k, -FIELD_LIMIT_UT, FIELD_LIMIT_UT, "uT") for k, c in enumerate(header)
+              if c.startswith(("ref_", "dut_")) and c.endswith("_uT")]
+    if "temp_c" in header:
+        checks.append((header.index("temp_c"), *TEMP_RANGE_C, "degC"))
+    for k, lo, hi, unit in checks:
+        v = arr[:, k]
+        with np.errstate(invalid="ignore"):
+            bad = np.flatnonzero((v < lo) | (v > hi))
+        if bad.size:
+            raise SessionFileError(f"{name}: line {locate(int(bad[0]))}: column {header[k]!r}: {v[bad[0]]:g} {unit} "
+                                   f"is outside the physical range [{lo:g}, {hi:g}] {unit} ({bad.size} such rows)")
 
 
 def row_line(s: Session, k: int) -> int | None:

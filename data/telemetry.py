@@ -104,7 +104,7 @@ def read_header(path: str | os.PathLike) -> TelemetryHeader:
     name = str(path)
     meta: dict[str, str] = {}
     try:
-        with open(path, encoding="utf-8") as fh:
+        with open(path, encoding="utf-8-sig") as fh:   # a byte-order mark is accepted, as by read_session
             lineno = 0
             for line in fh:
                 lineno += 1
@@ -136,7 +136,7 @@ def read_header(path: str | os.PathLike) -> TelemetryHeader:
 
 def _locate_bad_cell(path: str, header: TelemetryHeader, first_row: int, n_rows: int) -> SessionFileError:
     """Slow scan of rows first_row .. first_row + n_rows for the first bad cell (exact line and column)."""
-    with open(path, encoding="utf-8") as fh:
+    with open(path, encoding="utf-8-sig") as fh:
         lineno, row = 0, -1
         for line in fh:
             lineno += 1

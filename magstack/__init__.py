@@ -3,17 +3,17 @@
 One import root; the repository folders map onto sub-packages (pyproject ``package-dir``):
 
 =====================  ==============================================================
-``magstack.drivers``   ``drivers/``      bus transports, chip tables and drivers, chip factory
-``magstack.data``      ``data/``         session / telemetry file format, merge, row split, atomic I/O
-``magstack.firmware``  ``firmware_py/``  on-board code: calibration, tables, appliers, flight loop
-``magstack.sim``       ``sim/``          simulated buses, chip models, error model, truth generators
-``magstack.ground``    ``ground/``       alignment, apply-to-session, importers, reports, diagnosis
-``magstack.hil``       ``hil/``          bench runner and Raspberry Pi wiring
 ``magstack.cli``       ``cli/``          the ``magstack`` command and the demo
+``magstack.hil``       ``hil/``          bench runner and Raspberry Pi wiring
+``magstack.ground``    ``ground/``       alignment, apply-to-session, importers, reports, diagnosis
+``magstack.sim``       ``sim/``          simulated buses, chip models, error model, truth generators
+``magstack.firmware``  ``firmware_py/``  on-board code: calibration, tables, appliers, flight loop
+``magstack.data``      ``data/``         session / telemetry file format, merge, row split, atomic I/O
+``magstack.drivers``   ``drivers/``      bus transports, chip tables and drivers, chip factory
 =====================  ==============================================================
 
-Each layer imports only the layers listed above it (checked by import-linter in CI);
-``docs/architecture.md`` has the picture.
+Layers are listed top to bottom as in ``docs/architecture.md`` (cli > hil > ground > sim > firmware >
+data > drivers > errors): each imports only the layers below it (checked by import-linter in CI).
 """
 from __future__ import annotations
 
@@ -29,5 +29,10 @@ def _version() -> str:
         return "0.0.0+checkout"
 
 
-#: Installed distribution version (``0.0.0+checkout`` when not installed).
-__version__ = _version()
+def __getattr__(name: str) -> str:
+    """``__version__``: the installed distribution version (``0.0.0+checkout`` when not installed),
+    looked up on first use (importlib.metadata costs start-up time every command would pay)."""
+    if name == "__version__":
+        globals()["__version__"] = v = _version()
+        return v
+    raise AttributeError(f"module 'magstack' has no attribute {name!r}")

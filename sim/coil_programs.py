@@ -446,8 +446,22 @@ def _currents(d, s):
 
 @_reg("full", 3600.0, "steps, sweeps, rotation and excursions with thermal cycling and named currents")
 def _full(d, s):
+    return _full_program(d, s, "full", 150.0)
+
+
+#: Excursion peak of ``full_in_range`` (uT): inside an FVM400 reference's +-100 uT range with margin.
+IN_RANGE_PEAK_UT = 90.0
+
+
+@_reg("full_in_range", 3600.0, "as full, excursions to +-90 uT: every reference value inside an FVM400's +-100 uT")
+def _full_in_range(d, s):
+    return _full_program(d, s, "full_in_range", IN_RANGE_PEAK_UT)
+
+
+def _full_program(d, s, name: str, peak_uT: float):
     q = d / 4.0
-    parts = [steps_profile("xyz", q), sweep_profile("xyz", q), rotation_profile(q), excursion_profile("xyz", q)]
+    parts = [steps_profile("xyz", q), sweep_profile("xyz", q), rotation_profile(q),
+             excursion_profile("xyz", q, peak_uT=peak_uT)]
 
     def fld(t_s):
         t = _t(t_s)
@@ -459,7 +473,7 @@ def _full(d, s):
                 out[m] = p(t[m] - i * q)
         return out
 
-    return ProgramTruth("full", d, fld, cycling_temp(d, mean_c=30.0, amplitude_c=25.0, cycles=1.0),
+    return ProgramTruth(name, d, fld, cycling_temp(d, mean_c=30.0, amplitude_c=25.0, cycles=1.0),
                         current_fns={"solar_A": square_current(0.5, 90.0, 0.5),
                                      "torquer_A": pulse_current(0.1, 30.0, 3.0, start_s=10.0)},
                         sessions=s, description="all bench patterns, thermal cycle, currents")

@@ -143,7 +143,7 @@ def test_cli_refuses_bad_arguments_and_never_overwrites_good_files(tmp_path, cap
         assert msg in capsys.readouterr().err
         assert out.read_bytes() == good
     assert main(["fit", str(tmp_path / "a.csv"), "--no-holdout", "--out", str(tmp_path / "no" / "c.json")]) == 4
-    assert "No such file or directory" in capsys.readouterr().err
+    assert "does not exist" in capsys.readouterr().err
     # an invalid (but correctly signed) table: `table validate` answers 1, `table show` exits 3 (bad input)
     doc = json.loads(good)
     doc["parameters"]["S"]["value"][1][1] = None
@@ -156,9 +156,9 @@ def test_cli_refuses_bad_arguments_and_never_overwrites_good_files(tmp_path, cap
         assert "parameters.S.value[1][1]: must be a finite number" in capsys.readouterr().err
     # apply: never onto its own input, never twice
     assert main(["apply", str(out), str(tmp_path / "a.csv"), "--out", str(tmp_path / "a.csv")]) == 2
-    assert "is the input file" in capsys.readouterr().err
+    assert "write the result elsewhere" in capsys.readouterr().err
     assert main(["fit", str(tmp_path / "a.csv"), "--out", str(tmp_path / "a.csv")]) == 2   # a table over the data
-    assert "is the input file" in capsys.readouterr().err and read_session(tmp_path / "a.csv")
+    assert "write the result elsewhere" in capsys.readouterr().err and read_session(tmp_path / "a.csv")
     assert main(["apply", str(out), str(tmp_path / "a.csv"), "--out", str(tmp_path / "c.csv")]) == 0
     assert main(["apply", str(out), str(tmp_path / "c.csv"), "--out", str(tmp_path / "cc.csv")]) == 3
     assert "already calibrated" in capsys.readouterr().err

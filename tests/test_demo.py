@@ -72,6 +72,7 @@ def test_bench_session_file_and_rates(demo):
     s = read_session(b.path)
     assert len(s) == b.rows == b.dut_samples + b.ref_samples
     assert s.metadata["device_id"] == DEVICE_ID and s.metadata["dut_chip"] == "hmc1053"
+    assert s.metadata["program"] == "full_in_range"
     assert int(np.all(np.isfinite(s.dut_uT), axis=1).sum()) == b.dut_samples
     _, dz = _sim_axis_spacing_s()
     # one vector = 7 conversions; the Z-X spacing is 2 conversions (hf8.2 table)
@@ -215,7 +216,7 @@ def test_cli_demo_runs_and_is_deterministic(tmp_path, capsys):
     for name in ("session.csv", "session-paired.csv", "cal.json", "holdout-calibrated.csv", "flight-loop.csv"):
         assert (a / name).read_bytes() == (b / name).read_bytes(), name
     html = (a / "report.html").read_text()
-    assert html.startswith("<!DOCTYPE html>") and html.count("data:image/png;base64,") == 4
+    assert html.startswith("<!DOCTYPE html>") and html.count("data:image/png;base64,") == 6
     assert "Flight executive" in html and "Held-out session" in html
 
 
@@ -225,7 +226,7 @@ def test_cli_rejects_bad_parameters(tmp_path, capsys):
     assert main(["demo", "--out-dir", str(tmp_path), "--seed", "-1"]) == 2
     assert "argument --seed: must be within [0, 4294967295], got '-1'" in capsys.readouterr().err
     assert main(["demo", "--out-dir", ""]) == 2
-    assert "argument --out-dir: expected a directory name" in capsys.readouterr().err
+    assert "argument --out/--out-dir: expected a directory name" in capsys.readouterr().err
     (tmp_path / "file").write_text("x")
     assert main(["demo", "--out-dir", str(tmp_path / "file")]) == 2
     assert "exists and is not a directory" in capsys.readouterr().err
@@ -244,3 +245,14 @@ def test_failing_step_names_itself_and_exits_nonzero(tmp_path, monkeypatch, caps
         run_demo(DemoConfig(out_dir=tmp_path / "x", seconds=300.0), say=lambda s: None)
     assert main(["demo", "--out-dir", str(tmp_path / "y"), "--seconds", "300"]) == 3
     assert "step 3 (align) failed" in capsys.readouterr().err
+
+
+def test_demo_reference_stays_inside_the_fvm400_range(demo, tmp_path, capsys):
+    """Issue 23 seam 6: the demo's simulated FVM400 read up to 150 uT per axis, beyond its +-100 uT
+    range, so `fit` on the demo's own session excluded hundreds of rows as saturated."""
+    res, _ = demo
+    s = read_session(res.bench.path)
+    assert np.nanmax(np.abs(s.ref_uT)) < 99.0
+    assert main(["fit", str(res.align.paired_path), "--no-holdout", "--out", str(tmp_path / "c.json"), "--json"]) == 0
+    stats = json.loads(capsys.readouterr().out)["stats"]
+    assert stats["saturated_rows"] == 0 and stats["n_used"] > 0

@@ -224,3 +224,15 @@ def test_a_configured_table_with_a_huge_integer_is_a_warning_not_a_crash(tmp_pat
     out, err = capsys.readouterr()
     assert "Traceback" not in err and "TABLE_REJECTED hmc1053" in err and "OverflowError" in err
     assert "DEGRADED: channel hmc1053: configured table rejected" in out
+
+
+def test_telemetry_table_crc32_is_an_integer(tmp_path, capsys):
+    """Issue 26 item 5: telemetry wrote table_crc32 as 3350503024.000000."""
+    cfg = _sim_config(tmp_path)
+    assert main(["run", "--config", str(cfg), "--duration", "5", "--out", str(tmp_path / "tlm"), "-q"]) == 0
+    f = next(p for p in (tmp_path / "tlm").glob("hmc1053*.csv"))
+    lines = f.read_text().splitlines()
+    header = next(ln for ln in lines if ln.startswith("t_s")).split(",")
+    k = header.index("table_crc32")
+    cells = [ln.split(",")[k] for ln in lines[lines.index(",".join(header)) + 1:] if ln and not ln.startswith("#")]
+    assert cells and all(c.isdigit() for c in cells if c), cells[:3]

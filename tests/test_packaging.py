@@ -25,9 +25,11 @@ def test_every_package_folder_is_listed():
     assert found == listed
 
 
-def test_python_dash_m_magstack_runs():
+def test_python_dash_m_magstack_runs(tmp_path):
+    """Run from a neutral directory: from the checkout's parent a folder named ``magstack`` (the
+    checkout itself, when cloned under that name) would shadow the installed package."""
     out = subprocess.run([sys.executable, "-m", "magstack", "--version"], capture_output=True, text=True,
-                         cwd=ROOT.parent, timeout=60)
+                         cwd=tmp_path, timeout=60)
     assert out.returncode == 0 and out.stdout.startswith("magstack ")
 
 
@@ -47,3 +49,15 @@ def test_wheel_installs_only_magstack(tmp_path):
                    "magstack/sim/backends.py", "magstack/ground/alignment.py", "magstack/hil/bench.py",
                    "magstack/cli/main.py", "magstack/cli/commands/demo.py"):
         assert module in names
+
+
+def test_license_typing_marker_changelog_and_extras():
+    """Issue 26 "Packaging": the MIT licence pyproject names ships, the package is marked typed, the
+    empty `plot` extra is gone."""
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    assert project["license"] == {"text": "MIT"}
+    text = (ROOT / "LICENSE").read_text()
+    assert text.startswith("MIT License") and "magstack developers" in text
+    assert (ROOT / "magstack" / "py.typed").is_file() and "py.typed" in CONFIG["package-data"]["magstack"]
+    assert "plot" not in project["optional-dependencies"]
+    assert (ROOT / "CHANGELOG.md").read_text().startswith("# Changelog")

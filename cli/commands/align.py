@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 
 import numpy as np
 
@@ -14,12 +15,15 @@ from magstack.drivers.errors import ConfigurationError
 from magstack.ground.alignment import align_streams, aligned_session
 from magstack.ground.mageval_import import AUTHORS_OFFSET_S, KELVIN_OFFSET, read_mageval_data, read_mageval_ref
 
+log = logging.getLogger(__name__)
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("align", help="estimate clock offset, per-axis time skew and axis map",
                               description="Inputs: one session file (its ref_* columns are aligned against its "
-                                          "dut_* columns), or an AV-MagEval pair DATA.csv REF.csv. Exit 2 with "
-                                          "an error (exit 3) when the data cannot determine the clock offset.")
+                                          "dut_* columns), or an AV-MagEval pair DATA.csv REF.csv. Exit 3 (bad "
+                                          "input data, one-line error) when the data cannot determine the clock "
+                                          "offset.")
     p.add_argument("inputs", nargs="+", help="SESSION.csv | DATA.csv REF.csv")
     p.add_argument("--prior-s", type=finite_float(-1e7, 1e7, unit="s"), default=None,
                    help="expected offset (s added to reference time); with --halfwidth-s limits the search")
@@ -48,6 +52,7 @@ def register(subparsers) -> None:
 def _load(inputs: list[str], prior: float | None, halfwidth: float | None):
     if len(inputs) == 1:
         st = split_streams(read_session(inputs[0]))
+        st.require_increasing()   # as --out does: out-of-order rows are bad input, never sorted silently
         if prior is None and halfwidth is None:
             prior, halfwidth = 0.0, 10.0
         return st.t_dut_s, st.dut_uT, st.t_ref_s, st.ref_uT, prior, halfwidth, st.temp_dut_c
@@ -66,11 +71,16 @@ def run(args: argparse.Namespace) -> CommandResult:
     if args.out:
         refuse_overwriting_inputs(args.out, args.inputs)
     t_dut, dut, t_ref, ref, prior, halfwidth, temp_c = _load(args.inputs, args.prior_s, args.halfwidth_s)
+    log.info("align: %d DUT rows, %d reference rows; offset search %s; temperature model %s (order %d)", len(t_dut),
+             len(t_ref), "every offset with >= 50% overlap" if halfwidth is None else f"{prior:g} +- {halfwidth:g} s",
+             args.temp_model, args.temp_order)
     with fraction_bar("align") as progress:
         rep = align_streams(t_dut, dut, t_ref, ref, prior_s=prior, search_halfwidth_s=halfwidth,
                             max_gap_s=args.max_gap_s, min_r2=args.min_r2, temp_c=temp_c, temp_model=args.temp_model,
                             min_temp_span_c=args.min_temp_span_c, temp_order=args.temp_order, progress=progress)
         lines = _report_lines(rep)
+        log.info("align: model %s; offset %.4f s +- %.4f s, R2 %.6f from %d pairs", rep.model, rep.offset.offset_s,
+                 rep.offset.sigma_s, rep.offset.r2, rep.offset.n_pairs)
         data = {**rep.as_dict(), "out": None, "paired_rows": None, "gap_rows": None}
         if args.out:
             progress("write paired session", 0.0)

@@ -2,9 +2,11 @@
 from __future__ import annotations
 
 import argparse
+import logging
 
 import numpy as np
 
+from magstack.cli.inputs import check_table_file
 from magstack.cli.options import finite_float, nonempty_path
 from magstack.cli.output import CommandResult
 from magstack.cli.progress import stages
@@ -19,14 +21,17 @@ from magstack.firmware.errors import CalTableInvalid
 from magstack.firmware.float_applier import ApplyFlag
 from magstack.ground.apply_session import FLAG_SHIFT, calibrate_session
 
+log = logging.getLogger(__name__)
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("apply", help="apply a calibration table to a session file",
                               description="Write a session whose dut_*_uT columns hold the calibrated field. "
                                           "Rows that cannot be calibrated are kept (NaN) and flagged.")
-    p.add_argument("table", metavar="cal.json")
-    p.add_argument("session", metavar="SESSION.csv")
-    p.add_argument("--out", required=True, metavar="calibrated.csv", type=nonempty_path)
+    p.add_argument("table", metavar="cal.json", help="calibration table (magstack fit / refit)")
+    p.add_argument("session", metavar="SESSION.csv", help="raw session file to calibrate")
+    p.add_argument("--out", required=True, metavar="calibrated.csv", type=nonempty_path,
+                   help="calibrated session file to write")
     p.add_argument("--extrapolate", action="store_true",
                    help="write values for rows outside the table's validity box (still flagged); default: no "
                         "value (NaN), as the flight corrector publishes none")
@@ -42,8 +47,13 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> CommandResult:
     with stages("apply", ["read table", "read session", "apply", "write"]) as st:
         st.next()
+        check_table_file(args.table)
         table = load_table(args.table)
         validate(table).raise_if_bad(str(args.table))
+        log.info("apply: table %s for %s, terms %s, valid for temp_c %s and |B| <= %g uT; %s applier",
+                 "none" if table.crc32 is None else f"0x{table.crc32:08x}", table.device_id, ", ".join(table.terms),
+                 table.validity_temp_c,
+                 table.validity_field_uT, args.applier)
         refuse_overwriting_inputs(args.out, [args.session, args.table])
         st.next()
         s = read_session(args.session)
@@ -59,6 +69,7 @@ def run(args: argparse.Namespace) -> CommandResult:
             s = s.select(keep)
             s.metadata["rows_selected"] = how
             notes.append(f"time windows: {how}")
+        log.info("apply: %d rows of %s (%s)", len(s), args.session, s.metadata.get("rows_selected", "all rows"))
         dev = s.metadata.get("device_id")
         if dev is not None and dev != table.device_id:
             raise CalTableInvalid(f"table is for device {table.device_id!r}, session is from {dev!r}")
@@ -70,6 +81,8 @@ def run(args: argparse.Namespace) -> CommandResult:
     counts = {"missing_input": int(np.count_nonzero(f & ApplyFlag.MISSING_INPUT)),
               "out_of_validity": int(np.count_nonzero(f & ApplyFlag.OUT_OF_VALIDITY)),
               "saturated": int(np.count_nonzero(f & ApplyFlag.SATURATED))}
+    log.info("apply: not calibrated: missing input %d, outside validity %d, saturated %d", counts["missing_input"],
+             counts["out_of_validity"], counts["saturated"])
     lines = [f"note: {n}" for n in notes]
     lines.append(f"wrote {args.out}: {len(out)} rows ({args.applier} applier); not calibrated (missing input) "
                  f"{counts['missing_input']}, outside validity {counts['out_of_validity']}"
@@ -116,6 +129,7 @@ def scores(out, exclude_steps_uT: float | None) -> dict:
             return f"{label}: no rows"
         return f"{label} ({r['n']} rows): x {r['x']:.1f} y {r['y']:.1f} z {r['z']:.1f} norm {r['norm']:.1f}"
     how = "--exclude-steps" if exclude_steps_uT is not None else "automatic threshold"
+    log.info("apply: scoring away from reference steps above %.3g uT (%s): %d step rows", thr, how, int(at.sum()))
     all_rows, away = rms(ok), rms(ok & ~at)
     if away is not None:
         away.update({"threshold_uT": thr, "threshold_source": how})

@@ -1,4 +1,4 @@
-"""``magstack demo [--out-dir DIR] [--seed S] [--seconds N]``: the whole stack on the simulated bench.
+"""``magstack demo [--out DIR] [--seed S] [--seconds N]``: the whole stack on the simulated bench.
 
 Probe and read every chip, record a bench session (HMC1053 DUT + FVM400 reference), align,
 fit the calibration, save/validate/activate the table (corrupted copies refused), apply it
@@ -19,8 +19,8 @@ from magstack.cli.progress import stages
 def register(subparsers) -> None:
     p = subparsers.add_parser("demo", help="run the whole stack end to end on the simulated bench (no hardware)",
                               description=__doc__.split("\n\n")[1].replace("\n", " "))
-    p.add_argument("--out-dir", default="magstack-demo", type=nonempty_dir,
-                   help="directory for the artefacts (default ./magstack-demo)")
+    p.add_argument("--out", "--out-dir", dest="out", default="magstack-demo", type=nonempty_dir, metavar="DIR",
+                   help="directory for the artefacts (default ./magstack-demo; --out-dir is an alias)")
     p.add_argument("--seed", type=int_range(0, 2 ** 32 - 1), default=0, help="simulation seed (int >= 0, default 0)")
     p.add_argument("--seconds", type=finite_float(MIN_SECONDS, MAX_SECONDS, unit="s"), default=DemoConfig.seconds,
                    help=f"length of the calibration bench session in simulated seconds "
@@ -31,6 +31,6 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> CommandResult:
     with stages("demo", [key for key, _ in STEPS]) as st:
-        res = run_demo(DemoConfig(out_dir=args.out_dir, seed=args.seed, seconds=args.seconds), say=say,
+        res = run_demo(DemoConfig(out_dir=args.out, seed=args.seed, seconds=args.seconds), say=say,
                        on_step=st.next)
     return CommandResult("demo", {"out_dir": str(res.config.out_dir), **res.figures()})

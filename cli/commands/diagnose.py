@@ -3,16 +3,20 @@ shrinks (ground/diagnose, docs/diagnosis.md)."""
 from __future__ import annotations
 
 import argparse
-import os
-from pathlib import Path
+import logging
 
-from magstack.cli.options import finite_float, int_range, nonempty_dir, nonempty_path
-from magstack.cli.output import CommandResult, dumps
+import numpy as np
+
+from magstack.cli.inputs import check_params_file, check_table_file
+from magstack.cli.options import finite_float, int_range, nonempty_dir
+from magstack.cli.output import CommandResult
 from magstack.cli.progress import stages
-from magstack.data.session import load_sessions, refuse_overwriting_inputs
+from magstack.data.session import load_sessions
 from magstack.data.windows import add_window_options, describe, select_rows
 from magstack.ground.diagnose import Options, check_rows, diagnose, model_gap, parse_model, shift_source
 from magstack.ground.diagnose.spec import hysteresis_base, table_gap
+
+log = logging.getLogger(__name__)
 
 
 def register(subparsers) -> None:
@@ -22,17 +26,15 @@ def register(subparsers) -> None:
                     "simulator leaves out (ranked on held-out time blocks, with a significance test) and how far "
                     "the gap shrinks once it is added. The simulator is either --model (parameters fitted to the "
                     "session) or fixed: --sim PARAMS.json (magstack simulate --save-params) or --table cal.json.")
-    p.add_argument("sessions", nargs="+", metavar="SESSION.csv")
-    p.add_argument("--model", default="gain_offset",
+    p.add_argument("sessions", nargs="+", metavar="SESSION.csv", help="session files (several = one series)")
+    p.add_argument("--model", default="gain_offset", type=model_text,
                    help="effects the simulator models, parameters fitted: eq3, gain_offset or effects joined by "
                         "'+' (e.g. gain+offset+time_skew); default gain_offset")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--sim", metavar="PARAMS.json", help="error-model parameters held fixed (simulate --save-params)")
     g.add_argument("--table", metavar="cal.json", help="calibration table held fixed (fitted on earlier sessions)")
-    # the issue's --json OUT.json (a file) replaces the common --json flag for this command
-    p.add_argument("--json", dest="json_out", metavar="OUT.json", type=nonempty_path, default=None,
-                   help="write the diagnosis as strict JSON (stable keys) to OUT.json")
-    p.add_argument("--report", metavar="DIR", type=nonempty_dir, help="write DIR/diagnosis.html (needs matplotlib)")
+    p.add_argument("--report", metavar="DIR", type=nonempty_dir, help="write DIR/diagnosis.html (a page with the "
+                                                                        "figures; written whole or not at all)")
     p.add_argument("--block-s", type=finite_float(0, 86400, lo_open=True, unit="s"), default=60.0,
                    help="held-out time-block length, (0, 86400] s (default 60)")
     p.add_argument("--folds", type=int_range(2, 50), default=5, help="number of folds, [2, 50] (default 5)")
@@ -50,13 +52,32 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def model_text(text: str) -> str:
+    """argparse type of --model: names joined by single '+' (no empty name: ``gain++offset``); the
+    names themselves are checked by ``parse_model``."""
+    if not text or any(not part.strip() for part in text.split("+")):
+        raise argparse.ArgumentTypeError(f"expected effect names joined by '+', got {text!r}")
+    return text
+
+
+def _check_blocks(s, block_s: float, folds: int) -> None:
+    """ConfigurationError (exit 2) when the kept rows span fewer --block-s blocks than --folds: each
+    fold must hold out at least one block (``--block-s 86400`` on a 20-minute session)."""
+    from magstack.drivers.errors import ConfigurationError
+    from magstack.ground.diagnose.gap import time_blocks
+
+    n = int(np.unique(time_blocks(s.t_s, s.session, block_s)).size) if len(s) else 0
+    if n < folds:
+        raise ConfigurationError(f"--block-s {block_s:g} s cuts the {len(s)} usable rows into {n} time block(s), "
+                                 f"fewer than --folds {folds}: lower --block-s (the session spans "
+                                 f"{np.ptp(s.t_s) if len(s) else 0:.0f} s) or --folds")
+
+
 def run(args: argparse.Namespace) -> CommandResult:
     opts = Options(block_s=args.block_s, n_folds=args.folds, alpha=args.alpha,
                    exclude_bends=None if args.keep_bends else 10.0, null=args.null)
     if args.sim is None and args.table is None:
         terms, modelled, hyst = parse_model(args.model)
-    if args.json_out:
-        refuse_overwriting_inputs(args.json_out, list(args.sessions) + [x for x in (args.sim, args.table) if x])
     with stages("diagnose", ["read", "predict", "rank effects", "write"]) as st:
         st.next()
         session, notes = load_sessions(args.sessions)
@@ -66,14 +87,22 @@ def run(args: argparse.Namespace) -> CommandResult:
             session = session.select(sel)
         full, keep, more = check_rows(session, exclude_bends=opts.exclude_bends)
         s = full.select(keep)
+        _check_blocks(s, args.block_s, args.folds)
+        log.info("diagnose: %d rows read, %d kept (%s)", len(session), int(keep.sum()),
+                 "; ".join(more) if more else "no row left out")
+        log.info("diagnose: simulator %s; held-out blocks of %g s in %d folds, alpha %g, null model %s",
+                 f"--table {args.table}" if args.table else f"--sim {args.sim}" if args.sim else
+                 f"--model {args.model}", args.block_s, args.folds, args.alpha, args.null)
         st.next()
         if args.table:
             from magstack.firmware.cal_table import load_table, validate
+            check_table_file(args.table)
             table = load_table(args.table)
             validate(table).raise_if_bad(str(args.table))
             gap = table_gap(s, table, f"--table {args.table}")
         elif args.sim:
             from magstack.ground.diagnose.sim_adapter import sim_gap
+            check_params_file(args.sim)
             gap = sim_gap(full, keep, args.sim)
         else:
             gap = model_gap(s, terms, modelled, f"--model {args.model}", args.t0,
@@ -83,24 +112,13 @@ def run(args: argparse.Namespace) -> CommandResult:
         st.next()
         d = diagnose(gap, opts)
         st.next()
+        log.info("diagnose: verdict %s", d.verdict if hasattr(d, "verdict") else d.to_dict().get("verdict"))
         doc = d.to_dict()
         doc["windows"] = describe(args.window, args.drop_window, len(session), len(session) if not (
             args.window or args.drop_window) else int(sel.size))
         lines = d.text().splitlines()
-        if args.json_out:
-            _write_json(args.json_out, doc)
-            lines.append(f"wrote {args.json_out}")
         if args.report:
             from magstack.ground.diagnose.figures import write_report
             lines.append(f"wrote {write_report(d, args.report)}")
     return CommandResult("diagnose", doc, lines)
 
-
-def _write_json(path, doc) -> None:
-    p = Path(path)
-    part = p.with_name(p.name + ".part")
-    with open(part, "w", encoding="utf-8") as fh:
-        fh.write(dumps(doc) + "\n")
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(part, p)

@@ -3,8 +3,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 
-from magstack.cli.options import finite_float, float_list, nonempty_path
+from magstack.cli.options import finite_float, float_list, nonempty_path, nonempty_text
 from magstack.cli.output import CommandResult, say
 from magstack.cli.progress import stages
 from magstack.data.session import load_sessions, refuse_overwriting_inputs
@@ -16,6 +17,24 @@ from magstack.firmware.calibration import FitData, FitOptions, fit
 from magstack.firmware.calibration.model import CAL_TERMS, MODELS
 from magstack.firmware.calibration.reference import reference_range
 from magstack.firmware.errors import CalTableInvalid, FitError
+
+log = logging.getLogger(__name__)
+
+
+def field_coverage_notes(ref_uT, field_present_uT: float) -> list[str]:
+    """Warnings when the reference field cannot determine a calibration: an axis whose |B| never
+    reaches ``field_present_uT`` leaves its gain column undetermined (a zero-field session fits
+    offsets only, yet the table looks valid)."""
+    import numpy as np
+
+    peak = np.nanmax(np.abs(ref_uT), axis=0) if len(ref_uT) else np.zeros(3)
+    weak = [ax for ax, p in zip("xyz", peak, strict=True) if not p >= field_present_uT]
+    if not weak:
+        return []
+    return [f"the reference field never reaches {field_present_uT:g} uT on axis {', '.join(weak)} (peak "
+            + ", ".join(f"{ax} {p:.3g}" for ax, p in zip("xyz", peak, strict=True))
+            + " uT): the gains on that axis come from the prior or the other axes, not from this data; "
+              "the table's output is not supported there"]
 
 
 def _split(values) -> list[str]:
@@ -29,8 +48,10 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("fit", help="fit the calibration model to session files",
                               description="Fit the calibration model (several files = separate sessions), "
                                           "print the report and write a calibration table.")
-    p.add_argument("sessions", nargs="+", metavar="SESSION.csv")
-    p.add_argument("--model", default="eq3", choices=sorted(MODELS))
+    p.add_argument("sessions", nargs="+", metavar="SESSION.csv", help="session files (several = separate sessions)")
+    p.add_argument("--model", default="eq3", choices=sorted(MODELS),
+                   help="eq3: gain matrix, offset and their temperature terms (default); gain_offset: no "
+                        "temperature terms")
     p.add_argument("--terms", nargs="*", default=[], metavar="TERM",
                    help=f"extra terms (comma or space separated): {', '.join(CAL_TERMS)}")
     p.add_argument("--currents", default="", metavar="NAME,...", help="current columns to fit (D_k terms)")
@@ -59,8 +80,9 @@ def register(subparsers) -> None:
     p.add_argument("--no-holdout", action="store_true", help="skip held-out evaluation")
     p.add_argument("--block-s", type=finite_float(0, 1e7, lo_open=True, unit="s"), default=60.0,
                    help="time-block length for held-out folds (s, default 60)")
-    p.add_argument("--device-id", default=None, help="device id for the table (default: session metadata)")
-    p.add_argument("--description", default="")
+    p.add_argument("--device-id", default=None, type=nonempty_text,
+                   help="device id for the table (default: session metadata)")
+    p.add_argument("--description", default="", help="free text stored in the table (default: the files fitted)")
     p.add_argument("--validity-temp", default=None, metavar="LO,HI",
                    type=float_list(2, t_lo, t_hi, unit="degC", ordered=True),
                    help="table validity temperature range, degC (default: the data's range; write a negative LO as "
@@ -79,7 +101,7 @@ def register(subparsers) -> None:
     p.add_argument("--validity-sd", type=finite_float(0, 1e6, lo_open=True, unit="nT"), default=None, metavar="NT",
                    help="validity bound on the posterior sd of the calibrated field, nT (default: 2x the fit's "
                         "noise floor)")
-    p.add_argument("--out", required=True, metavar="cal.json", type=nonempty_path)
+    p.add_argument("--out", required=True, metavar="cal.json", type=nonempty_path, help="calibration table to write")
     p.set_defaults(func=run)
 
 
@@ -133,6 +155,8 @@ def run(args: argparse.Namespace) -> CommandResult:
             session = session.select(keep)
             notes.append(f"time windows: {selection['windows']}")
         ids = sorted(set(session.session.tolist()))
+        log.info("fit: %d rows from %d file(s), sessions %s; rows selected: %s", len(session), len(args.sessions),
+                 ids, selection["windows"])
         if args.mount_frame is not None and args.mount_frame not in ids:
             raise ConfigurationError(f"--mount-frame {args.mount_frame}: no such session (have {ids})")
         ref_name, ref_range, ref_note = reference_range(session.metadata)
@@ -148,10 +172,26 @@ def run(args: argparse.Namespace) -> CommandResult:
                           max_vif=args.max_vif, ref_range_uT=ref_range, include_saturated=args.include_saturated,
                           mount_frame=args.mount_frame, use_priors=not args.no_priors,
                           chip=args.chip or session.metadata.get("dut_chip"), priors=prior_overrides(args.prior))
+        weak = field_coverage_notes(session.ref_uT, args.field_present)
+        for w in weak:
+            log.warning("fit: %s", w)
+        notes += weak
+        log.info("fit: model %s, extra terms %s, currents %s, t0 %g degC, %s; reference %s", args.model,
+                 _split(args.terms) or "none", _split([args.currents]) or "none", args.t0,
+                 "Huber IRLS" if args.robust else "least squares", selection["reference"])
+        log.info("fit: held-out folds %s", "off" if args.no_holdout else f"time blocks of {args.block_s:g} s")
+        log.debug("fit: options %s", opts)
+        log.info("fit: priors %s%s", "none (--no-priors)" if args.no_priors else (opts.chip or "generic"),
+                 f", overrides {sorted(opts.priors)}" if opts.priors else "")
         st.next()
         result = fit(FitData.from_session(session), args.model, _split(args.terms), _split([args.currents]),
                      args.t0, opts)
         result.selection.update(selection)
+        stats = result.stats()
+        log.info("fit: rows used %s, excluded %s (saturated reference %s, step rows %s)", stats.get("n_used"),
+                 stats.get("n_excluded"), stats.get("saturated_rows"), stats.get("n_excluded_steps"))
+        for h in stats.get("held", []):
+            log.info("fit: held %s = %s: %s", h["param"], h["value"], h["reason"])
         st.next()
         report = result.report()
         table = table_from_fit(result, device_id, description=args.description or
@@ -174,7 +214,7 @@ def run(args: argparse.Namespace) -> CommandResult:
         [f"  {x}" for x in vinfo.get("notes", [])] + [f"WARNING: {w}" for w in vinfo.get("warnings", [])] + \
         [f"table validates: worst-case output {v.worst_output_uT:.1f} uT, max cond {v.max_cond:.3g}"]
     data = {"out": str(args.out), "device_id": device_id, "crc32": crc, "model": result.model.name,
-            "terms": _split(args.terms), "currents": _split([args.currents]), "stats": result.stats(),
+            "terms": _split(args.terms), "currents": _split([args.currents]), "stats": stats,
             "validation": {"ok": v.ok, "worst_output_uT": v.worst_output_uT, "max_cond": v.max_cond},
             "notes": notes}
     return CommandResult("fit", data, lines)

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 
 from magstack.cli.options import finite_float, int_range, nonempty_path
 from magstack.cli.output import CommandResult
@@ -56,6 +57,19 @@ def _onto(text: str) -> str | float:
         raise ConfigurationError(f"--onto must be 'dut', 'ref' or a grid step in s: {exc}") from None
 
 
+def _number(text):
+    """A numeric metadata value as JSON wants it: a number, ``nan`` -> None."""
+    if not isinstance(text, str):
+        return text
+    try:
+        v = float(text)
+    except ValueError:
+        return text
+    if not math.isfinite(v):
+        return None
+    return int(v) if v.is_integer() and text.strip().lstrip("+-").isdigit() else v
+
+
 def run(args: argparse.Namespace) -> CommandResult:
     onto = _onto(args.onto)
     refuse_overwriting_inputs(args.out, [args.data_csv, args.ref_csv])
@@ -77,7 +91,9 @@ def run(args: argparse.Namespace) -> CommandResult:
     m = s.metadata
     keys = ("clock_offset_s", "clock_offset_vs_authors_s", "clock_offset_sigma_s", "clock_offset_method", "gap_rows",
             "gap_policy")
-    data = {"out": str(args.out), "rows": len(s), **{k: m.get(k) for k in keys},
+    numeric = {"clock_offset_s", "clock_offset_vs_authors_s", "clock_offset_sigma_s", "gap_rows"}
+    data = {"out": str(args.out), "rows": len(s),
+            **{k: _number(m.get(k)) if k in numeric else m.get(k) for k in keys},
             "rows_selected": m.get("rows_selected")}
     warning = None
     if m["clock_offset_method"].startswith("prior"):

@@ -20,7 +20,7 @@ MAX_READINGS = 1_000_000
 def register(subparsers) -> None:
     p = subparsers.add_parser("read", help="print readings from one magnetometer",
                               description=__doc__.split("\n\n")[0].replace("``", ""))
-    p.add_argument("--chip", required=True, choices=chip_names())
+    p.add_argument("--chip", required=True, choices=chip_names(), help="chip driver to read")
     p.add_argument("--bus", default="sim", help="'sim' (simulated bench) or an I2C bus: 1 or /dev/i2c-1")
     p.add_argument("-n", type=int_range(1, MAX_READINGS), default=10,
                    help=f"number of readings, 1..{MAX_READINGS} (default 10)")

@@ -10,15 +10,22 @@ worked but nothing is proposed (the candidate is not written).
 from __future__ import annotations
 
 import argparse
-import os
-from pathlib import Path
+import logging
 
-from magstack.cli.options import finite_float, int_range, nonempty_path
+from magstack.cli.inputs import check_table_file
+from magstack.cli.options import finite_float, int_range, nonempty_path, nonempty_text
 from magstack.cli.output import CommandResult
 from magstack.cli.progress import bar
 from magstack.drivers.errors import ConfigurationError
 
 METHODS = ("attitude", "scalar", "pso")
+
+
+log = logging.getLogger(__name__)
+
+
+def sel_text(band: str | None) -> str:
+    return "any" if band is None else band
 
 
 def register(subparsers) -> None:
@@ -28,22 +35,25 @@ def register(subparsers) -> None:
                     "currents; docs/refit.md). Prints coverage, held and fitted parameters and the candidate "
                     "against the active table on held-out rows; writes the candidate only if it validates and "
                     "is better.")
-    p.add_argument("telemetry", nargs="*", metavar="TELEMETRY.csv")
+    p.add_argument("telemetry", nargs="*", metavar="TELEMETRY.csv", help="telemetry files (flight `run` output)")
     p.add_argument("--active", metavar="cal.json", help="table in force (default: identity, raw output)")
     p.add_argument("--out", metavar="candidate.json", type=nonempty_path, help="where to write a proposed candidate")
-    # refit's --json names a file (issue 15: --json OUT.json); it replaces the common stdout flag
-    p.add_argument("--json", dest="json_out", metavar="OUT.json", type=nonempty_path,
-                   help="write the report as JSON to this file (refit's --json takes a file name)")
-    p.add_argument("--method", choices=METHODS, default="attitude")
+    p.add_argument("--method", choices=METHODS, default="attitude",
+                   help="attitude: against IGRF-14 rotated into the body frame by the telemetry attitude "
+                        "(default); scalar: against the IGRF-14 magnitude only (attitude not trusted); "
+                        "pso: scalar fit by particle swarm (riwanto study)")
     p.add_argument("--engine", choices=("local", "dask"), default="local",
                    help="local (in process) or dask (optional extra: map files to statistics, reduce)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="dask.distributed scheduler (default: local threads)")
-    p.add_argument("--model", default="eq3", choices=("eq3", "gain_offset"))
+    p.add_argument("--model", default="eq3", choices=("eq3", "gain_offset"),
+                   help="calibration model: eq3 (gain, offset and their temperature terms; default) or "
+                        "gain_offset (no temperature terms)")
     p.add_argument("--currents", metavar="A,B", help="currents to fit (default: every current column)")
     p.add_argument("--no-currents", action="store_true", help="fit no current terms")
     p.add_argument("--lat-band", metavar="LO,HI", help="geodetic latitude band to use, deg (e.g. --lat-band=-40,40)")
     p.add_argument("--temp-band", metavar="LO,HI", help="temperature band to use, degC")
-    p.add_argument("--eclipse", choices=("any", "sunlit", "eclipse"), default="any")
+    p.add_argument("--eclipse", choices=("any", "sunlit", "eclipse"), default="any",
+                   help="use rows in sunlight, in eclipse or any (default)")
     p.add_argument("--no-robust", action="store_true", help="plain least squares (no Huber passes)")
     p.add_argument("--robust-passes", type=int_range(0, 50), default=4,
                    help="Huber passes after the OLS pass (default 4)")
@@ -57,7 +67,7 @@ def register(subparsers) -> None:
                    help="UT1 - UTC (s, IERS Bulletin A; default 0)")
     p.add_argument("--min-improvement", type=finite_float(0.0, 1.0, hi_open=True), default=0.0, metavar="FRAC",
                    help="propose only if the held-out RMS improves by this fraction (default 0)")
-    p.add_argument("--device-id", help="device id (default: active table, then telemetry metadata)")
+    p.add_argument("--device-id", type=nonempty_text, help="device id (default: active table, then telemetry metadata)")
     p.add_argument("--paper-model", type=int_range(1, 5), metavar="N", help="(pso) rerun the riwanto paper's model N")
     p.add_argument("--seed", type=int_range(0, None), default=0, help="(pso) random seed")
     p.add_argument("--iterations", type=int_range(1, None), default=None, metavar="K",
@@ -78,18 +88,6 @@ def _band(text: str | None, name: str):
     return lo, hi
 
 
-def _write_json_atomic(path, doc: dict) -> None:
-    from magstack.cli.output import dumps
-
-    p = Path(path)
-    tmp = p.with_name(p.name + ".part")
-    with open(tmp, "w", encoding="utf-8") as fh:
-        fh.write(dumps(doc) + "\n")
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, p)
-
-
 def _progress(enabled: bool):
     """``progress(rows, label)`` callback: one tqdm bar per pass on stderr (cli.progress policy)."""
     bars: dict = {}
@@ -108,7 +106,7 @@ def _progress(enabled: bool):
     return cb, close
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> CommandResult:
     from magstack.data.session import refuse_overwriting_inputs
     from magstack.firmware.cal_table import load_table, save_table, validate
 
@@ -117,11 +115,9 @@ def run(args: argparse.Namespace) -> int:
         if args.method != "pso" or paths:
             raise ConfigurationError("--paper-model N reruns the riwanto PSO study: use --method pso and no "
                                      "telemetry files")
-        from magstack.cli.refit_pso import run_paper_model_cli
+        from magstack.cli.refit_pso import paper_model_result
 
-        ns = argparse.Namespace(method="pso", paper_model=args.paper_model, seed=args.seed,
-                                iterations=args.iterations, json=None if args.json_out is None else str(args.json_out))
-        return run_paper_model_cli(ns)
+        return paper_model_result(args)
     if not paths:
         raise ConfigurationError("give at least one TELEMETRY.csv")
     if not args.out:
@@ -133,8 +129,11 @@ def run(args: argparse.Namespace) -> int:
     refuse_overwriting_inputs(args.out, paths + ([args.active] if args.active else []))
     active = None
     if args.active:
+        check_table_file(args.active)
         active = load_table(args.active)
         validate(active).raise_if_bad(str(args.active))
+    log.info("refit: %d telemetry file(s), method %s, model %s, engine %s; active table %s", len(paths), args.method,
+             args.model, args.engine, args.active or "none (identity)")
     currents = () if args.no_currents else (None if args.currents is None else
                                             tuple(c for c in args.currents.split(",") if c))
     progress, close = _progress(not args.no_progress)
@@ -150,6 +149,9 @@ def run(args: argparse.Namespace) -> int:
         close()
     lines = [result.report()]
     doc = result.to_dict()
+    log.info("refit: rows %s, fitted %s, held out %s; %s", doc.get("rows"), doc.get("rows_fitted"),
+             doc.get("rows_holdout"), "; ".join(doc.get("reasons") or []) or "no reason given")
+    log.debug("refit: excluded rows %s", doc.get("excluded"))
     written = None
     if result.proposed and result.candidate is not None and args.out:
         v = validate(result.candidate)   # whatever the method: an invalid table is never written
@@ -163,9 +165,6 @@ def run(args: argparse.Namespace) -> int:
     elif args.out:
         lines.append(f"{args.out} not written: no candidate proposed")
     data = {**doc, "out": written, "method": args.method}
-    if args.json_out:
-        _write_json_atomic(args.json_out, data)
-        lines.append(f"wrote {args.json_out}")
     return CommandResult("refit", data, lines, 0 if written is not None else 1)
 
 
@@ -173,6 +172,10 @@ def _options(args, currents):
     from magstack.firmware.calibration.refit import RefitOptions, Selection
 
     sel = Selection(_band(args.lat_band, "--lat-band"), _band(args.temp_band, "--temp-band"), args.eclipse)
+    log.info("refit: rows selected: latitude %s deg, temperature %s degC, %s; currents %s; held-out block %g s "
+             "(every %d-th)", sel_text(args.lat_band), sel_text(args.temp_band), args.eclipse,
+             "none" if currents == () else "all columns" if currents is None else ",".join(currents),
+             args.holdout_block_s, args.holdout_every)
     return RefitOptions(model=args.model, currents=currents, selection=sel, robust=not args.no_robust,
                         robust_passes=args.robust_passes, holdout_block_s=args.holdout_block_s,
                         holdout_every=args.holdout_every, max_current_gap_s=args.max_current_gap_s,

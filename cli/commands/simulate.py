@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +36,11 @@ MAX_ROWS = 10_000_000
 MIN_ROWS_PER_SESSION = 5
 #: Rows generated and written per block (fixed: the output depends on it only by rounding).
 BLOCK_ROWS = 20_000
+#: The progress bar advances every this many rows written.
+PROGRESS_ROWS = 1000
+
+
+log = logging.getLogger(__name__)
 
 
 def register(subparsers) -> None:
@@ -149,6 +155,10 @@ def run(args) -> CommandResult:
         "error_params": json.dumps(params.to_dict(), separators=(",", ":"), sort_keys=True),
     }
     names = sorted(truth.currents_A(0.0))
+    log.info("simulate: %s, program %s, %g s at %g Hz = %d rows in %d session(s), seed %d", args.chip, args.program,
+             truth.duration_s, rate, n_rows, truth.sessions, args.seed)
+    log.info("simulate: effects on: %s", ", ".join(effects_on) or "none")
+    log.debug("simulate: error-model parameters %s", metadata["error_params"])
     extra_columns = _orbit_metadata(truth, metadata) if orbit else []
     blocks = simulate_measurement_blocks(params, truth, duration_s=truth.duration_s, rate_hz=rate, seed=args.seed,
                                          effects=effects, block_rows=BLOCK_ROWS)
@@ -167,8 +177,10 @@ def run(args) -> CommandResult:
                 for i in range(t.size):
                     writer.write_row(t[i], ref[i], blk.dut_uT[i], blk.temp_c[i], session[i],
                                      {k: v[i] for k, v in cur.items()}, extra={k: v[i] for k, v in extra.items()})
+                    if i % PROGRESS_ROWS == PROGRESS_ROWS - 1:
+                        pbar.update(PROGRESS_ROWS)   # by work done: rows written, not blocks finished
                 writer.flush()
-                pbar.update(t.size)
+                pbar.update(t.size % PROGRESS_ROWS)
                 if stop.is_set():
                     stopped = stop.signal_name
                     break

@@ -7,6 +7,8 @@ import logging
 
 import numpy as np
 
+from magstack.cli.inputs import check_table_file
+from magstack.cli.options import nonempty_text
 from magstack.cli.output import CommandResult
 from magstack.errors import EXIT_NEGATIVE
 from magstack.firmware.cal_table import load_table, validate
@@ -19,8 +21,8 @@ def register(subparsers) -> None:
     for name, hlp in (("show", "print a table's header, parameters, validity and fit statistics"),
                       ("validate", "check CRC, schema, bounds, conditioning and fixed-point headroom")):
         q = sub.add_parser(name, help=hlp)
-        q.add_argument("table", metavar="cal.json")
-        q.add_argument("--device-id", default=None, help="also require this device id")
+        q.add_argument("table", metavar="cal.json", help="calibration table file")
+        q.add_argument("--device-id", default=None, type=nonempty_text, help="also require this device id")
         q.set_defaults(func=run, action=name)
 
 
@@ -28,11 +30,14 @@ log = logging.getLogger(__name__)
 
 
 def run(args: argparse.Namespace) -> CommandResult:
-    """``show``: an unreadable or invalid table is bad input (exit 3). ``validate``: the verdict is the
-    answer, so an invalid table prints why and exits 1."""
+    """``show``: an unreadable or invalid table is bad input (exit 3). ``validate``: a file that is not a
+    table document at all (not a regular file, too large, not JSON, too deep, huge integers) is bad
+    input (exit 3); for a table document the verdict is the answer, so an invalid one prints why and
+    exits 1."""
     data = {"table": str(args.table), "action": args.action, "valid": False, "problems": [], "crc32": None,
             "device_id": None, "model": None, "terms": None, "worst_output_uT": None, "max_cond": None,
             "document": None}
+    check_table_file(args.table)
     try:
         t = load_table(args.table)
         if args.device_id is not None and t.device_id != args.device_id:

@@ -23,7 +23,8 @@ def register(subparsers) -> None:
                         "(default max(20, 10*seeds) each)")
     p.add_argument("--seconds", type=finite_float(600, 86400, unit="s"), default=3600.0,
                    help="length of each simulated session, [600, 86400] s (default 3600)")
-    p.add_argument("--out", required=True, metavar="DIR", type=nonempty_dir)
+    p.add_argument("--out", required=True, metavar="DIR", type=nonempty_dir,
+                   help="directory for results.json, confusion.csv and summary.md (created)")
     p.set_defaults(func=run)
 
 

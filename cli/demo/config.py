@@ -41,8 +41,8 @@ class DemoConfig:
     out_dir: Path = Path("magstack-demo")
     seed: int = 0
     seconds: float = 1200.0
-    program: str = "full"
-    holdout_program: str = "full"
+    program: str = "full_in_range"
+    holdout_program: str = "full_in_range"
     holdout_seconds: float | None = None
     #: fit and held-out figures leave out rows next to a reference change above this (uT between
     #: consecutive DUT rows, ~0.36 s): coil steps and excursion ramps, where pairing a 4 Hz

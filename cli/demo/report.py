@@ -4,7 +4,9 @@ Built with the same report module as ``magstack diagnose --report`` (:mod:`magst
 
 * raw vs calibrated error over the held-out session (per axis, against the reference);
 * calibrated residual vs temperature and vs field on the held-out session;
-* the fit's residual spectrum (Welch PSD of reference minus calibrated field on the fit session);
+* |B| before and after calibration against the reference's |B| (held-out session);
+* the fitted parameters with their standard errors, and the coverage of the field sphere;
+* the fit's residual spectrum (Welch PSD in nT^2/Hz, log-binned, as on the diagnose page);
 * the flight loop's telemetry with its fault events marked;
 * the summary table of every step.
 """
@@ -17,7 +19,7 @@ import numpy as np
 
 from magstack.data.session import read_session
 from magstack.ground.apply_session import calibrate_session
-from magstack.ground.report import Report, figure
+from magstack.ground.report import PSD_LABEL, Report, figure, log_binned_psd
 
 AXES = "xyz"
 
@@ -62,18 +64,96 @@ def _residual_vs_figure(cal):
     return fig
 
 
+def _magnitude_figure(raw, cal):
+    """|B| of the raw and the calibrated DUT against the reference's |B| on the held-out session."""
+    fig, ax = figure(9.0, 5.0, nrows=2)
+    t0 = raw.t_s[0]
+    b_ref = np.linalg.norm(raw.ref_uT, axis=1)
+    ax[0][0].plot(raw.t_s - t0, b_ref, lw=1.0, color="k", label="reference")
+    ax[0][0].plot(raw.t_s - t0, np.linalg.norm(raw.dut_uT, axis=1), lw=0.7, color="C1", label="raw DUT")
+    ax[0][0].plot(cal.t_s - t0, np.linalg.norm(cal.dut_uT, axis=1), lw=0.7, ls="--", color="C2", label="calibrated")
+    ax[0][0].set_ylabel("|B| (uT)")
+    ax[0][0].set_title("held-out session: field magnitude before and after calibration")
+    d_raw = np.linalg.norm(raw.dut_uT, axis=1) - b_ref
+    d_cal = (np.linalg.norm(cal.dut_uT, axis=1) - np.linalg.norm(cal.ref_uT, axis=1)) * 1e3
+    rms_raw, rms_cal = np.sqrt(np.mean(d_raw ** 2)), np.sqrt(np.mean(d_cal ** 2))
+    ax[1][0].plot(raw.t_s - t0, d_raw * 1e3, lw=0.7, color="C1", label=f"raw (RMS {rms_raw:.2f} uT)")
+    ax[1][0].plot(cal.t_s - t0, d_cal, lw=0.7, color="C2", label=f"calibrated (RMS {rms_cal:.0f} nT)")
+    ax[1][0].set_yscale("symlog", linthresh=200.0)
+    ax[1][0].set_ylabel("|B| - |B ref| (nT)")
+    ax[1][0].set_xlabel("time in held-out session (s)")
+    for a in (ax[0][0], ax[1][0]):
+        a.legend(loc="upper right", fontsize=8, ncol=3)
+        a.grid(alpha=0.3)
+    return fig
+
+
+#: Equal-area cells of the field sphere: bands of equal sin(elevation) x azimuth sectors.
+SPHERE_BANDS, SPHERE_SECTORS = 8, 16
+
+
+def sphere_coverage(ref_uT, min_field_uT: float = 5.0) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """Azimuth and elevation (deg) of the reference field's direction on rows with |B| >= ``min_field_uT``,
+    and how many of the ``SPHERE_BANDS x SPHERE_SECTORS`` equal-area cells they reach (hit, total)."""
+    b = np.asarray(ref_uT, float)
+    n = np.linalg.norm(b, axis=1)
+    b = b[np.isfinite(n) & (n >= min_field_uT)]
+    if not len(b):
+        return np.zeros(0), np.zeros(0), 0, SPHERE_BANDS * SPHERE_SECTORS
+    u = b / np.linalg.norm(b, axis=1, keepdims=True)
+    az = np.degrees(np.arctan2(u[:, 1], u[:, 0]))
+    el = np.degrees(np.arcsin(np.clip(u[:, 2], -1, 1)))
+    band = np.minimum(((u[:, 2] + 1) / 2 * SPHERE_BANDS).astype(int), SPHERE_BANDS - 1)
+    sector = np.minimum(((az + 180) / 360 * SPHERE_SECTORS).astype(int), SPHERE_SECTORS - 1)
+    hit = np.unique(band * SPHERE_SECTORS + sector).size
+    return az, el, int(hit), SPHERE_BANDS * SPHERE_SECTORS
+
+
+def _coverage_figure(ref_uT):
+    az, el, hit, total = sphere_coverage(ref_uT)
+    fig, ax = figure(9.0, 3.8)
+    ax[0][0].plot(az, el, ".", ms=2, alpha=0.4)
+    ax[0][0].set_xlim(-180, 180)
+    ax[0][0].set_ylim(-90, 90)
+    ax[0][0].set_xlabel("azimuth of the reference field (deg)")
+    ax[0][0].set_ylabel("elevation (deg)")
+    ax[0][0].set_title(f"field-sphere coverage of the fit session: {hit} of {total} equal-area cells "
+                       f"({len(az)} rows with |B| >= 5 uT)")
+    ax[0][0].grid(alpha=0.3)
+    return fig, hit, total
+
+
+def parameter_rows(result) -> list[list[str]]:
+    """(parameter, value, std err, unit) rows of a calibration fit (held parameters say so)."""
+    m = result.model
+    mask = m.axis_mask()
+    held = {(h.axis, h.column) for h in result.held}
+    rows = []
+    for i in range(3):
+        for c, col in enumerate(m.columns):
+            if mask[i, c]:
+                se = "held (prior)" if (i, c) in held else f"{result.se[i, c]:.3g}"
+                rows.append([m.param_name(i, c), f"{result.theta[i, c]:.6g}", se, col.unit])
+    return rows
+
+
+def _counts_text(counts: dict) -> str:
+    return ", ".join(f"{k} {v}" for k, v in sorted(counts.items())) or "none"
+
+
 def _spectrum_figure(fit_cal):
     from scipy.signal import welch
 
     fig, ax = figure(9.0, 3.4)
     dt = float(np.median(np.diff(fit_cal.t_s)))
     res = (fit_cal.ref_uT - fit_cal.dut_uT) * 1e3
+    f, p = welch(res - np.mean(res, axis=0), fs=1.0 / dt, nperseg=min(256, len(res)), axis=0)
+    fb, pb = log_binned_psd(f[1:], p[1:])
     for i, a in enumerate(AXES):
-        f, p = welch(res[:, i] - np.mean(res[:, i]), fs=1.0 / dt, nperseg=min(256, len(res)))
-        ax[0][0].loglog(f[1:], np.sqrt(p[1:]), lw=0.9, label=a)
+        ax[0][0].loglog(fb, pb[:, i], lw=0.9, label=a)
     ax[0][0].set_xlabel("frequency (Hz)")
-    ax[0][0].set_ylabel("amplitude spectral density (nT/sqrt(Hz))")
-    ax[0][0].set_title(f"fit residual spectrum (Welch; DUT rows every {dt:.3f} s)")
+    ax[0][0].set_ylabel(PSD_LABEL)
+    ax[0][0].set_title(f"fit residual spectrum (Welch, log-binned; DUT rows every {dt:.3f} s)")
     ax[0][0].legend(fontsize=8)
     ax[0][0].grid(alpha=0.3, which="both")
     return fig
@@ -119,13 +199,23 @@ def write_demo_report(res, path: Path, summary_rows: list[tuple[str, str]]) -> P
              f"raw {res.holdout.raw_rmse_norm_uT:.3f} uT -> calibrated {res.holdout.cal_rmse_norm_uT * 1e3:.1f} nT "
              "RMS (vector norm of per-axis RMS) on rows away from coil transitions.")
     rep.image(_holdout_error_figure(raw, cal), "held-out error before and after calibration")
+    rep.image(_magnitude_figure(raw, cal), "field magnitude before and after calibration")
     rep.image(_residual_vs_figure(cal), "held-out residual vs temperature and field")
-    rep.heading("Fit residual")
-    fit_cal = _paired_rows(calibrate_session(res.table.table, read_session(res.align.paired_path), "float"))
+    rep.heading("Fit")
+    fit_session = read_session(res.align.paired_path)
+    fig, hit, total = _coverage_figure(fit_session.ref_uT)
+    rep.image(fig, "field-sphere coverage", caption=f"Directions of the reference field in the fit session: {hit} "
+              f"of {total} equal-area cells of the sphere reached (a calibration is determined only along "
+              "directions the field visited).")
+    if res.fit.result is not None:
+        rep.text(f"Fitted parameters ({res.fit.model}; standard errors from the fit's covariance):")
+        rep.table(["parameter", "value", "std err", "unit"], parameter_rows(res.fit.result))
+    fit_cal = _paired_rows(calibrate_session(res.table.table, fit_session, "float"))
     rep.image(_spectrum_figure(fit_cal), "fit residual spectrum")
     rep.heading("Flight executive")
     lp = res.loop
-    rep.text(f"{lp.cycles} cycles; injected faults {lp.injected}; counted {lp.health['error_count']}; calibrated "
+    rep.text(f"{lp.cycles} cycles; injected faults: {_counts_text(lp.injected)}; counted "
+             f"{lp.health['error_count']}; calibrated "
              f"error vs truth {lp.cal_error_norm_uT * 1e3:.1f} nT (raw {lp.raw_error_norm_uT:.3f} uT).")
     rep.image(_flight_figure(lp.path, lp.events_path, lp.truth_uT), "flight telemetry with fault events")
     return rep.write(out / Path(path).name)

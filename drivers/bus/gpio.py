@@ -22,42 +22,57 @@ class InputLine(Protocol):
         """Current logic level of the line."""
 
 
+def _lgpio_module(chip: int):
+    """The ``lgpio`` module, or a BusError (exit 4, one line) when it is not installed."""
+    try:
+        import lgpio  # Pi only ([pi] extra)
+    except ImportError as exc:
+        raise BusError("lgpio is not installed: on the Raspberry Pi install the pi extra (pip install -e '.[pi]'; "
+                       "README, 'On a Raspberry Pi')", address=f"gpiochip{chip}", operation="open") from exc
+    return lgpio
+
+
+def _gpio_call(lgpio, what: str, chip: int, fn, *args):
+    """``fn(*args)``; lgpio's own ``lgpio.error`` (not an OSError) or an OSError becomes a BusError naming
+    ``/dev/gpiochipN`` and what was attempted."""
+    failures = tuple(e for e in (getattr(lgpio, "error", None), OSError) if isinstance(e, type))
+    try:
+        return fn(*args)
+    except failures as exc:
+        raise BusError(f"/dev/gpiochip{chip}: {what} failed: {exc}", address=f"gpiochip{chip}",
+                       operation=what) from exc
+
+
 class _Lgpio:
     _handles: dict[int, int] = {}
 
     @classmethod
     def chip(cls, chip: int) -> int:
-        try:
-            import lgpio  # Pi only ([pi] extra)
-        except ImportError as exc:  # pragma: no cover - depends on host
-            raise BusError("lgpio is not installed; install magstack[pi] on the Raspberry Pi",
-                           address=f"gpiochip{chip}", operation="open") from exc
+        lgpio = _lgpio_module(chip)
         if chip not in cls._handles:
-            cls._handles[chip] = lgpio.gpiochip_open(chip)
+            cls._handles[chip] = _gpio_call(lgpio, "open", chip, lgpio.gpiochip_open, chip)
         return cls._handles[chip]
 
 
-class LgpioOutputLine:  # pragma: no cover - hardware only
+class LgpioOutputLine:
     def __init__(self, pin: int, *, chip: int = 0, initial: bool = False) -> None:
-        import lgpio
-
+        lgpio = _lgpio_module(chip)
         self._lg = lgpio
         self._h = _Lgpio.chip(chip)
         self._pin = pin
-        lgpio.gpio_claim_output(self._h, pin, int(initial))
+        _gpio_call(lgpio, f"claim output {pin}", chip, lgpio.gpio_claim_output, self._h, pin, int(initial))
 
     def set(self, level: bool) -> None:
         self._lg.gpio_write(self._h, self._pin, int(level))
 
 
-class LgpioInputLine:  # pragma: no cover - hardware only
+class LgpioInputLine:
     def __init__(self, pin: int, *, chip: int = 0) -> None:
-        import lgpio
-
+        lgpio = _lgpio_module(chip)
         self._lg = lgpio
         self._h = _Lgpio.chip(chip)
         self._pin = pin
-        lgpio.gpio_claim_input(self._h, pin)
+        _gpio_call(lgpio, f"claim input {pin}", chip, lgpio.gpio_claim_input, self._h, pin)
 
     def get(self) -> bool:
         return bool(self._lg.gpio_read(self._h, self._pin))

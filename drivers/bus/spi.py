@@ -28,13 +28,15 @@ class SpidevSpiBus:
         try:
             import spidev  # only present on Linux hosts with the [pi] extra
         except ImportError as exc:  # pragma: no cover - depends on host
-            raise BusError("spidev is not installed; install magstack[pi] on the Raspberry Pi",
+            raise BusError("spidev is not installed: on the Raspberry Pi install the pi extra (pip install "
+                           "-e '.[pi]') or Debian's python3-spidev (README, 'On a Raspberry Pi')",
                            address=f"spi{bus}.{device}", operation="open") from exc
         self._dev = spidev.SpiDev()
         try:
             self._dev.open(bus, device)
-        except OSError as exc:  # pragma: no cover - depends on host
-            raise BusError(f"cannot open SPI {bus}.{device}: {exc}", address=f"spi{bus}.{device}",
+        except OSError as exc:
+            raise BusError(f"cannot open /dev/spidev{bus}.{device}: {exc.strerror or exc} (SPI enabled with "
+                           "dtparam=spi=on? user in group spi?)", address=f"spi{bus}.{device}",
                            operation="open") from exc
         self._dev.mode = mode
         self._dev.max_speed_hz = max_speed_hz

@@ -83,7 +83,8 @@ class ChannelTelemetry:
         meta = {**self.metadata, "telemetry_channel": self.channel, "telemetry_file_index": str(self.index),
                 "flag_bits": flag_legend(), "dut_field": "raw"}
         try:
-            w = SessionWriter(path, meta, with_flag=True, block_rows=self.block_rows, extra_names=EXTRA_COLUMNS)
+            w = SessionWriter(path, meta, with_flag=True, block_rows=self.block_rows, extra_names=EXTRA_COLUMNS,
+                             integer_extras=("table_crc32", "error_count"))
         except FileWriteError:              # the header could not be written: remove the empty .part we made
             self.index -= 1
             _remove(path.with_name(path.name + ".part"))

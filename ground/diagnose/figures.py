@@ -7,15 +7,15 @@ from pathlib import Path
 import numpy as np
 
 from magstack.ground.diagnose import where as wh
-from magstack.ground.report import Report, figure
+from magstack.ground.report import PSD_LABEL, Report, figure, log_binned_psd
 
 _AX = "xyz"
 
 
 def write_report(diag, out_dir) -> Path:
-    """Write ``out_dir``/diagnosis.html (the directory is created); returns the path."""
+    """Write ``out_dir``/diagnosis.html; returns the path. The directory is created only when the
+    page is ready to be written (an interrupted report leaves no empty folder behind)."""
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     d = diag.to_dict()
     s = diag.gap.session
     base = diag.result.baseline.resid * 1e3
@@ -42,14 +42,15 @@ def write_report(diag, out_dir) -> Path:
     rep.image(_bars(d), "before/after bars per effect")
     rep.heading("Where the gap lies")
     t = s.t_s - s.t_s.min()
-    rep.image(_scatter(t, base, explained, "time since start (s)", d["verdict"]), "residual vs time")
+    rep.image(_scatter(t, base, explained, "time since start (s)", d["verdict"], "time"), "residual vs time")
     if np.isfinite(s.temp_c).any() and np.ptp(s.temp_c[np.isfinite(s.temp_c)]) > 0:
-        rep.image(_scatter(s.temp_c, base, explained, "temperature (degC)", d["verdict"]), "residual vs temperature")
-    rep.image(_scatter(np.linalg.norm(s.ref_uT, axis=1), base, explained, "|B| reference (uT)", d["verdict"]),
-              "residual vs field")
+        rep.image(_scatter(s.temp_c, base, explained, "temperature (degC)", d["verdict"], "temperature"),
+                  "residual vs temperature")
+    rep.image(_scatter(np.linalg.norm(s.ref_uT, axis=1), base, explained, "|B| reference (uT)", d["verdict"],
+                       "field magnitude"), "residual vs field")
     rate = wh.field_rate_uT_per_s(s.ref_uT, s.t_s, s.session)
-    rep.image(_scatter(np.log10(np.maximum(rate, 1e-3)), base, explained, "log10 |dB/dt| (uT/s)", d["verdict"]),
-              "residual vs rate")
+    rep.image(_scatter(np.log10(np.maximum(rate, 1e-3)), base, explained, "log10 |dB/dt| (uT/s)", d["verdict"],
+                       "field rate of change"), "residual vs rate")
     rep.image(_spectrum(d, diag), "spectrum")
     if d["parameters"]:
         rep.heading("Parameters of the verdict's effect")
@@ -60,6 +61,7 @@ def write_report(diag, out_dir) -> Path:
         rep.table(["effect", "reason"], [[n["effect"], n["reason"]] for n in d["not_testable"]])
     rep.heading("Text report")
     rep.preformatted(diag.text())
+    out.mkdir(parents=True, exist_ok=True)
     return rep.write(out / "diagnosis.html")
 
 
@@ -83,11 +85,13 @@ def _bars(d):
     return fig
 
 
-def _scatter(x, base, explained, xlabel, verdict):
+def _scatter(x, base, explained, xlabel, verdict, against):
     fig, axs = figure(9, 6, 3, 1)
+    fig.suptitle(f"held-out gap against {against}" + ("" if verdict == "none" else f", with the {verdict} fit"))
     order = np.argsort(x)
     for i in range(3):
         ax = axs[i, 0]
+        ax.set_title(f"{_AX[i]} axis", fontsize=9, loc="left")
         ax.plot(x, base[:, i], ".", ms=1.5, color="0.4", label="gap (held-out)")
         if verdict != "none":
             ax.plot(x[order], explained[order, i], ".", ms=1.5, color="tab:red", label=f"{verdict} fit")
@@ -107,16 +111,18 @@ def _spectrum(d, diag):
     sp = d["where"]["spectrum"]
     f = np.asarray(sp["freq_hz"])
     if f.size:
+        fb, pb = log_binned_psd(f, np.asarray(sp["psd_nT2_per_hz"]).T)
         for i in range(3):
-            ax.loglog(f, np.maximum(np.asarray(sp["psd_nT2_per_hz"][i]), 1e-12), lw=1, label=f"gap {_AX[i]}")
+            ax.loglog(fb, np.maximum(pb[:, i], 1e-12), lw=1, color=f"C{i}", label=f"gap {_AX[i]}")
         s = diag.gap.session
-        spa = wh.spectrum(diag.after_trial.resid, s.t_s, s.session)
-        if spa["freq_hz"]:
+        spa = wh.spectrum(diag.after_trial.resid, s.t_s, s.session) if d["verdict"] != "none" else {"freq_hz": []}
+        if spa["freq_hz"]:   # "after" only when an effect was named
+            fa, pa = log_binned_psd(spa["freq_hz"], np.asarray(spa["psd_nT2_per_hz"]).T)
             for i in range(3):
-                ax.loglog(spa["freq_hz"], np.maximum(np.asarray(spa["psd_nT2_per_hz"][i]), 1e-12), lw=0.8,
-                          ls=":", label=f"after {_AX[i]}")
+                ax.loglog(fa, np.maximum(pa[:, i], 1e-12), lw=0.8, ls=":", color=f"C{i}",
+                          label=f"after {d['verdict']} {_AX[i]}")
     ax.set_xlabel("frequency (Hz)")
-    ax.set_ylabel("PSD (nT^2/Hz)")
-    ax.set_title(f"residual spectrum ({sp['method']})")
+    ax.set_ylabel(PSD_LABEL)
+    ax.set_title(f"residual spectrum ({sp['method']}, averaged in log-spaced frequency bins)")
     ax.legend(fontsize=7, ncol=2)
     return fig
