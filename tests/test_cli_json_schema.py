@@ -56,6 +56,19 @@ def files(tmp_path_factory):
                                                                                                  'bus = "sim"')
     text = text.replace('table = "tables/hmc1053.json"', "")
     (d / "flight.toml").write_text(text)
+    # refit telemetry split into magnetometer rows and an ADCS file (merge); a packet stream (tm decode)
+    from magstack.data.session import Session, read_session, write_session
+    from magstack.data.telemetry import POS_COLUMNS, QUAT_COLUMNS
+    s = read_session(f["tlm"])
+    cols = (*POS_COLUMNS, *QUAT_COLUMNS)
+    write_session(d / "mag.csv", Session(s.t_s, s.ref_uT, s.dut_uT, s.temp_c, s.session, dict(s.currents_A),
+                                         dict(s.metadata), s.flag,
+                                         extra={k: v for k, v in s.extra.items() if k not in cols}))
+    rows = ["t_s," + ",".join(cols)] + [",".join(f"{v:.9f}" for v in (t, *(s.extra[c][k] for c in cols)))
+                                        for k, t in enumerate(s.t_s)]
+    (d / "adcs.csv").write_text("\n".join(rows) + "\n")
+    assert main(["run", "--config", str(d / "flight.toml"), "--duration", "5", "--out", str(d / "tlm0"), "-q"]) == 0
+    f["packets"] = next((d / "tlm0").glob("packets-*.bin"))
     return f
 
 
@@ -78,6 +91,13 @@ def _cases(f, tmp: Path) -> dict[tuple[str, ...], list[str]]:
         ("table", "show"): ["table", "show", t],
         ("table", "validate"): ["table", "validate", t],
         ("validate-diagnosis",): ["validate-diagnosis", "--out", str(tmp / "vd")],
+        ("merge",): ["merge", str(f["dir"] / "mag.csv"), "--adcs", str(f["dir"] / "adcs.csv"), "--out",
+                     str(tmp / "merged.csv")],
+        ("tm", "xtce"): ["tm", "xtce", "--config", str(f["dir"] / "flight.toml")],
+        ("tm", "dictionary"): ["tm", "dictionary"],
+        ("tm", "decode"): ["tm", "decode", str(f["packets"]), "--out", str(tmp / "dec")],
+        ("tm", "command"): ["tm", "command", "ping", "--config", str(f["dir"] / "flight.toml"), "--out",
+                           str(tmp / "ping.tc")],
     }
 
 

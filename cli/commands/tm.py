@@ -8,7 +8,7 @@ import struct
 import time
 from pathlib import Path
 
-from magstack.cli.options import int_range, nonempty_path
+from magstack.cli.options import int_range, nonempty_dir, nonempty_path
 from magstack.cli.output import CommandResult
 from magstack.data.dictionary import APP_APID, COMMAND, TC_FUNCTION, TC_PING
 from magstack.data.dictionary_doc import BEGIN, END, dictionary_markdown
@@ -31,8 +31,8 @@ def register(subparsers) -> None:
     m = sub.add_parser("dictionary", help="print the flight dictionary's tables (docs/ccsds.md) as Markdown")
     m.set_defaults(func=run_dictionary)
     d = sub.add_parser("decode", help="packet stream(s) -> session files, events.jsonl, housekeeping.jsonl")
-    d.add_argument("packets", nargs="+", type=nonempty_path, help="packet files (e.g. telemetry/packets-0001.bin)")
-    d.add_argument("--out", required=True, type=nonempty_path, help="output directory")
+    d.add_argument("packets", nargs="+", type=Path, help="packet files (e.g. telemetry/packets-0001.bin)")
+    d.add_argument("--out", required=True, type=nonempty_dir, help="output directory")
     d.set_defaults(func=run_decode)
     c = sub.add_parser("command", help="build a PUS-C telecommand; write it to a file or send it over UDP",
                        description=f"NAME is ping or one of: {', '.join(COMMAND)}; arguments as key=value.")

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from magstack.firmware import fixed_point
 from magstack.firmware.cal_table import CalTable, CalTableStore, ValidationResult, table_from_document, validate
-from magstack.firmware.calibration.model import GROUND_ONLY_TERMS
+from magstack.firmware.cal_terms import GROUND_ONLY_TERMS
 from magstack.firmware.errors import CalTableInvalid
 from magstack.firmware.flight.intake import UnsafeInput, inside_roots, read_bounded
 from magstack.firmware.table_schema import parse_table_json
