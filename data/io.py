@@ -141,19 +141,11 @@ JSON_MAX_DEPTH = 32
 JSON_MAX_INT_DIGITS = 30
 
 
-def read_json_bounded(path: str | os.PathLike, *, max_bytes: int = JSON_MAX_BYTES, max_depth: int = JSON_MAX_DEPTH,
-                      max_int_digits: int = JSON_MAX_INT_DIGITS, what: str = "JSON file") -> Any:
-    """Parse a small JSON document from ``path`` with every bound checked before it can hurt.
-
-    * only a regular file (``stat`` before opening; a FIFO, device or directory is refused, opened
-      with ``O_NONBLOCK`` so that a FIFO swapped in after the check cannot block);
-    * at most ``max_bytes`` (checked on the size and again while reading: ``/dev/zero`` never fills memory);
-    * integers of at most ``max_int_digits`` digits (a 400-digit integer would overflow a float later);
-    * nesting at most ``max_depth`` deep; no ``NaN``/``Infinity`` tokens (RFC 8259).
-
-    Any violation, an unreadable file or bad JSON raises :class:`InputDataError` naming the file
-    (and line/column for syntax errors).
-    """
+def read_bytes_bounded(path: str | os.PathLike, max_bytes: int, what: str = "file") -> bytes:
+    """The bytes of a small regular file, every bound checked before it can hurt: ``stat`` first (a FIFO,
+    device or directory is refused), opened with ``O_NONBLOCK`` (a FIFO swapped in after the check cannot
+    block), at most ``max_bytes`` (on the size and again while reading: ``/dev/zero`` never fills memory).
+    :class:`InputDataError` naming the file otherwise."""
     p = Path(path)
     try:
         st = os.stat(p)
@@ -172,7 +164,25 @@ def read_json_bounded(path: str | os.PathLike, *, max_bytes: int = JSON_MAX_BYTE
     except OSError as exc:
         raise InputDataError(f"{p}: cannot read {what} ({exc.strerror or exc})") from None
     if len(raw) > max_bytes:
-        raise InputDataError(f"{p}: more than {max_bytes} bytes, too large for a {what}")
+        raise InputDataError(f"{p}: more than the {max_bytes} bytes a {what} may have")
+    return raw
+
+
+def read_json_bounded(path: str | os.PathLike, *, max_bytes: int = JSON_MAX_BYTES, max_depth: int = JSON_MAX_DEPTH,
+                      max_int_digits: int = JSON_MAX_INT_DIGITS, what: str = "JSON file") -> Any:
+    """Parse a small JSON document from ``path`` with every bound checked before it can hurt.
+
+    * only a regular file (``stat`` before opening; a FIFO, device or directory is refused, opened
+      with ``O_NONBLOCK`` so that a FIFO swapped in after the check cannot block);
+    * at most ``max_bytes`` (checked on the size and again while reading: ``/dev/zero`` never fills memory);
+    * integers of at most ``max_int_digits`` digits (a 400-digit integer would overflow a float later);
+    * nesting at most ``max_depth`` deep; no ``NaN``/``Infinity`` tokens (RFC 8259).
+
+    Any violation, an unreadable file or bad JSON raises :class:`InputDataError` naming the file
+    (and line/column for syntax errors).
+    """
+    p = Path(path)
+    raw = read_bytes_bounded(p, max_bytes, what)
     return parse_json_bounded(raw, str(p), max_depth=max_depth, max_int_digits=max_int_digits, what=what)
 
 

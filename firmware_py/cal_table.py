@@ -29,10 +29,12 @@ from typing import Any
 
 import numpy as np
 
-from magstack.data.io import atomic_write_text, json_safe
+from magstack.data.io import atomic_write_text, json_safe, read_bytes_bounded
+from magstack.errors import InputDataError
 from magstack.firmware import fixed_point
 from magstack.firmware.cal_terms import CAL_TERMS, GROUND_ONLY_TERMS
 from magstack.firmware.errors import CalTableInvalid
+from magstack.firmware.table_schema import MAX_BYTES as MAX_TABLE_BYTES
 from magstack.firmware.table_schema import check_document, parse_table_json
 
 SCHEMA = "magstack-cal-table"
@@ -246,10 +248,10 @@ def table_from_document(doc: Any, source: str = "<table>") -> CalTable:
 def load_table(path: str | os.PathLike) -> CalTable:
     """Read and parse (schema, CRC, structure). Validation is separate: :func:`validate`."""
     p = Path(path)
-    try:
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise CalTableInvalid(f"{p}: cannot read ({exc.strerror or exc})") from None
+    try:   # regular file, non-blocking open, at most MAX_BYTES read: a FIFO or /dev/zero cannot hang or fill memory
+        raw = read_bytes_bounded(p, MAX_TABLE_BYTES, "calibration table")
+    except InputDataError as exc:
+        raise CalTableInvalid(str(exc)) from None
     return table_from_document(parse_table_json(raw, str(p)), str(p))
 
 
@@ -540,14 +542,20 @@ class CalTableStore:
     def active_fixed(self) -> fixed_point.FixedPointTable | None:
         return self._active_fixed
 
+    def read(self, path: str | os.PathLike) -> CalTable:
+        """Parse the table at ``path`` and check its device id (nothing staged); subclasses change how the
+        file is reached (the flight application: inside configured roots only)."""
+        table = load_table(path)
+        if table.device_id != self.device_id:
+            raise CalTableInvalid(f"{path}: foreign table for device {table.device_id!r}, "
+                                  f"this store serves {self.device_id!r}")
+        return table
+
     def load(self, path: str | os.PathLike) -> ValidationResult:
-        """Parse + check device id + validate into the inactive slot. CalTableInvalid on any
-        failure; the active table is untouched either way."""
+        """:meth:`read` + validate into the inactive slot. CalTableInvalid on any failure (a hostile table's
+        unexpected exception included); the active table is untouched either way."""
         try:
-            table = load_table(path)
-            if table.device_id != self.device_id:
-                raise CalTableInvalid(f"{path}: foreign table for device {table.device_id!r}, "
-                                      f"this store serves {self.device_id!r}")
+            table = self.read(path)
             res = validate(table)
             self.last_validation = res
             res.raise_if_bad(str(path))
@@ -557,6 +565,10 @@ class CalTableStore:
             self.reject_count += 1
             self.last_error = str(exc)
             raise
+        except Exception as exc:  # noqa: BLE001 - validation of a hostile table must not escape either
+            self.reject_count += 1
+            self.last_error = f"{path}: invalid table ({type(exc).__name__}: {str(exc)[:120]})"
+            raise CalTableInvalid(self.last_error) from None
         self._staged = (table, fixed)
         self._activation_requested = False
         self.load_count += 1

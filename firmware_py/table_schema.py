@@ -65,6 +65,16 @@ def _no_constant(name: str):
     raise ValueError(f"non-finite constant {name}")
 
 
+#: Longest integer literal accepted: a table's numbers are floats; a 400-digit integer would overflow.
+MAX_INT_DIGITS = 30
+
+
+def _bounded_int(text: str) -> int:
+    if len(text.lstrip("-")) > MAX_INT_DIGITS:
+        raise ValueError(f"integer of {len(text.lstrip('-'))} digits (at most {MAX_INT_DIGITS})")
+    return int(text)
+
+
 def _depth_ok(text: str, limit: int) -> tuple[bool, int]:
     """Maximum bracket depth outside strings, without recursion (so a deep file cannot crash us)."""
     depth = deepest = 0
@@ -103,7 +113,8 @@ def parse_table_json(raw: bytes, source: str) -> dict:
     if not ok:
         raise where.error("", f"nested deeper than {MAX_DEPTH} levels (a table needs at most {MAX_DEPTH})")
     try:
-        doc = json.loads(text, object_pairs_hook=_reject_duplicates, parse_constant=_no_constant)
+        doc = json.loads(text, object_pairs_hook=_reject_duplicates, parse_constant=_no_constant,
+                         parse_int=_bounded_int)
     except _Duplicate as exc:
         raise where.error("", f"duplicate key {exc.key!r} (the CRC would not cover what a reader applies)") from None
     except ValueError as exc:

@@ -17,9 +17,7 @@ import os
 from collections.abc import Sequence
 from pathlib import Path
 
-from magstack.firmware import fixed_point
-from magstack.firmware.cal_table import CalTable, CalTableStore, ValidationResult, table_from_document, validate
-from magstack.firmware.cal_terms import GROUND_ONLY_TERMS
+from magstack.firmware.cal_table import CalTable, CalTableStore, table_from_document
 from magstack.firmware.errors import CalTableInvalid
 from magstack.firmware.flight.intake import UnsafeInput, inside_roots, read_bounded
 from magstack.firmware.table_schema import parse_table_json
@@ -50,7 +48,8 @@ def read_table(path: str | os.PathLike, roots: Sequence[Path], base: Path) -> Ca
 
 
 class FlightTableStore(CalTableStore):
-    """A CalTableStore for one channel whose loads go through :func:`read_table` (bounded, inside roots)."""
+    """A CalTableStore for one channel whose reads go through :func:`read_table` (bounded, inside roots);
+    validation and staging are the store's own (:meth:`CalTableStore.load`)."""
 
     def __init__(self, device_id: str, channel: str, roots: Sequence[Path], base: Path) -> None:
         super().__init__(device_id)
@@ -62,26 +61,3 @@ class FlightTableStore(CalTableStore):
         if table.device_id != self.device_id:
             raise CalTableInvalid(device_mismatch(table.device_id, self.channel, self.device_id, str(path)))
         return table
-
-    def load(self, path: str | os.PathLike) -> ValidationResult:
-        """Read, check, validate and stage into the inactive slot; CalTableInvalid on any failure."""
-        try:
-            table = self.read(path)
-            res = validate(table)
-            self.last_validation = res
-            res.raise_if_bad(str(path))
-            # the staging below mirrors CalTableStore.load (which reads the path itself, unbounded)
-            fixed = fixed_point.FixedPointTable.from_table(table) if all(
-                t in fixed_point.FIXED_POINT_TERMS or t in GROUND_ONLY_TERMS for t in table.terms) else None
-        except CalTableInvalid as exc:
-            self.reject_count += 1
-            self.last_error = str(exc)
-            raise
-        except Exception as exc:  # noqa: BLE001 - validation of a hostile table must not escape either
-            self.reject_count += 1
-            self.last_error = f"{path}: invalid table ({type(exc).__name__}: {str(exc)[:120]})"
-            raise CalTableInvalid(self.last_error) from None
-        self._staged = (table, fixed)
-        self._activation_requested = False
-        self.load_count += 1
-        return res
