@@ -23,11 +23,11 @@ G = np.array([[1.09, 0.05, -0.03], [0.04, 1.11, 0.02], [-0.02, 0.03, 1.10]])
 O = np.array([0.3, -0.1, 0.45])
 
 
-def bench(seconds=2400.0, sessions=3, temp=True, currents=True, seed=0, noise_uT=0.02):
+def bench(seconds=2400.0, sessions=3, temp=True, currents=True, seed=0, noise_uT=0.02, rate_hz=RATE_HZ):
     """Independent stimulus: smooth tumbling field (|B| 20-60 uT), excursions to +-140 uT, slow thermal
     cycle, a square-wave current; returns truth pieces."""
     rng = np.random.default_rng(seed)
-    t = np.arange(0, seconds, 1 / RATE_HZ)
+    t = np.arange(0, seconds, 1 / rate_hz)
     w = 2 * np.pi * np.array([1 / 97.0, 1 / 131.0, 1 / 173.0])
     b = np.column_stack([40 * np.sin(w[0] * t), 35 * np.cos(w[1] * t + 0.3), 30 * np.sin(w[2] * t + 1.1)])
     for k, t0 in enumerate((0.3, 0.55, 0.8)):   # excursions, one axis at a time, +peak then -peak
@@ -203,6 +203,25 @@ def test_noise_floor_and_spectrum_match_injected_white_noise():
     assert np.allclose(nf, 30.0 / np.diag(G), rtol=0.15)
     white = d.where["spectrum"]["spectral_white_nT"]
     assert np.allclose(white, 30.0 / np.diag(G), rtol=0.25)
+
+
+def test_noise_floor_for_sparse_rows_and_with_an_aliased_tone():
+    # 0.5 Hz telemetry: rows 2 s apart (a 1 s differencing lag found no pairs: null)
+    d = diagnose_model(make(None, noise_uT=0.03, rate_hz=0.5, seconds=9600.0), "gain_offset")
+    j = d.to_dict()
+    assert j["noise_floor_nT"] is not None, d.text()
+    assert np.allclose(j["noise_floor_axes_nT"], 30.0 / np.diag(G), rtol=0.15)
+    assert j["where"]["noise_floor_lag_s"] == pytest.approx(3.0)
+    # a mains alias: a 0.41 Hz tone of 80 nT in the DUT reading at 2 Hz (differences pass it almost whole)
+    s = make(None, noise_uT=0.03)
+    s.dut_uT = s.dut_uT + 0.08 * np.sin(2 * np.pi * 0.41 * s.t_s + 0.3)[:, None]
+    d = diagnose_model(s, "gain_offset")
+    j = d.to_dict()
+    assert np.allclose(j["noise_floor_axes_nT"], 30.0 / np.diag(G), rtol=0.15), j["noise_floor_axes_nT"]
+    tones = j["where"]["tones"]
+    assert len(tones) >= 1 and tones[0]["freq_hz"] == pytest.approx(0.41, abs=1e-4)
+    assert np.allclose(tones[0]["amplitude_nT"], 80.0 / np.diag(G), rtol=0.1)
+    assert "tone" in d.text()
 
 
 def test_report_is_one_self_contained_html_page(tmp_path):
@@ -397,3 +416,18 @@ def test_few_test_units_can_still_be_significant():
     rng = np.random.default_rng(3)
     p = np.array([unit_p(rng.standard_normal(6)) for _ in range(400)])
     assert 0.02 <= np.mean(p < 0.05) <= 0.09     # calibrated under the null
+
+
+def test_saturated_reference_rows_are_left_out_and_counted():
+    # the reference clips at the FVM400's +-100 uT while the DUT reads the real field (excursions to 140 uT)
+    s = make(None)
+    s.ref_uT = np.clip(s.ref_uT, -100.0, 100.0)
+    s.metadata["reference"] = "fvm400"
+    j = diagnose_model(s, "gain_offset").to_dict()
+    assert j["verdict"] == "none", j["ranking"][:3]
+    assert j["reference"]["reference"] == "fvm400" and j["reference"]["range_uT"] == 100.0
+    assert j["reference"]["saturated_rows"] > 100 and j["reference"]["saturated_excluded"]
+    assert any("beyond its range" in n for n in j["notes"])
+    kept = diagnose_model(s, "gain_offset", Options(include_saturated=True)).to_dict()
+    assert kept["reference"]["saturated_rows"] == j["reference"]["saturated_rows"]
+    assert not kept["reference"]["saturated_excluded"] and kept["verdict"] != "none"

@@ -11,7 +11,7 @@ from magstack.cli.output import CommandResult, dumps
 from magstack.cli.progress import stages
 from magstack.data.session import load_sessions, refuse_overwriting_inputs
 from magstack.data.windows import add_window_options, describe, select_rows
-from magstack.ground.diagnose import Options, check_rows, diagnose, model_gap, parse_model, shift_source
+from magstack.ground.diagnose import Options, attach_rows, check_rows, diagnose, model_gap, parse_model
 from magstack.ground.diagnose.spec import hysteresis_base, table_gap
 
 
@@ -44,6 +44,9 @@ def register(subparsers) -> None:
                         "or 'blocks' (the block test alone, units grouped by the residual's block correlation)")
     p.add_argument("--keep-bends", action="store_true",
                    help="keep the rows at sharp bends of the reference field (default: left out)")
+    p.add_argument("--include-saturated", action="store_true",
+                   help="keep rows with the reference at or beyond its range (default: left out and counted, "
+                        "the same guard as fit; the range comes from the session metadata 'reference')")
     p.add_argument("--t0", type=finite_float(-60, 150, unit="degC"), default=25.0,
                    help="temperature reference for --model, degC (default 25)")
     add_window_options(p)
@@ -52,7 +55,8 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> CommandResult:
     opts = Options(block_s=args.block_s, n_folds=args.folds, alpha=args.alpha,
-                   exclude_bends=None if args.keep_bends else 10.0, null=args.null)
+                   exclude_bends=None if args.keep_bends else 10.0, null=args.null,
+                   include_saturated=args.include_saturated)
     if args.sim is None and args.table is None:
         terms, modelled, hyst = parse_model(args.model)
     if args.json_out:
@@ -64,7 +68,8 @@ def run(args: argparse.Namespace) -> CommandResult:
             sel = select_rows(session.t_s, session.session, args.window, args.drop_window)
             notes.append("time windows: " + describe(args.window, args.drop_window, int(sel.sum()), len(session)))
             session = session.select(sel)
-        full, keep, more = check_rows(session, exclude_bends=opts.exclude_bends)
+        full, keep, more = check_rows(session, exclude_bends=opts.exclude_bends,
+                                      include_saturated=opts.include_saturated)
         s = full.select(keep)
         st.next()
         if args.table:
@@ -78,8 +83,7 @@ def run(args: argparse.Namespace) -> CommandResult:
         else:
             gap = model_gap(s, terms, modelled, f"--model {args.model}", args.t0,
                             hysteresis_base(s.dut_uT) if hyst else None)
-        gap.shift_source = shift_source(full, keep)
-        gap.notes += notes + more
+        attach_rows(gap, full, keep, notes + more)
         st.next()
         d = diagnose(gap, opts)
         st.next()

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from magstack.ground.diagnose import noise
 from magstack.ground.diagnose import nonlinear as nl
 from magstack.ground.diagnose import rotation as rot
 from magstack.ground.diagnose import search as sr
@@ -83,6 +84,7 @@ class Diagnosis:
                                    "residual's spectrum (p = the larger)" if self.options.null == "surrogate" else "")
                                 + ", Holm-corrected across effects")},
             "null_model": r.null_model,
+            "reference": self.gap.reference,
             "notes": self.gap.notes + r.notes + self.notes,
         }
 
@@ -115,6 +117,9 @@ class Diagnosis:
             L.append(f"not testable: {nt['effect']}: {nt['reason']}")
         if d["modelled"]:
             L.append(f"modelled by the simulator: {', '.join(d['modelled'])}")
+        for tone in d["where"].get("tones", []):
+            L.append(f"tone (reported apart, removed before the noise floor): {tone['freq_hz']:.5g} Hz, amplitude "
+                     + "/".join(f"{a:.1f}" for a in tone["amplitude_nT"]) + " nT (x, y, z)")
         L += [f"note: {n}" for n in d["notes"]]
         return "\n".join(L)
 
@@ -244,9 +249,11 @@ def diagnose(gap: Gap, options: sr.Options | None = None) -> Diagnosis:
                      "matrix change: misalignment leaves the diagonal unchanged to first order")
     # noise floor: white level of the residual of the best description found (lowest held-out RMSE)
     best = min([res.baseline] + [t for t in res.trials if t.resid is not None], key=lambda t: t.rmse_norm_uT)
-    nf = wh.noise_floor_uT(np.asarray(best.resid, dtype=float), s.t_s, s.session)
+    nf, lag, tones = noise.noise_floor(np.asarray(best.resid, dtype=float), s.t_s, s.session)
     where = wh.breakdowns(res.baseline.resid, s, blocks)
     where["spectrum"] = wh.spectrum(res.baseline.resid, s.t_s, s.session)
+    where["tones"] = tones
+    where["noise_floor_lag_s"] = lag
     diag = Diagnosis(gap, res, nf, where, params, opts, notes=notes)
     diag.verdict_note = verdict_note(diag)
     return diag

@@ -24,6 +24,7 @@ import scipy.linalg
 
 from magstack.data.session import Session
 from magstack.firmware.calibration.model import CalModel
+from magstack.firmware.calibration.reference import reference_range, saturated_rows
 from magstack.firmware.errors import FitError
 from magstack.ground.errors import DiagnosisError
 
@@ -87,6 +88,9 @@ class Gap:
     #: mode (a) with ``mount_rotation`` modelled: (MountColumns, per-axis weights sigma (3,) uT), set by
     #: the search; every fit then solves the base columns and the per-session angles jointly (rotation.py)
     rotation: tuple | None = None
+
+    #: the reference-range guard of :func:`check_rows` (reference, range, saturated rows, excluded)
+    reference: dict | None = None
 
     def history(self) -> tuple[np.ndarray, np.ndarray]:
         """(dut (M,3), idx (N,)): the excursion history for hysteresis, i.e. the DUT reading of every
@@ -345,13 +349,14 @@ def usable_rows(s: Session) -> np.ndarray:
     return ok
 
 
-def check_rows(s: Session, min_rows: int = 50, exclude_bends: float | None = None
-               ) -> tuple[Session, np.ndarray, list[str]]:
-    """The usable rows sorted by session then time (attribute ``dut_history``: see
-    :meth:`Gap.history`), the mask of those kept for the diagnosis (with
-    ``exclude_bends``: not at sharp bends of the reference, see :func:`nonlinear.bend_rows`, nor at
-    the edges of a contiguous run, see :func:`run_edge_rows`), and
-    notes; DiagnosisError when too few remain."""
+def check_rows(s: Session, min_rows: int = 50, exclude_bends: float | None = None,
+               include_saturated: bool = False) -> tuple[Session, np.ndarray, list[str]]:
+    """The usable rows sorted by session then time (attributes ``dut_history``: see
+    :meth:`Gap.history`; ``reference_guard``: see :func:`reference_guard`), the mask of those kept for
+    the diagnosis (with ``exclude_bends``: not at sharp bends of the reference, see
+    :func:`nonlinear.bend_rows`, nor at the edges of a contiguous run, see :func:`run_edge_rows`), and
+    notes; DiagnosisError when too few remain. Rows with the reference at or beyond its range are
+    left out (counted) unless ``include_saturated``: the calibration fit's guard."""
     from magstack.ground.diagnose.nonlinear import bend_rows
     notes = []
     ok = usable_rows(s)
@@ -360,6 +365,20 @@ def check_rows(s: Session, min_rows: int = 50, exclude_bends: float | None = Non
                              f"need at least {min_rows}")
     if (~ok).any():
         notes.append(f"{int((~ok).sum())} rows without finite ref/DUT or with flag != 0 left out")
+    guard, sat = reference_guard(s, ok, include_saturated)
+    if guard["note"]:
+        notes.append(guard["note"])
+    if guard["saturated_rows"]:
+        notes.append(f"{guard['saturated_rows']} rows with the reference at or beyond its range "
+                     f"(+-{guard['range_uT']:g} uT, {guard['reference']}): "
+                     + ("INCLUDED as requested (--include-saturated)" if include_saturated else
+                        "left out (a clipped reference against the DUT's real reading looks like a nonlinearity; "
+                        "--include-saturated keeps them)"))
+        if not include_saturated:
+            ok &= ~sat
+            if ok.sum() < min_rows:
+                raise DiagnosisError(f"only {int(ok.sum())} usable rows of {len(s)} with the reference inside its "
+                                     f"range: need at least {min_rows}")
     s2 = s.select(ok)
     order = np.lexsort((s2.t_s, s2.session))
     s2 = s2.select(order)
@@ -370,6 +389,7 @@ def check_rows(s: Session, min_rows: int = 50, exclude_bends: float | None = Non
     pos = np.full(len(s), -1, dtype=np.int64)
     pos[h_rows] = np.arange(h_rows.size)
     s2.dut_history = (s.dut_uT[h_rows], pos[np.flatnonzero(ok)[order]])
+    s2.reference_guard = {k: v for k, v in guard.items() if k != "note"}
     keep = np.ones(len(s2), bool)
     if exclude_bends is not None:
         bend = bend_rows(s2.ref_uT, s2.t_s, s2.session, exclude_bends, s2.dut_uT)
@@ -386,6 +406,16 @@ def check_rows(s: Session, min_rows: int = 50, exclude_bends: float | None = Non
                          "the field beyond the recorded run")
             keep &= ~edge
     return s2, keep, notes
+
+
+def reference_guard(s: Session, usable: np.ndarray, include_saturated: bool) -> tuple[dict, np.ndarray]:
+    """The calibration fit's reference-range guard (firmware calibration.reference): the reference
+    named by the session metadata (``reference``; the default assumed with a note), its range, and the
+    usable rows with a component at or beyond ``(1 - margin)`` of it. Returns (summary, saturated mask)."""
+    name, rng, note = reference_range(s.metadata)
+    sat = usable & saturated_rows(s.ref_uT, rng)
+    return {"reference": name, "range_uT": float(rng), "assumed": note is not None, "note": note,
+            "saturated_rows": int(sat.sum()), "saturated_excluded": bool(sat.any() and not include_saturated)}, sat
 
 
 def run_edge_rows(t_s: np.ndarray, session: np.ndarray) -> np.ndarray:

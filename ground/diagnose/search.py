@@ -102,6 +102,8 @@ class Options:
     #: null model for slow noise: "surrogate" (the block test and the surrogate test must both reject,
     #: see surrogate.py) or "blocks" (the block test alone)
     null: str = "surrogate"
+    #: keep rows with the reference at or beyond its range (default: left out and counted, as ``fit``)
+    include_saturated: bool = False
 
 
 @dataclass

@@ -204,7 +204,7 @@ def _table_case(change: str, seed: int, duration_s: float, opts, table_gap):
     """Fit a gain+offset table on a clean session, then diagnose a later session where ``change`` changed."""
     from magstack.firmware.cal_table import table_from_fit
     from magstack.firmware.calibration import FitData, fit
-    from magstack.ground.diagnose import shift_source
+    from magstack.ground.diagnose import attach_rows
     from magstack.ground.diagnose.gap import check_rows
 
     clean = simulate(None, 0.0, seed, duration_s)
@@ -220,14 +220,12 @@ def _table_case(change: str, seed: int, duration_s: float, opts, table_gap):
     later.t_s = later.t_s + duration_s + 600.0   # a later run of the same program
     full, keep, notes = check_rows(later, exclude_bends=opts.exclude_bends)
     g = table_gap(full.select(keep), table, "validation table")
-    g.shift_source = shift_source(full, keep)
-    g.notes += notes
-    return diagnose(g, opts)
+    return diagnose(attach_rows(g, full, keep, notes), opts)
 
 
 def _sim_case(seed, duration_s, opts, out, params_document, sim_gap):
     """Parameters file with a stale offset; the session's unit has moved by 0.15/-0.1/0.12 uT."""
-    from magstack.ground.diagnose import shift_source
+    from magstack.ground.diagnose import attach_rows
     from magstack.ground.diagnose.gap import check_rows
 
     p = _base_params()
@@ -238,9 +236,7 @@ def _sim_case(seed, duration_s, opts, out, params_document, sim_gap):
     s = simulate(None, 0.0, seed, duration_s, params=unit, effects=eff)
     full, keep, notes = check_rows(s, exclude_bends=opts.exclude_bends)
     g = sim_gap(full, keep, path)
-    g.shift_source = shift_source(full, keep)
-    g.notes += notes
-    return diagnose(g, opts)
+    return diagnose(attach_rows(g, full, keep, notes), opts)
 
 
 def _fit_options():

@@ -1,15 +1,9 @@
 """Where the gap lies: breakdowns by axis, temperature, field magnitude, rate of change, time and
 session, and by frequency; and the noise floor estimated from the data.
 
-Noise floor (two estimates, both from the session itself):
-
-* ``noise_floor_uT`` (the one the verdict is judged against): per axis, the robust spread (1.4826 MAD)
-  of differences of residual samples about 1 s apart within a session, divided by sqrt(2)
-  (:func:`magstack.firmware.calibration.fit.noise_floor`), applied to the in-sample residual of the
-  richest linear model (base + every testable linear candidate). Differencing removes slow misfit that
-  survives, the MAD ignores the few rows at field steps, and the rich model removes fast misfit.
-* ``spectral_white_nT`` (a cross-check): the white level implied by the median residual PSD over the
-  upper half of the band, ``sqrt(median PSD * f_nyquist)``.
+The noise floor the verdict is judged against is in :mod:`.noise` (tones apart); ``spectral_white_nT``
+here is a cross-check: the white level implied by the median residual PSD over the upper half of the
+band, ``sqrt(median PSD * f_nyquist)``.
 
 Spectrum: Welch (scipy.signal.welch, Hann, 50 % overlap) averaged over contiguous uniformly sampled
 runs when every run has the same sample spacing to 1 %; otherwise Lomb-Scargle
@@ -21,13 +15,11 @@ import numpy as np
 import scipy.signal
 
 from magstack.data.session import Session
-from magstack.firmware.calibration.fit import noise_floor
 from magstack.ground.diagnose.nonlinear import runs
 
 FIELD_EDGES_uT = (0.0, 5.0, 20.0, 40.0, 60.0, 100.0, 200.0, np.inf)
 RATE_EDGES_uT_PER_S = (0.0, 0.1, 1.0, 10.0, np.inf)
 N_TEMP_BANDS = 5
-NOISE_LAG_S = 1.0
 
 
 def _band(r: np.ndarray, m: np.ndarray, lo: float, hi: float) -> dict:
@@ -151,8 +143,3 @@ def _spec_out(method: str, f: np.ndarray, psd: np.ndarray, fny: float) -> dict:
     white = [float(np.sqrt(np.median(psd[upper, j]) * fny)) if upper.any() else None for j in range(3)]
     return {"method": method, "freq_hz": [float(v) for v in f],
             "psd_nT2_per_hz": [[float(v) for v in psd[:, j]] for j in range(3)], "spectral_white_nT": white}
-
-
-def noise_floor_uT(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray) -> np.ndarray:
-    """Per-axis white-noise level of a residual (see module doc)."""
-    return noise_floor(resid_uT, t_s, session, NOISE_LAG_S)
