@@ -172,6 +172,32 @@ def test_fixed_table_path_names_the_effect_that_changed():
     assert diagnose(table_gap(full.select(keep), table, "table"), Options()).verdict == "none"
 
 
+def _table_diagnosis(later, table):
+    from magstack.ground.diagnose.spec import table_gap
+    full, keep, _ = check_rows(later, exclude_bends=10.0)
+    return diagnose(table_gap(full.select(keep), table, "table"), Options())
+
+
+def test_fixed_table_path_names_a_drift_since_the_fit_and_a_temperature_offset_about_another_pivot():
+    from magstack.firmware.cal_table import table_from_fit
+    from magstack.firmware.calibration import FitData, FitOptions, fit
+    table = table_from_fit(fit(FitData.from_session(make(None, seed=5)), "eq3", options=FitOptions(holdout=False)),
+                           "test")
+    # the offset has drifted since the table was fitted an hour earlier: non-zero mean, and a slope
+    later = make(None, seed=6)
+    t = later.t_s - later.t_s[0] + 3600.0
+    later.dut_uT = later.dut_uT + np.outer(t, [1.0e-4, -8e-5, 6e-5])
+    d = _table_diagnosis(later, table)
+    assert d.verdict == "drift", d.text()
+    assert d.to_dict()["after_rmse_nT"] <= 1.2 * d.to_dict()["noise_floor_nT"], d.text()
+    # a temperature offset that appeared since, about 40 degC (not the table's 25 degC)
+    later = make(None, seed=7)
+    later.dut_uT = later.dut_uT + np.outer(later.temp_c - 40.0, [-0.03, 0.02, 0.025])
+    d = _table_diagnosis(later, table)
+    assert d.verdict == "temperature_offset", d.text()
+    assert d.to_dict()["after_rmse_nT"] <= 1.2 * d.to_dict()["noise_floor_nT"], d.text()
+
+
 def test_fixed_gap_nan_rows_are_left_out_with_a_note():
     s = make(None)
     gap = s.ref_uT - (s.dut_uT - O) @ np.linalg.inv(G).T

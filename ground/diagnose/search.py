@@ -5,7 +5,8 @@ For each effect of :data:`magstack.firmware.effects.EFFECTS` that the simulator 
 1. Its columns are built (the calibration term named by the effect's ``cal_term``; the non-linear
    estimators of :mod:`.nonlinear` for ``time_skew`` and ``hysteresis``; the joint per-session
    rotation of :mod:`.rotation` for ``mount_rotation``). Offset-like effects
-   (``cal_term == "session_offset"``) get a constant column too when the base has no offset.
+   (per-session offsets, drift, temperature offset: :data:`OFFSET_LIKE`) get a constant column too when
+   the base has no offset (mode (b): a drift since the table was fitted has a non-zero mean).
    It is *not testable* when the columns cannot be built (no temperature, no currents, one session),
    are all combinations of the base columns, or (temperature effects) the temperature spans less
    than ``MIN_TEMP_SPAN_C``.
@@ -59,6 +60,8 @@ def SUB(n: int) -> slice:  # noqa: N802
     return slice(None, None, max(1, -(-n // CONFOUND_ROWS)))
 
 
+#: Calibration terms tested together with a constant when the base has none.
+OFFSET_LIKE = ("session_offset", "drift", "temperature_offset")
 #: Fewer held-out blocks than this: no significance claimed.
 MIN_BLOCKS = 6
 #: Sign-flip resamples (p resolution 2.5e-4, ample for Holm over ~12 effects at alpha 0.05).
@@ -294,8 +297,11 @@ def build_candidates(gap: Gap, base: Block) -> tuple[list[Candidate], list[dict]
             cands.append(Candidate(name, "hysteresis", thresholds=thr))
             continue
         terms = (e.cal_term,)
-        if e.cal_term == "session_offset" and "offset" not in base_terms:
-            terms = ("offset", "session_offset")
+        if e.cal_term in OFFSET_LIKE and "offset" not in base_terms:
+            # with no offset in the base (a fixed table, --sim, --model gain) the effect carries its constant:
+            # a drift built up since the table was fitted has a non-zero mean, a temperature offset about
+            # another pivot is K (T - T0) plus a constant, per-session offsets are effect-coded about one
+            terms = ("offset", e.cal_term)
         if e.cal_term == "temperature_gain" and "temperature_offset" not in base_terms:
             # a gain applied before the offset, inverted, leaves K_S dT O: a dT column
             terms = ("temperature_gain", "temperature_offset")
