@@ -136,7 +136,9 @@ def test_offset_and_per_session_offset_indistinguishable_names_the_simpler_and_s
     d = diagnose_model(s, "gain")   # the model leaves the (common) offset out
     j = d.to_dict()
     assert j["verdict"] == "offset"
-    assert any("simpler" in n for n in j["notes"]) or j["runner_up"] in ("session_offset", "hysteresis")
+    # every offset-like candidate carries the constant when the model has none (it contains "offset")
+    assert any("simpler" in n for n in j["notes"]) or j["runner_up"] in ("session_offset", "hysteresis", "drift",
+                                                                         "temperature_offset")
 
 
 # ----------------------------------------------------------------------------- not testable
@@ -457,3 +459,29 @@ def test_saturated_reference_rows_are_left_out_and_counted():
     kept = diagnose_model(s, "gain_offset", Options(include_saturated=True)).to_dict()
     assert kept["reference"]["saturated_rows"] == j["reference"]["saturated_rows"]
     assert not kept["reference"]["saturated_excluded"] and kept["verdict"] != "none"
+
+
+def _trial(effect, rmse, block_sse, n_params):
+    from magstack.ground.diagnose.search import Trial
+    t = Trial(effect, "linear", np.full(3, rmse / np.sqrt(3)), None, np.asarray(block_sse, float))
+    t.extra.update(n_params=n_params, group=1)
+    return t
+
+
+def test_a_simpler_candidate_is_not_preferred_by_one_outlier_block_or_when_it_closes_much_less():
+    from magstack.ground.diagnose.search import choose_verdict
+    bs = np.zeros(10, dtype=np.int64)
+    # the richer model is better in 9 of 10 blocks; one outlier block favours the simpler by far (a t test
+    # on the mean difference calls the simpler "not worse")
+    rich = _trial("temperature_gain", 0.40, np.full(10, 1.0), 9)
+    simple = _trial("misalignment", 0.41, np.r_[np.full(9, 3.0), -200.0 + 1.0], 6)
+    v, note = choose_verdict([rich, simple], 4.3, bs, 0.05)
+    assert v is rich and note is None
+    # never prefer a candidate that closes much less of the gap, even when the blocks cannot tell them apart
+    far = _trial("misalignment", 1.9, np.r_[np.full(5, 3.0), np.full(5, -1.0)], 6)
+    v, _ = choose_verdict([rich, far], 4.3, bs, 0.05)
+    assert v is rich
+    # equal fits: the simpler is named, with the reason
+    twin = _trial("offset", 0.40, rich.block_sse + np.r_[0.1, -0.1] .repeat(5), 3)
+    v, note = choose_verdict([rich, twin], 4.3, bs, 0.05)
+    assert v is twin and "simpler" in note
