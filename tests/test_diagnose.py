@@ -485,3 +485,19 @@ def test_a_simpler_candidate_is_not_preferred_by_one_outlier_block_or_when_it_cl
     twin = _trial("offset", 0.40, rich.block_sse + np.r_[0.1, -0.1] .repeat(5), 3)
     v, note = choose_verdict([rich, twin], 4.3, bs, 0.05)
     assert v is twin and "simpler" in note
+
+
+def test_an_unexplained_remainder_is_said_plainly_with_where_it_lies(tmp_path):
+    # an even-order error no catalogue effect has: |B_x| mixed into every axis, largest at high field
+    s = make(None)
+    s.dut_uT = s.dut_uT + 0.004 * np.abs(s.ref_uT[:, [0]]) * np.array([1.0, -0.5, 0.7])
+    d = diagnose_model(s, "gain_offset")
+    j = d.to_dict()
+    u = j["unexplained"]
+    assert u["remains"] and u["after_over_floor"] >= 1.5, d.text()
+    assert "UNEXPLAINED" in d.text() and "nothing unmodelled found" not in d.text()
+    assert u["field_band_uT"]["ratio_to_overall"] > 1.0 and u["frequency_band"] is not None
+    from magstack.ground.diagnose.figures import write_report
+    assert "UNEXPLAINED" in write_report(d, tmp_path).read_text(encoding="utf-8")
+    clean = diagnose_model(make(None), "gain_offset").to_dict()
+    assert clean["unexplained"]["remains"] is False and clean["unexplained"]["after_over_floor"] < 1.5

@@ -34,6 +34,8 @@ class Diagnosis:
     options: sr.Options
     verdict_note: str = ""
     notes: list[str] = field(default_factory=list)
+    #: where.remainder: whether a held-out gap >= 1.5x the floor remains after the verdict, and where
+    unexplained: dict = field(default_factory=dict)
 
     @property
     def verdict(self) -> str:
@@ -85,6 +87,7 @@ class Diagnosis:
                                 + ", Holm-corrected across effects")},
             "null_model": r.null_model,
             "reference": self.gap.reference,
+            "unexplained": self.unexplained,
             "notes": self.gap.notes + r.notes + self.notes,
         }
 
@@ -97,6 +100,8 @@ class Diagnosis:
             L.append(f"  after adding it: {d['after_rmse_nT']:.1f} nT (noise floor {_f(d['noise_floor_nT'])} nT)")
         if self.verdict_note:
             L.append("  " + self.verdict_note)
+        if self.unexplained.get("remains"):
+            L.append(self.unexplained["text"])
         L.append(f"{'effect':20s}{'held-out nT':>12s}{'shrink':>9s}{'p blocks':>10s}{'p surr.':>9s}{'p':>9s}"
                  f"{'p(Holm)':>9s}  significant")
         for t in d["ranking"]:
@@ -255,6 +260,10 @@ def diagnose(gap: Gap, options: sr.Options | None = None) -> Diagnosis:
     where["tones"] = tones
     where["noise_floor_lag_s"] = lag
     diag = Diagnosis(gap, res, nf, where, params, opts, notes=notes)
+    nf_nT = diag.to_dict()["noise_floor_nT"]
+    after = diag.after_trial
+    diag.unexplained = wh.remainder(np.asarray(after.resid, dtype=float), s, after.rmse_norm_uT * 1e3, nf_nT,
+                                    res.verdict)
     diag.verdict_note = verdict_note(diag)
     return diag
 
@@ -265,7 +274,9 @@ def verdict_note(d: Diagnosis) -> str:
         best = r.trials[0] if r.trials else None
         if best is None:
             return "no testable effect"
-        return (f"nothing unmodelled found: the best candidate, {best.effect}, changes the held-out gap by "
+        lead = ("no catalogue effect is significant" if d.unexplained.get("remains")
+                else "nothing unmodelled found")
+        return (f"{lead}: the best candidate, {best.effect}, changes the held-out gap by "
                 f"{best.shrink:.1%} (p = {best.p_holm:.3g} after Holm)")
     v = d.after_trial
     txt = (f"{r.verdict} closes {v.shrink:.1%} of the held-out gap (p = {v.p_value:.2g}, Holm {v.p_holm:.2g})")
