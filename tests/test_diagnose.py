@@ -501,3 +501,19 @@ def test_an_unexplained_remainder_is_said_plainly_with_where_it_lies(tmp_path):
     assert "UNEXPLAINED" in write_report(d, tmp_path).read_text(encoding="utf-8")
     clean = diagnose_model(make(None), "gain_offset").to_dict()
     assert clean["unexplained"]["remains"] is False and clean["unexplained"]["after_over_floor"] < 1.5
+
+
+def test_block_length_is_chosen_from_the_data_and_a_short_session_can_be_significant():
+    s = make("temperature_offset", seconds=300.0, sessions=1)
+    d = diagnose_model(s, "gain_offset")
+    j = d.to_dict()
+    bc = j["method"]["block_choice"]
+    assert j["method"]["block_s"] < 60 and bc["n_blocks"] >= 12 and bc["autocorrelation_time_s"] > 0
+    assert "blocks of" in d.text()
+    assert j["verdict"] == "temperature_offset", d.text()
+    # with a block length the data do not allow, the note says what the best candidate closes and why not
+    d = diagnose_model(s, "gain_offset", Options(block_s=60.0))
+    assert d.verdict == "none"
+    assert "temperature_offset, closes" in d.verdict_note and "only 5 held-out blocks" in d.verdict_note, d.verdict_note
+    # a long session keeps the 60 s default
+    assert diagnose_model(make(None), "gain_offset").to_dict()["method"]["block_s"] == 60.0

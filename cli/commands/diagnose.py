@@ -33,8 +33,9 @@ def register(subparsers) -> None:
     p.add_argument("--json", dest="json_out", metavar="OUT.json", type=nonempty_path, default=None,
                    help="write the diagnosis as strict JSON (stable keys) to OUT.json")
     p.add_argument("--report", metavar="DIR", type=nonempty_dir, help="write DIR/diagnosis.html (needs matplotlib)")
-    p.add_argument("--block-s", type=finite_float(0, 86400, lo_open=True, unit="s"), default=60.0,
-                   help="held-out time-block length, (0, 86400] s (default 60)")
+    p.add_argument("--block-s", type=_block_s, default=None, metavar="S|auto",
+                   help="held-out time-block length, (0, 86400] s, or 'auto' (default: chosen from the residual's "
+                        "autocorrelation time, the session lengths and their number; stated in the output)")
     p.add_argument("--folds", type=int_range(2, 50), default=5, help="number of folds, [2, 50] (default 5)")
     p.add_argument("--alpha", type=finite_float(0, 1, lo_open=True, hi_open=True), default=0.05,
                    help="family-wise false-alarm level, (0, 1) (default 0.05)")
@@ -51,6 +52,10 @@ def register(subparsers) -> None:
                    help="temperature reference for --model, degC (default 25)")
     add_window_options(p)
     p.set_defaults(func=run)
+
+
+def _block_s(text: str):
+    return None if str(text).strip().lower() == "auto" else finite_float(0, 86400, lo_open=True, unit="s")(text)
 
 
 def run(args: argparse.Namespace) -> CommandResult:

@@ -96,7 +96,8 @@ class Trial:
 
 @dataclass
 class Options:
-    block_s: float = 60.0
+    #: held-out block length in s; None: chosen from the data (blocks.choose_block_s)
+    block_s: float | None = None
     exclude_bends: float | None = 10.0
     n_folds: int = 5
     alpha: float = 0.05
