@@ -517,3 +517,28 @@ def test_block_length_is_chosen_from_the_data_and_a_short_session_can_be_signifi
     assert "temperature_offset, closes" in d.verdict_note and "only 5 held-out blocks" in d.verdict_note, d.verdict_note
     # a long session keeps the 60 s default
     assert diagnose_model(make(None), "gain_offset").to_dict()["method"]["block_s"] == 60.0
+
+
+def test_hysteresis_with_one_excursion_per_power_cycle_is_not_named_a_per_session_offset():
+    # one excursion early in each power cycle, its sign alternating: the remanence of the previous cycle is
+    # carried over until it (per-session offsets fit each cycle's constant, but not the rows before it)
+    t, b, temp_c, cur, sess, rng, noise = bench(seconds=4000.0, sessions=4)
+    b = b.copy()
+    for k in range(4):
+        t0 = t[sess == k][0] + 200.0
+        m = (t > t0) & (t < t0 + 20)
+        b[m] = 0.0
+        b[m, 0] = (1 if k % 2 == 0 else -1) * 140.0
+    dut = b @ G.T
+    e = np.where(np.abs(dut[:, 0]) >= 120, np.sign(dut[:, 0]), 0.0)
+    last = np.maximum.accumulate(np.where(e != 0, np.arange(t.size), -1))
+    state = np.where(last >= 0, e[np.maximum(last, 0)], -1.0)
+    dut += np.outer(state, [0.08, 0.03, -0.02])     # the remanence is a vector (cross-axis remanence)
+    dut = dut + O + rng.standard_normal(dut.shape) * noise
+    s = Session(1.6e9 + t, b + rng.standard_normal(b.shape) * 0.001, dut, temp_c, sess, cur, {"device_id": "test"})
+    d = diagnose_model(s, "gain_offset")
+    j = d.to_dict()
+    assert j["verdict"] == "hysteresis", d.text()
+    assert j["after_rmse_nT"] <= 1.2 * j["noise_floor_nT"], d.text()
+    so = next(r for r in j["ranking"] if r["effect"] == "session_offset")
+    assert so["rmse_nT"] > j["after_rmse_nT"]

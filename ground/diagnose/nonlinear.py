@@ -114,6 +114,24 @@ def hysteresis_state(b_uT: np.ndarray, threshold_uT: np.ndarray, initial=None) -
     return out
 
 
+def before_first_excursion(hist_uT: np.ndarray, idx: np.ndarray, threshold_uT: np.ndarray,
+                           session: np.ndarray) -> np.ndarray:
+    """(N,) bool for the tested rows ``idx`` (into the excursion history ``hist_uT``, sorted by session then
+    time): the row comes before the first excursion (|B_j| >= threshold_j on any axis) of its session."""
+    exc = np.any(np.abs(hist_uT) >= np.where(np.isfinite(threshold_uT), threshold_uT, np.inf), axis=1)
+    # excursions counted in the history, mapped to the tested rows by position: a tested row is "before"
+    # when no history row of its session up to its own position was an excursion
+    cum = np.cumsum(exc)
+    out = np.zeros(idx.size, bool)
+    for k in np.unique(session):
+        m = np.flatnonzero(session == k)
+        first = idx[m[0]]
+        # history rows of this session start at or before the session's first tested row
+        base = cum[first - 1] if first > 0 else 0
+        out[m] = (cum[idx[m]] - base) == 0
+    return out
+
+
 def hysteresis_thresholds(b_uT: np.ndarray, rows: np.ndarray | None = None) -> list[list[float]]:
     """Candidate thresholds per axis (uT) whose state column has >= 2 states with enough rows.
 

@@ -398,8 +398,11 @@ def hysteresis_block(gap: Gap, thresholds: np.ndarray, initial: np.ndarray | Non
     (:meth:`Gap.history`), ``initial`` the state before each axis' first excursion."""
     hist, idx = gap.history()
     st = nl.hysteresis_state(hist, thresholds, initial)[idx]
-    mask = np.eye(3, dtype=bool)
-    names = [[f"H[{a}]" if i == j else "" for j in range(3)] for i, a in enumerate("xyz")]
+    # the remanence is a vector: the state of axis j (its last excursion's sign) shifts every output axis
+    # (magnetised material near the sensor; an independent generator's 10 nT cross-remanence otherwise left
+    # the hysteresis fit 1.4x the floor and per-session offsets, fitting each cycle's vector, ahead)
+    mask = np.ones((3, 3), dtype=bool)
+    names = [[f"H[{o}<-{a}]" for a in "xyz"] for o in "xyz"]
     blk = Block(st, mask, names, ["uT"] * 3)
     keep = np.isfinite(thresholds)
     blk = Block(st[:, keep], mask[:, keep], [[n for n, k in zip(r, keep, strict=True) if k] for r in names],
@@ -478,8 +481,9 @@ def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: n
             blk = Block.join([base, hysteresis_block(gap, thr, init)], gap.n)
             r[test] = fold_residual(gap, blk, Y, train, test)
         hist, idx = gap.history()
-        cols = nl.hysteresis_state(hist, *choose_thresholds(gap, base, Y, cand.thresholds,
-                                                             np.ones(gap.n, bool)))[idx]
+        thr_all = choose_thresholds(gap, base, Y, cand.thresholds, np.ones(gap.n, bool))
+        cols = nl.hysteresis_state(hist, *thr_all)[idx]
+        telling = nl.before_first_excursion(hist, idx, thr_all[0], gap.session.session)
     elif cand.kind == "joint":   # mount_rotation (rotation.py)
         mc = rot.mount_columns(gap)
         r, angles = rot.out_of_fold(base, mc, Y, fold, base_trial.rmse_uT)
@@ -512,7 +516,9 @@ def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: n
         t.extra["grid_s"] = grid
     elif cand.kind == "hysteresis":
         t.extra["fold_thresholds_uT"] = fold_thr
-        # per axis: level, threshold, initial sign
+        t.extra["telling_rows"] = telling
+        # one remanence vector per axis with excursions (the threshold and the initial sign are choices among a
+        # few options, like the delay grid), plus the constant when the base has none
         t.extra["n_params"] = 3 * sum(1 for c in cand.thresholds if c) + (0 if "offset" in gap.base_terms else 3)
     b = base_trial.rmse_norm_uT
     t.shrink = float(1.0 - t.rmse_norm_uT / b) if b > 0 else 0.0
@@ -539,13 +545,53 @@ def surrogate_tests(gap: Gap, cands: list[Candidate], trials: list[Trial], base:
     return model
 
 
-def choose_verdict(sig: list[Trial], baseline_rmse_uT: float, block_session: np.ndarray, alpha: float
-                   ) -> tuple[Trial, str | None]:
+def hysteresis_or_session_offset(h: Trial, so: Trial, blocks: np.ndarray, block_session: np.ndarray, alpha: float,
+                                 baseline_rmse_uT: float) -> tuple[Trial | None, str | None]:
+    """Hysteresis against per-session offsets, both significant: they differ on the rows of a power cycle
+    before its first excursion (the remanence carried over from the previous cycle against the cycle's
+    own constant; after it both are constant until the next excursion). The signed-rank test on the
+    per-block held-out SSE differences over those rows decides when it rejects either way; otherwise the
+    one with fewer parameters (hysteresis: one remanence vector per axis with excursions; per-session offsets: three per session)
+    is named if it closes as much of the gap (:func:`closes_as_much`). None: no decision here."""
+    tell = h.extra.get("telling_rows")
+    if tell is None or h.resid is None or so.resid is None or not tell.any():
+        return None, None
+    nb = block_session.size
+    sse = [np.bincount(blocks[tell], weights=np.sum(np.nan_to_num(np.asarray(t.resid, float)[tell]) ** 2, axis=1),
+                       minlength=nb) for t in (h, so)]
+    used = np.bincount(blocks[tell], minlength=nb) > 0
+    d = (sse[1] - sse[0])[used]              # > 0: hysteresis better on the telling rows
+    n_tell = int(tell.sum())
+    if paired_worse_p(d) < alpha:
+        return h, (f"hysteresis and session_offset compared on the {n_tell} rows before the first excursion of each "
+                   "power cycle (where they differ): hysteresis predicts them better")
+    if paired_worse_p(-d) < alpha:
+        return so, (f"hysteresis and session_offset compared on the {n_tell} rows before the first excursion of "
+                    "each power cycle (where they differ): session_offset predicts them better")
+    simple, rich = (h, so) if h.n_params < so.n_params else (so, h)
+    if simple.n_params < rich.n_params and closes_as_much(simple.rmse_norm_uT, min(h.rmse_norm_uT, so.rmse_norm_uT),
+                                                          baseline_rmse_uT):
+        return simple, (f"{simple.effect} ({simple.n_params} parameters) and {rich.effect} ({rich.n_params}) are not "
+                        f"told apart on the {n_tell} rows before each power cycle's first excursion: the one with "
+                        "fewer parameters is named")
+    return None, None
+
+
+def choose_verdict(sig: list[Trial], baseline_rmse_uT: float, block_session: np.ndarray, alpha: float,
+                   blocks: np.ndarray | None = None) -> tuple[Trial, str | None]:
     """The verdict among significant trials ``sig`` (sorted by held-out RMSE): the best, unless a
     candidate with fewer parameters closes as much of the gap (:func:`closes_as_much`) and is not
     significantly worse by the signed-rank test on the grouped block SSE differences
-    (:func:`paired_worse_p`); then the simpler is named, with a note."""
+    (:func:`paired_worse_p`); then the simpler is named, with a note. Hysteresis against per-session
+    offsets is decided on the rows that tell them apart (:func:`hysteresis_or_session_offset`; needs
+    ``blocks``, the block id per row)."""
     v = sig[0]
+    pair = {t.effect: t for t in sig if t.effect in ("hysteresis", "session_offset")}
+    if len(pair) == 2 and v.effect in pair and blocks is not None:
+        choice, note = hysteresis_or_session_offset(pair["hysteresis"], pair["session_offset"], blocks,
+                                                    block_session, alpha, baseline_rmse_uT)
+        if choice is not None:
+            return choice, note
     for t in sorted(sig[1:], key=lambda t: (t.n_params, t.rmse_norm_uT)):
         g = max(t.extra.get("group", 1), v.extra.get("group", 1))
         if (t.n_params < v.n_params and closes_as_much(t.rmse_norm_uT, v.rmse_norm_uT, baseline_rmse_uT)
@@ -604,7 +650,7 @@ def search(gap: Gap, blocks: np.ndarray, fold: np.ndarray, opts: Options) -> Sea
     trials.sort(key=lambda t: t.rmse_norm_uT)
     sig = [t for t in trials if t.significant]
     if sig:
-        v, note = choose_verdict(sig, baseline.rmse_norm_uT, bs, opts.alpha)
+        v, note = choose_verdict(sig, baseline.rmse_norm_uT, bs, opts.alpha, blocks)
         if note:
             res.notes.append(note)
         trials.remove(v)
