@@ -552,7 +552,8 @@ def hysteresis_or_session_offset(h: Trial, so: Trial, blocks: np.ndarray, block_
     own constant; after it both are constant until the next excursion). The signed-rank test on the
     per-block held-out SSE differences over those rows decides when it rejects either way; otherwise the
     one with fewer parameters (hysteresis: one remanence vector per axis with excursions; per-session
-    offsets: three per session) is named if it closes as much of the gap (:func:`closes_as_much`). None: no decision here."""
+    offsets: three per session) is named if it closes as much of the gap (:func:`closes_as_much`).
+    None: no decision here."""
     tell = h.extra.get("telling_rows")
     if tell is None or h.resid is None or so.resid is None or not tell.any():
         return None, None
