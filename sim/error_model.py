@@ -33,7 +33,6 @@ bit for bit; both calls continue one state and may be interleaved.
 from __future__ import annotations
 
 import dataclasses
-
 import math
 from collections.abc import Iterable
 from typing import Any
