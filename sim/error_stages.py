@@ -137,8 +137,8 @@ def build_stages(params: ErrorParams, seed: int, enabled: Collection[str]) -> di
                            f"in magstack.sim.error_stages")
     ranks = [_KIND_RANK[STAGES[n].kind] for n in EFFECT_NAMES]
     if ranks != sorted(ranks):
-        raise RuntimeError("catalogue order must put the temperature stage first, then the sampling stage, field stages, "
-                           "then reading stages; "
+        raise RuntimeError("catalogue order must put the temperature stage first, then the sampling stage, "
+                           "field stages, then reading stages; "
                            f"got {[(n, STAGES[n].kind) for n in EFFECT_NAMES]}")
     return {n: STAGES[n](params, seed, enabled) for n in EFFECT_NAMES}
 
