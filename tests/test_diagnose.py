@@ -542,3 +542,27 @@ def test_hysteresis_with_one_excursion_per_power_cycle_is_not_named_a_per_sessio
     assert j["after_rmse_nT"] <= 1.2 * j["noise_floor_nT"], d.text()
     so = next(r for r in j["ranking"] if r["effect"] == "session_offset")
     assert so["rmse_nT"] > j["after_rmse_nT"]
+
+
+def _first_order_lag(t, x, tau):
+    """Plain Euler-exact recursion (not the diagnoser's filter): the die follows the board with tau."""
+    y = np.empty_like(x)
+    y[0] = x[0]
+    for k in range(1, x.size):
+        a = np.exp(-(t[k] - t[k - 1]) / tau)
+        y[k] = a * y[k - 1] + (1 - a) * x[k]
+    return y
+
+
+def test_thermal_lag_is_named_with_its_time_constant():
+    s = make(None, seconds=3600.0)
+    die = _first_order_lag(s.t_s, s.temp_c, 150.0)
+    s.dut_uT = s.dut_uT + np.outer(die - 25.0, [-0.14, 0.03, 0.05])
+    d = diagnose_model(s, "gain_offset")
+    j = d.to_dict()
+    assert j["verdict"] == "thermal_lag", d.text()
+    assert j["after_rmse_nT"] <= 1.2 * j["noise_floor_nT"], d.text()
+    tau = j["parameters"]["tau_s"]
+    assert tau["unit"] == "s" and 90.0 <= tau["value"] <= 250.0, tau
+    to = next(r for r in j["ranking"] if r["effect"] == "temperature_offset")
+    assert to["rmse_nT"] > 1.5 * j["after_rmse_nT"]

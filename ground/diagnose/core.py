@@ -216,6 +216,14 @@ def verdict_parameters(gap: Gap, res: sr.SearchResult, fold: np.ndarray, run: np
                 out[f"initial_state[{a}]"] = {"value": float(init[j]), "se": float("nan"),
                                               "unit": "sign of the remanence before the first excursion (chosen)"}
         return out
+    if v.kind == "lag":
+        allb = Block.join([base, sr.lag_block(gap, v.extra["tau_s"])], gap.n)
+        out = _params(gap, allb, Y, base.p, fold)
+        jk = jackknife_se([np.array([x]) for x in v.extra["fold_tau_s"]])
+        out["tau_s"] = {"value": float(v.extra["tau_s"]), "se": float(jk[0]), "se_jackknife": float(jk[0]), "unit": "s",
+                        "meaning": "time constant of the die temperature behind the measured temperature (grid "
+                                   f"{v.extra['grid_s'][0]:.3g}-{v.extra['grid_s'][-1]:.3g} s)"}
+        return out
     blk = sr.linear_block(gap, v.effect, v.extra["terms"])
     allb = Block.join([base, blk], gap.n)
     return _params(gap, allb, Y, base.p, fold)

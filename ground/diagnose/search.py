@@ -33,6 +33,7 @@ For each effect of :data:`magstack.firmware.effects.EFFECTS` that the simulator 
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -43,7 +44,7 @@ from magstack.firmware.effects import EFFECT_NAMES, EFFECTS
 from magstack.firmware.errors import FitError
 from magstack.ground.diagnose import nonlinear as nl
 from magstack.ground.diagnose import rotation as rot
-from magstack.ground.diagnose.gap import Block, Gap, out_of_fold, predict, solve
+from magstack.ground.diagnose.gap import Block, Gap, gram, out_of_fold, predict, solve, solve_gram
 from magstack.ground.errors import DiagnosisError
 
 #: Temperature effects need at least this temperature span (degC) to be tested.
@@ -116,6 +117,7 @@ class Candidate:
     kind: str
     terms: tuple = ()                   # linear: calibration terms (columns built when evaluated)
     thresholds: list | None = None      # hysteresis candidates per axis
+    lag_tau_s: float | None = None      # thermal lag: the time constant chosen on all rows (set by evaluate)
 
 
 @dataclass
@@ -297,6 +299,15 @@ def build_candidates(gap: Gap, base: Block) -> tuple[list[Candidate], list[dict]
             # mode (a) fits the modelled effects; mode (b) holds them fixed, so a changed one is a candidate
             if gap.mode == "model" or e.cal_term in gap.base_terms:
                 continue
+        if name == "thermal_lag":
+            if temp_span < MIN_TEMP_SPAN_C:
+                not_testable.append({"effect": name, "reason": f"temperature spans {temp_span:.2f} degC "
+                                                               f"(need {MIN_TEMP_SPAN_C:g} degC)"})
+            elif not temp_ok.all():
+                not_testable.append({"effect": name, "reason": f"no temperature on {int((~temp_ok).sum())} rows"})
+            else:
+                cands.append(Candidate(name, "lag"))
+            continue
         if e.cal_term is None:
             not_testable.append({"effect": name, "reason": "no correction term in the catalogue (cal_term None): "
                                                            "it is part of the noise floor / data limits"})
@@ -434,6 +445,40 @@ def choose_thresholds(gap: Gap, base: Block, Y: np.ndarray, cands: list, rows: n
     return thr, init
 
 
+#: Calibration terms evaluated on the lagged temperature by the thermal-lag candidate.
+LAG_TERMS = ("temperature_gain", "temperature_offset")
+
+
+def lag_block(gap: Gap, tau_s: float) -> Block:
+    """The thermal-lag candidate's columns: the temperature terms (LAG_TERMS, plus a constant when the base
+    has none) evaluated on the temperature lagged by ``tau_s`` (nonlinear.lagged_temperature)."""
+    s = gap.session
+    lagged = dataclasses.replace(s)
+    lagged.temp_c = nl.lagged_temperature(s.t_s, s.temp_c, s.session, tau_s)
+    terms = LAG_TERMS if "offset" in gap.base_terms else ("offset",) + LAG_TERMS
+    blk = dataclasses.replace(gap, session=lagged).term_design(terms)
+    names = [[n + "@lag" for n in row] for row in blk.names]
+    return Block(blk.X, blk.mask, names, blk.units)
+
+
+def lag_train_sse(gap: Gap, base: Block, Y: np.ndarray, fold: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """(folds, taus) training SSE of base + lag_block(tau) for each fold left out, from per-fold Gram
+    matrices (one pass over the rows per tau)."""
+    folds = np.unique(fold)
+    out = np.full((folds.size, grid.size), np.inf)
+    for k, tau in enumerate(grid):
+        blk = Block.join([base, lag_block(gap, float(tau))], gap.n)
+        G, C = gram(blk.X, Y)
+        yy = np.sum(Y ** 2, axis=0)
+        for i, f in enumerate(folds):
+            test = fold == f
+            Gf, Cf = gram(blk.X, Y, test)
+            Gt, Ct, yt = G - Gf, C - Cf, yy - np.sum(Y[test] ** 2, axis=0)
+            th = np.where(blk.mask, solve_gram(Gt, Ct, blk.mask), 0.0)
+            out[i, k] = float(sum(yt[a] - 2 * th[a] @ Ct[:, a] + th[a] @ Gt @ th[a] for a in range(3)))
+    return out
+
+
 def delay_sse_fn(gap: Gap, rows: np.ndarray):
     """Training SSE of the base refitted on the DUT reading de-skewed by delays ``d`` (3,) s."""
     def sse_of(d):
@@ -489,6 +534,31 @@ def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: n
         r, angles = rot.out_of_fold(base, mc, Y, fold, base_trial.rmse_uT)
         cols = mc.flat(np.arange(gap.n)[SUB(gap.n)])
         n_par = mc.q
+    elif cand.kind == "lag":   # thermal lag: tau chosen per fold by training SSE, like the delay
+        coarse = nl.lag_grid(gap.session.t_s, gap.session.session)
+        tr = lag_train_sse(gap, base, Y, fold, coarse)
+        # a fine grid between the neighbours of the best coarse point (summed over folds), where the
+        # parabola's error is far below the held-out effect of a wrong time constant
+        k = int(np.argmin(tr.sum(axis=0)))
+        fine = np.geomspace(coarse[max(k - 1, 0)], coarse[min(k + 1, coarse.size - 1)], nl.LAG_FINE_POINTS)
+        grid = np.unique(np.r_[coarse, fine])
+        tr = np.hstack([tr, lag_train_sse(gap, base, Y, fold, fine)])[:, np.argsort(np.r_[coarse, fine])]
+        keep = np.r_[True, np.diff(np.sort(np.r_[coarse, fine])) > 0]
+        tr = tr[:, keep]
+        folds = np.unique(fold)
+        fold_tau = [nl.refine_log_minimum(grid, tr[i]) for i in range(folds.size)]
+        r = np.full(Y.shape, np.nan)
+        for tau in set(fold_tau):
+            blk = Block.join([base, lag_block(gap, tau)], gap.n)
+            for f, ft in zip(folds, fold_tau, strict=True):
+                if ft == tau:
+                    r[fold == f] = fold_residual(gap, blk, Y, fold != f, fold == f)
+        # all rows: each row is in the training set of all folds but its own: the sum over folds orders the
+        # time constants as the training SSE on all rows would, without another pass
+        cand.lag_tau_s = nl.refine_log_minimum(grid, tr.sum(axis=0))
+        own = lag_block(gap, cand.lag_tau_s)
+        cols = own.X
+        n_par = int(own.mask.sum()) + 1
     else:   # delay
         r = np.full(Y.shape, np.nan)
         grid = nl.delay_grid(gap.session.t_s)
@@ -506,6 +576,8 @@ def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: n
     if cand.kind == "linear":
         t.extra["terms"] = cand.terms
         t.extra["n_params"] = n_par
+    elif cand.kind == "lag":
+        t.extra.update(n_params=n_par, fold_tau_s=fold_tau, tau_s=cand.lag_tau_s, grid_s=grid)
     elif cand.kind == "joint":
         t.extra["n_params"] = n_par
         t.extra["fold_angles_rad"] = angles
