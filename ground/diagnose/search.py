@@ -385,10 +385,7 @@ def linear_block(gap: Gap, name: str, terms) -> Block:
     seen from the calibration side needs them, higher-order columns (nonlinear.py)."""
     blk = gap.term_design(terms)
     if name == "temperature_gain" and blk.p:
-        q = nl.higher_order_temperature_gain(gap.predictor_uT, gap.session.temp_c, gap.t0_c)
-        blk = Block.join([blk, Block(q, np.hstack([np.eye(3, dtype=bool)] * 2),
-                                     [[f"K_S2[{a}]" for a in "xyz"] + [f"K_S3[{a}]" for a in "xyz"]] * 3,
-                                     ["1/degC^2"] * 3 + ["1/degC^3"] * 3)], gap.n)
+        blk = Block.join([blk, temperature_gain_higher_order(gap, gap.session.temp_c)], gap.n)
     if name == "cross_axis" and blk.p:
         q = nl.second_order_cross_axis(gap.predictor_uT)
         m = np.zeros((3, 6), bool)
@@ -397,6 +394,18 @@ def linear_block(gap: Gap, name: str, terms) -> Block:
         blk = Block.join([blk, Block(q, m, [[f"Q[{o},{c}]" for o in "xyz" for c in "xyz" if c != o]] * 3,
                                      ["1/uT^2"] * 6)], gap.n)
     return blk
+
+
+def temperature_gain_higher_order(gap: Gap, temp_c: np.ndarray) -> Block:
+    """Columns the catalogue's forward temperature gain leaves on the calibration side beyond the first
+    order (nonlinear.higher_order_temperature_gain: on-axis ``B dT^2``, ``B dT^3``), plus ``dT^2`` per axis:
+    a gain applied before a temperature offset leaves ``K_S K_O dT^2`` when inverted (0.24 uT at -2700 ppm/degC,
+    -140 nT/degC and 25 degC from the pivot)."""
+    q = nl.higher_order_temperature_gain(gap.predictor_uT, temp_c, gap.t0_c)
+    d2 = (np.asarray(temp_c, dtype=float) - gap.t0_c) ** 2
+    mask = np.hstack([np.eye(3, dtype=bool)] * 2 + [np.ones((3, 1), bool)])
+    names = [[f"K_S2[{a}]" for a in "xyz"] + [f"K_S3[{a}]" for a in "xyz"] + [f"K_O2[{o}]"] for o in "xyz"]
+    return Block(np.column_stack([q, d2]), mask, names, ["1/degC^2"] * 3 + ["1/degC^3"] * 3 + ["uT/degC^2"])
 
 
 def _excited(X: np.ndarray, base: np.ndarray) -> bool:
@@ -457,6 +466,7 @@ def lag_block(gap: Gap, tau_s: float) -> Block:
     lagged.temp_c = nl.lagged_temperature(s.t_s, s.temp_c, s.session, tau_s)
     terms = LAG_TERMS if "offset" in gap.base_terms else ("offset",) + LAG_TERMS
     blk = dataclasses.replace(gap, session=lagged).term_design(terms)
+    blk = Block.join([blk, temperature_gain_higher_order(gap, lagged.temp_c)], gap.n)
     names = [[n + "@lag" for n in row] for row in blk.names]
     return Block(blk.X, blk.mask, names, blk.units)
 
