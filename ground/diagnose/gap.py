@@ -30,6 +30,8 @@ from magstack.ground.errors import DiagnosisError
 
 #: Memoised skew columns kept (floats); one column per (axis, delay) tried by the delay search.
 SKEW_CACHE_FLOATS = 4_000_000
+#: An assumed (unnamed) reference range is dropped when the reference reads beyond it by this fraction.
+ASSUMED_RANGE_SLACK = 0.02
 #: Relative singular-value cut-off of the column-equilibrated least-squares solves.
 RCOND = 1e-10
 
@@ -414,6 +416,16 @@ def reference_guard(s: Session, usable: np.ndarray, include_saturated: bool) -> 
     usable rows with a component at or beyond ``(1 - margin)`` of it. Returns (summary, saturated mask)."""
     name, rng, note = reference_range(s.metadata)
     sat = usable & saturated_rows(s.ref_uT, rng)
+    if note is not None and sat.any():
+        # an assumed range the data contradict: readings well beyond it (not pinned at it) prove a wider
+        # instrument; leaving them out would drop exactly the high-field rows (a simulator's ideal reference,
+        # a reference that does not name itself). A named reference keeps the fit's rule.
+        peak = float(np.nanmax(np.abs(s.ref_uT[usable])))
+        if peak > (1.0 + ASSUMED_RANGE_SLACK) * rng:
+            note = (f"{note}; but the reference reads up to {peak:.1f} uT, beyond that range: the assumption is "
+                    "contradicted, no rows left out for saturation (name the reference in the session metadata "
+                    "'reference' to apply its range)")
+            sat = np.zeros_like(sat)
     return {"reference": name, "range_uT": float(rng), "assumed": note is not None, "note": note,
             "saturated_rows": int(sat.sum()), "saturated_excluded": bool(sat.any() and not include_saturated)}, sat
 
