@@ -391,7 +391,7 @@ def check_rows(s: Session, min_rows: int = 50, exclude_bends: float | None = Non
     pos = np.full(len(s), -1, dtype=np.int64)
     pos[h_rows] = np.arange(h_rows.size)
     s2.dut_history = (s.dut_uT[h_rows], pos[np.flatnonzero(ok)[order]])
-    s2.reference_guard = {k: v for k, v in guard.items() if k != "note"}
+    s2.reference_guard = dict(guard)
     keep = np.ones(len(s2), bool)
     if exclude_bends is not None:
         bend = bend_rows(s2.ref_uT, s2.t_s, s2.session, exclude_bends, s2.dut_uT)
