@@ -456,10 +456,11 @@ def test_saturated_reference_rows_are_left_out_and_counted():
     assert j["reference"]["reference"] == "fvm400" and j["reference"]["range_uT"] == 100.0
     assert j["reference"]["saturated_rows"] > 100 and j["reference"]["saturated_excluded"]
     assert any("beyond its range" in n for n in j["notes"])
-    # an unnamed reference: the FVM400's range is assumed; a reference that reads 140 uT contradicts it
+    # a reference that reads beyond its nominal range but follows the DUT there is not pinned: rows kept
     wide = make(None)
+    wide.metadata["reference"] = "fvm400"
     g = diagnose_model(wide, "gain_offset").to_dict()["reference"]
-    assert g["assumed"] and g["saturated_rows"] == 0 and "contradicted" in g["note"]
+    assert g["saturated_rows"] == 0 and "not pinned" in g["note"]
     kept = diagnose_model(s, "gain_offset", Options(include_saturated=True)).to_dict()
     assert kept["reference"]["saturated_rows"] == j["reference"]["saturated_rows"]
     assert not kept["reference"]["saturated_excluded"] and kept["verdict"] != "none"

@@ -30,8 +30,6 @@ from magstack.ground.errors import DiagnosisError
 
 #: Memoised skew columns kept (floats); one column per (axis, delay) tried by the delay search.
 SKEW_CACHE_FLOATS = 4_000_000
-#: An assumed (unnamed) reference range is dropped when the reference reads beyond it by this fraction.
-ASSUMED_RANGE_SLACK = 0.02
 #: Relative singular-value cut-off of the column-equilibrated least-squares solves.
 RCOND = 1e-10
 
@@ -413,21 +411,48 @@ def check_rows(s: Session, min_rows: int = 50, exclude_bends: float | None = Non
 def reference_guard(s: Session, usable: np.ndarray, include_saturated: bool) -> tuple[dict, np.ndarray]:
     """The calibration fit's reference-range guard (firmware calibration.reference): the reference
     named by the session metadata (``reference``; the default assumed with a note), its range, and the
-    usable rows with a component at or beyond ``(1 - margin)`` of it. Returns (summary, saturated mask)."""
+    usable rows with a component at or beyond ``(1 - margin)`` of it, counted per axis only where the
+    reference is evidently pinned there (:func:`_pinned`). Returns (summary, saturated mask)."""
     name, rng, note = reference_range(s.metadata)
-    sat = usable & saturated_rows(s.ref_uT, rng)
-    if note is not None and sat.any():
-        # an assumed range the data contradict: readings well beyond it (not pinned at it) prove a wider
-        # instrument; leaving them out would drop exactly the high-field rows (a simulator's ideal reference,
-        # a reference that does not name itself). A named reference keeps the fit's rule.
-        peak = float(np.nanmax(np.abs(s.ref_uT[usable])))
-        if peak > (1.0 + ASSUMED_RANGE_SLACK) * rng:
-            note = (f"{note}; but the reference reads up to {peak:.1f} uT, beyond that range: the assumption is "
-                    "contradicted, no rows left out for saturation (name the reference in the session metadata "
-                    "'reference' to apply its range)")
-            sat = np.zeros_like(sat)
-    return {"reference": name, "range_uT": float(rng), "assumed": note is not None, "note": note,
-            "saturated_rows": int(sat.sum()), "saturated_excluded": bool(sat.any() and not include_saturated)}, sat
+    b = np.abs(np.asarray(s.ref_uT, dtype=float))
+    sat = np.zeros(len(s), bool)
+    unpinned = []
+    for j in range(3):
+        flagged = usable & saturated_rows(np.where(np.arange(3) == j, s.ref_uT, 0.0), rng)
+        if flagged.any():
+            if _pinned(b[flagged, j], np.abs(s.dut_uT[flagged, j]), rng):
+                sat |= flagged
+            else:
+                unpinned.append("xyz"[j])
+    if unpinned:
+        msg = (f"the reference reads at or beyond its range (+-{rng:g} uT, {name}) on {', '.join(unpinned)} but "
+               "follows the DUT there (not pinned): those rows are kept")
+        note = f"{note}; {msg}" if note else msg
+    return {"reference": name, "range_uT": float(rng), "assumed": note is not None and "assuming" in note,
+            "note": note, "saturated_rows": int(sat.sum()),
+            "saturated_excluded": bool(sat.any() and not include_saturated)}, sat
+
+
+#: A flagged reference axis counts as pinned when its spread over the flagged rows is below this fraction of
+#: the DUT's spread there (a clipped reference is flat while the DUT follows the real field).
+PINNED_SPREAD_RATIO = 0.5
+#: ... and sits within this fraction above its nominal range (the real clip: 107 uT on a 100 uT instrument).
+PINNED_LEVEL = 0.1
+
+
+def _pinned(ref_abs: np.ndarray, dut_abs: np.ndarray, range_uT: float) -> bool:
+    """True when the reference sits near its range over the flagged rows (median within PINNED_LEVEL of it)
+    and is flat there while the DUT is not (2-98 % spreads), or when there are too few rows to tell (the
+    fit's rule then stands). A real clip (reference at +-107 uT of a +-100 uT instrument, DUT at 119 uT) is
+    pinned; a simulator's ideal reference, or one that reads far beyond the nominal range (150 uT plateaus
+    held by the coils), is kept."""
+    if ref_abs.size < 5:
+        return True
+    if np.median(ref_abs) > (1.0 + PINNED_LEVEL) * range_uT:
+        return False
+    spread = np.diff(np.quantile(ref_abs, [0.02, 0.98]))[0]
+    d_spread = np.diff(np.quantile(dut_abs, [0.02, 0.98]))[0]
+    return bool(spread < PINNED_SPREAD_RATIO * d_spread)
 
 
 def run_edge_rows(t_s: np.ndarray, session: np.ndarray) -> np.ndarray:
