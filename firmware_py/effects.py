@@ -28,6 +28,12 @@ class Effect:
 
 
 _EFFECTS = (
+    Effect("thermal_lag", 5, "the die temperature lags the measured (board) temperature",
+           "The sensing element follows the board thermistor through a thermal resistance: T_die obeys "
+           "dT_die/dt = (T_board - T_die)/tau. Every temperature effect (temperature_gain, "
+           "temperature_offset) acts on T_die; with T_board in the data the residual is those effects "
+           "evaluated on T_board - T_die, largest while the temperature changes fast.",
+           "tau in s", "issue 22 (real thermal runs: the residual trails the thermistor by minutes)", None),
     Effect("time_skew", 10, "each axis sampled at its own instant",
            "Sequential conversion (one multiplexed ADC) samples X, Y, Z at different times; "
            "for a changing field the axis reading is B_i(t + dt_i). Residual ~ dB/dt * dt_i.",

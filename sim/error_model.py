@@ -32,6 +32,7 @@ bit for bit; both calls continue one state and may be interleaved.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterable
 from typing import Any
@@ -88,6 +89,8 @@ class ErrorModel:
         on = [s for name, s in self._stages.items() if name in enabled and s.active]
         skew = self._stages["time_skew"]
         self._skew = skew if skew in on else None
+        lag = self._stages["thermal_lag"]
+        self._lag = lag if lag in on else None
         self._field = [s for s in on if s.kind == FIELD]
         self._reading = [s for s in on if s.kind == READING]
         self._field_single = [s.single for s in self._field]
@@ -139,6 +142,8 @@ class ErrorModel:
         if got is None:  # non-finite truth: the vector path raises the typed error
             return self._run(np.array([t]), truth)[0]
         bs, temps, cur, sessions = got
+        if self._lag is not None:   # every instant of this sample sees the die temperature at t
+            temps = [self._lag.single(t, temps[-1])] * len(temps)
         ref = self._temp_ref_c
         at = self._at_field
         if skew is None:
@@ -187,14 +192,18 @@ class ErrorModel:
         skew = self._skew
         ref = self._temp_ref_c
         # truth at every sampling instant in one call: N instants, or 3N (one block per axis) + N
+        if self._lag is not None:   # the die temperature at the sample times, seen at every instant
+            ts0 = sample_truth(truth, t if skew is None else skew.instants(t))
+            die = self._lag.vector(t, ts0.temp_c[-n:])
+            ts0 = dataclasses.replace(ts0, temp_c=np.tile(die, ts0.temp_c.size // n))
         if skew is None:
-            ts = sample_truth(truth, t)
+            ts = ts0 if self._lag is not None else sample_truth(truth, t)
             b = ts.b_uT.copy()
             d_inst = ts.temp_c - ref
             at = FieldInputs(d_inst, ts.currents_A, ts.session)
             session = ts.session
         else:
-            ts = sample_truth(truth, skew.instants(t))
+            ts = ts0 if self._lag is not None else sample_truth(truth, skew.instants(t))
             m = 3 * n
             b = ts.b_uT[:m].copy()
             d_inst = ts.temp_c[:m] - ref

@@ -108,6 +108,9 @@ class ErrorParams:
     k_s_per_c: Any = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
     k_s2_per_c2: Any = (0.0, 0.0, 0.0)
     temp_ref_c: float = 25.0
+    # thermal_lag: the temperature effects see the die temperature, a first-order lag of the truth (board)
+    # temperature with this time constant (s; 0 = no lag).
+    thermal_lag_tau_s: float = 0.0
     # hysteresis: remanent offset (uT, per axis) after |b_i| >= threshold, signed by the excursion.
     hysteresis_uT: Any = (0.0, 0.0, 0.0)
     hysteresis_threshold_uT: float = math.inf
@@ -175,6 +178,10 @@ class ErrorParams:
         s(self, "k_s_per_c", _mat3("k_s_per_c", self.k_s_per_c))
         s(self, "k_s2_per_c2", _vec3("k_s2_per_c2", self.k_s2_per_c2))
         s(self, "temp_ref_c", _scalar("temp_ref_c", self.temp_ref_c))
+        tau = _scalar("thermal_lag_tau_s", self.thermal_lag_tau_s)
+        if tau < 0:
+            raise ConfigurationError(f"thermal_lag_tau_s must be >= 0 s, got {tau!r}")
+        s(self, "thermal_lag_tau_s", tau)
         s(self, "hysteresis_uT", _vec3("hysteresis_uT", self.hysteresis_uT))
         s(self, "hysteresis_threshold_uT",
           _scalar("hysteresis_threshold_uT", self.hysteresis_threshold_uT, allow_inf=True, positive=True))

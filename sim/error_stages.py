@@ -12,8 +12,10 @@ Both forms perform the same IEEE operations in the same order (3x3 products as e
 ``@``), draw from the same seeded streams and share the stage's state, so the two paths give
 bit-identical samples.
 
-Three kinds of stage, in this order along the catalogue:
+Four kinds of stage, in this order along the catalogue:
 
+* ``temperature`` (``thermal_lag``): maps the truth (board) temperature at the sample times to the
+  temperature the later stages see (``die(t, temp)``; every sampling instant of a sample sees its value);
 * ``sampling`` (``time_skew``): chooses the instants at which truth is sampled (one per axis) and
   picks each axis' reading from its own instant;
 * ``field``: acts on the 3-vector field at one sampling instant, ``b`` (M,3) / 3 floats, with the
@@ -43,10 +45,10 @@ from magstack.sim.error_params import ErrorParams
 from magstack.sim.error_random import SESSION_OFFSET_TAG, normal_stream, session_rng
 
 __all__ = ["Stage", "FieldInputs", "ReadingInputs", "STAGES", "stage", "build_stages", "misalignment_matrix",
-           "SAMPLING", "FIELD", "READING"]
+           "TEMPERATURE", "SAMPLING", "FIELD", "READING"]
 
-SAMPLING, FIELD, READING = "sampling", "field", "reading"
-_KIND_RANK = {SAMPLING: 0, FIELD: 1, READING: 2}
+TEMPERATURE, SAMPLING, FIELD, READING = "temperature", "sampling", "field", "reading"
+_KIND_RANK = {TEMPERATURE: 0, SAMPLING: 1, FIELD: 2, READING: 3}
 
 #: The cross field is limited to this fraction of H0 in the cross-axis formula (the AMR model
 #: diverges at |B_c| = H0, far outside every supported range; beyond it the bridge would flip).
@@ -126,8 +128,8 @@ def stage(cls: type[Stage]) -> type[Stage]:
 def build_stages(params: ErrorParams, seed: int, enabled: Collection[str]) -> dict[str, Stage]:
     """One stage object per catalogue effect, in catalogue order (also those switched off).
 
-    Raises RuntimeError when the catalogue names an effect without a stage or orders a field stage
-    after a reading stage (the two-part pipeline cannot run it in that order).
+    Raises RuntimeError when the catalogue names an effect without a stage or orders the kinds other than
+    temperature, sampling, field, reading (the pipeline cannot run them in another order).
     """
     missing = [n for n in EFFECT_NAMES if n not in STAGES]
     if missing:
@@ -135,7 +137,8 @@ def build_stages(params: ErrorParams, seed: int, enabled: Collection[str]) -> di
                            f"in magstack.sim.error_stages")
     ranks = [_KIND_RANK[STAGES[n].kind] for n in EFFECT_NAMES]
     if ranks != sorted(ranks):
-        raise RuntimeError("catalogue order must put the sampling stage first, then field stages, then reading stages; "
+        raise RuntimeError("catalogue order must put the temperature stage first, then the sampling stage, "
+                           "field stages, then reading stages; "
                            f"got {[(n, STAGES[n].kind) for n in EFFECT_NAMES]}")
     return {n: STAGES[n](params, seed, enabled) for n in EFFECT_NAMES}
 
@@ -172,6 +175,42 @@ def misalignment_matrix(misalignment_rad: np.ndarray, rotation_rad: np.ndarray) 
 
 
 # ---------------------------------------------------------------- the stages, in catalogue order
+@stage
+class ThermalLag(Stage):
+    """``thermal_lag``: T_die(t_k) = a_k T_die(t_(k-1)) + (1 - a_k) T_board(t_k), a_k = exp(-(t_k - t_(k-1))/tau);
+    the first sample (and the first after ``reset``) starts in equilibrium, T_die = T_board.
+
+    State: the last sample time and die temperature, shared by both forms. Both run the same float
+    recursion (``math.exp``, one sample after the other), so they agree bit for bit.
+    """
+
+    name, kind = "thermal_lag", TEMPERATURE
+
+    def __init__(self, params: ErrorParams, seed: int, enabled: Collection[str]) -> None:
+        super().__init__(params, seed, enabled)
+        self._tau = float(params.thermal_lag_tau_s)
+        self.active = self._tau > 0.0
+        self.reset()
+
+    def reset(self) -> None:
+        self._last: tuple[float, float] | None = None
+
+    def vector(self, t_s: np.ndarray, temp_c: np.ndarray) -> np.ndarray:
+        """Die temperatures (N,) at the sample times ``t_s`` (N,) from the board temperatures ``temp_c``."""
+        single = self.single
+        return np.array([single(t, x) for t, x in zip(t_s.tolist(), temp_c.tolist(), strict=True)])
+
+    def single(self, t_s: float, temp_c: float) -> float:
+        last = self._last
+        if last is None:
+            die = temp_c
+        else:
+            a = math.exp(-(t_s - last[0]) / self._tau)
+            die = a * last[1] + (1.0 - a) * temp_c
+        self._last = (t_s, die)
+        return die
+
+
 @stage
 class TimeSkew(Stage):
     """``time_skew``: axis i is the whole field part of the pipeline evaluated at t + axis_delay_s[i]."""

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import json
 
-from magstack.ground.diagnose.validate import STRENGTHS, jobs_count, nameable, run_validation
+from magstack.ground.diagnose import Options
+from magstack.ground.diagnose.validate import SCENARIOS, STRENGTHS, _scenario, jobs_count, nameable, run_validation
 
 
 def test_validation_writes_the_matrix_false_alarms_with_both_noises_and_the_b_path(tmp_path):
@@ -19,7 +20,9 @@ def test_validation_writes_the_matrix_false_alarms_with_both_noises_and_the_b_pa
     rows = doc["sessions"]
     assert len(rows) == len(calls)
     kinds = {r["kind"] for r in rows}
-    assert kinds == {"withheld", "null", "null_slow", "table", "sim"}
+    assert kinds == {"withheld", "null", "null_slow", "table", "sim"} | set(SCENARIOS)
+    assert set(s["scenarios"]) == set(SCENARIOS) and "| thermal_lag | thermal_lag |" in \
+        (tmp_path / "summary.md").read_text()
     assert s["null_sessions"] == 2 and s["null_slow_noise_sessions"] == 2
     assert "LIS3MDL" in s["slow_noise"]
     assert set(s["targets"]) >= {"all_found_at_realistic", "false_alarm_rate_le_5pct",
@@ -33,3 +36,11 @@ def test_validation_writes_the_matrix_false_alarms_with_both_noises_and_the_b_pa
     assert (tmp_path / "confusion.csv").read_text().startswith("withheld\\verdict,")
     md = (tmp_path / "summary.md").read_text()
     assert "with slow noise" in md and "False alarms" in md
+
+
+def test_thermal_lag_scenario_names_the_lag_behind_a_modelled_temperature_effect():
+    d = _scenario("thermal_lag", "thermal_lag", 1.0, 5, 3600.0, Options())
+    j = d.to_dict()
+    assert j["verdict"] == "thermal_lag", d.text()
+    assert j["after_rmse_nT"] <= 1.2 * j["noise_floor_nT"], d.text()
+    assert 120.0 <= j["parameters"]["tau_s"]["value"] <= 270.0

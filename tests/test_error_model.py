@@ -47,6 +47,8 @@ T = np.linspace(0.0, 20.0, 201)
 
 #: Params where exactly one effect is non-neutral, per effect name.
 ONE_EFFECT = {
+    # visible only through a temperature effect: see test_each_effect_alone_changes_output...
+    "thermal_lag": ErrorParams(thermal_lag_tau_s=30.0, k_o_uT_per_c=(-0.14, 0.02, 0.05)),
     "time_skew": ErrorParams(axis_delay_s=(0.0, 0.05, 0.1)),
     "interference": ErrorParams(interference_uT_per_A={"solar_A": (0.5, -0.2, 0.1)}),
     "mount_rotation": ErrorParams(mount_rotation_rad={1: (0.01, -0.02, 0.03), 3: (0.0, 0.004, 0.0)}),
@@ -82,9 +84,12 @@ def test_each_effect_alone_changes_output_and_off_removes_it_exactly(name):
     if name == "hysteresis":
         truth = RampTruth(b0=(-150, 0, 150), rate=(15, 0, -15))
     expected = truth_series(truth, t)
+    also = ["temperature_offset"] if name == "thermal_lag" else []   # the lag acts through temperature effects
+    if also:
+        expected = ErrorModel(p, seed=3, effects=also).sense_series(t, truth)
     off = ErrorModel(p, seed=3, effects=without(name)).sense_series(t, truth)
     assert np.array_equal(off, expected)  # exactly truth: nothing else is non-neutral
-    on = ErrorModel(p, seed=3, effects=[name]).sense_series(t, truth)
+    on = ErrorModel(p, seed=3, effects=[name, *also]).sense_series(t, truth)
     assert np.abs(on - expected).max() > 1e-4
 
 
@@ -370,7 +375,7 @@ def test_same_seed_same_output_different_seed_differs():
 
 
 def test_unknown_effect_and_bad_inputs_raise_typed_errors():
-    with pytest.raises(ValueError, match="valid: time_skew"):
+    with pytest.raises(ValueError, match="valid: thermal_lag, time_skew"):
         ErrorModel(ErrorParams(), effects=["offset", "bogus"])
     with pytest.raises(ValueError, match="bogus"):
         without("bogus")

@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 
 from magstack.firmware.effects import EFFECT_NAMES
 from magstack.sim.error_model import ErrorModel, ErrorParams
-from magstack.sim.error_stages import FIELD, STAGES, build_stages
+from magstack.sim.error_stages import FIELD, STAGES, TEMPERATURE, build_stages
 from magstack.sim.presets import PRESET_NAMES, preset
 from tests.test_error_model import ONE_EFFECT, random_params
 from tests.test_error_model_sense import _rich
@@ -129,7 +129,9 @@ def test_single_and_vector_paths_agree_for_each_effect(name, data, seed, skew, s
     p = data.draw(random_params()) if data.draw(st.booleans()) else ONE_EFFECT[name]
     t = data.draw(time_grids())
     plan = data.draw(call_plans(t.size))
-    effects = [name, "time_skew"] if skew and STAGES[name].kind == FIELD else [name]
+    effects = [name, "time_skew"] if skew and STAGES[name].kind in (FIELD, TEMPERATURE) else [name]
+    if name == "thermal_lag":   # visible only through the temperature effects
+        effects += ["temperature_offset", "temperature_gain"]
     truth = WavySeriesTruth() if series_truth else WavyTruth()
     _assert_same(*_paths(p, effects, seed, t, truth, plan))
 

@@ -13,7 +13,7 @@ from magstack.cli.output import CommandResult
 from magstack.cli.progress import stages
 from magstack.data.session import load_sessions
 from magstack.data.windows import add_window_options, describe, select_rows
-from magstack.ground.diagnose import Options, check_rows, diagnose, model_gap, parse_model, shift_source
+from magstack.ground.diagnose import Options, attach_rows, check_rows, diagnose, model_gap, parse_model
 from magstack.ground.diagnose.spec import hysteresis_base, table_gap
 
 log = logging.getLogger(__name__)
@@ -35,8 +35,9 @@ def register(subparsers) -> None:
     g.add_argument("--table", metavar="cal.json", help="calibration table held fixed (fitted on earlier sessions)")
     p.add_argument("--report", metavar="DIR", type=nonempty_dir, help="write DIR/diagnosis.html (a page with the "
                                                                         "figures; written whole or not at all)")
-    p.add_argument("--block-s", type=finite_float(0, 86400, lo_open=True, unit="s"), default=60.0,
-                   help="held-out time-block length, (0, 86400] s (default 60)")
+    p.add_argument("--block-s", type=_block_s, default=None, metavar="S|auto",
+                   help="held-out time-block length, (0, 86400] s, or 'auto' (default: chosen from the residual's "
+                        "autocorrelation time, the session lengths and their number; stated in the output)")
     p.add_argument("--folds", type=int_range(2, 50), default=5, help="number of folds, [2, 50] (default 5)")
     p.add_argument("--alpha", type=finite_float(0, 1, lo_open=True, hi_open=True), default=0.05,
                    help="family-wise false-alarm level, (0, 1) (default 0.05)")
@@ -46,6 +47,9 @@ def register(subparsers) -> None:
                         "or 'blocks' (the block test alone, units grouped by the residual's block correlation)")
     p.add_argument("--keep-bends", action="store_true",
                    help="keep the rows at sharp bends of the reference field (default: left out)")
+    p.add_argument("--include-saturated", action="store_true",
+                   help="keep rows with the reference at or beyond its range (default: left out and counted, "
+                        "the same guard as fit; the range comes from the session metadata 'reference')")
     p.add_argument("--t0", type=finite_float(-60, 150, unit="degC"), default=25.0,
                    help="temperature reference for --model, degC (default 25)")
     add_window_options(p)
@@ -73,9 +77,14 @@ def _check_blocks(s, block_s: float, folds: int) -> None:
                                  f"{np.ptp(s.t_s) if len(s) else 0:.0f} s) or --folds")
 
 
+def _block_s(text: str):
+    return None if str(text).strip().lower() == "auto" else finite_float(0, 86400, lo_open=True, unit="s")(text)
+
+
 def run(args: argparse.Namespace) -> CommandResult:
     opts = Options(block_s=args.block_s, n_folds=args.folds, alpha=args.alpha,
-                   exclude_bends=None if args.keep_bends else 10.0, null=args.null)
+                   exclude_bends=None if args.keep_bends else 10.0, null=args.null,
+                   include_saturated=args.include_saturated)
     if args.sim is None and args.table is None:
         terms, modelled, hyst = parse_model(args.model)
     with stages("diagnose", ["read", "predict", "rank effects", "write"]) as st:
@@ -85,9 +94,11 @@ def run(args: argparse.Namespace) -> CommandResult:
             sel = select_rows(session.t_s, session.session, args.window, args.drop_window)
             notes.append("time windows: " + describe(args.window, args.drop_window, int(sel.sum()), len(session)))
             session = session.select(sel)
-        full, keep, more = check_rows(session, exclude_bends=opts.exclude_bends)
+        full, keep, more = check_rows(session, exclude_bends=opts.exclude_bends,
+                                      include_saturated=opts.include_saturated)
         s = full.select(keep)
-        _check_blocks(s, args.block_s, args.folds)
+        if args.block_s is not None:       # 'auto' chooses a length the session can hold
+            _check_blocks(s, args.block_s, args.folds)
         log.info("diagnose: %d rows read, %d kept (%s)", len(session), int(keep.sum()),
                  "; ".join(more) if more else "no row left out")
         log.info("diagnose: simulator %s; held-out blocks of %g s in %d folds, alpha %g, null model %s",
@@ -107,8 +118,7 @@ def run(args: argparse.Namespace) -> CommandResult:
         else:
             gap = model_gap(s, terms, modelled, f"--model {args.model}", args.t0,
                             hysteresis_base(s.dut_uT) if hyst else None)
-        gap.shift_source = shift_source(full, keep)
-        gap.notes += notes + more
+        attach_rows(gap, full, keep, notes + more)
         st.next()
         d = diagnose(gap, opts)
         st.next()

@@ -10,7 +10,7 @@ from magstack.ground.diagnose.search import Options
 from magstack.ground.diagnose.spec import parse_model
 
 __all__ = ["Diagnosis", "diagnose", "Gap", "check_rows", "fixed_gap", "model_gap", "Options", "parse_model",
-           "diagnose_model", "shift_source"]
+           "diagnose_model", "shift_source", "attach_rows"]
 
 
 def shift_source(full, keep):
@@ -20,16 +20,23 @@ def shift_source(full, keep):
     return (full.t_s, full.ref_uT, keep, runs(full.t_s, full.session), getattr(full, "dut_history", None))
 
 
+def attach_rows(gap, full, keep, notes=()):
+    """Give ``gap`` what :func:`check_rows` recorded: the shift source, its notes and the reference guard."""
+    gap.shift_source = shift_source(full, keep)
+    gap.notes += list(notes)
+    gap.reference = getattr(full, "reference_guard", None)
+    return gap
+
+
 def diagnose_model(session, model: str = "gain_offset", options: Options | None = None,
                    t0_c: float = 25.0) -> Diagnosis:
     """Mode (a) in one call: ``model`` as ``--model``; parameters fitted to ``session``."""
     from magstack.ground.diagnose.spec import hysteresis_base
     options = options or Options()
     terms, modelled, hyst = parse_model(model)
-    full, keep, notes = check_rows(session, exclude_bends=options.exclude_bends)
+    full, keep, notes = check_rows(session, exclude_bends=options.exclude_bends,
+                                   include_saturated=options.include_saturated)
     s = full.select(keep)
     extra = hysteresis_base(s.dut_uT) if hyst else None
     g = model_gap(s, terms, modelled, f"--model {model}", t0_c, extra)
-    g.shift_source = shift_source(full, keep)
-    g.notes += notes
-    return diagnose(g, options)
+    return diagnose(attach_rows(g, full, keep, notes), options)

@@ -7,14 +7,17 @@ JSON of ``magstack diagnose --json`` (keys ``verdict``, ``baseline_rmse_nT``, ``
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from magstack.ground.diagnose import noise
 from magstack.ground.diagnose import nonlinear as nl
 from magstack.ground.diagnose import rotation as rot
 from magstack.ground.diagnose import search as sr
 from magstack.ground.diagnose import where as wh
+from magstack.ground.diagnose.blocks import choose_block_s
 from magstack.ground.diagnose.gap import Block, Gap, folds_from_blocks, jackknife_se, solve, time_blocks
 
 #: misalignment vs gain (same calibration term): a rotation / non-orthogonality changes no axis's
@@ -33,6 +36,10 @@ class Diagnosis:
     options: sr.Options
     verdict_note: str = ""
     notes: list[str] = field(default_factory=list)
+    #: where.remainder: whether a held-out gap >= 1.5x the floor remains after the verdict, and where
+    unexplained: dict = field(default_factory=dict)
+    #: blocks.choose_block_s: the block length and why
+    block_choice: dict = field(default_factory=dict)
 
     @property
     def verdict(self) -> str:
@@ -76,25 +83,33 @@ class Diagnosis:
             "n_rows": int(self.gap.n),
             "sessions": list(self.gap.sessions),
             "method": {"block_s": self.options.block_s, "n_folds": self.options.n_folds, "alpha": self.options.alpha,
-                       "min_shrink": self.options.min_shrink,
+                       "min_shrink": self.options.min_shrink, "block_choice": self.block_choice,
                        "null": self.options.null,
                        "test": ("one-sided sign-flip permutation test on held-out block SSE differences"
                                 + (" and, for effects it lets through, a surrogate test against noise with the "
                                    "residual's spectrum (p = the larger)" if self.options.null == "surrogate" else "")
                                 + ", Holm-corrected across effects")},
             "null_model": r.null_model,
+            "reference": self.gap.reference,
+            "unexplained": self.unexplained,
             "notes": self.gap.notes + r.notes + self.notes,
         }
 
     def text(self) -> str:
         d = self.to_dict()
-        L = [f"simulator: {d['simulator']} ({d['mode']}); {d['n_rows']} rows, sessions {d['sessions']}",
+        bc = d["method"]["block_choice"]
+        L = [f"simulator: {d['simulator']} ({d['mode']}); {d['n_rows']} rows, sessions {d['sessions']}; held-out "
+             f"blocks of {d['method']['block_s']:.3g} s ({bc.get('reason', '')}"
+             + (f"; residual autocorrelation time {bc['autocorrelation_time_s']:.3g} s" if "autocorrelation_time_s"
+                in bc else "") + ")",
              f"gap (held-out, norm of per-axis RMS): {d['baseline_rmse_nT']:.1f} nT; noise floor "
              f"{_f(d['noise_floor_nT'])} nT", f"verdict: {d['verdict']}"]
         if d["verdict"] != "none":
             L.append(f"  after adding it: {d['after_rmse_nT']:.1f} nT (noise floor {_f(d['noise_floor_nT'])} nT)")
         if self.verdict_note:
             L.append("  " + self.verdict_note)
+        if self.unexplained.get("remains"):
+            L.append(self.unexplained["text"])
         L.append(f"{'effect':20s}{'held-out nT':>12s}{'shrink':>9s}{'p blocks':>10s}{'p surr.':>9s}{'p':>9s}"
                  f"{'p(Holm)':>9s}  significant")
         for t in d["ranking"]:
@@ -115,6 +130,9 @@ class Diagnosis:
             L.append(f"not testable: {nt['effect']}: {nt['reason']}")
         if d["modelled"]:
             L.append(f"modelled by the simulator: {', '.join(d['modelled'])}")
+        for tone in d["where"].get("tones", []):
+            L.append(f"tone (reported apart, removed before the noise floor): {tone['freq_hz']:.5g} Hz, amplitude "
+                     + "/".join(f"{a:.1f}" for a in tone["amplitude_nT"]) + " nT (x, y, z)")
         L += [f"note: {n}" for n in d["notes"]]
         return "\n".join(L)
 
@@ -198,6 +216,14 @@ def verdict_parameters(gap: Gap, res: sr.SearchResult, fold: np.ndarray, run: np
                 out[f"initial_state[{a}]"] = {"value": float(init[j]), "se": float("nan"),
                                               "unit": "sign of the remanence before the first excursion (chosen)"}
         return out
+    if v.kind == "lag":
+        allb = Block.join([base, sr.lag_block(gap, v.extra["tau_s"])], gap.n)
+        out = _params(gap, allb, Y, base.p, fold)
+        jk = jackknife_se([np.array([x]) for x in v.extra["fold_tau_s"]])
+        out["tau_s"] = {"value": float(v.extra["tau_s"]), "se": float(jk[0]), "se_jackknife": float(jk[0]), "unit": "s",
+                        "meaning": "time constant of the die temperature behind the measured temperature (grid "
+                                   f"{v.extra['grid_s'][0]:.3g}-{v.extra['grid_s'][-1]:.3g} s)"}
+        return out
     blk = sr.linear_block(gap, v.effect, v.extra["terms"])
     allb = Block.join([base, blk], gap.n)
     return _params(gap, allb, Y, base.p, fold)
@@ -226,6 +252,11 @@ def diagnose(gap: Gap, options: sr.Options | None = None) -> Diagnosis:
     """Run the whole diagnosis on a gap (see the module docs of gap, search, where, nonlinear)."""
     opts = options or sr.Options()
     s = gap.session
+    if opts.block_s is None:
+        block_s, block_choice = choose_block_s(gap)
+        opts = dataclasses.replace(opts, block_s=block_s)
+    else:
+        block_choice = {"block_s": opts.block_s, "reason": "given (--block-s)"}
     blocks = time_blocks(s.t_s, s.session, opts.block_s)
     fold = folds_from_blocks(blocks, s.session, opts.n_folds, gap.predictor_uT, opts.seed)
     run = nl.runs(s.t_s, s.session)
@@ -244,10 +275,16 @@ def diagnose(gap: Gap, options: sr.Options | None = None) -> Diagnosis:
                      "matrix change: misalignment leaves the diagonal unchanged to first order")
     # noise floor: white level of the residual of the best description found (lowest held-out RMSE)
     best = min([res.baseline] + [t for t in res.trials if t.resid is not None], key=lambda t: t.rmse_norm_uT)
-    nf = wh.noise_floor_uT(np.asarray(best.resid, dtype=float), s.t_s, s.session)
+    nf, lag, tones = noise.noise_floor(np.asarray(best.resid, dtype=float), s.t_s, s.session)
     where = wh.breakdowns(res.baseline.resid, s, blocks)
     where["spectrum"] = wh.spectrum(res.baseline.resid, s.t_s, s.session)
-    diag = Diagnosis(gap, res, nf, where, params, opts, notes=notes)
+    where["tones"] = tones
+    where["noise_floor_lag_s"] = lag
+    diag = Diagnosis(gap, res, nf, where, params, opts, notes=notes, block_choice=block_choice)
+    nf_nT = diag.to_dict()["noise_floor_nT"]
+    after = diag.after_trial
+    diag.unexplained = wh.remainder(np.asarray(after.resid, dtype=float), s, after.rmse_norm_uT * 1e3, nf_nT,
+                                    res.verdict)
     diag.verdict_note = verdict_note(diag)
     return diag
 
@@ -258,7 +295,13 @@ def verdict_note(d: Diagnosis) -> str:
         best = r.trials[0] if r.trials else None
         if best is None:
             return "no testable effect"
-        return (f"nothing unmodelled found: the best candidate, {best.effect}, changes the held-out gap by "
+        lead = ("no catalogue effect is significant" if d.unexplained.get("remains")
+                else "nothing unmodelled found")
+        if best.shrink >= d.options.min_shrink:
+            return (f"no verdict: the best candidate, {best.effect}, closes {best.shrink:.1%} of the held-out gap "
+                    f"({r.baseline.rmse_norm_uT * 1e3:.1f} -> {best.rmse_norm_uT * 1e3:.1f} nT) but cannot be "
+                    f"confirmed: {_why_unconfirmed(d, best)}")
+        return (f"{lead}: the best candidate, {best.effect}, changes the held-out gap by "
                 f"{best.shrink:.1%} (p = {best.p_holm:.3g} after Holm)")
     v = d.after_trial
     txt = (f"{r.verdict} closes {v.shrink:.1%} of the held-out gap (p = {v.p_value:.2g}, Holm {v.p_holm:.2g})")
@@ -274,6 +317,27 @@ def verdict_note(d: Diagnosis) -> str:
         txt += ("; a delay common to all axes could also be latency of the reference pairing or a bandwidth limit "
                 "(a first-order low-pass of time constant tau looks like a delay tau at low frequency)")
     return txt
+
+
+def _why_unconfirmed(d: Diagnosis, t: sr.Trial) -> str:
+    """Why a candidate that closes part of the gap is not significant, in words."""
+    nb = int(d.block_choice.get("n_blocks", 0)) or len(d.result.baseline.block_sse)
+    alpha = d.options.alpha
+    pb = float(t.extra.get("p_blocks", t.p_value))
+    sur = t.extra.get("surrogate")
+    if nb < sr.MIN_BLOCKS:
+        return (f"only {nb} held-out blocks of {d.options.block_s:.3g} s (at least {sr.MIN_BLOCKS} are needed; "
+                f"{d.block_choice.get('reason', '')}): record longer or more sessions")
+    if pb >= alpha:
+        return (f"its shrink is not consistent across the {nb} held-out blocks (block test p = {pb:.2g}): a few "
+                "blocks carry it")
+    if sur is not None and sur.p_value >= alpha:
+        return (f"noise with the residual's own spectrum closes as much in {sur.p_value:.0%} of surrogates "
+                f"(p = {sur.p_value:.2g}): slow noise can do this on this record")
+    if t.p_holm >= alpha:
+        return (f"p = {t.p_value:.2g} does not survive Holm's correction over {len(d.result.trials)} effects "
+                f"(Holm p = {t.p_holm:.2g})")
+    return f"its shrink is below the practical threshold ({d.options.min_shrink:.1%})"
 
 
 def _f3(x) -> str:

@@ -24,6 +24,8 @@ def write_report(diag, out_dir) -> Path:
     rep = Report(f"magstack diagnose: {d['simulator']}")
     rep.text(f"Verdict: {d['verdict']}", "verdict")
     rep.text(diag.verdict_note)
+    if d["unexplained"].get("remains"):
+        rep.text(d["unexplained"]["text"], "unexplained")
     rep.table(["", "nT"], [["gap before (held-out)", f"{d['baseline_rmse_nT']:.1f}"],
                            ["gap after the verdict's effect (held-out)", f"{d['after_rmse_nT']:.1f}"],
                            ["noise floor (from the data)", _f(d["noise_floor_nT"])]])

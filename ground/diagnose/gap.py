@@ -22,8 +22,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
+from magstack.data.dictionary import usable
 from magstack.data.session import Session
 from magstack.firmware.calibration.model import CalModel
+from magstack.firmware.calibration.reference import reference_range, saturated_rows
 from magstack.firmware.errors import FitError
 from magstack.ground.errors import DiagnosisError
 
@@ -87,6 +89,9 @@ class Gap:
     #: mode (a) with ``mount_rotation`` modelled: (MountColumns, per-axis weights sigma (3,) uT), set by
     #: the search; every fit then solves the base columns and the per-session angles jointly (rotation.py)
     rotation: tuple | None = None
+
+    #: the reference-range guard of :func:`check_rows` (reference, range, saturated rows, excluded)
+    reference: dict | None = None
 
     def history(self) -> tuple[np.ndarray, np.ndarray]:
         """(dut (M,3), idx (N,)): the excursion history for hysteresis, i.e. the DUT reading of every
@@ -341,17 +346,18 @@ def usable_rows(s: Session) -> np.ndarray:
     """Rows with finite reference and DUT fields, finite time and flag 0."""
     ok = np.all(np.isfinite(s.ref_uT), axis=1) & np.all(np.isfinite(s.dut_uT), axis=1) & np.isfinite(s.t_s)
     if s.flag is not None:
-        ok &= s.flag == 0
+        ok &= usable(s.flag)            # the dictionary's one rule: informational bits keep a row
     return ok
 
 
-def check_rows(s: Session, min_rows: int = 50, exclude_bends: float | None = None
-               ) -> tuple[Session, np.ndarray, list[str]]:
-    """The usable rows sorted by session then time (attribute ``dut_history``: see
-    :meth:`Gap.history`), the mask of those kept for the diagnosis (with
-    ``exclude_bends``: not at sharp bends of the reference, see :func:`nonlinear.bend_rows`, nor at
-    the edges of a contiguous run, see :func:`run_edge_rows`), and
-    notes; DiagnosisError when too few remain."""
+def check_rows(s: Session, min_rows: int = 50, exclude_bends: float | None = None,
+               include_saturated: bool = False) -> tuple[Session, np.ndarray, list[str]]:
+    """The usable rows sorted by session then time (attributes ``dut_history``: see
+    :meth:`Gap.history`; ``reference_guard``: see :func:`reference_guard`), the mask of those kept for
+    the diagnosis (with ``exclude_bends``: not at sharp bends of the reference, see
+    :func:`nonlinear.bend_rows`, nor at the edges of a contiguous run, see :func:`run_edge_rows`), and
+    notes; DiagnosisError when too few remain. Rows with the reference at or beyond its range are
+    left out (counted) unless ``include_saturated``: the calibration fit's guard."""
     from magstack.ground.diagnose.nonlinear import bend_rows
     notes = []
     ok = usable_rows(s)
@@ -359,7 +365,21 @@ def check_rows(s: Session, min_rows: int = 50, exclude_bends: float | None = Non
         raise DiagnosisError(f"only {int(ok.sum())} usable rows (finite ref and DUT, flag 0) of {len(s)}: "
                              f"need at least {min_rows}")
     if (~ok).any():
-        notes.append(f"{int((~ok).sum())} rows without finite ref/DUT or with flag != 0 left out")
+        notes.append(f"{int((~ok).sum())} rows without finite ref/DUT or with a disqualifying flag left out")
+    guard, sat = reference_guard(s, ok, include_saturated)
+    if guard["note"]:
+        notes.append(guard["note"])
+    if guard["saturated_rows"]:
+        notes.append(f"{guard['saturated_rows']} rows with the reference at or beyond its range "
+                     f"(+-{guard['range_uT']:g} uT, {guard['reference']}): "
+                     + ("INCLUDED as requested (--include-saturated)" if include_saturated else
+                        "left out (a clipped reference against the DUT's real reading looks like a nonlinearity; "
+                        "--include-saturated keeps them)"))
+        if not include_saturated:
+            ok &= ~sat
+            if ok.sum() < min_rows:
+                raise DiagnosisError(f"only {int(ok.sum())} usable rows of {len(s)} with the reference inside its "
+                                     f"range: need at least {min_rows}")
     s2 = s.select(ok)
     order = np.lexsort((s2.t_s, s2.session))
     s2 = s2.select(order)
@@ -370,6 +390,7 @@ def check_rows(s: Session, min_rows: int = 50, exclude_bends: float | None = Non
     pos = np.full(len(s), -1, dtype=np.int64)
     pos[h_rows] = np.arange(h_rows.size)
     s2.dut_history = (s.dut_uT[h_rows], pos[np.flatnonzero(ok)[order]])
+    s2.reference_guard = dict(guard)
     keep = np.ones(len(s2), bool)
     if exclude_bends is not None:
         bend = bend_rows(s2.ref_uT, s2.t_s, s2.session, exclude_bends, s2.dut_uT)
@@ -386,6 +407,53 @@ def check_rows(s: Session, min_rows: int = 50, exclude_bends: float | None = Non
                          "the field beyond the recorded run")
             keep &= ~edge
     return s2, keep, notes
+
+
+def reference_guard(s: Session, usable: np.ndarray, include_saturated: bool) -> tuple[dict, np.ndarray]:
+    """The calibration fit's reference-range guard (firmware calibration.reference): the reference
+    named by the session metadata (``reference``; the default assumed with a note), its range, and the
+    usable rows with a component at or beyond ``(1 - margin)`` of it, counted per axis only where the
+    reference is evidently pinned there (:func:`_pinned`). Returns (summary, saturated mask)."""
+    name, rng, note = reference_range(s.metadata)
+    b = np.abs(np.asarray(s.ref_uT, dtype=float))
+    sat = np.zeros(len(s), bool)
+    unpinned = []
+    for j in range(3):
+        flagged = usable & saturated_rows(np.where(np.arange(3) == j, s.ref_uT, 0.0), rng)
+        if flagged.any():
+            if _pinned(b[flagged, j], np.abs(s.dut_uT[flagged, j]), rng):
+                sat |= flagged
+            else:
+                unpinned.append("xyz"[j])
+    if unpinned:
+        msg = (f"the reference reads at or beyond its range (+-{rng:g} uT, {name}) on {', '.join(unpinned)} but "
+               "follows the DUT there (not pinned): those rows are kept")
+        note = f"{note}; {msg}" if note else msg
+    return {"reference": name, "range_uT": float(rng), "assumed": note is not None and "assuming" in note,
+            "note": note, "saturated_rows": int(sat.sum()),
+            "saturated_excluded": bool(sat.any() and not include_saturated)}, sat
+
+
+#: A flagged reference axis counts as pinned when its spread over the flagged rows is below this fraction of
+#: the DUT's spread there (a clipped reference is flat while the DUT follows the real field).
+PINNED_SPREAD_RATIO = 0.5
+#: ... and sits within this fraction above its nominal range (the real clip: 107 uT on a 100 uT instrument).
+PINNED_LEVEL = 0.1
+
+
+def _pinned(ref_abs: np.ndarray, dut_abs: np.ndarray, range_uT: float) -> bool:
+    """True when the reference sits near its range over the flagged rows (median within PINNED_LEVEL of it)
+    and is flat there while the DUT is not (2-98 % spreads), or when there are too few rows to tell (the
+    fit's rule then stands). A real clip (reference at +-107 uT of a +-100 uT instrument, DUT at 119 uT) is
+    pinned; a simulator's ideal reference, or one that reads far beyond the nominal range (150 uT plateaus
+    held by the coils), is kept."""
+    if ref_abs.size < 5:
+        return True
+    if np.median(ref_abs) > (1.0 + PINNED_LEVEL) * range_uT:
+        return False
+    spread = np.diff(np.quantile(ref_abs, [0.02, 0.98]))[0]
+    d_spread = np.diff(np.quantile(dut_abs, [0.02, 0.98]))[0]
+    return bool(spread < PINNED_SPREAD_RATIO * d_spread)
 
 
 def run_edge_rows(t_s: np.ndarray, session: np.ndarray) -> np.ndarray:

@@ -22,6 +22,7 @@
 from __future__ import annotations
 
 import numpy as np
+import scipy.signal
 
 #: Delay grid half-width, in units of the median row spacing, and number of grid points.
 DELAY_HALF_WIDTH_ROWS = 1.25
@@ -95,6 +96,90 @@ def search_delays(sse_of, grid: np.ndarray, passes: int = 2) -> np.ndarray:
     return d
 
 
+#: Thermal-lag time constants tried: geometric grid from LAG_MIN_ROWS row spacings (at least LAG_MIN_S)
+#: to LAG_MAX_FRACTION of the longest session (at most LAG_MAX_S).
+LAG_GRID_POINTS = 12
+LAG_MIN_S = 5.0
+LAG_MIN_ROWS = 4
+LAG_MAX_FRACTION = 0.5
+LAG_MAX_S = 3600.0
+#: Points of the fine grid between the neighbours of the best coarse time constant.
+LAG_FINE_POINTS = 15
+
+
+def lag_grid(t_s: np.ndarray, session: np.ndarray) -> np.ndarray:
+    """Time constants (s) the thermal-lag search tries (geometric)."""
+    dt = np.diff(t_s)
+    pos = dt[dt > 0]
+    lo = max(LAG_MIN_S, LAG_MIN_ROWS * (float(np.median(pos)) if pos.size else 1.0))
+    span = max(float(np.ptp(t_s[session == k])) for k in np.unique(session))
+    hi = min(LAG_MAX_S, LAG_MAX_FRACTION * span)
+    if hi <= lo:
+        return np.array([lo])
+    return np.geomspace(lo, hi, LAG_GRID_POINTS)
+
+
+def refine_log_minimum(grid: np.ndarray, vals: np.ndarray) -> float:
+    """The grid point with the lowest value, refined by a parabola in log(grid) through it and its
+    neighbours (kept inside them)."""
+    k = int(np.argmin(vals))
+    if not 0 < k < grid.size - 1:
+        return float(grid[k])
+    x = np.log(grid[k - 1:k + 2])
+    y0, y1, y2 = vals[k - 1:k + 2]
+    den = (y0 - 2 * y1 + y2)
+    if not den > 0:
+        return float(grid[k])
+    h = x[1] - x[0]
+    return float(np.exp(np.clip(x[1] + 0.5 * (y0 - y2) / den * h, x[0], x[2])))
+
+
+def lagged_temperature(t_s: np.ndarray, temp_c: np.ndarray, session: np.ndarray, tau_s: float) -> np.ndarray:
+    """First-order lag (time constant ``tau_s``) of the temperature: ``dT_die/dt = (T - T_die)/tau``. The die
+    does not cool at a power cycle: the rows are taken in time order across sessions, in stretches split
+    where the record stops for more than LAG_EQUILIBRIUM x tau (the die has then caught up; each stretch
+    starts in equilibrium). Computed exactly for a temperature linear between grid points on a uniform grid
+    of the median spacing (scipy.signal.lfilter), read back at the rows; gaps (left-out rows, dropouts,
+    short pauses) are bridged by linear interpolation of the temperature. Sessions that overlap in time
+    (separate recordings) are filtered one by one."""
+    t_all = np.asarray(t_s, dtype=float)
+    out = np.array(temp_c, dtype=float, copy=True)
+    if tau_s <= 0:
+        return out
+    order = np.argsort(t_all, kind="stable")
+    ids = np.unique(session)
+    spans = [(t_all[session == k].min(), t_all[session == k].max()) for k in ids]
+    overlap = any(a[1] > b[0] and b[1] > a[0] for i, a in enumerate(spans) for b in spans[i + 1:])
+    groups = [np.flatnonzero(session == k) for k in ids] if overlap else [order]
+    for g in groups:
+        g = g[np.argsort(t_all[g], kind="stable")]
+        cut = np.flatnonzero(np.diff(t_all[g]) > LAG_EQUILIBRIUM * tau_s) + 1
+        for m in np.split(g, cut):
+            _lag_stretch(t_all, out, m, tau_s)
+    return out
+
+
+#: A pause longer than this many time constants restarts the lag in equilibrium.
+LAG_EQUILIBRIUM = 10.0
+
+
+def _lag_stretch(t_all: np.ndarray, out: np.ndarray, m: np.ndarray, tau_s: float) -> None:
+    t, x = t_all[m], out[m]
+    ok = np.isfinite(x)
+    if ok.sum() < 2:
+        return
+    dt = np.diff(t)
+    h = float(np.median(dt[dt > 0])) if np.any(dt > 0) else 1.0
+    grid = t[0] + h * np.arange(int(np.ceil((t[-1] - t[0]) / h)) + 1)
+    u = np.interp(grid, t[ok], x[ok])
+    a = np.exp(-h / tau_s)
+    # exact response to a ramp between grid points: y_k = a y_(k-1) + b0 u_k + b1 u_(k-1), from equilibrium
+    c = tau_s / h * (1 - a)
+    b0, b1 = 1 - c, c - a
+    y, _ = scipy.signal.lfilter([b0, b1], [1.0, -a], u, zi=[u[0] * (1 - b0)])
+    out[m] = np.interp(t, grid, y)
+
+
 def hysteresis_state(b_uT: np.ndarray, threshold_uT: np.ndarray, initial=None) -> np.ndarray:
     """(N,3) sign (-1/+1) of the last reading with ``|B_j| >= threshold_j``; before an axis' first such
     reading the state is ``initial[j]`` (the remanence the part had when the file starts: a magnetised
@@ -111,6 +196,24 @@ def hysteresis_state(b_uT: np.ndarray, threshold_uT: np.ndarray, initial=None) -
         e = np.where(np.abs(b_uT[:, j]) >= thr, np.sign(b_uT[:, j]), 0.0)
         last = np.maximum.accumulate(np.where(e != 0, ar, -1))
         out[:, j] = np.where(last >= 0, e[np.maximum(last, 0)], init[j])
+    return out
+
+
+def before_first_excursion(hist_uT: np.ndarray, idx: np.ndarray, threshold_uT: np.ndarray,
+                           session: np.ndarray) -> np.ndarray:
+    """(N,) bool for the tested rows ``idx`` (into the excursion history ``hist_uT``, sorted by session then
+    time): the row comes before the first excursion (|B_j| >= threshold_j on any axis) of its session."""
+    exc = np.any(np.abs(hist_uT) >= np.where(np.isfinite(threshold_uT), threshold_uT, np.inf), axis=1)
+    # excursions counted in the history, mapped to the tested rows by position: a tested row is "before"
+    # when no history row of its session up to its own position was an excursion
+    cum = np.cumsum(exc)
+    out = np.zeros(idx.size, bool)
+    for k in np.unique(session):
+        m = np.flatnonzero(session == k)
+        first = idx[m[0]]
+        # history rows of this session start at or before the session's first tested row
+        base = cum[first - 1] if first > 0 else 0
+        out[m] = (cum[idx[m]] - base) == 0
     return out
 
 

@@ -5,7 +5,8 @@ For each effect of :data:`magstack.firmware.effects.EFFECTS` that the simulator 
 1. Its columns are built (the calibration term named by the effect's ``cal_term``; the non-linear
    estimators of :mod:`.nonlinear` for ``time_skew`` and ``hysteresis``; the joint per-session
    rotation of :mod:`.rotation` for ``mount_rotation``). Offset-like effects
-   (``cal_term == "session_offset"``) get a constant column too when the base has no offset.
+   (per-session offsets, drift, temperature offset: :data:`OFFSET_LIKE`) get a constant column too when
+   the base has no offset (mode (b): a drift since the table was fitted has a non-zero mean).
    It is *not testable* when the columns cannot be built (no temperature, no currents, one session),
    are all combinations of the base columns, or (temperature effects) the temperature spans less
    than ``MIN_TEMP_SPAN_C``.
@@ -32,6 +33,7 @@ For each effect of :data:`magstack.firmware.effects.EFFECTS` that the simulator 
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -42,7 +44,7 @@ from magstack.firmware.effects import EFFECT_NAMES, EFFECTS
 from magstack.firmware.errors import FitError
 from magstack.ground.diagnose import nonlinear as nl
 from magstack.ground.diagnose import rotation as rot
-from magstack.ground.diagnose.gap import Block, Gap, out_of_fold, predict, solve
+from magstack.ground.diagnose.gap import Block, Gap, gram, out_of_fold, predict, solve, solve_gram
 from magstack.ground.errors import DiagnosisError
 
 #: Temperature effects need at least this temperature span (degC) to be tested.
@@ -59,6 +61,8 @@ def SUB(n: int) -> slice:  # noqa: N802
     return slice(None, None, max(1, -(-n // CONFOUND_ROWS)))
 
 
+#: Calibration terms tested together with a constant when the base has none.
+OFFSET_LIKE = ("session_offset", "drift", "temperature_offset")
 #: Fewer held-out blocks than this: no significance claimed.
 MIN_BLOCKS = 6
 #: Sign-flip resamples (p resolution 2.5e-4, ample for Holm over ~12 effects at alpha 0.05).
@@ -93,7 +97,8 @@ class Trial:
 
 @dataclass
 class Options:
-    block_s: float = 60.0
+    #: held-out block length in s; None: chosen from the data (blocks.choose_block_s)
+    block_s: float | None = None
     exclude_bends: float | None = 10.0
     n_folds: int = 5
     alpha: float = 0.05
@@ -102,6 +107,8 @@ class Options:
     #: null model for slow noise: "surrogate" (the block test and the surrogate test must both reject,
     #: see surrogate.py) or "blocks" (the block test alone)
     null: str = "surrogate"
+    #: keep rows with the reference at or beyond its range (default: left out and counted, as ``fit``)
+    include_saturated: bool = False
 
 
 @dataclass
@@ -110,6 +117,7 @@ class Candidate:
     kind: str
     terms: tuple = ()                   # linear: calibration terms (columns built when evaluated)
     thresholds: list | None = None      # hysteresis candidates per axis
+    lag_tau_s: float | None = None      # thermal lag: the time constant chosen on all rows (set by evaluate)
 
 
 @dataclass
@@ -221,6 +229,27 @@ def grouped(d: np.ndarray, block_session: np.ndarray, g: int) -> np.ndarray:
     return np.bincount(gid, weights=d)
 
 
+#: A simpler candidate is preferred only when it closes at least this fraction of what the best closes.
+PARSIMONY_MIN_CLOSED = 0.9
+
+
+def closes_as_much(rmse_simple: float, rmse_best: float, baseline: float) -> bool:
+    """True when the simpler candidate closes at least PARSIMONY_MIN_CLOSED of the held-out gap the best
+    closes (``baseline - rmse``): never prefer a fit several times worse for its fewer parameters."""
+    return baseline - rmse_simple >= PARSIMONY_MIN_CLOSED * (baseline - rmse_best)
+
+
+def paired_worse_p(d: np.ndarray) -> float:
+    """One-sided p of "the simpler candidate is worse" from per-unit SSE differences ``d`` (simpler minus
+    best): Wilcoxon's signed-rank test, whose ranks one outlier block cannot dominate (Student's t on a few
+    heavy-tailed units can be flipped by one). Fewer than MIN_BLOCKS units or no difference: 1."""
+    d = np.asarray(d, dtype=float)
+    d = d[np.isfinite(d) & (d != 0)]
+    if d.size < MIN_BLOCKS:
+        return 1.0
+    return float(scipy.stats.wilcoxon(d, alternative="greater").pvalue)
+
+
 def holm(p: list[float]) -> list[float]:
     """Holm step-down adjusted p-values."""
     m = len(p)
@@ -270,6 +299,15 @@ def build_candidates(gap: Gap, base: Block) -> tuple[list[Candidate], list[dict]
             # mode (a) fits the modelled effects; mode (b) holds them fixed, so a changed one is a candidate
             if gap.mode == "model" or e.cal_term in gap.base_terms:
                 continue
+        if name == "thermal_lag":
+            if temp_span < MIN_TEMP_SPAN_C:
+                not_testable.append({"effect": name, "reason": f"temperature spans {temp_span:.2f} degC "
+                                                               f"(need {MIN_TEMP_SPAN_C:g} degC)"})
+            elif not temp_ok.all():
+                not_testable.append({"effect": name, "reason": f"no temperature on {int((~temp_ok).sum())} rows"})
+            else:
+                cands.append(Candidate(name, "lag"))
+            continue
         if e.cal_term is None:
             not_testable.append({"effect": name, "reason": "no correction term in the catalogue (cal_term None): "
                                                            "it is part of the noise floor / data limits"})
@@ -292,8 +330,11 @@ def build_candidates(gap: Gap, base: Block) -> tuple[list[Candidate], list[dict]
             cands.append(Candidate(name, "hysteresis", thresholds=thr))
             continue
         terms = (e.cal_term,)
-        if e.cal_term == "session_offset" and "offset" not in base_terms:
-            terms = ("offset", "session_offset")
+        if e.cal_term in OFFSET_LIKE and "offset" not in base_terms:
+            # with no offset in the base (a fixed table, --sim, --model gain) the effect carries its constant:
+            # a drift built up since the table was fitted has a non-zero mean, a temperature offset about
+            # another pivot is K (T - T0) plus a constant, per-session offsets are effect-coded about one
+            terms = ("offset", e.cal_term)
         if e.cal_term == "temperature_gain" and "temperature_offset" not in base_terms:
             # a gain applied before the offset, inverted, leaves K_S dT O: a dT column
             terms = ("temperature_gain", "temperature_offset")
@@ -344,10 +385,7 @@ def linear_block(gap: Gap, name: str, terms) -> Block:
     seen from the calibration side needs them, higher-order columns (nonlinear.py)."""
     blk = gap.term_design(terms)
     if name == "temperature_gain" and blk.p:
-        q = nl.higher_order_temperature_gain(gap.predictor_uT, gap.session.temp_c, gap.t0_c)
-        blk = Block.join([blk, Block(q, np.hstack([np.eye(3, dtype=bool)] * 2),
-                                     [[f"K_S2[{a}]" for a in "xyz"] + [f"K_S3[{a}]" for a in "xyz"]] * 3,
-                                     ["1/degC^2"] * 3 + ["1/degC^3"] * 3)], gap.n)
+        blk = Block.join([blk, temperature_gain_higher_order(gap, gap.session.temp_c)], gap.n)
     if name == "cross_axis" and blk.p:
         q = nl.second_order_cross_axis(gap.predictor_uT)
         m = np.zeros((3, 6), bool)
@@ -356,6 +394,18 @@ def linear_block(gap: Gap, name: str, terms) -> Block:
         blk = Block.join([blk, Block(q, m, [[f"Q[{o},{c}]" for o in "xyz" for c in "xyz" if c != o]] * 3,
                                      ["1/uT^2"] * 6)], gap.n)
     return blk
+
+
+def temperature_gain_higher_order(gap: Gap, temp_c: np.ndarray) -> Block:
+    """Columns the catalogue's forward temperature gain leaves on the calibration side beyond the first
+    order (nonlinear.higher_order_temperature_gain: on-axis ``B dT^2``, ``B dT^3``), plus ``dT^2`` per axis:
+    a gain applied before a temperature offset leaves ``K_S K_O dT^2`` when inverted (0.24 uT at -2700 ppm/degC,
+    -140 nT/degC and 25 degC from the pivot)."""
+    q = nl.higher_order_temperature_gain(gap.predictor_uT, temp_c, gap.t0_c)
+    d2 = (np.asarray(temp_c, dtype=float) - gap.t0_c) ** 2
+    mask = np.hstack([np.eye(3, dtype=bool)] * 2 + [np.ones((3, 1), bool)])
+    names = [[f"K_S2[{a}]" for a in "xyz"] + [f"K_S3[{a}]" for a in "xyz"] + [f"K_O2[{o}]"] for o in "xyz"]
+    return Block(np.column_stack([q, d2]), mask, names, ["1/degC^2"] * 3 + ["1/degC^3"] * 3 + ["uT/degC^2"])
 
 
 def _excited(X: np.ndarray, base: np.ndarray) -> bool:
@@ -368,8 +418,11 @@ def hysteresis_block(gap: Gap, thresholds: np.ndarray, initial: np.ndarray | Non
     (:meth:`Gap.history`), ``initial`` the state before each axis' first excursion."""
     hist, idx = gap.history()
     st = nl.hysteresis_state(hist, thresholds, initial)[idx]
-    mask = np.eye(3, dtype=bool)
-    names = [[f"H[{a}]" if i == j else "" for j in range(3)] for i, a in enumerate("xyz")]
+    # the remanence is a vector: the state of axis j (its last excursion's sign) shifts every output axis
+    # (magnetised material near the sensor; an independent generator's 10 nT cross-remanence otherwise left
+    # the hysteresis fit 1.4x the floor and per-session offsets, fitting each cycle's vector, ahead)
+    mask = np.ones((3, 3), dtype=bool)
+    names = [[f"H[{o}<-{a}]" for a in "xyz"] for o in "xyz"]
     blk = Block(st, mask, names, ["uT"] * 3)
     keep = np.isfinite(thresholds)
     blk = Block(st[:, keep], mask[:, keep], [[n for n, k in zip(r, keep, strict=True) if k] for r in names],
@@ -399,6 +452,41 @@ def choose_thresholds(gap: Gap, base: Block, Y: np.ndarray, cands: list, rows: n
                     best, best_init, best_sse = c, s0, sse
         thr[j], init[j] = best, best_init
     return thr, init
+
+
+#: Calibration terms evaluated on the lagged temperature by the thermal-lag candidate.
+LAG_TERMS = ("temperature_gain", "temperature_offset")
+
+
+def lag_block(gap: Gap, tau_s: float) -> Block:
+    """The thermal-lag candidate's columns: the temperature terms (LAG_TERMS, plus a constant when the base
+    has none) evaluated on the temperature lagged by ``tau_s`` (nonlinear.lagged_temperature)."""
+    s = gap.session
+    lagged = dataclasses.replace(s)
+    lagged.temp_c = nl.lagged_temperature(s.t_s, s.temp_c, s.session, tau_s)
+    terms = LAG_TERMS if "offset" in gap.base_terms else ("offset",) + LAG_TERMS
+    blk = dataclasses.replace(gap, session=lagged).term_design(terms)
+    blk = Block.join([blk, temperature_gain_higher_order(gap, lagged.temp_c)], gap.n)
+    names = [[n + "@lag" for n in row] for row in blk.names]
+    return Block(blk.X, blk.mask, names, blk.units)
+
+
+def lag_train_sse(gap: Gap, base: Block, Y: np.ndarray, fold: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """(folds, taus) training SSE of base + lag_block(tau) for each fold left out, from per-fold Gram
+    matrices (one pass over the rows per tau)."""
+    folds = np.unique(fold)
+    out = np.full((folds.size, grid.size), np.inf)
+    for k, tau in enumerate(grid):
+        blk = Block.join([base, lag_block(gap, float(tau))], gap.n)
+        G, C = gram(blk.X, Y)
+        yy = np.sum(Y ** 2, axis=0)
+        for i, f in enumerate(folds):
+            test = fold == f
+            Gf, Cf = gram(blk.X, Y, test)
+            Gt, Ct, yt = G - Gf, C - Cf, yy - np.sum(Y[test] ** 2, axis=0)
+            th = np.where(blk.mask, solve_gram(Gt, Ct, blk.mask), 0.0)
+            out[i, k] = float(sum(yt[a] - 2 * th[a] @ Ct[:, a] + th[a] @ Gt @ th[a] for a in range(3)))
+    return out
 
 
 def delay_sse_fn(gap: Gap, rows: np.ndarray):
@@ -448,13 +536,39 @@ def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: n
             blk = Block.join([base, hysteresis_block(gap, thr, init)], gap.n)
             r[test] = fold_residual(gap, blk, Y, train, test)
         hist, idx = gap.history()
-        cols = nl.hysteresis_state(hist, *choose_thresholds(gap, base, Y, cand.thresholds,
-                                                             np.ones(gap.n, bool)))[idx]
+        thr_all = choose_thresholds(gap, base, Y, cand.thresholds, np.ones(gap.n, bool))
+        cols = nl.hysteresis_state(hist, *thr_all)[idx]
+        telling = nl.before_first_excursion(hist, idx, thr_all[0], gap.session.session)
     elif cand.kind == "joint":   # mount_rotation (rotation.py)
         mc = rot.mount_columns(gap)
         r, angles = rot.out_of_fold(base, mc, Y, fold, base_trial.rmse_uT)
         cols = mc.flat(np.arange(gap.n)[SUB(gap.n)])
         n_par = mc.q
+    elif cand.kind == "lag":   # thermal lag: tau chosen per fold by training SSE, like the delay
+        coarse = nl.lag_grid(gap.session.t_s, gap.session.session)
+        tr = lag_train_sse(gap, base, Y, fold, coarse)
+        # a fine grid between the neighbours of the best coarse point (summed over folds), where the
+        # parabola's error is far below the held-out effect of a wrong time constant
+        k = int(np.argmin(tr.sum(axis=0)))
+        fine = np.geomspace(coarse[max(k - 1, 0)], coarse[min(k + 1, coarse.size - 1)], nl.LAG_FINE_POINTS)
+        grid = np.unique(np.r_[coarse, fine])
+        tr = np.hstack([tr, lag_train_sse(gap, base, Y, fold, fine)])[:, np.argsort(np.r_[coarse, fine])]
+        keep = np.r_[True, np.diff(np.sort(np.r_[coarse, fine])) > 0]
+        tr = tr[:, keep]
+        folds = np.unique(fold)
+        fold_tau = [nl.refine_log_minimum(grid, tr[i]) for i in range(folds.size)]
+        r = np.full(Y.shape, np.nan)
+        for tau in set(fold_tau):
+            blk = Block.join([base, lag_block(gap, tau)], gap.n)
+            for f, ft in zip(folds, fold_tau, strict=True):
+                if ft == tau:
+                    r[fold == f] = fold_residual(gap, blk, Y, fold != f, fold == f)
+        # all rows: each row is in the training set of all folds but its own: the sum over folds orders the
+        # time constants as the training SSE on all rows would, without another pass
+        cand.lag_tau_s = nl.refine_log_minimum(grid, tr.sum(axis=0))
+        own = lag_block(gap, cand.lag_tau_s)
+        cols = own.X
+        n_par = int(own.mask.sum()) + 1
     else:   # delay
         r = np.full(Y.shape, np.nan)
         grid = nl.delay_grid(gap.session.t_s)
@@ -472,6 +586,8 @@ def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: n
     if cand.kind == "linear":
         t.extra["terms"] = cand.terms
         t.extra["n_params"] = n_par
+    elif cand.kind == "lag":
+        t.extra.update(n_params=n_par, fold_tau_s=fold_tau, tau_s=cand.lag_tau_s, grid_s=grid)
     elif cand.kind == "joint":
         t.extra["n_params"] = n_par
         t.extra["fold_angles_rad"] = angles
@@ -482,7 +598,9 @@ def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: n
         t.extra["grid_s"] = grid
     elif cand.kind == "hysteresis":
         t.extra["fold_thresholds_uT"] = fold_thr
-        # per axis: level, threshold, initial sign
+        t.extra["telling_rows"] = telling
+        # one remanence vector per axis with excursions (the threshold and the initial sign are choices among a
+        # few options, like the delay grid), plus the constant when the base has none
         t.extra["n_params"] = 3 * sum(1 for c in cand.thresholds if c) + (0 if "offset" in gap.base_terms else 3)
     b = base_trial.rmse_norm_uT
     t.shrink = float(1.0 - t.rmse_norm_uT / b) if b > 0 else 0.0
@@ -507,6 +625,63 @@ def surrogate_tests(gap: Gap, cands: list[Candidate], trials: list[Trial], base:
         t.extra["surrogate"] = r
         t.p_value = max(t.p_value, r.p_value)
     return model
+
+
+def hysteresis_or_session_offset(h: Trial, so: Trial, blocks: np.ndarray, block_session: np.ndarray, alpha: float,
+                                 baseline_rmse_uT: float) -> tuple[Trial | None, str | None]:
+    """Hysteresis against per-session offsets, both significant: they differ on the rows of a power cycle
+    before its first excursion (the remanence carried over from the previous cycle against the cycle's
+    own constant; after it both are constant until the next excursion). The signed-rank test on the
+    per-block held-out SSE differences over those rows decides when it rejects either way; otherwise the
+    one with fewer parameters (hysteresis: one remanence vector per axis with excursions; per-session
+    offsets: three per session) is named if it closes as much of the gap (:func:`closes_as_much`).
+    None: no decision here."""
+    tell = h.extra.get("telling_rows")
+    if tell is None or h.resid is None or so.resid is None or not tell.any():
+        return None, None
+    nb = block_session.size
+    sse = [np.bincount(blocks[tell], weights=np.sum(np.nan_to_num(np.asarray(t.resid, float)[tell]) ** 2, axis=1),
+                       minlength=nb) for t in (h, so)]
+    used = np.bincount(blocks[tell], minlength=nb) > 0
+    d = (sse[1] - sse[0])[used]              # > 0: hysteresis better on the telling rows
+    n_tell = int(tell.sum())
+    if paired_worse_p(d) < alpha:
+        return h, (f"hysteresis and session_offset compared on the {n_tell} rows before the first excursion of each "
+                   "power cycle (where they differ): hysteresis predicts them better")
+    if paired_worse_p(-d) < alpha:
+        return so, (f"hysteresis and session_offset compared on the {n_tell} rows before the first excursion of "
+                    "each power cycle (where they differ): session_offset predicts them better")
+    simple, rich = (h, so) if h.n_params < so.n_params else (so, h)
+    if simple.n_params < rich.n_params and closes_as_much(simple.rmse_norm_uT, min(h.rmse_norm_uT, so.rmse_norm_uT),
+                                                          baseline_rmse_uT):
+        return simple, (f"{simple.effect} ({simple.n_params} parameters) and {rich.effect} ({rich.n_params}) are not "
+                        f"told apart on the {n_tell} rows before each power cycle's first excursion: the one with "
+                        "fewer parameters is named")
+    return None, None
+
+
+def choose_verdict(sig: list[Trial], baseline_rmse_uT: float, block_session: np.ndarray, alpha: float,
+                   blocks: np.ndarray | None = None) -> tuple[Trial, str | None]:
+    """The verdict among significant trials ``sig`` (sorted by held-out RMSE): the best, unless a
+    candidate with fewer parameters closes as much of the gap (:func:`closes_as_much`) and is not
+    significantly worse by the signed-rank test on the grouped block SSE differences
+    (:func:`paired_worse_p`); then the simpler is named, with a note. Hysteresis against per-session
+    offsets is decided on the rows that tell them apart (:func:`hysteresis_or_session_offset`; needs
+    ``blocks``, the block id per row)."""
+    v = sig[0]
+    pair = {t.effect: t for t in sig if t.effect in ("hysteresis", "session_offset")}
+    if len(pair) == 2 and v.effect in pair and blocks is not None:
+        choice, note = hysteresis_or_session_offset(pair["hysteresis"], pair["session_offset"], blocks,
+                                                    block_session, alpha, baseline_rmse_uT)
+        if choice is not None:
+            return choice, note
+    for t in sorted(sig[1:], key=lambda t: (t.n_params, t.rmse_norm_uT)):
+        g = max(t.extra.get("group", 1), v.extra.get("group", 1))
+        if (t.n_params < v.n_params and closes_as_much(t.rmse_norm_uT, v.rmse_norm_uT, baseline_rmse_uT)
+                and paired_worse_p(grouped(t.block_sse - v.block_sse, block_session, g)) >= alpha):
+            return t, (f"{t.effect} ({t.n_params} parameters) explains the gap as well as {v.effect} "
+                       f"({v.n_params}) on held-out blocks: the simpler one is named")
+    return v, None
 
 
 def search(gap: Gap, blocks: np.ndarray, fold: np.ndarray, opts: Options) -> SearchResult:
@@ -558,16 +733,9 @@ def search(gap: Gap, blocks: np.ndarray, fold: np.ndarray, opts: Options) -> Sea
     trials.sort(key=lambda t: t.rmse_norm_uT)
     sig = [t for t in trials if t.significant]
     if sig:
-        v = sig[0]
-        # parsimony: a significant effect with fewer parameters that the data cannot tell from the best
-        for t in sorted(sig[1:], key=lambda t: (t.n_params, t.rmse_norm_uT)):
-            g = max(t.extra["group"], v.extra["group"])
-            if t.n_params < v.n_params and unit_p(grouped(t.block_sse - v.block_sse, bs, g),
-                                                       opts.seed) >= opts.alpha:
-                res.notes.append(f"{t.effect} ({t.n_params} parameters) explains the gap as well as {v.effect} "
-                                 f"({v.n_params}) on held-out blocks: the simpler one is named")
-                v = t
-                break
+        v, note = choose_verdict(sig, baseline.rmse_norm_uT, bs, opts.alpha, blocks)
+        if note:
+            res.notes.append(note)
         trials.remove(v)
         trials.insert(0, v)
         res.verdict = v.effect

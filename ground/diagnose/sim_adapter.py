@@ -34,7 +34,7 @@ FORMAT = "magstack-error-params"
 
 #: ErrorParams fields that carry each effect's strength (neutral = the dataclass default).
 _FIELDS = {
-    "time_skew": ("axis_delay_s",), "interference": ("interference_uT_per_A",),
+    "thermal_lag": ("thermal_lag_tau_s",), "time_skew": ("axis_delay_s",), "interference": ("interference_uT_per_A",),
     "misalignment": ("misalignment_rad", "rotation_rad"), "gain": ("gain_matrix",),
     "cross_axis": ("cross_axis_h0_uT",), "nonlinearity": ("cubic_per_uT2",),
     "temperature_gain": ("k_s_per_c", "k_s2_per_c2"), "hysteresis": ("hysteresis_uT",),

@@ -322,6 +322,9 @@ def candidate_designs(gap: Gap, cand) -> list[AxisDesign]:
                     col = nl.hysteresis_state(hist, thr, init)[idx][:, j:j + 1]
                     opts.append(np.hstack([fixed, col]))
             own.append(opts or [fixed])
+    elif cand.kind == "lag":   # the time constant chosen on all rows; its columns as a linear design
+        blk = sr.lag_block(gap, cand.lag_tau_s)
+        own = [[_axis_cols(blk, i)] for i in range(3)]
     elif cand.kind == "joint":
         mc = rot.mount_columns(gap)
         own = [[_nonzero(mc.axis_columns(i))] for i in range(3)]

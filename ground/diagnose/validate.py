@@ -26,7 +26,14 @@ import numpy as np
 from magstack.data.session import Session
 from magstack.firmware.effects import EFFECT_NAMES, EFFECTS
 from magstack.ground.diagnose import Options, diagnose, diagnose_model
-from magstack.sim.coil_programs import program
+from magstack.sim.coil_programs import (
+    ProgramTruth,
+    constant_field,
+    cycling_temp,
+    piecewise_linear,
+    program,
+    rotation_profile,
+)
 from magstack.sim.error_model import ErrorParams
 from magstack.sim.measurement_sim import simulate_measurement
 from magstack.sim.presets import preset
@@ -86,6 +93,72 @@ STRENGTHS: dict[str, tuple[Callable[[ErrorParams, float], ErrorParams], str]] = 
 }
 
 
+#: Thermal lag (not calibrated, cal_term None): realistic time constant; the sessions carry the HMC1053's
+#: temperature effects seen through the lag, diagnosed with gain_offset: the thermal_lag candidate (temperature
+#: terms on the lagged temperature) must beat the same terms on the board temperature. (With eq3 as the model
+#: its first-order temperature gain alone already leaves 110 nT against a 31 nT floor on these sessions.)
+THERMAL_LAG_TAU_S = 180.0
+THERMAL_LAG_SOURCE = ("assumed: a die behind the board thermistor by 3 min (issue 22: real thermal runs show a lag of "
+                      "minutes); temperature effects of the HMC1053 preset (-2700 ppm/degC, -140 nT/degC on X)")
+
+
+def _thermal_lag_params(scale: float) -> ErrorParams:
+    p = STRENGTHS["temperature_offset"][0](STRENGTHS["temperature_gain"][0](_base_params(), 1.0), 1.0)
+    return dataclasses.replace(p, thermal_lag_tau_s=scale * THERMAL_LAG_TAU_S)
+
+
+def _one_field_thermal(duration_s: float) -> ProgramTruth:
+    """X held at 44 uT while the unit cools from 80 to 38 degC (issue 22's real thermal run), one session."""
+    tk = np.linspace(0.0, duration_s, 40)
+    temp = 38.0 + 42.0 * np.exp(-3.0 * tk / duration_s)
+    return ProgramTruth("one_field_thermal", duration_s, constant_field((44.0, 0.0, 0.0)), piecewise_linear(tk, temp),
+                        sessions=1, description="X at 44 uT, cooling 80 -> 38 degC")
+
+
+def _constant_field_stretches(duration_s: float) -> ProgramTruth:
+    """Constant-field plateaus of 5 min (six field vectors, repeated) through one thermal cycle, two
+    currents switching every 7 min, three power cycles."""
+    levels = np.array([[44, 0, 0], [0, 44, 0], [0, 0, 44], [-30, 20, 25], [20, -35, 10], [10, 15, -40]], float)
+    n = int(np.ceil(duration_s / 300.0)) + 1
+    tk = np.ravel([[k * 300.0, k * 300.0 + 298.0] for k in range(n)])     # held 298 s, a 2 s ramp to the next
+    vals = np.repeat(levels[np.arange(n) % 6], 2, axis=0)
+    return ProgramTruth("constant_field", duration_s, piecewise_linear(tk, vals),
+                        cycling_temp(duration_s, 30.0, 25.0, 1.0),
+                        {"solar_A": lambda t: 0.5 * ((np.asarray(t) // 420) % 2),
+                         "torquer_A": lambda t: 0.1 * ((np.asarray(t) // 300 + 1) % 2)},
+                        sessions=SESSIONS, description="constant-field stretches")
+
+
+def _one_excursion_per_cycle(duration_s: float, cycles: int = 4) -> ProgramTruth:
+    """A rotating 50 uT field with one +-150 uT X excursion early in each power cycle (sign alternating), so
+    the remanence of the previous cycle is carried over until it."""
+    rot = rotation_profile(duration_s)
+    per = duration_s / cycles
+
+    def field(t):
+        b = np.asarray(rot(t), dtype=float).reshape(-1, 3).copy()
+        tt = np.asarray(t, dtype=float).reshape(-1)
+        k = np.floor(tt / per)
+        m = (tt - k * per > 0.1 * per) & (tt - k * per < 0.1 * per + 20.0)
+        b[m] = 0.0
+        b[m, 0] = np.where(k[m] % 2 == 0, 150.0, -150.0)
+        return b
+    return ProgramTruth("one_excursion_per_cycle", duration_s, field, cycling_temp(duration_s, 30.0, 20.0, 1.0),
+                        sessions=cycles, description="one excursion per power cycle")
+
+
+#: Extra scenarios: (kind, effects withheld there, model, truth builder (duration) or None = program 'full',
+#: duration in s or None = the run's, params at scale s or None = STRENGTHS).
+SCENARIOS = {
+    "one_field_thermal": (("temperature_gain",), BASE_MODEL, _one_field_thermal, None, None),
+    "constant_field": (("temperature_offset", "temperature_gain", "interference", "drift", "session_offset"),
+                       BASE_MODEL, _constant_field_stretches, None, None),
+    "short": (None, None, None, 600.0, None),
+    "hysteresis_one_excursion": (("hysteresis",), BASE_MODEL, _one_excursion_per_cycle, None, None),
+    "thermal_lag": (("thermal_lag",), BASE_MODEL, None, None, _thermal_lag_params),
+}
+
+
 _L = preset("lis3mdl")
 #: Null sessions with slow noise: the LIS3MDL preset's white and 1/f levels (lab study Table 1), the 1/f
 #: band extended from the lab record (300 s) down to 1/3000 Hz and up to the validation's Nyquist.
@@ -121,11 +194,11 @@ def _base_params() -> ErrorParams:
 
 
 def simulate(withheld: str | None, scale: float, seed: int, duration_s: float = DURATION_S,
-             params: ErrorParams | None = None, effects=None, t_start_s: float = 0.0) -> Session:
+             params: ErrorParams | None = None, effects=None, t_start_s: float = 0.0, truth=None) -> Session:
     p = params or _base_params()
     if withheld is not None and params is None:
         p = STRENGTHS[withheld][0](p, scale)
-    truth = program(PROGRAM, duration_s, sessions=SESSIONS)
+    truth = truth if truth is not None else program(PROGRAM, duration_s, sessions=SESSIONS)
     r = simulate_measurement(p, truth, duration_s=duration_s, rate_hz=RATE_HZ, seed=seed,
                              effects=effects or _effects_for(withheld), t_start_s=t_start_s)
     return Session(r.t_s, r.ref_uT, r.dut_uT, r.temp_c, r.session, r.currents_A,
@@ -152,6 +225,9 @@ def _jobs(seeds: int, n_null: int | None) -> list[tuple]:
     n_null = n_null if n_null is not None else max(20, 10 * seeds)
     jobs = [("withheld", e, s, 1000 * k + i) for k, e in enumerate(effects) for s in (1.0, 0.5)
             for i in range(seeds)]
+    for k, (kind, (eff, *_rest)) in enumerate(SCENARIOS.items()):
+        jobs += [(kind, e, sc, 100_000 + 1000 * k + 10 * j + i) for j, e in enumerate(eff or effects)
+                 for sc in (1.0, 0.5) for i in range(seeds)]
     jobs += [("null", None, 0.0, 50_000 + i) for i in range(n_null)]
     jobs += [("null_slow", None, 0.0, 90_000 + i) for i in range(n_null)]
     jobs += [("table", e, 1.0, 70_000 + i) for e in ("offset", "temperature_offset", "none") for i in range(seeds)]
@@ -187,6 +263,8 @@ def run_validation(out_dir, seeds: int = 1, n_null: int | None = None, duration_
         elif kind == "null_slow":
             s = simulate(None, 0.0, seed, duration_s, params=_slow_noise_params(), effects=list(BASE_EFFECTS))
             d = diagnose_model(s, BASE_MODEL, opts)
+        elif kind in SCENARIOS:
+            d = _scenario(kind, e, scale, seed, duration_s, opts)
         elif kind == "table":
             d = _table_case(e, seed, duration_s, opts, table_gap)
             e = None if e == "none" else e
@@ -200,11 +278,26 @@ def run_validation(out_dir, seeds: int = 1, n_null: int | None = None, duration_
     return summary
 
 
+def _scenario(kind: str, withheld: str, scale: float, seed: int, duration_s: float, opts):
+    """One extra-scenario session (:data:`SCENARIOS`) with ``withheld`` at ``scale``, diagnosed."""
+    _eff, model, build, dur, params_at = SCENARIOS[kind]
+    d = dur or duration_s
+    truth = build(d) if build is not None else program(PROGRAM, d, sessions=SESSIONS)
+    if params_at is not None:
+        p = params_at(scale)
+        effects = [e for e in EFFECT_NAMES if e in set(BASE_EFFECTS) | {"temperature_gain", "temperature_offset",
+                                                                         withheld}]
+        s = simulate(None, 0.0, seed, d, params=p, effects=effects, truth=truth)
+    else:
+        s = simulate(withheld, scale, seed, d, truth=truth)
+    return diagnose_model(s, model or _model_for(withheld), opts)
+
+
 def _table_case(change: str, seed: int, duration_s: float, opts, table_gap):
     """Fit a gain+offset table on a clean session, then diagnose a later session where ``change`` changed."""
     from magstack.firmware.cal_table import table_from_fit
     from magstack.firmware.calibration import FitData, fit
-    from magstack.ground.diagnose import shift_source
+    from magstack.ground.diagnose import attach_rows
     from magstack.ground.diagnose.gap import check_rows
 
     clean = simulate(None, 0.0, seed, duration_s)
@@ -220,14 +313,12 @@ def _table_case(change: str, seed: int, duration_s: float, opts, table_gap):
     later.t_s = later.t_s + duration_s + 600.0   # a later run of the same program
     full, keep, notes = check_rows(later, exclude_bends=opts.exclude_bends)
     g = table_gap(full.select(keep), table, "validation table")
-    g.shift_source = shift_source(full, keep)
-    g.notes += notes
-    return diagnose(g, opts)
+    return diagnose(attach_rows(g, full, keep, notes), opts)
 
 
 def _sim_case(seed, duration_s, opts, out, params_document, sim_gap):
     """Parameters file with a stale offset; the session's unit has moved by 0.15/-0.1/0.12 uT."""
-    from magstack.ground.diagnose import shift_source
+    from magstack.ground.diagnose import attach_rows
     from magstack.ground.diagnose.gap import check_rows
 
     p = _base_params()
@@ -238,9 +329,7 @@ def _sim_case(seed, duration_s, opts, out, params_document, sim_gap):
     s = simulate(None, 0.0, seed, duration_s, params=unit, effects=eff)
     full, keep, notes = check_rows(s, exclude_bends=opts.exclude_bends)
     g = sim_gap(full, keep, path)
-    g.shift_source = shift_source(full, keep)
-    g.notes += notes
-    return diagnose(g, opts)
+    return diagnose(attach_rows(g, full, keep, notes), opts)
 
 
 def _fit_options():
@@ -266,12 +355,22 @@ def summarise(rows: list[dict], effects: list[str], not_validated: list[str], se
                     "after_rmse_nT": [round(r["after_rmse_nT"], 1) for r in rs],
                     "noise_floor_nT": [round(r["noise_floor_nT"], 1) for r in rs],
                     "baseline_rmse_nT": [round(r["baseline_rmse_nT"], 1) for r in rs]}
+    scen = {}
+    for kind in SCENARIOS:
+        for r in (r for r in rows if r["kind"] == kind):
+            cell = scen.setdefault(kind, {}).setdefault(r["withheld"], {}).setdefault(
+                f"scale_{r['scale']:g}", {"found": 0, "n": 0, "after_over_floor_max": 0.0, "verdicts": []})
+            cell["found"] += int(r["correct"])
+            cell["n"] += 1
+            cell["after_over_floor_max"] = max(cell["after_over_floor_max"], r["after_over_floor"] or math.inf)
+            cell["verdicts"].append(r["verdict"])
     nulls = [r for r in rows if r["kind"] == "null"]
     fa = sum(r["verdict"] != "none" for r in nulls)
     slow = [r for r in rows if r["kind"] == "null_slow"]
     fa_slow = sum(r["verdict"] != "none" for r in slow)
     bpath = [r for r in rows if r["kind"] in ("table", "sim")]
     return {"effects": effects, "not_validated": not_validated, "confusion": conf, "per_effect": per,
+            "scenarios": scen, "thermal_lag": THERMAL_LAG_SOURCE,
             "false_alarms": fa, "null_sessions": len(nulls), "false_alarm_rate": fa / len(nulls) if nulls else None,
             "false_alarms_slow_noise": fa_slow, "null_slow_noise_sessions": len(slow),
             "false_alarm_rate_slow_noise": fa_slow / len(slow) if slow else None, "slow_noise": SLOW_NOISE_SOURCE,
@@ -316,6 +415,15 @@ def _write(out: Path, rows: list[dict], summary: dict) -> None:
     md += [f"- {r['kind']}: changed {r['withheld']} -> verdict {r['verdict']} ({'ok' if r['correct'] else 'WRONG'}); "
            f"gap {r['baseline_rmse_nT']:.1f} -> {r['after_rmse_nT']:.1f} nT, floor {r['noise_floor_nT']:.1f} nT"
            for r in summary["b_path"]]
+    md += ["", "Scenarios (found at realistic / half strength; worst after/floor at realistic):", "",
+           "| scenario | effect | realistic | after/floor | half | after/floor | verdicts (realistic; half) |",
+           "|---|---|---|---|---|---|---|"]
+    for kind, per_e in summary.get("scenarios", {}).items():
+        for e, v in per_e.items():
+            a, h = v.get("scale_1", {}), v.get("scale_0.5", {})
+            md.append(f"| {kind} | {e} | {a.get('found')}/{a.get('n')} | {a.get('after_over_floor_max', math.nan):.2f} "
+                      f"| {h.get('found')}/{h.get('n')} | {h.get('after_over_floor_max', math.nan):.2f} | "
+                      f"{', '.join(a.get('verdicts', []))}; {', '.join(h.get('verdicts', []))} |")
     md += ["", f"Not validated (no realistic strength known): {', '.join(summary['not_validated']) or 'none'}.",
            f"Total {summary['seconds']:.0f} s."]
     _atomic(out / "summary.md", "\n".join(md) + "\n")

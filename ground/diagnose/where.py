@@ -1,15 +1,9 @@
 """Where the gap lies: breakdowns by axis, temperature, field magnitude, rate of change, time and
 session, and by frequency; and the noise floor estimated from the data.
 
-Noise floor (two estimates, both from the session itself):
-
-* ``noise_floor_uT`` (the one the verdict is judged against): per axis, the robust spread (1.4826 MAD)
-  of differences of residual samples about 1 s apart within a session, divided by sqrt(2)
-  (:func:`magstack.firmware.calibration.fit.noise_floor`), applied to the in-sample residual of the
-  richest linear model (base + every testable linear candidate). Differencing removes slow misfit that
-  survives, the MAD ignores the few rows at field steps, and the rich model removes fast misfit.
-* ``spectral_white_nT`` (a cross-check): the white level implied by the median residual PSD over the
-  upper half of the band, ``sqrt(median PSD * f_nyquist)``.
+The noise floor the verdict is judged against is in :mod:`.noise` (tones apart); ``spectral_white_nT``
+here is a cross-check: the white level implied by the median residual PSD over the upper half of the
+band, ``sqrt(median PSD * f_nyquist)``.
 
 Spectrum: Welch (scipy.signal.welch, Hann, 50 % overlap) averaged over contiguous uniformly sampled
 runs when every run has the same sample spacing to 1 %; otherwise Lomb-Scargle
@@ -21,13 +15,11 @@ import numpy as np
 import scipy.signal
 
 from magstack.data.session import Session
-from magstack.firmware.calibration.fit import noise_floor
 from magstack.ground.diagnose.nonlinear import runs
 
 FIELD_EDGES_uT = (0.0, 5.0, 20.0, 40.0, 60.0, 100.0, 200.0, np.inf)
 RATE_EDGES_uT_PER_S = (0.0, 0.1, 1.0, 10.0, np.inf)
 N_TEMP_BANDS = 5
-NOISE_LAG_S = 1.0
 
 
 def _band(r: np.ndarray, m: np.ndarray, lo: float, hi: float) -> dict:
@@ -153,6 +145,83 @@ def _spec_out(method: str, f: np.ndarray, psd: np.ndarray, fny: float) -> dict:
             "psd_nT2_per_hz": [[float(v) for v in psd[:, j]] for j in range(3)], "spectral_white_nT": white}
 
 
-def noise_floor_uT(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray) -> np.ndarray:
-    """Per-axis white-noise level of a residual (see module doc)."""
-    return noise_floor(resid_uT, t_s, session, NOISE_LAG_S)
+#: A held-out gap at or above this multiple of the noise floor after the verdict is called unexplained.
+UNEXPLAINED_RATIO = 1.5
+#: Frequency bands (per decade) for locating an unexplained remainder in the spectrum.
+BANDS_PER_DECADE = 2
+
+
+def _worst(bands: list[dict], n_all: int, overall_nT: float) -> dict | None:
+    """The band (with at least 5 % of the rows) where the remainder is largest, and its ratio to overall."""
+    ok = [b for b in bands if b["n"] >= 0.05 * n_all]
+    if not ok or overall_nT <= 0:
+        return None
+    b = max(ok, key=lambda b: b["rms_norm_nT"])
+    return {"lo": b["lo"], "hi": b["hi"], "n": b["n"], "rms_norm_nT": b["rms_norm_nT"],
+            "ratio_to_overall": b["rms_norm_nT"] / overall_nT}
+
+
+def _excess_band(spec: dict, white_nT: float) -> dict | None:
+    """The frequency band (BANDS_PER_DECADE per decade) whose mean PSD (summed over axes) is largest
+    against the white level ``white_nT`` (norm over axes) spread over the band to Nyquist."""
+    f = np.asarray(spec.get("freq_hz", []), dtype=float)
+    if f.size < 4 or not np.isfinite(white_nT) or white_nT <= 0:
+        return None
+    psd = np.sum(np.asarray(spec["psd_nT2_per_hz"], dtype=float), axis=0)
+    fny = float(f.max())
+    white_psd = white_nT ** 2 / fny
+    edges = 10 ** np.arange(np.floor(np.log10(f[f > 0].min()) * BANDS_PER_DECADE),
+                            np.ceil(np.log10(fny) * BANDS_PER_DECADE) + 1) / BANDS_PER_DECADE
+    best = None
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        m = (f >= lo) & (f < hi)
+        if m.sum() < 2:
+            continue
+        r = float(np.mean(psd[m]) / white_psd)
+        if best is None or r > best["psd_over_white"]:
+            best = {"lo_hz": float(lo), "hi_hz": float(hi), "psd_over_white": r}
+    return best
+
+
+def remainder(r_after: np.ndarray, s: Session, after_nT: float, floor_nT: float | None, effect: str) -> dict:
+    """Whether a held-out gap remains that the verdict (``effect``, "none": the base) leaves unexplained
+    (``after_nT >= UNEXPLAINED_RATIO x floor_nT``), and where the breakdowns put it: the |B| band and
+    temperature band with the largest remainder, and the frequency band with the most power above white."""
+    out: dict = {"after_over_floor": None if not floor_nT else float(after_nT / floor_nT),
+                 "threshold": UNEXPLAINED_RATIO, "remains": False}
+    if not floor_nT or after_nT < UNEXPLAINED_RATIO * floor_nT:
+        return out
+    r = np.where(np.isfinite(r_after), r_after, 0.0).astype(float)
+    overall = float(np.linalg.norm(np.sqrt(np.mean(r ** 2, axis=0))) * 1e3)
+    out["remains"] = True
+    out["field_band_uT"] = _worst(_bands(r, np.linalg.norm(s.ref_uT, axis=1), FIELD_EDGES_uT), r.shape[0], overall)
+    t = s.temp_c
+    tok = np.isfinite(t)
+    temp = None
+    if tok.sum() >= 5 and np.ptp(t[tok]) > 0:
+        edges = np.unique(np.quantile(t[tok], np.linspace(0, 1, N_TEMP_BANDS + 1)))
+        edges[-1] = np.nextafter(edges[-1], np.inf)
+        temp = _worst(_bands(r, t, edges), r.shape[0], overall)
+    out["temperature_band_c"] = temp
+    out["frequency_band"] = _excess_band(spectrum(r, s.t_s, s.session), floor_nT)
+    where = []
+    if out["field_band_uT"]:
+        b = out["field_band_uT"]
+        where.append(f"|B| {b['lo']:g}-{_hi(b['hi'])} uT ({b['rms_norm_nT']:.0f} nT, {b['ratio_to_overall']:.1f}x "
+                     "the overall)")
+    if temp:
+        where.append(f"temperature {temp['lo']:.1f}-{temp['hi']:.1f} degC ({temp['rms_norm_nT']:.0f} nT, "
+                     f"{temp['ratio_to_overall']:.1f}x)")
+    if out["frequency_band"]:
+        fb = out["frequency_band"]
+        where.append(f"frequencies {fb['lo_hz']:.3g}-{fb['hi_hz']:.3g} Hz (PSD {fb['psd_over_white']:.0f}x the "
+                     "white level)")
+    base = "the base model" if effect == "none" else effect
+    out["text"] = (f"UNEXPLAINED: after {base} a held-out gap of {after_nT:.1f} nT remains, "
+                   f"{after_nT / floor_nT:.1f}x the noise floor ({floor_nT:.1f} nT), that no catalogue effect "
+                   "explains" + (f"; largest at {'; '.join(where)}" if where else ""))
+    return out
+
+
+def _hi(x) -> str:
+    return "inf" if x is None else f"{x:g}"

@@ -1,0 +1,130 @@
+"""The noise floor of a residual, for any sampling, with tones found and reported apart.
+
+White level (:func:`noise_floor`): per axis the robust spread (1.4826 MAD) of differences of residual
+samples ``lag`` apart within a session, divided by sqrt 2 (the calibration fit's estimator,
+``calibration.fit.noise_floor``), with ``lag = max(1 s, LAG_SPACINGS x the median row spacing)``: at
+0.5 Hz telemetry a 1 s lag finds no pairs, at 2.5 Hz it pairs neighbours. Differencing removes slow misfit;
+the MAD ignores the few rows at field steps.
+
+A periodic interference (a mains alias, a reaction wheel) is not white noise, but differences of a tone
+``A sin(2 pi f t)`` at lag L have amplitude ``2 A |sin(pi f L)|``: near the alias frequencies that differencing
+passes it inflates the "white" level (a mains alias took a real floor from 70 to 178 nT). Tones are found first
+(:func:`find_tones`) and removed from the residual before the white level is estimated; they are reported
+separately (frequency, amplitude per axis, how far above the local spectrum).
+
+Tone detection: periodogram of the residual (rows in session-then-time order, per-session mean removed) by
+FFT on a grid of the median spacing (each row at its nearest grid point, missing rows zero; long gaps
+shortened), a
+local level (median of the neighbouring ``LOCAL_BINS`` bins); a bin whose power exceeds ``TONE_RATIO`` x its
+local median on some axis is a tone candidate (for Gaussian white noise a periodogram ordinate exceeds
+R x its median with probability ``2^-R``: 30 gives 1e-9 per bin). Its frequency is refined on the real time
+stamps (explained power of a sine + cosine per session, over a fine grid within one bin) and its fit is
+subtracted; at most ``MAX_TONES`` tones, strongest first.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.fft
+import scipy.ndimage
+
+from magstack.firmware.calibration.fit import noise_floor as diff_floor
+
+#: Differencing lag in median row spacings (at least 1 s).
+LAG_SPACINGS = 1.5
+MIN_LAG_S = 1.0
+#: A periodogram bin this many times its local median (on some axis) is a tone candidate.
+TONE_RATIO = 30.0
+#: Bins of the local median.
+LOCAL_BINS = 65
+#: Tones removed at most.
+MAX_TONES = 5
+#: Lowest tone frequency, in cycles per record (slower structure is misfit, not a tone).
+MIN_CYCLES = 8
+#: Gaps in the detection grid are shortened to this many spacings.
+MAX_GAP_SPACINGS = 4096
+#: Grid points of the detection periodogram at most (evenly strided beyond: detection only).
+DETECT_ROWS = 2 ** 20
+
+
+def lag_s(t_s: np.ndarray) -> float:
+    """The differencing lag for these time stamps: max(1 s, LAG_SPACINGS x the median spacing)."""
+    dt = np.diff(np.sort(np.asarray(t_s, dtype=float)))
+    pos = dt[dt > 0]
+    return float(max(MIN_LAG_S, LAG_SPACINGS * (float(np.median(pos)) if pos.size else 0.0)))
+
+
+def _sin_cos(t: np.ndarray, f: float, session: np.ndarray, sess_ids) -> np.ndarray:
+    """Columns sin/cos(2 pi f t) per session (N, 2 x sessions): a phase per power cycle."""
+    w = 2 * np.pi * f * t
+    s, c = np.sin(w), np.cos(w)
+    cols = []
+    for k in sess_ids:
+        m = session == k
+        cols += [np.where(m, s, 0.0), np.where(m, c, 0.0)]
+    return np.column_stack(cols)
+
+
+def _explained(x: np.ndarray, t: np.ndarray, f: float, session: np.ndarray, sess_ids):
+    X = _sin_cos(t, f, session, sess_ids)
+    coef, *_ = np.linalg.lstsq(X, x, rcond=None)
+    fit = X @ coef
+    return float(np.sum(fit ** 2)), fit
+
+
+def find_tones(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray) -> tuple[list[dict], np.ndarray]:
+    """Tones in a residual (N,3) uT (rows sorted by session then time): the list (``freq_hz``,
+    ``amplitude_nT`` per axis, ``ratio`` to the local spectrum) and the residual with them removed."""
+    x = np.where(np.isfinite(resid_uT), resid_uT, 0.0).astype(float)
+    n = x.shape[0]
+    dt = np.diff(t_s)
+    pos = dt[dt > 0]
+    if n < 4 * LOCAL_BINS or not pos.size:
+        return [], x
+    spacing = float(np.median(pos))
+    ids = np.unique(session)
+    for k in ids:
+        m = session == k
+        x[m] -= x[m].mean(axis=0)
+    t = t_s - t_s[0]
+    # rows on a grid of the median spacing (left-out rows and short gaps stay as zeros, so frequencies are
+    # right; a gap longer than MAX_GAP_SPACINGS, e.g. between sessions, is shortened to it)
+    step = np.clip(np.rint(np.diff(t) / spacing), 1, MAX_GAP_SPACINGS).astype(np.int64)
+    pos_i = np.r_[0, np.cumsum(step)]
+    stride = max(1, -(-int(pos_i[-1] + 1) // DETECT_ROWS))
+    tones: list[dict] = []
+    for _ in range(MAX_TONES):
+        y = np.zeros((int(pos_i[-1]) // stride + 1, 3))
+        y[pos_i // stride] = x
+        m = y.shape[0]
+        L = scipy.fft.next_fast_len(m, real=True)
+        P = np.abs(scipy.fft.rfft(y, n=L, axis=0)) ** 2
+        freq = np.arange(P.shape[0]) / (L * spacing * stride)
+        local = scipy.ndimage.median_filter(P, size=(LOCAL_BINS, 1), mode="nearest")
+        ratio = P / np.maximum(local, 1e-300)
+        lo = int(np.ceil(MIN_CYCLES * L / m))
+        ratio[:lo] = 0.0
+        ratio[-1] = 0.0
+        score = ratio.max(axis=1)
+        k = int(np.argmax(score))
+        if score[k] < TONE_RATIO:
+            break
+        # the power maximum near the flagged bin (the ratio can peak on the flank), refined on the real times
+        near = np.arange(max(k - 3, 0), min(k + 4, P.shape[0]))
+        k = int(near[np.argmax(P[near].sum(axis=1))])
+        df = 1.0 / (L * spacing * stride)
+        grid = freq[k] + np.linspace(-2 * df, 2 * df, 41)
+        vals = [_explained(x, t, f, session, ids)[0] for f in grid]
+        f_best = float(grid[int(np.argmax(vals))])
+        _, fit = _explained(x, t, f_best, session, ids)
+        x = x - fit
+        amp = np.sqrt(2.0 * np.mean(fit ** 2, axis=0))
+        tones.append({"freq_hz": f_best, "amplitude_nT": [float(a * 1e3) for a in amp],
+                      "ratio_to_local_spectrum": float(score[k])})
+    return tones, x
+
+
+def noise_floor(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray) -> tuple[np.ndarray, float, list[dict]]:
+    """(white level per axis (3,) uT, the differencing lag in s, tones found and removed first)."""
+    tones, clean = find_tones(resid_uT, t_s, session)
+    lag = lag_s(t_s)
+    return diff_floor(clean, t_s, session, lag), lag, tones
