@@ -20,7 +20,6 @@ from magstack.cli.interrupt import EXIT_FOR_SIGNAL, graceful_stop
 from magstack.cli.options import finite_float, int_range, nonempty_dir
 from magstack.cli.output import CommandResult
 from magstack.drivers.errors import ConfigurationError
-from magstack.firmware.flight.app import FlightApp
 from magstack.firmware.flight.config import example_config_text, load_config
 
 #: Exit status of a run that ended degraded (the reasons are printed and in ``degraded``).
@@ -73,6 +72,8 @@ def run(args: argparse.Namespace) -> CommandResult:
     simulate = args.sim or cfg.simulated
     virtual = simulate and args.duration is not None
     options = _sim_options(args.sim_program, args.duration or 3600.0, args.seed) if simulate else None
+    from magstack.firmware.flight.app import FlightApp  # imported here: --example-config needs none of it
+
     with graceful_stop() as stop:
         app = FlightApp(cfg, virtual=virtual, simulate=simulate, telemetry_dir=args.out, chip_options=options,
                         stop=stop)
