@@ -39,17 +39,27 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(skip)
 
 
+_MAGSTACK_LOGGER = logging.getLogger("magstack")
+#: The ``magstack`` logger as the test session found it (a module- or session-scoped fixture that runs a
+#: CLI command sets it up before a test's own fixtures run, so a per-test snapshot could catch it
+#: configured, e.g. at ERROR by ``-q``).
+_PRISTINE = (list(_MAGSTACK_LOGGER.handlers), _MAGSTACK_LOGGER.level, _MAGSTACK_LOGGER.propagate)
+
+
+def _restore_pristine_logger() -> None:
+    _MAGSTACK_LOGGER.handlers[:] = _PRISTINE[0]
+    _MAGSTACK_LOGGER.setLevel(_PRISTINE[1])
+    _MAGSTACK_LOGGER.propagate = _PRISTINE[2]
+
+
 @pytest.fixture(autouse=True)
 def _restore_magstack_logger():
     """``magstack`` CLI runs in-process configure the ``magstack`` logger (own handler, no
-    propagation); restore it after each test so later tests' ``caplog`` sees records whatever the
-    test order."""
-    logger = logging.getLogger("magstack")
-    saved = (list(logger.handlers), logger.level, logger.propagate)
+    propagation, a level from -v/-q); each test starts and ends with the pristine logger so its
+    ``caplog`` or own handler sees records whatever ran before."""
+    _restore_pristine_logger()
     yield
-    logger.handlers[:] = saved[0]
-    logger.setLevel(saved[1])
-    logger.propagate = saved[2]
+    _restore_pristine_logger()
 
 
 @pytest.fixture

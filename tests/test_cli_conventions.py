@@ -130,7 +130,7 @@ def test_every_command_prints_strict_json_with_stable_keys(tmp_path, capsys, sim
           "max_cond", "document"}),
         (["apply", str(tmp_path / "cal.json"), str(sim_session), "--out", str(tmp_path / "calibrated.csv")],
          {"out", "rows", "applier", "table_crc32", "flag_counts", "calibrated_vs_ref_rms_nT",
-          "calibrated_vs_ref_rms_away_from_steps_nT", "rows_selected", "notes"}),
+          "calibrated_vs_ref_rms_away_from_steps_nT", "rows_selected", "cal_sigma_nT", "notes"}),
         (["align", str(sim_session)],
          {"offset_s", "offset_sigma_s", "r2", "n_pairs", "runner_up_ratio", "model", "rmse_model_uT", "skew_s",
           "axis_map", "rmse_uT", "notes", "out", "paired_rows", "gap_rows"}),
