@@ -163,6 +163,12 @@ class Posterior:
 
 
 # ---------------------------------------------------------------------- building priors
+#: Terms whose every parameter has the same prior: the CalPriors field that holds it.
+_PRIOR_FIELD = {"offset": "offset_uT", "temperature_offset": "k_o_uT_per_c", "currents": "current_uT_per_A",
+                "cubic": "cubic_per_uT2", "cross_products": "cross_products_per_uT", "time_skew": "time_skew_s",
+                "session_offset": "session_offset_uT", "drift": "drift_uT_per_s"}
+
+
 def model_prior(model: CalModel, chip, s_hint: np.ndarray | None = None) -> Prior:
     """Diagonal prior of ``model``'s coefficients from a chip's :class:`~magstack.drivers.cal_priors.CalPriors`.
 
@@ -184,22 +190,9 @@ def model_prior(model: CalModel, chip, s_hint: np.ndarray | None = None) -> Prio
                 # relative tempco: the sensitivity of input axis j scales row i of S's column j
                 pv = chip.k_s_rel_per_c if i == j else chip.k_s_offdiag_per_c
                 m = chip.k_s_rel_per_c.mean * S[i, j]
-            elif col.term == "offset":
-                pv, m = chip.offset_uT, chip.offset_uT.mean
-            elif col.term == "temperature_offset":
-                pv, m = chip.k_o_uT_per_c, chip.k_o_uT_per_c.mean
-            elif col.term == "currents":
-                pv, m = chip.current_uT_per_A, chip.current_uT_per_A.mean
-            elif col.term == "cubic":
-                pv, m = chip.cubic_per_uT2, chip.cubic_per_uT2.mean
-            elif col.term == "cross_products":
-                pv, m = chip.cross_products_per_uT, chip.cross_products_per_uT.mean
-            elif col.term == "time_skew":
-                pv, m = chip.time_skew_s, chip.time_skew_s.mean
-            elif col.term == "session_offset":
-                pv, m = chip.session_offset_uT, chip.session_offset_uT.mean
-            elif col.term == "drift":
-                pv, m = chip.drift_uT_per_s, chip.drift_uT_per_s.mean
+            elif col.term in _PRIOR_FIELD:
+                pv = getattr(chip, _PRIOR_FIELD[col.term])
+                m = pv.mean
             else:   # pragma: no cover - model.py asserts the term set
                 raise FitError(f"no prior for term {col.term!r}")
             mean[i, c] = m
