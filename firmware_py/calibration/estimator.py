@@ -253,9 +253,7 @@ def _axis_map(R: np.ndarray, p: int, i: int, mask_i: np.ndarray, mean: np.ndarra
     rows = [np.sqrt(lam) * R[:, free]]
     rhs = [np.sqrt(lam) * y]
     if fin.size:
-        C = cov[np.ix_(fin, fin)]
-        L = np.linalg.cholesky(C + np.diag(np.full(fin.size, 1e-300)))
-        Linv = scipy.linalg.solve_triangular(L, np.eye(fin.size), lower=True)
+        Linv = _inverse_sqrt(cov[np.ix_(fin, fin)])
         P = np.zeros((fin.size, free.size))
         P[:, np.searchsorted(free, fin)] = Linv
         rows.append(P)
@@ -294,6 +292,19 @@ def _axis_map(R: np.ndarray, p: int, i: int, mask_i: np.ndarray, mean: np.ndarra
     with np.errstate(invalid="ignore"):
         trh = float(lam * np.nansum(cov_post[np.ix_(free, free)] * (Rf.T @ Rf)))
     return AxisPosterior(theta, cov_post, sse, trh, cond, undetermined)
+
+
+def _inverse_sqrt(C: np.ndarray) -> np.ndarray:
+    """``W`` with ``W^T W = C^-1`` (prior rows): Cholesky, or for a covariance that is only numerically
+    positive semi-definite (a stored posterior) the eigen-decomposition with eigenvalues floored at 1e-12 of
+    the largest (those directions then count as nearly fixed)."""
+    try:
+        L = np.linalg.cholesky(C)
+        return scipy.linalg.solve_triangular(L, np.eye(C.shape[0]), lower=True)
+    except np.linalg.LinAlgError:
+        w, V = np.linalg.eigh(0.5 * (C + C.T))
+        w = np.maximum(w, 1e-12 * max(float(w.max()), 1e-300))
+        return (V / np.sqrt(w)).T
 
 
 def _min_norm_sse(R: np.ndarray, p: int, i: int, mask_i: np.ndarray, mean: np.ndarray,
