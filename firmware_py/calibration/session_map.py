@@ -18,7 +18,6 @@ AIC, or its held-out error is within ``HOLDOUT_TOL`` of the mount model's.
 from __future__ import annotations
 
 import numpy as np
-import scipy.stats
 
 from magstack.firmware.calibration.degeneracy import degenerate_groups
 from magstack.firmware.calibration.linalg import qr_r
@@ -113,7 +112,7 @@ def compare(X, Y, b_meas, session, weights, model, held, mount, resid_mount, opt
     if p_f > p_r and nt > p_f:
         F = ((sse_r - sse_f) / (p_f - p_r)) / (sse_f / (nt - p_f))
         out.update({"F": float(F), "F_dof": [p_f - p_r, nt - p_f],
-                    "F_p_value": float(scipy.stats.f.sf(max(F, 0.0), p_f - p_r, nt - p_f))})
+                    "F_p_value": _f_sf(max(F, 0.0), p_f - p_r, nt - p_f)})
     if folds is not None:
         sq, cnt = np.zeros(3), 0
         for f in np.unique(folds):
@@ -162,3 +161,10 @@ def comparison_lines(c: dict) -> list[str]:
                               "a rotation does NOT explain all session differences: the general per-session map "
                               "is better by AIC and held out; look for other per-session effects"))
     return L
+
+
+def _f_sf(f: float, d1: int, d2: int) -> float:
+    """Survival function of the F distribution (scipy.stats imported here: it costs ~2 s at start-up)."""
+    import scipy.stats
+
+    return float(scipy.stats.f.sf(f, d1, d2))
