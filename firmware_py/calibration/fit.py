@@ -13,11 +13,10 @@ scalar figure is the vector norm of the three per-axis values.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg
 
 from magstack.data.dictionary import usable
 from magstack.drivers.cal_priors import priors_for
@@ -29,6 +28,7 @@ from magstack.firmware.calibration.estimator import (
     autocorr_inflation,
     map_solve,
     model_prior,
+    names_of,
 )
 from magstack.firmware.calibration.identify import (
     CORE_TERMS,
@@ -54,8 +54,8 @@ from magstack.firmware.calibration.steps import (
 from magstack.firmware.errors import FitError
 
 #: Names other modules import from here (the pieces now live in steps, identify, linalg).
-__all__ = ["FitData", "FitOptions", "FitResult", "Coverage", "HeldParam", "AxisSolution", "StepDiagnosis",
-           "fit", "identify", "independent_field_rms", "solve_axis", "noise_floor", "qr_r", "reference_steps",
+__all__ = ["FitData", "FitOptions", "FitResult", "Coverage", "HeldParam", "StepDiagnosis",
+           "fit", "identify", "independent_field_rms", "noise_floor", "qr_r", "reference_steps",
            "diagnose_steps", "step_threshold_uT", "build_model", "block_folds", "frame_reference", "comparison_lines",
            "RANK_RTOL", "CORE_TERMS", "STEP_RATIO", "STEP_SHARE", "STEP_NOISE_FACTOR"]
 
@@ -247,16 +247,6 @@ class Coverage:
 
 
 @dataclass
-class AxisSolution:
-    theta: np.ndarray     # (p,) coefficients (held ones at their prior, unused 0)
-    se: np.ndarray        # (p,) standard errors (NaN for held / unused)
-    sse: float            # weighted sum of squared residuals, uT^2
-    dof: int
-    cond_scaled: float    # condition number of the column-equilibrated active design
-    cond_raw: float
-
-
-@dataclass
 class FitResult:
     """Everything a fit produced; ``report()`` renders it as text."""
 
@@ -420,42 +410,6 @@ class FitResult:
 
 
 # ---------------------------------------------------------------------- numerics
-def solve_axis(R: np.ndarray, p: int, i: int, mask_i: np.ndarray, held: Mapping[int, float],
-               n: int) -> AxisSolution:
-    """Solve output axis ``i`` from the R factor of weighted [X | Y] (p + 3 columns)."""
-    active = [c for c in range(p) if mask_i[c] and c not in held]
-    ycol = R[:, p + i].copy()
-    for c, v in held.items():
-        ycol -= R[:, c] * v
-    k = len(active)
-    theta = np.zeros(p)
-    se = np.full(p, np.nan)
-    for c, v in held.items():
-        theta[c] = v
-    if k == 0:
-        return AxisSolution(theta, se, float(ycol @ ycol), n, np.nan, np.nan)
-    A = R[:, active]
-    scale = np.linalg.norm(A, axis=0)
-    scale[scale == 0] = 1.0
-    R2 = qr_r(np.column_stack([A / scale, ycol]))
-    Rk = R2[:k, :k]
-    diag = np.abs(np.diag(Rk))
-    if diag.min() <= diag.max() * RANK_RTOL:
-        raise FitError(f"axis {AXES[i]}: design is rank deficient after identifiability checks")
-    z = scipy.linalg.solve_triangular(Rk, R2[:k, k])
-    sse = float(R2[k, k] ** 2)
-    dof = n - k
-    sigma2 = sse / dof if dof > 0 else np.nan
-    Rinv = scipy.linalg.solve_triangular(Rk, np.eye(k))
-    var = sigma2 * np.sum(Rinv ** 2, axis=1)
-    theta[active] = z / scale
-    se[active] = np.sqrt(var) / scale
-    sv = np.linalg.svd(Rk, compute_uv=False)
-    svr = np.linalg.svd(A, compute_uv=False)
-    return AxisSolution(theta, se, sse, dof, float(sv[0] / sv[-1]),
-                        float(svr[0] / svr[-1]) if svr[-1] > 0 else np.inf)
-
-
 def noise_floor(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, lag_s: float) -> np.ndarray:
     """Per-axis white-noise level (uT) of residuals: robust (MAD) spread of differences of
     samples ``lag_s`` apart within a session, divided by sqrt(2). Differencing removes
@@ -526,7 +480,7 @@ def prior_determined(post: Posterior, explain: Sequence[HeldParam]) -> list[Held
     rule = {(h.axis, h.column): h.rule for h in explain}
     prior_sd = post.prior.sd
     out = []
-    for i, c, name in _names(model):
+    for i, c, name in names_of(model):
         by = post.determined_by(i, c)
         flagged = (i, c) in why
         if by in ("prior", "undetermined", "fixed") or (flagged and by == "data+prior"):
@@ -544,11 +498,6 @@ def prior_determined(post: Posterior, explain: Sequence[HeldParam]) -> list[Held
                         ": data not used, errors in variables)"
             out.append(HeldParam(i, c, name, float(post.theta[i, c]), reason, rule.get((i, c), "")))
     return out
-
-
-def _names(model: CalModel) -> list[tuple[int, int, str]]:
-    mask = model.axis_mask()
-    return [(i, c, model.param_name(i, c)) for i in range(3) for c in range(model.n_columns) if mask[i, c]]
 
 
 def _pick_axes(posts: Sequence[Posterior]) -> Posterior:

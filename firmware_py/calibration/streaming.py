@@ -30,27 +30,11 @@ from magstack.firmware.calibration.fit import (
     identify,
     prior_determined,
     qr_r,
-    solve_axis,
 )
 from magstack.firmware.calibration.identify import GATE_RULES
 from magstack.firmware.calibration.model import CalModel
 from magstack.firmware.errors import FitError
 
-
-def solve_axes(R: np.ndarray, p: int, mask: np.ndarray, held, n_used: int):
-    """Per-axis solve from accumulated R factors with ``held`` parameters fixed:
-    ``(theta (3,p), se (3,p), conds (2,3) scaled/raw, rmse (3,) uT)``; shared by the streaming fit and
-    the on-orbit refit."""
-    theta = np.zeros((3, p))
-    se = np.full((3, p), np.nan)
-    conds = np.full((2, 3), np.nan)
-    rmse = np.zeros(3)
-    for i in range(3):
-        h = {x.column: x.value for x in held if x.axis == i}
-        sol = solve_axis(R, p, i, mask[i], h, n_used)
-        theta[i], se[i], conds[0, i], conds[1, i] = sol.theta, sol.se, sol.cond_scaled, sol.cond_raw
-        rmse[i] = np.sqrt(sol.sse / max(sol.dof, 1))
-    return theta, se, conds, rmse
 
 class StreamingFit:
     """Accumulate blocks with :meth:`add`, then :meth:`solve`."""
