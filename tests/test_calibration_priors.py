@@ -40,11 +40,6 @@ def test_every_chip_has_priors_with_sources_and_the_hmc1053_tempco_is_the_datash
 
 
 # ------------------------------------------------------------------ the estimator
-def _design(rng, n=400, p=4):
-    X = np.column_stack([rng.normal(0, 30, (n, p - 1)), np.ones(n)])
-    return X
-
-
 def test_map_equals_the_closed_form_posterior():
     rng = np.random.default_rng(0)
     m = CalModel(("gain_matrix", "offset"))
