@@ -50,6 +50,10 @@ def register(subparsers) -> None:
     p.add_argument("--include-saturated", action="store_true",
                    help="keep rows with the reference at or beyond its range (default: left out and counted, "
                         "the same guard as fit; the range comes from the session metadata 'reference')")
+    p.add_argument("--chip", default=None, metavar="CHIP",
+                   help="part whose datasheet priors decide what the session cannot (the base model's parameters "
+                        "a session does not determine, and between explanations it cannot tell apart); default: "
+                        "the session's dut_chip; an unknown part gets wide generic priors (said in the output)")
     p.add_argument("--t0", type=finite_float(-60, 150, unit="degC"), default=25.0,
                    help="temperature reference for --model, degC (default 25)")
     add_window_options(p)
@@ -84,7 +88,7 @@ def _block_s(text: str):
 def run(args: argparse.Namespace) -> CommandResult:
     opts = Options(block_s=args.block_s, n_folds=args.folds, alpha=args.alpha,
                    exclude_bends=None if args.keep_bends else 10.0, null=args.null,
-                   include_saturated=args.include_saturated)
+                   include_saturated=args.include_saturated, chip=args.chip)
     if args.sim is None and args.table is None:
         terms, modelled, hyst = parse_model(args.model)
     with stages("diagnose", ["read", "predict", "rank effects", "write"]) as st:

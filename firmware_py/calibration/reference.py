@@ -22,6 +22,7 @@ from magstack.drivers import fvm400
 #: Reference name (session metadata ``reference``) -> nominal range per component, uT.
 REFERENCE_RANGES_UT: Mapping[str, float] = MappingProxyType({
     "fvm400": fvm400.NOMINAL_RANGE_NT / 1000.0,
+    "igrf": float("inf"),      # a field model (orbit telemetry: IGRF at the position, rotated by the attitude)
 })
 #: Reference assumed when a session does not name one (the project's bench reference).
 DEFAULT_REFERENCE = "fvm400"

@@ -10,7 +10,7 @@ from magstack.ground.diagnose.search import Options
 from magstack.ground.diagnose.spec import parse_model
 
 __all__ = ["Diagnosis", "diagnose", "Gap", "check_rows", "fixed_gap", "model_gap", "Options", "parse_model",
-           "diagnose_model", "shift_source", "attach_rows"]
+           "diagnose_model", "diagnose_orbit", "shift_source", "attach_rows"]
 
 
 def shift_source(full, keep):
@@ -29,14 +29,26 @@ def attach_rows(gap, full, keep, notes=()):
 
 
 def diagnose_model(session, model: str = "gain_offset", options: Options | None = None,
-                   t0_c: float = 25.0) -> Diagnosis:
+                   t0_c: float = 25.0, notes=()) -> Diagnosis:
     """Mode (a) in one call: ``model`` as ``--model``; parameters fitted to ``session``."""
     from magstack.ground.diagnose.spec import hysteresis_base
     options = options or Options()
     terms, modelled, hyst = parse_model(model)
-    full, keep, notes = check_rows(session, exclude_bends=options.exclude_bends,
-                                   include_saturated=options.include_saturated)
+    full, keep, more = check_rows(session, exclude_bends=options.exclude_bends,
+                                  include_saturated=options.include_saturated)
+    notes = list(notes) + more
     s = full.select(keep)
     extra = hysteresis_base(s.dut_uT) if hyst else None
     g = model_gap(s, terms, modelled, f"--model {model}", t0_c, extra)
     return diagnose(attach_rows(g, full, keep, notes), options)
+
+
+def diagnose_orbit(paths, model: str = "gain_offset", options: Options | None = None, t0_c: float = 25.0,
+                   use_file_ref: bool = False, dut1_s: float = 0.0) -> Diagnosis:
+    """Mode (a) on orbit telemetry (refit's input, docs/refit.md): the reference is IGRF at the GPS position
+    rotated by the attitude (``use_file_ref``: the files' ref columns), currents interpolated as ``refit``
+    does; the reference's error budget joins the noise floor (orbit.py)."""
+    from magstack.ground.diagnose.orbit import orbit_session, without_missing_currents
+
+    s, notes = without_missing_currents(orbit_session(paths, dut1_s, use_file_ref))
+    return diagnose_model(s, model, options, t0_c, notes)

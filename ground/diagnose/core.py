@@ -13,6 +13,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from magstack.ground.diagnose import noise
+from magstack.ground.diagnose import orbit as ob
+from magstack.ground.diagnose import priors as pr
 from magstack.ground.diagnose import nonlinear as nl
 from magstack.ground.diagnose import rotation as rot
 from magstack.ground.diagnose import search as sr
@@ -40,6 +42,12 @@ class Diagnosis:
     unexplained: dict = field(default_factory=dict)
     #: blocks.choose_block_s: the block length and why
     block_choice: dict = field(default_factory=dict)
+    #: priors.base_identifiability: the base model by the calibration estimator with the chip's priors
+    base_model: dict | None = None
+    #: priors.prior_check of the verdict and the candidates confounded with it
+    prior_check: list = field(default_factory=list)
+    #: orbit.reference_budget of an IGRF + attitude reference (orbit telemetry), else None
+    reference_budget: dict | None = None
 
     @property
     def verdict(self) -> str:
@@ -60,6 +68,8 @@ class Diagnosis:
             "baseline_rmse_nT": float(r.baseline.rmse_norm_uT * 1e3),
             "after_rmse_nT": float(self.after_trial.rmse_norm_uT * 1e3),
             "noise_floor_nT": nf,
+            "reference_budget": self.reference_budget,
+            "floor_with_reference_nT": self.floor_total_nT(nf),
             "ranking": [{"effect": t.effect, "rmse_nT": float(t.rmse_norm_uT * 1e3), "shrink": float(t.shrink),
                          "significant": bool(t.significant), "p_value": float(t.p_value),
                          "p_holm": float(t.p_holm), "kind": t.kind,
@@ -91,9 +101,19 @@ class Diagnosis:
                                 + ", Holm-corrected across effects")},
             "null_model": r.null_model,
             "reference": self.gap.reference,
+            "gap_direction": ("forward: dut - model(ref, temp, currents)" if self.gap.forward
+                              else "calibration: ref - model(dut)"),
+            "base_model": self.base_model,
+            "prior_check": self.prior_check,
             "unexplained": self.unexplained,
             "notes": self.gap.notes + r.notes + self.notes,
         }
+
+    def floor_total_nT(self, nf: float | None) -> float | None:
+        """The measured white floor and the reference's error budget (orbit) in root sum square, nT."""
+        if nf is None or self.reference_budget is None:
+            return nf
+        return float(np.hypot(nf, self.reference_budget["total_nT"]))
 
     def text(self) -> str:
         d = self.to_dict()
@@ -103,7 +123,7 @@ class Diagnosis:
              + (f"; residual autocorrelation time {bc['autocorrelation_time_s']:.3g} s" if "autocorrelation_time_s"
                 in bc else "") + ")",
              f"gap (held-out, norm of per-axis RMS): {d['baseline_rmse_nT']:.1f} nT; noise floor "
-             f"{_f(d['noise_floor_nT'])} nT", f"verdict: {d['verdict']}"]
+             f"{_f(d['noise_floor_nT'])} nT" + _budget_text(d), f"verdict: {d['verdict']}"]
         if d["verdict"] != "none":
             L.append(f"  after adding it: {d['after_rmse_nT']:.1f} nT (noise floor {_f(d['noise_floor_nT'])} nT)")
         if self.verdict_note:
@@ -122,6 +142,14 @@ class Diagnosis:
                      f"white + 1/f^{m['slow_noise_exponent']:.2f}"
                      + (f" (capped at {m['slow_power_cap']:g}x the residual's own slow power on "
                         f"{', '.join(m['slow_power_capped_axes'])})" if m["slow_power_capped_axes"] else ""))
+        bm = d["base_model"]
+        if bm and bm["determined_by_prior"]:
+            L.append(f"base model: {', '.join(bm['determined_by_prior'])} not determined by this session: set by "
+                     f"the {bm['chip']} prior ({bm['prior_source']})")
+        for c in d["prior_check"]:
+            L.append(f"prior check ({c['effect']}): {c['parameter']} = {c['value']:.4g} {c['unit']}, "
+                     f"{c['z']:.1f} prior sd from {c['prior_mean']:.4g} +- {c['prior_sd']:.3g} "
+                     f"({'plausible' if c['plausible'] else 'implausible for the part'})")
         if d["parameters"]:
             L.append("parameters of the verdict's effect (value +- standard error):")
             for name, p in d["parameters"].items():
@@ -148,6 +176,14 @@ def _surrogate_keys(t) -> dict:
     if r is not None:
         out["n_surrogates"] = int(r.n_surrogates)
     return out
+
+
+def _budget_text(d: dict) -> str:
+    b = d["reference_budget"]
+    if not b:
+        return ""
+    return (f" (measured white) + reference error budget {b['total_nT']:.1f} nT (IGRF + attitude: crustal, "
+            f"external, attitude {b['attitude_sd_deg']:g} deg) = {d['floor_with_reference_nT']:.1f} nT")
 
 
 def _f(x) -> str:
@@ -200,6 +236,8 @@ def verdict_parameters(gap: Gap, res: sr.SearchResult, fold: np.ndarray, run: np
     if v.kind == "joint":
         mc = rot.mount_columns(gap)
         ang, se = rot.fit_all(base, mc, Y, res.baseline.rmse_uT)
+        if gap.forward:     # dut ~ R^-1 ref: the fitted angles are minus the mount's rotation
+            ang = -np.asarray(ang)
         jk = jackknife_se([np.asarray(a) for a in v.extra["fold_angles_rad"]])
         return {n: {"value": float(a), "se": float(max(e, j)) if np.isfinite(j) else float(e), "se_ols": float(e),
                     "se_jackknife": float(j), "unit": "rad",
@@ -262,6 +300,10 @@ def diagnose(gap: Gap, options: sr.Options | None = None) -> Diagnosis:
     run = nl.runs(s.t_s, s.session)
     res = sr.search(gap, blocks, fold, opts)
     notes: list[str] = []
+    chip = pr.chip_priors(gap, opts.chip)
+    checks, note = prior_choice(gap, res, chip)
+    if note:
+        notes.append(note)
     params = verdict_parameters(gap, res, fold, run)
     choice = _gain_or_misalignment(res, params)
     if choice is not None and choice != res.verdict:
@@ -280,13 +322,58 @@ def diagnose(gap: Gap, options: sr.Options | None = None) -> Diagnosis:
     where["spectrum"] = wh.spectrum(res.baseline.resid, s.t_s, s.session)
     where["tones"] = tones
     where["noise_floor_lag_s"] = lag
-    diag = Diagnosis(gap, res, nf, where, params, opts, notes=notes, block_choice=block_choice)
-    nf_nT = diag.to_dict()["noise_floor_nT"]
+    diag = Diagnosis(gap, res, nf, where, params, opts, notes=notes, block_choice=block_choice,
+                     base_model=pr.base_identifiability(gap, chip), prior_check=checks,
+                     reference_budget=ob.session_budget(s, opts.attitude_sd_deg))
+    nf_nT = diag.floor_total_nT(diag.to_dict()["noise_floor_nT"])
     after = diag.after_trial
     diag.unexplained = wh.remainder(np.asarray(after.resid, dtype=float), s, after.rmse_norm_uT * 1e3, nf_nT,
                                     res.verdict)
     diag.verdict_note = verdict_note(diag)
     return diag
+
+
+def prior_choice(gap: Gap, res: sr.SearchResult, chip) -> tuple[list[dict], str | None]:
+    """Confounded explanations decided by the part's physics (priors.prior_check).
+
+    When the verdict (a linear effect) is confounded with significant linear candidates that close as much
+    (same columns in this session, e.g. a sensitivity tempco and an offset tempco at one field level), each
+    one's parameters (MAP on all rows with the chip's prior on its columns) are checked against that prior. A verdict that needs a
+    parameter beyond priors.IMPLAUSIBLE_Z prior sd gives way to the simplest plausible partner; the checks
+    are reported either way. Returns (checks, note)."""
+    v = next((t for t in res.trials if t.effect == res.verdict), None)
+    if v is None or v.kind != "linear" or not res.confounded_with:
+        return [], None
+    base_rmse = res.baseline.rmse_norm_uT
+    group = [v] + [t for t in res.trials if t.effect in res.confounded_with and t.significant and t.kind == "linear"
+                   and sr.closes_as_much(t.rmse_norm_uT, v.rmse_norm_uT, base_rmse)]
+    if len(group) < 2:
+        return [], None
+    base = gap.base_design()
+    checks = {}
+    for t in group:
+        c = pr.prior_check(gap, t, base, t.rmse_uT, chip)
+        if c is not None:
+            checks[t.effect] = c
+    out = list(checks.values())
+    if v.effect not in checks or checks[v.effect]["plausible"]:
+        return out, None
+    ok = [t for t in group if checks.get(t.effect, {}).get("plausible")]
+    if not ok:
+        return out, (f"every explanation confounded with {v.effect} needs parameters beyond the {chip.chip} prior "
+                     f"({IMPLAUSIBLE_TEXT}); named by the data alone")
+    new = min(ok, key=lambda t: (t.n_params, t.rmse_norm_uT))
+    c = checks[v.effect]
+    res.verdict, res.runner_up = new.effect, v.effect
+    res.trials.remove(new)
+    res.trials.insert(0, new)
+    res.confounded_with = [e for e in res.confounded_with if e != new.effect] + [v.effect]
+    return out, (f"{new.effect} and {v.effect} are confounded in this session (they close the gap equally); "
+                 f"{v.effect} would need {c['parameter']} = {c['value']:.4g} {c['unit']}, {c['z']:.0f} sd from the "
+                 f"{chip.chip} prior {c['prior_mean']:.4g} +- {c['prior_sd']:.3g}: the part's physics names {new.effect}")
+
+
+IMPLAUSIBLE_TEXT = f"more than {pr.IMPLAUSIBLE_Z:g} prior sd"
 
 
 def verdict_note(d: Diagnosis) -> str:

@@ -3,9 +3,12 @@
 Two ways to say what the simulator is (issue 14):
 
 * ``model`` (a): a set of calibration terms whose parameters are fitted to the session. The gap is
-  what remains of ``ref - model(dut)``; the target is the reference field and the base design holds
-  the model's columns (built by :class:`magstack.firmware.calibration.model.CalModel` from the DUT
-  reading). Without ``gain_matrix`` the gain is held at identity (target ``ref - dut``).
+  measured the way a simulator works, truth to sensor (issue 22): what remains of
+  ``dut - model(ref, temp, currents)``; the target is the DUT reading and the base design holds the
+  model's columns built by :class:`magstack.firmware.calibration.model.CalModel` from the *reference*
+  (the forward form of the same terms). Without ``gain_matrix`` the gain is held at identity (target
+  ``dut - ref``). In the calibration direction (``ref - model(dut)``) a session with one field level
+  let the fitted gain go to zero and a constant absorb a real temperature drift.
 * ``fixed`` (b): parameters held fixed (a calibration table, or error-model parameters through the
   ``--sim`` adapter). The gap is the session minus the fixed prediction; the base design holds only
   nuisance terms the fixed simulator treats as random (per-session offsets).
@@ -60,8 +63,10 @@ class Block:
 class Gap:
     """What the search explains.
 
-    ``target`` (N,3) uT; ``predictor_uT`` (N,3) the field candidate columns are built from (the DUT
-    reading in mode (a), the prediction's input in mode (b)); ``base_terms`` the calibration terms
+    ``target`` (N,3) uT; ``predictor_uT`` (N,3) the field candidate columns are built from (the
+    reference in mode (a) and ``--sim``, the prediction's input in mode (b)); ``forward``: the gap is
+    sensor minus a forward model of the reference (mode (a), ``--sim``), not the calibration direction
+    (``--table``: ``ref - table(dut)``); ``base_terms`` the calibration terms
     fitted as the base (mode (a)) or as nuisance (mode (b)); ``identity_gain``: the base has no
     gain_matrix and the target already has the predictor subtracted; ``modelled`` effect names the
     simulator covers; ``raw_gap_uT`` the fixed gap in mode (b) (None in (a)).
@@ -77,6 +82,7 @@ class Gap:
     description: str
     t0_c: float = 25.0
     extra_base: Callable[[np.ndarray], Block] | None = None
+    forward: bool = False
     notes: list[str] = field(default_factory=list)
     #: (t_s, ref_uT, keep, run) of all usable rows, to re-sample the reference in time across rows
     #: the diagnosis leaves out (None: the gap's own rows)
@@ -164,16 +170,21 @@ class Gap:
         FitError from the calibration model (e.g. no temperature) propagates; the caller turns it
         into "not testable".
         """
-        terms = tuple(terms)
         s = self.session
         p = self.predictor_uT if predictor_uT is None else predictor_uT
+        cm, keep = self.term_model(terms)
+        X = cm.design(p, s.temp_c, s.currents_A, s.session, s.t_s)
+        names = [[cm.param_name(i, c) for c in keep] for i in range(3)]
+        return Block(X[:, keep], cm.axis_mask()[:, keep], names, [cm.columns[c].unit for c in keep])
+
+    def term_model(self, terms: Sequence[str]) -> tuple[CalModel, list[int]]:
+        """(the calibration model that builds ``terms``' columns, indices of those columns in it)."""
+        terms = tuple(terms)
+        s = self.session
         cm = CalModel(("gain_matrix",) + tuple(t for t in terms if t != "gain_matrix"),
                       tuple(s.currents_A) if "currents" in terms else (),
                       self.sessions if "session_offset" in terms else (), self.t0_c, float(np.mean(s.t_s)))
-        X = cm.design(p, s.temp_c, s.currents_A, s.session, s.t_s)
-        keep = [c for c, col in enumerate(cm.columns) if col.term in terms]
-        names = [[cm.param_name(i, c) for c in keep] for i in range(3)]
-        return Block(X[:, keep], cm.axis_mask()[:, keep], names, [cm.columns[c].unit for c in keep])
+        return cm, [c for c, col in enumerate(cm.columns) if col.term in terms]
 
     def base_design(self, predictor_uT: np.ndarray | None = None) -> Block:
         """The base model's (mode a) or nuisance (mode b) columns."""
@@ -233,10 +244,42 @@ def folds_from_blocks(blocks: np.ndarray, session: np.ndarray, n_folds: int,
     order = np.argsort(-key, kind="stable")
     rng = np.random.default_rng(seed)
     bfold = np.empty(ids.size, dtype=np.int64)
+    group = np.empty(ids.size, dtype=np.int64)
     for k in range(0, ids.size, n_folds):
         grp = order[k:k + n_folds]
         bfold[grp] = rng.permutation(n_folds)[:grp.size]
+        group[grp] = k
+    bsess = np.zeros(ids.size, dtype=session.dtype)
+    bsess[inv] = session
+    _separate_neighbours(bfold, group, bsess, order, n_folds)
     return bfold[inv]
+
+
+def _separate_neighbours(bfold: np.ndarray, group: np.ndarray, bsess: np.ndarray, order: np.ndarray,
+                         n_folds: int) -> None:
+    """Swap folds within a stratification group (in place) so that no two consecutive blocks of a session
+    share a fold where a swap allows it: a state or regime spanning two blocks (the remanence between a
+    + and a - excursion) is then never held out whole, which no out-of-fold prediction could recover."""
+    def clash(b: int) -> int:
+        return sum(1 for c in (b - 1, b + 1) if 0 <= c < bfold.size and bsess[c] == bsess[b] and bfold[c] == bfold[b])
+
+    for _ in range(3):
+        changed = False
+        for b in range(1, bfold.size):
+            if bsess[b] != bsess[b - 1] or bfold[b] != bfold[b - 1]:
+                continue
+            k = group[b]
+            for m in order[k:k + n_folds]:
+                if m == b:
+                    continue
+                before = clash(b) + clash(m)
+                bfold[b], bfold[m] = bfold[m], bfold[b]
+                if clash(b) + clash(m) < before:
+                    changed = True
+                    break
+                bfold[b], bfold[m] = bfold[m], bfold[b]
+        if not changed:
+            return
 
 
 # ----------------------------------------------------------------------------- least squares
@@ -472,11 +515,14 @@ def run_edge_rows(t_s: np.ndarray, session: np.ndarray) -> np.ndarray:
 
 def model_gap(s: Session, base_terms: Sequence[str], modelled: Sequence[str], description: str,
               t0_c: float = 25.0, extra_base=None) -> Gap:
-    """Mode (a): parameters of ``base_terms`` are fitted to the session itself."""
+    """Mode (a): parameters of ``base_terms`` are fitted to the session itself, in the forward
+    direction: ``dut = model(ref, temp, currents) + gap`` (the DUT reading de-skews by ``-F``)."""
     terms = tuple(base_terms)
     identity = "gain_matrix" not in terms
-    target = s.ref_uT - s.dut_uT if identity else s.ref_uT.copy()
-    g = Gap("model", s, target, s.dut_uT.copy(), terms, identity, tuple(modelled), description, t0_c, extra_base)
+    target = s.dut_uT - s.ref_uT if identity else s.dut_uT.copy()
+    g = Gap("model", s, target, s.ref_uT.copy(), terms, identity, tuple(modelled), description, t0_c, extra_base,
+            forward=True)
+    g.deskew_J = -np.eye(3)
     try:
         g.base_design()
     except FitError as exc:

@@ -29,6 +29,8 @@ DELAY_HALF_WIDTH_ROWS = 1.25
 DELAY_GRID_POINTS = 15
 #: Quantiles of |B_j| tried as the hysteresis threshold.
 HYSTERESIS_QUANTILES = (0.90, 0.95, 0.98, 0.99, 0.995)
+#: Fractions of the top quantile's level also tried (below an excursion plateau).
+HYSTERESIS_TOP_FRACTIONS = (0.7, 0.9)
 #: A threshold must exceed this multiple of the median |B_j| (an "excursion", not ordinary field).
 HYSTERESIS_MIN_RATIO = 1.5
 #: Rows needed in each of at least two states for a hysteresis column to be testable.
@@ -229,8 +231,12 @@ def hysteresis_thresholds(b_uT: np.ndarray, rows: np.ndarray | None = None) -> l
         a = np.abs(b_uT[:, j])
         med = float(np.median(a))
         cands = []
-        for q in HYSTERESIS_QUANTILES:
-            thr = float(np.quantile(a, q))
+        top = float(np.quantile(a, HYSTERESIS_QUANTILES[-1]))
+        # quantiles, plus levels below the top plateau: a quantile inside an excursion's plateau can miss the
+        # excursion of the other sign (cross-axis terms make +- plateaus differ by a few uT)
+        levels = sorted({float(np.quantile(a, q)) for q in HYSTERESIS_QUANTILES} |
+                        {f * top for f in HYSTERESIS_TOP_FRACTIONS})
+        for thr in levels:
             if thr <= HYSTERESIS_MIN_RATIO * med or thr <= 0 or any(abs(thr - c) < 1e-9 for c in cands):
                 continue
             st = hysteresis_state(b_uT[:, [j, j, j]], np.array([thr, np.inf, np.inf]))[rows, 0]

@@ -109,6 +109,10 @@ class Options:
     null: str = "surrogate"
     #: keep rows with the reference at or beyond its range (default: left out and counted, as ``fit``)
     include_saturated: bool = False
+    #: part whose datasheet priors decide what the session cannot (default: the session's ``dut_chip``)
+    chip: str | None = None
+    #: attitude knowledge (1 sd per axis, deg) in the reference error budget of orbit telemetry (orbit.py)
+    attitude_sd_deg: float = 0.1
 
 
 @dataclass
@@ -335,9 +339,15 @@ def build_candidates(gap: Gap, base: Block) -> tuple[list[Candidate], list[dict]
             # a drift built up since the table was fitted has a non-zero mean, a temperature offset about
             # another pivot is K (T - T0) plus a constant, per-session offsets are effect-coded about one
             terms = ("offset", e.cal_term)
-        if e.cal_term == "temperature_gain" and "temperature_offset" not in base_terms:
-            # a gain applied before the offset, inverted, leaves K_S dT O: a dT column
+        if e.cal_term == "temperature_gain" and "temperature_offset" not in base_terms and not gap.forward:
+            # a gain applied before the offset, inverted, leaves K_S dT O: a dT column (the calibration
+            # direction only; forward, the catalogue's temperature gain acts before the offset)
             terms = ("temperature_gain", "temperature_offset")
+        if e.cal_term == "mount_rotation" and s.metadata.get("reference") == "igrf":
+            not_testable.append({"effect": name, "reason": "orbit telemetry (IGRF + attitude reference): a rotation "
+                                                           "per power cycle is attitude knowledge error, part of "
+                                                           "the reference's error budget, not a remount"})
+            continue
         if e.cal_term == "mount_rotation":
             mc = rot.mount_columns(gap)
             if isinstance(mc, str):
@@ -384,7 +394,7 @@ def linear_block(gap: Gap, name: str, terms) -> Block:
     """Columns of a linear candidate: its calibration terms plus, where the catalogue's forward physics
     seen from the calibration side needs them, higher-order columns (nonlinear.py)."""
     blk = gap.term_design(terms)
-    if name == "temperature_gain" and blk.p:
+    if name == "temperature_gain" and blk.p and not gap.forward:
         blk = Block.join([blk, temperature_gain_higher_order(gap, gap.session.temp_c)], gap.n)
     if name == "cross_axis" and blk.p:
         q = nl.second_order_cross_axis(gap.predictor_uT)
@@ -466,7 +476,8 @@ def lag_block(gap: Gap, tau_s: float) -> Block:
     lagged.temp_c = nl.lagged_temperature(s.t_s, s.temp_c, s.session, tau_s)
     terms = LAG_TERMS if "offset" in gap.base_terms else ("offset",) + LAG_TERMS
     blk = dataclasses.replace(gap, session=lagged).term_design(terms)
-    blk = Block.join([blk, temperature_gain_higher_order(gap, lagged.temp_c)], gap.n)
+    if not gap.forward:
+        blk = Block.join([blk, temperature_gain_higher_order(gap, lagged.temp_c)], gap.n)
     names = [[n + "@lag" for n in row] for row in blk.names]
     return Block(blk.X, blk.mask, names, blk.units)
 

@@ -160,4 +160,5 @@ def sim_gap(full: Session, keep: np.ndarray, params_path, t0_c: float | None = N
     t0 = round(t0 * 100) / 100 if math.isfinite(t0) else 25.0
     g = fixed_gap(s, s.dut_uT - pred, s.ref_uT, modelled, f"--sim {params_path}", nuisance, t0)
     g.deskew_J = -np.eye(3)
+    g.forward = True
     return g
