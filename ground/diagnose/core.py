@@ -13,9 +13,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from magstack.ground.diagnose import noise
+from magstack.ground.diagnose import nonlinear as nl
 from magstack.ground.diagnose import orbit as ob
 from magstack.ground.diagnose import priors as pr
-from magstack.ground.diagnose import nonlinear as nl
 from magstack.ground.diagnose import rotation as rot
 from magstack.ground.diagnose import search as sr
 from magstack.ground.diagnose import where as wh
@@ -338,9 +338,9 @@ def prior_choice(gap: Gap, res: sr.SearchResult, chip) -> tuple[list[dict], str 
 
     When the verdict (a linear effect) is confounded with significant linear candidates that close as much
     (same columns in this session, e.g. a sensitivity tempco and an offset tempco at one field level), each
-    one's parameters (MAP on all rows with the chip's prior on its columns) are checked against that prior. A verdict that needs a
-    parameter beyond priors.IMPLAUSIBLE_Z prior sd gives way to the simplest plausible partner; the checks
-    are reported either way. Returns (checks, note)."""
+    one's parameters (MAP on all rows with the chip's prior on its columns) are checked against that prior.
+    A verdict that needs a parameter beyond priors.IMPLAUSIBLE_Z prior sd gives way to the simplest plausible
+    partner; the checks are reported either way. Returns (checks, note)."""
     v = next((t for t in res.trials if t.effect == res.verdict), None)
     if v is None or v.kind != "linear" or not res.confounded_with:
         return [], None
@@ -370,7 +370,8 @@ def prior_choice(gap: Gap, res: sr.SearchResult, chip) -> tuple[list[dict], str 
     res.confounded_with = [e for e in res.confounded_with if e != new.effect] + [v.effect]
     return out, (f"{new.effect} and {v.effect} are confounded in this session (they close the gap equally); "
                  f"{v.effect} would need {c['parameter']} = {c['value']:.4g} {c['unit']}, {c['z']:.0f} sd from the "
-                 f"{chip.chip} prior {c['prior_mean']:.4g} +- {c['prior_sd']:.3g}: the part's physics names {new.effect}")
+                 f"{chip.chip} prior {c['prior_mean']:.4g} +- {c['prior_sd']:.3g}: the part's physics names "
+                 f"{new.effect}")
 
 
 IMPLAUSIBLE_TEXT = f"more than {pr.IMPLAUSIBLE_Z:g} prior sd"
