@@ -10,8 +10,9 @@ sensitivity tempco and an offset tempco fit equally). What the data cannot decid
   "data+prior"); the report names the parameters the prior alone set.
 * :func:`prior_check`: each confounded candidate's parameters (MAP with the chip's prior on its columns)
   against that prior (``z`` in prior sd). A verdict that would need a parameter beyond :data:`IMPLAUSIBLE_Z`
-  prior sd gives way to a confounded candidate that closes as much with plausible parameters (a -130 nT/degC offset tempco on an
-  HMC1053, +-6 nT/degC with set/reset, against a -2.95e-3 /degC sensitivity tempco, -2.7e-3 +- 0.6e-3).
+  prior sd gives way to a confounded candidate that closes as much with plausible parameters (a -130 nT/degC
+  offset tempco on an HMC1053, +-6 nT/degC with set/reset, against a -2.95e-3 /degC sensitivity tempco,
+  -2.7e-3 +- 0.6e-3).
 
 Priors are in the calibration direction (``drivers/cal_priors.py``); a forward gap (``dut - model(ref)``)
 sees a sensitivity tempco with the opposite sign (``(1 + K dT)^-1 = 1 - K dT`` to first order), offsets and
