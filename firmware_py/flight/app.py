@@ -359,8 +359,8 @@ class FlightApp:
                 "rate_groups": {g.name: {"rate_hz": g.rate_hz, **g.stats.to_dict()} for g in self.executive.groups},
                 "events": self.events.snapshot(),
                 "events_lost": (0 if sink is None else sink.lost) + self.events.sink_errors
-                + self._dropped("events"),
-                "write_queue": None if getattr(self, "writer", None) is None else self.writer.stats(),
+                + (0 if self.writer is None else self.writer.dropped["events"]),
+                "write_queue": None if self.writer is None else self.writer.stats(),
                 "commands": None if self.spool is None else {"accepted": self.spool.accepted,
                                                              "rejected": self.spool.rejected},
                 "degraded": self.degraded_reasons()}
@@ -376,19 +376,15 @@ class FlightApp:
                 out.append(f"channel {n}: configured table rejected, running uncalibrated ({s.table_rejected})")
             if s.telemetry.rows_lost:
                 out.append(f"channel {n}: {s.telemetry.rows_lost} telemetry rows could not be written")
-        dropped = sum(self.writer.dropped.values()) if getattr(self, "writer", None) is not None else 0
+        dropped = sum(self.writer.dropped.values()) if self.writer is not None else 0
         if dropped:
             out.append(f"write queue full: {dropped} records, packets or event lines dropped "
                        f"({', '.join(f'{s} {n}' for s, n in sorted(self.writer.dropped.items()))})")
         sink = getattr(self, "_event_sink", None)
-        lost = (0 if sink is None else sink.lost) + self.events.sink_errors + self._dropped("events")
+        lost = (0 if sink is None else sink.lost) + self.events.sink_errors     # dropped ones: the reason above
         if lost:
             out.append(f"{lost} events could not be written to the event log")
         return out
-
-    def _dropped(self, source: str) -> int:
-        w = getattr(self, "writer", None)
-        return 0 if w is None else w.dropped[source]
 
     def wait_refits(self, timeout_s: float | None = None) -> None:
         """Wait for running refits (tests, and a clean shutdown)."""

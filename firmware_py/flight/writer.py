@@ -25,8 +25,8 @@ from typing import Any
 
 from magstack.firmware.flight.events import EventId, EventLog
 
-#: Items the queue holds by default: at 20 Hz x 3 channels (a record and a packet each, plus events)
-#: about 10 s of output, i.e. a stalled SD card may take that long before anything is dropped.
+#: Items the queue holds by default: at 20 Hz x 3 channels (a record and a packet each) 34 s of output,
+#: i.e. a stalled SD card may take about that long before anything is dropped.
 DEFAULT_CAPACITY = 4096
 
 Job = tuple[Callable[[Any], None], Any, str]
