@@ -12,11 +12,12 @@ import pytest
 from magstack.cli.commands.run import _sim_options
 from magstack.data.dictionary import APP_APID
 from magstack.data.session import read_session
+from magstack.firmware.errors import FlightConfigError
 from magstack.firmware.flight import executive
 from magstack.firmware.flight.app import FlightApp
 from magstack.firmware.flight.config import load_config
 from magstack.firmware.flight.events import EventId, EventLog
-from magstack.firmware.flight.writer import WriteBehind
+from magstack.firmware.flight.writer import DEFAULT_CAPACITY, WriteBehind
 from magstack.ground.tm_decode import DecodeReport, iter_packets
 from tests.test_ccsds_packets import sim_config
 
@@ -99,7 +100,7 @@ def test_no_rate_group_cycle_calls_fsync_in_virtual_time(tmp_path, monkeypatch):
 
 def test_a_slow_fsync_runs_on_the_writer_thread_only(tmp_path, monkeypatch):
     """Real time, threads: every fsync of the run is made by the writer thread, none by a rate-group thread,
-    though each takes 30 ms (an SD card's); the groups keep their cycles."""
+    though each takes 30 ms longer (an SD card's); counted by thread name, not timed."""
     threads = []
     real_fsync = os.fsync
     stall = threading.Event()
@@ -141,6 +142,18 @@ def test_a_full_queue_drops_counts_and_reports_one_event_per_outage():
     assert events.count(EventId.TLM_QUEUE_FULL) == 2 and w.stats()["outages"] == 2
     assert w.stats()["dropped"] == {"events": 1, "packets": 1, "telemetry/a": 1}
     assert w.drain() == 2 and done == [1, 2, 5, 6]
+
+
+def test_write_queue_is_checked_at_load(tmp_path):
+    cfg = sim_config(tmp_path)
+    text = cfg.read_text()
+    cfg.write_text(text.replace("[flight]\n", "[flight]\nwrite_queue = 8\n", 1))
+    with pytest.raises(FlightConfigError, match="flight.write_queue"):
+        load_config(cfg)
+    cfg.write_text(text.replace("[flight]\n", "[flight]\nwrite_queue = 64\n", 1))
+    assert load_config(cfg).write_queue == 64
+    cfg.write_text(text)
+    assert load_config(cfg).write_queue == DEFAULT_CAPACITY
 
 
 def test_a_stalled_writer_never_blocks_the_loop_and_shutdown_drains(tmp_path):

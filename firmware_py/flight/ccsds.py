@@ -4,7 +4,8 @@
 each channel's telemetry sink, the event log's sink and each rate group's boundary so that every
 telemetry record, event and housekeeping summary also becomes a PUS-C TM packet (layouts:
 :mod:`magstack.data.dictionary`, docs/ccsds.md), written to ``<telemetry_dir>/packets-<run>.bin``
-and/or sent as UDP datagrams; with ``csv = false`` the session CSVs are not written. Telecommands
+and/or sent as UDP datagrams (by the application's write-behind writer, :mod:`.writer`: the rate groups
+only pack); with ``csv = false`` the session CSVs are not written. Telecommands
 (:mod:`.telecommands`) are polled at the fastest group's boundary, like the command directory.
 
 A packet that cannot be written or sent is counted (``tm_send_errors``) with a rate-limited
