@@ -4,6 +4,7 @@ and fsyncs them; a full queue drops and counts, never blocks; shutdown drains an
 a simulated run writes the same bytes as the synchronous path."""
 from __future__ import annotations
 
+import json
 import os
 import threading
 
@@ -185,3 +186,16 @@ def test_a_stalled_writer_never_blocks_the_loop_and_shutdown_drains(tmp_path):
     assert not any(n.endswith(".part") for n in names) and "hmc1053-0001-0001.csv" in names
     for p in (tmp_path / "tlm").glob("*.csv"):
         read_session(p)                                      # whole: closing line and CRC check
+
+
+def test_run_reports_the_write_queue(tmp_path, capsys):
+    from magstack.cli.main import main
+
+    cfg = sim_config(tmp_path)
+    assert main(["run", "--config", str(cfg), "--sim", "--duration", "5", "--out", str(tmp_path / "tlm")]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if "write queue" in x)
+    assert "items written behind the rate groups" in line and line.endswith("0 dropped for a full queue")
+    assert main(["run", "--config", str(cfg), "--sim", "--duration", "5", "--out", str(tmp_path / "tlm"),
+                 "--json"]) == 0
+    wq = json.loads(capsys.readouterr().out)["write_queue"]
+    assert wq["written"] == wq["offered"] > 0 and wq["dropped"] == {} and wq["waiting"] == 0
