@@ -34,10 +34,13 @@ each call per thread, so the fsync time inside the rate group's cycles is measur
 Reported per group and mode: wall p50/p99/worst, off-CPU time (wall - CPU: fsync, GIL hand-overs,
 preemption), cycles that called fsync and their fsync time, overruns, and the ratios behind / inline.
 ``--fsync-delay-ms D`` makes every fsync D ms longer (an SD card emulated: an assumption, not a card).
+
+``--part simrun``: CPU of ``run --sim`` (example configuration) with write-behind vs writing in the cycle.
 """
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import tempfile
 import threading
@@ -239,11 +242,40 @@ def writer(seconds: float, pi_factor: float, telemetry_dir: str | None, fsync_de
               f"worst {max(costs) * 1e3:.2f} ms")
 
 
+def simrun(seconds: float, repeat: int = 3) -> None:
+    """CPU of a simulated run (``run --sim`` of the example configuration, [ccsds] included, no table) with
+    write-behind (drained in the idle slot) vs writing in the cycle, alternating in this process; best of
+    ``repeat`` and the ratio."""
+    from magstack.cli.commands.run import _sim_options
+    from magstack.firmware.flight.app import FlightApp
+    from magstack.firmware.flight.config import example_config_text, load_config
+
+    with tempfile.TemporaryDirectory(dir=os.getcwd(), prefix="bench-simrun-") as tmp:
+        cfg = Path(tmp) / "flight.toml"
+        cfg.write_text(example_config_text().replace("spi0.0,start=6,reset=13,drdy=19,sr=5", "sim")
+                       .replace('bus = "1"', 'bus = "sim"').replace('table = "tables/hmc1053.json"', ""))
+        best = {False: math.inf, True: math.inf}
+        for i in range(repeat):
+            for behind in (False, True):
+                c0 = time.process_time()
+                app = FlightApp(load_config(cfg), virtual=True, simulate=True, run_id=1, write_behind=behind,
+                                telemetry_dir=Path(tmp) / f"t{i}{behind}",
+                                chip_options=_sim_options("rotation", seconds, 0))
+                try:
+                    app.run(seconds)
+                finally:
+                    app.close()
+                best[behind] = min(best[behind], time.process_time() - c0)
+        print(f"run --sim, {seconds:g} s of virtual time, best of {repeat} CPU s: in the cycle {best[False]:.2f}, "
+              f"write-behind {best[True]:.2f}, ratio {best[True] / best[False]:.2f} "
+              f"(load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs)")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cycles", type=int, default=400, help="cycles per measurement (default 400)")
     ap.add_argument("--pi-factor", type=float, default=5.0, help="assumed Pi / this-host CPU-time ratio")
-    ap.add_argument("--part", choices=("channels", "loop", "writer"), default="channels")
+    ap.add_argument("--part", choices=("channels", "loop", "writer", "simrun"), default="channels")
     ap.add_argument("--seconds", type=float, default=300.0, help="--part loop: flight time per group (s)")
     ap.add_argument("--telemetry-dir", default=None, help="--part loop: where telemetry is written (default: cwd)")
     ap.add_argument("--fsync-delay-ms", type=float, default=0.0,
@@ -251,6 +283,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.part == "loop":
         loop(args.seconds, args.pi_factor, args.telemetry_dir)
+        return 0
+    if args.part == "simrun":
+        simrun(args.seconds)
         return 0
     if args.part == "writer":
         writer(args.seconds, args.pi_factor, args.telemetry_dir, args.fsync_delay_ms)
