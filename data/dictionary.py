@@ -140,6 +140,8 @@ EVENTS: tuple[EventDef, ...] = (
     EventDef("TLM_FILE_ROTATED", 0x0600, _S.DIAGNOSTIC, "telemetry file rotated"),
     EventDef("TLM_WRITE_ERROR", 0x0601, _S.WARNING_HI, "a telemetry record or packet could not be written"),
     EventDef("TLM_RECOVERED", 0x0602, _S.ACTIVITY_HI, "telemetry writing resumed after a write error"),
+    EventDef("TLM_QUEUE_FULL", 0x0603, _S.WARNING_HI,
+             "the write-behind queue was full: records, packets or event lines dropped (counted)"),
     EventDef("TC_REJECTED", 0x0410, _S.WARNING_LO,
              "a telecommand packet was malformed, corrupt, replayed or unauthorised: counted, not executed"),
 )

@@ -106,6 +106,10 @@ def run(args: argparse.Namespace) -> CommandResult:
         lines.append(f"  {name:<12} {c['cycles']} cycles: {c['samples_ok']} good, {cal} calibrated, "
                      f"{c['error_count']} faults{' (DEGRADED)' if c['degraded'] else ''}; table {table}"
                      + (f"; {lost} telemetry rows lost" if lost else ""))
+    wq = counters["write_queue"]
+    if wq is not None:
+        lines.append(f"  write queue  {wq['written']} items written behind the rate groups, at most {wq['max_depth']} "
+                     f"waiting, {sum(wq['dropped'].values())} dropped for a full queue")
     degraded = counters["degraded"]
     lines += [f"  DEGRADED: {why}" for why in degraded]
     data = {"run_id": app.run_id, "telemetry_dir": str(app.telemetry_dir),

@@ -4,7 +4,10 @@ One :class:`FlightApp` = rate groups (each on its own clock: virtual clocks in s
 clock on hardware), a :class:`~magstack.firmware.flight.channel.MagChannel` per sensor opened through
 the chip factory (``magstack.drivers.registry.open_chip``: the same code on the Pi and on simulated
 buses), a calibration-table store and fixed-point corrector per channel, telemetry files per channel,
-the event log (``events.jsonl``), and the command spool.
+the event log (``events.jsonl``), and the command spool. Telemetry rows, packets and event lines are
+written behind the rate groups (:mod:`.writer`): a writer thread on hardware, the idle slot between two
+slots in virtual time; ``write_behind=False`` writes them inside the cycle (the old path, kept as the
+benchmark's baseline and the tests' reference).
 """
 from __future__ import annotations
 
@@ -34,6 +37,7 @@ from magstack.firmware.flight.executive import Executive, RateGroup
 from magstack.firmware.flight.intake import UnsafeInput, inside_roots
 from magstack.firmware.flight.tables import FlightTableStore
 from magstack.firmware.flight.telemetry import ChannelTelemetry
+from magstack.firmware.flight.writer import WriteBehind
 
 #: Name of the command spool's own rate group (not configurable: it is not a sensor timeline).
 COMMAND_GROUP = "_commands"
@@ -118,15 +122,16 @@ class FlightApp:
     def __init__(self, cfg: FlightConfig, *, virtual: bool = False, simulate: bool = False,
                  telemetry_dir: str | Path | None = None, run_id: int | None = None,
                  chip_options: ChipOptions | None = None, start_epoch_s: float | None = None,
-                 stop: threading.Event | None = None) -> None:
+                 stop: threading.Event | None = None, write_behind: bool = True) -> None:
         self.cfg = cfg
         self.virtual = virtual
         self.simulate = simulate
         self.telemetry_dir = Path(telemetry_dir) if telemetry_dir is not None else cfg.telemetry_dir
         self.telemetry_dir.mkdir(parents=True, exist_ok=True)
         self.run_id = run_id if run_id is not None else self._next_run_id()
+        self.writer = WriteBehind(cfg.write_queue, on_error=self._write_failed) if write_behind else None
         self._event_sink = EventFileSink(self.telemetry_dir / f"events-{self.run_id:04d}.jsonl")
-        self.events = EventLog(sink=self._event_sink)
+        self.events = EventLog(sink=self._behind(self._event_sink, "events"))
         shared = None if virtual else SystemClock()
         self.clocks: dict[str, Any] = {}
         groups = []
@@ -152,6 +157,8 @@ class FlightApp:
             raise
         for g in groups:
             g.boundary.append(self._boundary_hook(g))
+            if self.writer is not None:
+                g.boundary.append(lambda now_s, w=self.writer: w.report_overflow(self.events, self.epoch_of(now_s)))
         self.spool = None
         if cfg.command_dir is not None:
             # its own slow rate group (thread), a bounded number of files per cycle: a burst of commands
@@ -187,7 +194,7 @@ class FlightApp:
                 "run_id": str(self.run_id), "rate_group": s.rate_group, "source": "magstack run"}
         tlm = ChannelTelemetry(self.telemetry_dir, s.name, run_id=self.run_id, metadata=meta,
                                rotate_bytes=self.cfg.rotate_bytes, block_rows=self.cfg.block_rows, events=self.events)
-        ch = MagChannel(s.name, mag, TableCorrector(store), self.events, sink=tlm,
+        ch = MagChannel(s.name, mag, TableCorrector(store), self.events, sink=self._behind(tlm, f"telemetry/{s.name}"),
                         limits=ChannelLimits(s.max_field_uT, s.max_rate_uT_per_s, s.reinit_after, s.degrade_after,
                                              rate_horizon_s=self.cfg.group(s.rate_group).period_s),
                         epoch_of=self.epoch_of)
@@ -202,6 +209,14 @@ class FlightApp:
             except CalTableInvalid as exc:
                 slot.table_rejected = str(exc)
                 self.events.emit(self.epoch_of(clock.monotonic_s()), EventId.TABLE_REJECTED, s.name, str(exc)[:200])
+
+    def _behind(self, sink, source: str):
+        """``sink`` as the rate groups see it: queued to the writer (or itself, without write-behind)."""
+        return sink if self.writer is None else self.writer.sink(sink, source)
+
+    def _write_failed(self, source: str, exc: Exception) -> None:
+        """A queued write raised (the writers count their own I/O errors; this is anything else)."""
+        self.events.emit(self._now(None), EventId.TLM_WRITE_ERROR, source, f"{type(exc).__name__}: {exc}"[:200])
 
     # ------------------------------------------------------------------ boundaries and commands
     def _boundary_hook(self, group: RateGroup):
@@ -323,8 +338,13 @@ class FlightApp:
         if self.virtual:
             if duration_s is None or not math.isfinite(duration_s):
                 raise ValueError("virtual time needs a finite duration")
-            self.executive.run_virtual(duration_s)
+            drain = None if self.writer is None else (lambda _g: self.writer.drain())
+            self.executive.run_virtual(duration_s, on_slot=drain)   # writes in the idle slot after each slot
+            if self.writer is not None:
+                self.writer.drain()
         else:
+            if self.writer is not None:
+                self.writer.start()
             self.executive.run_threads(duration_s)
 
     def stop(self) -> None:
@@ -338,7 +358,9 @@ class FlightApp:
                              for n, s in self.slots.items()},
                 "rate_groups": {g.name: {"rate_hz": g.rate_hz, **g.stats.to_dict()} for g in self.executive.groups},
                 "events": self.events.snapshot(),
-                "events_lost": (0 if sink is None else sink.lost) + self.events.sink_errors,
+                "events_lost": (0 if sink is None else sink.lost) + self.events.sink_errors
+                + (0 if self.writer is None else self.writer.dropped["events"]),
+                "write_queue": None if self.writer is None else self.writer.stats(),
                 "commands": None if self.spool is None else {"accepted": self.spool.accepted,
                                                              "rejected": self.spool.rejected},
                 "degraded": self.degraded_reasons()}
@@ -354,8 +376,12 @@ class FlightApp:
                 out.append(f"channel {n}: configured table rejected, running uncalibrated ({s.table_rejected})")
             if s.telemetry.rows_lost:
                 out.append(f"channel {n}: {s.telemetry.rows_lost} telemetry rows could not be written")
+        dropped = sum(self.writer.dropped.values()) if self.writer is not None else 0
+        if dropped:
+            out.append(f"write queue full: {dropped} records, packets or event lines dropped "
+                       f"({', '.join(f'{s} {n}' for s, n in sorted(self.writer.dropped.items()))})")
         sink = getattr(self, "_event_sink", None)
-        lost = (0 if sink is None else sink.lost) + self.events.sink_errors
+        lost = (0 if sink is None else sink.lost) + self.events.sink_errors     # dropped ones: the reason above
         if lost:
             out.append(f"{lost} events could not be written to the event log")
         return out
@@ -366,10 +392,14 @@ class FlightApp:
             job.thread.join(timeout_s)
 
     def close(self) -> None:
-        """Close every telemetry file (rename to final) and the event log; safe to call twice."""
+        """Write everything queued, close every telemetry file (rename to final), the packet stream and the
+        event log; safe to call twice."""
         for job in getattr(self, "refits", {}).values():
             job.cancel.set()
         self.wait_refits(30.0)
+        writer = getattr(self, "writer", None)
+        drain = writer.stop if writer is not None else (lambda: None)   # stop: drain, end the thread
+        drain()
         for s in getattr(self, "slots", {}).values():
             s.telemetry.close()
             close = getattr(s.channel.mag, "close", None)
@@ -378,8 +408,10 @@ class FlightApp:
                     close()
                 except Exception:  # noqa: BLE001 - closing must not hide the run's result
                     pass
+        drain()                                  # events of the closes (a failed rename ...) and their packets
         if getattr(self, "ccsds", None) is not None:
             self.ccsds.close()
+        drain()
         sink = getattr(self, "_event_sink", None)
         if sink is not None:
             sink.close()

@@ -4,7 +4,8 @@
 each channel's telemetry sink, the event log's sink and each rate group's boundary so that every
 telemetry record, event and housekeeping summary also becomes a PUS-C TM packet (layouts:
 :mod:`magstack.data.dictionary`, docs/ccsds.md), written to ``<telemetry_dir>/packets-<run>.bin``
-and/or sent as UDP datagrams; with ``csv = false`` the session CSVs are not written. Telecommands
+and/or sent as UDP datagrams (by the application's write-behind writer, :mod:`.writer`: the rate groups
+only pack); with ``csv = false`` the session CSVs are not written. Telecommands
 (:mod:`.telecommands`) are polled at the fastest group's boundary, like the command directory.
 
 A packet that cannot be written or sent is counted (``tm_send_errors``) with a rate-limited
@@ -24,6 +25,7 @@ from typing import Any
 from magstack.data.dictionary import APP_APID, EVENT_SUBTYPE, TM_PACKET, Severity
 from magstack.data.packets import ApidMap, TmEncoder
 from magstack.firmware.flight.events import Event, EventId
+from magstack.firmware.flight.writer import WriteBehind
 
 DEFAULT_TM_PORT, DEFAULT_TC_PORT = 50510, 50511
 
@@ -94,8 +96,10 @@ class PacketStream:
     """Encodes and emits TM packets to a file and/or a UDP address; never raises on a write."""
 
     def __init__(self, apids: ApidMap, *, path: Path | None, udp: tuple[str, int] | None,
-                 on_error: Callable[[str], None] | None = None, sync_every: int = 200) -> None:
+                 on_error: Callable[[str], None] | None = None, sync_every: int = 200,
+                 writer: WriteBehind | None = None) -> None:
         self.apids = apids
+        self.writer = writer                        # None: written and sent by the caller (synchronous)
         self.encoder = TmEncoder()
         self.path = path
         self._fh = open(path, "ab") if path is not None else None
@@ -128,10 +132,23 @@ class PacketStream:
 
     def emit(self, name: str, apid: int, t_s: float, values: dict, subtype: int | None = None,
              report: bool = True) -> None:
-        """Pack (sequence count of ``apid``) and send one packet; thread-safe (rate groups run in threads)."""
+        """Pack (sequence count of ``apid``) and send one packet; thread-safe (rate groups run in threads).
+
+        With a ``writer`` the caller only packs: the write, fsync and datagram are queued (under the lock, so
+        packets leave in packing order) and a full queue drops the packet (counted by the writer)."""
         with self._lock:
             data = self.encoder.pack(TM_PACKET[name], apid, t_s, values, subtype)
+            if self.writer is not None:
+                self.writer.offer(self._send, (data, report), "packets")
+                return
             err = self._write(data)
+        if err and report and self.on_error is not None:
+            self.on_error(err)
+
+    def _send(self, job: tuple[bytes, bool]) -> None:
+        """The writer's job: write/send one packed packet (the writer is the only caller of ``_write`` then)."""
+        data, report = job
+        err = self._write(data)
         if err and report and self.on_error is not None:
             self.on_error(err)
 
@@ -203,7 +220,8 @@ class CcsdsLink:
         self.cfg = cfg
         self.app = app
         path = app.telemetry_dir / f"packets-{app.run_id:04d}.bin" if cfg.packets else None
-        self.stream = PacketStream(apid_map(app.cfg), path=path, udp=cfg.tm_udp, on_error=self._error)
+        self.stream = PacketStream(apid_map(app.cfg), path=path, udp=cfg.tm_udp, on_error=self._error,
+                                   writer=getattr(app, "writer", None))
         self.receiver = None
         if cfg.tc_udp is not None or cfg.tc_dir is not None:
             self.receiver = TelecommandReceiver(cfg, app.events, self.stream, self._submit, self._now)

@@ -17,6 +17,7 @@ from typing import Any
 
 from magstack.firmware.errors import FlightConfigError
 from magstack.firmware.flight.intake import UnsafeInput, read_bounded
+from magstack.firmware.flight.writer import DEFAULT_CAPACITY
 
 EXAMPLE_NAME = "flight.example.toml"
 #: Largest configuration file read.
@@ -65,6 +66,7 @@ class FlightConfig:
     refit_roots: tuple[Path, ...] = ()              # start_refit inputs only inside these (default: config dir)
     command_rate_hz: float = 2.0                    # the command spool's own rate group
     commands_per_cycle: int = 8                     # command files taken per spool cycle
+    write_queue: int = DEFAULT_CAPACITY             # records, packets and event lines waiting to be written
 
     def group(self, name: str) -> RateGroupConfig:
         return next(g for g in self.rate_groups if g.name == name)
@@ -165,7 +167,7 @@ def parse_config(doc: dict, path: Path) -> FlightConfig:
     top = _table(c, "document", doc, {"flight", "rate_group", "sensor"}, {"ccsds"})
     fl = _table(c, "flight", top["flight"], {"name", "telemetry_dir"},
                 {"command_dir", "rotate_mb", "block_rows", "table_roots", "refit_roots", "command_rate_hz",
-                 "commands_per_cycle"})
+                 "commands_per_cycle", "write_queue"})
     base = path.parent
     groups_raw = top["rate_group"]
     if not isinstance(groups_raw, list) or not groups_raw:
@@ -248,7 +250,9 @@ def parse_config(doc: dict, path: Path) -> FlightConfig:
         table_roots=roots("table_roots"), refit_roots=roots("refit_roots"),
         command_rate_hz=float(_num(c, "flight.command_rate_hz", fl.get("command_rate_hz", 2.0), 0.01, 100.0)),
         commands_per_cycle=int(_num(c, "flight.commands_per_cycle", fl.get("commands_per_cycle", 8), 1, 1000,
-                                    integer=True)))
+                                    integer=True)),
+        write_queue=int(_num(c, "flight.write_queue", fl.get("write_queue", DEFAULT_CAPACITY), 16, 1_000_000,
+                             integer=True)))
 
 
 def load_config(path: str | Path) -> FlightConfig:
