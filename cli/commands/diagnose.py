@@ -50,6 +50,13 @@ def register(subparsers) -> None:
     p.add_argument("--include-saturated", action="store_true",
                    help="keep rows with the reference at or beyond its range (default: left out and counted, "
                         "the same guard as fit; the range comes from the session metadata 'reference')")
+    p.add_argument("--reference", choices=("auto", "session", "igrf"), default="auto",
+                   help="the reference field: 'session' = the files' ref_* columns; 'igrf' = orbit telemetry "
+                        "(position and attitude columns, docs/refit.md): IGRF at the GPS position rotated by the "
+                        "attitude, as refit computes it, with its error budget (crustal, external, attitude) in "
+                        "the noise floor; 'auto' (default): igrf for telemetry without ref_* columns, else session")
+    p.add_argument("--attitude-sd-deg", type=finite_float(0, 30, unit="deg"), default=0.1,
+                   help="attitude knowledge (1 sd per axis, deg) in the orbit reference's error budget (default 0.1)")
     p.add_argument("--chip", default=None, metavar="CHIP",
                    help="part whose datasheet priors decide what the session cannot (the base model's parameters "
                         "a session does not determine, and between explanations it cannot tell apart); default: "
@@ -58,6 +65,26 @@ def register(subparsers) -> None:
                    help="temperature reference for --model, degC (default 25)")
     add_window_options(p)
     p.set_defaults(func=run)
+
+
+def _read(args):
+    """(session, notes): bench session files, or orbit telemetry through the refit's reference (--reference)."""
+    from magstack.ground.diagnose.orbit import is_orbit_telemetry, orbit_session, without_missing_currents
+
+    telemetry = [is_orbit_telemetry(p) for p in args.sessions]
+    if args.reference == "igrf" or (args.reference == "auto" and all(telemetry)):
+        from magstack.data.telemetry import read_header
+
+        if not all(telemetry):
+            bad = next(p for p, t in zip(args.sessions, telemetry, strict=True) if not t)
+            read_header(bad)     # names the missing position/attitude columns (exit 3)
+        own_ref = args.reference == "auto" and all(read_header(p).has_ref for p in args.sessions)
+        s, notes = without_missing_currents(orbit_session(args.sessions, use_file_ref=own_ref))
+        what = "its ref_* columns (use --reference igrf for the refit's reference)" if own_ref else \
+            "IGRF at the GPS position rotated by the attitude (the refit's reference)"
+        log.info("diagnose: orbit telemetry, %d rows; reference %s", len(s), what)
+        return s, [f"orbit telemetry: reference = {what}; housekeeping currents interpolated as refit does"] + notes
+    return load_sessions(args.sessions)
 
 
 def model_text(text: str) -> str:
@@ -88,12 +115,13 @@ def _block_s(text: str):
 def run(args: argparse.Namespace) -> CommandResult:
     opts = Options(block_s=args.block_s, n_folds=args.folds, alpha=args.alpha,
                    exclude_bends=None if args.keep_bends else 10.0, null=args.null,
-                   include_saturated=args.include_saturated, chip=args.chip)
+                   include_saturated=args.include_saturated, chip=args.chip,
+                   attitude_sd_deg=args.attitude_sd_deg)
     if args.sim is None and args.table is None:
         terms, modelled, hyst = parse_model(args.model)
     with stages("diagnose", ["read", "predict", "rank effects", "write"]) as st:
         st.next()
-        session, notes = load_sessions(args.sessions)
+        session, notes = _read(args)
         if args.window or args.drop_window:
             sel = select_rows(session.t_s, session.session, args.window, args.drop_window)
             notes.append("time windows: " + describe(args.window, args.drop_window, int(sel.sum()), len(session)))

@@ -125,7 +125,8 @@ class Diagnosis:
              f"gap (held-out, norm of per-axis RMS): {d['baseline_rmse_nT']:.1f} nT; noise floor "
              f"{_f(d['noise_floor_nT'])} nT" + _budget_text(d), f"verdict: {d['verdict']}"]
         if d["verdict"] != "none":
-            L.append(f"  after adding it: {d['after_rmse_nT']:.1f} nT (noise floor {_f(d['noise_floor_nT'])} nT)")
+            L.append(f"  after adding it: {d['after_rmse_nT']:.1f} nT (noise floor "
+                     f"{_f(d['floor_with_reference_nT'])} nT)")
         if self.verdict_note:
             L.append("  " + self.verdict_note)
         if self.unexplained.get("remains"):

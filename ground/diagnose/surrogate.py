@@ -28,7 +28,8 @@ candidate, with the same folds. For surrogate ``y`` and design ``Z`` it needs on
 fold (``y^T y`` cancels), so the held-out fits of hundreds of surrogates are a few matrix products.
 The observed ``T`` comes from the same code on the session's own target, so both sides of the test
 use one statistic. Linear candidates and hysteresis (its threshold and initial sign chosen per fold
-by training SSE among the same options the search offers) are exact; the per-axis delay and the mount
+by training SSE among the same options the search offers) and the thermal lag (its time constant chosen
+per fold among the coarse grid and the chosen value) are exact; the per-axis delay and the mount
 rotation, whose estimators are not per-axis linear, enter through per-axis linear proxies (the
 reference's rate of change mapped into DUT units, every axis' proxy for every output axis; the
 rotation's angle columns with a free coefficient per output axis), so their surrogate test is of a
@@ -322,9 +323,13 @@ def candidate_designs(gap: Gap, cand) -> list[AxisDesign]:
                     col = nl.hysteresis_state(hist, thr, init)[idx][:, j:j + 1]
                     opts.append(np.hstack([fixed, col]))
             own.append(opts or [fixed])
-    elif cand.kind == "lag":   # the time constant chosen on all rows; its columns as a linear design
-        blk = sr.lag_block(gap, cand.lag_tau_s)
-        own = [[_axis_cols(blk, i)] for i in range(3)]
+    elif cand.kind == "lag":
+        # the time constant is searched on the data, so it is searched on every surrogate too: one option per
+        # coarse-grid tau (plus the one chosen), chosen per fold by training SSE as the search does (a fixed tau
+        # fitted on the data alone made the test anti-conservative: 1 of 4 orbit null sessions named a lag)
+        taus = np.unique(np.r_[nl.lag_grid(gap.session.t_s, gap.session.session), cand.lag_tau_s])
+        blks = [sr.lag_block(gap, float(tau)) for tau in taus]
+        own = [[_axis_cols(b, i) for b in blks] for i in range(3)]
     elif cand.kind == "joint":
         mc = rot.mount_columns(gap)
         own = [[_nonzero(mc.axis_columns(i))] for i in range(3)]

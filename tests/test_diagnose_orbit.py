@@ -1,0 +1,71 @@
+"""Orbit telemetry in the diagnosis (issue 22 item 4): the refit's reference and its error budget."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from magstack.ground.diagnose import diagnose_model
+from magstack.ground.diagnose.orbit import reference_budget, without_missing_currents
+from magstack.ground.diagnose.validate import simulate_orbit
+
+
+def test_reference_budget_attitude_term_is_the_rotation_error_perpendicular_to_the_field():
+    b = np.tile([40.0, 0.0, 0.0], (10, 1))
+    out = reference_budget(b, np.zeros(10), attitude_sd_deg=0.1)
+    # delta B = delta theta x B: x (along B) gets nothing, y and z 40 uT x 1.745e-3 rad = 69.8 nT
+    assert out["attitude_axes_nT"] == pytest.approx([0.0, 69.81, 69.81], abs=0.01)
+    quiet = np.hypot(out["crustal_nT_per_axis"], out["external_nT_per_axis"])
+    assert out["axes_nT"][0] == pytest.approx(quiet)
+    # the auroral zone adds its external field
+    polar = reference_budget(b, np.full(10, 70.0), attitude_sd_deg=0.1)
+    assert polar["auroral_rows"] == 10 and polar["total_nT"] > out["total_nT"]
+
+
+def _orbit(effect, scale=1.0, seed=200_007):
+    s, notes = without_missing_currents(simulate_orbit(effect, scale, seed))
+    return diagnose_model(s, "gain_offset", notes=notes).to_dict()
+
+
+@pytest.mark.parametrize("effect", ["interference", "temperature_gain"])
+def test_an_orbit_effect_is_found_through_the_igrf_attitude_reference(effect):
+    j = _orbit(effect)
+    assert j["verdict"] == effect
+    b = j["reference_budget"]
+    assert b is not None and b["attitude_sd_deg"] == 0.1
+    assert j["floor_with_reference_nT"] == pytest.approx(np.hypot(j["noise_floor_nT"], b["total_nT"]))
+    assert j["after_rmse_nT"] <= 1.2 * j["floor_with_reference_nT"]
+    # on orbit a rotation per power cycle is attitude knowledge error, not a remount
+    nt = {x["effect"]: x["reason"] for x in j["not_testable"]}
+    assert "attitude knowledge" in nt["mount_rotation"]
+
+
+def test_orbit_telemetry_with_a_wandering_attitude_error_and_nothing_unmodelled_gives_none():
+    assert _orbit(None)["verdict"] == "none"
+
+
+def test_cli_diagnoses_flight_telemetry_without_ref_columns(tmp_path):
+    sim = tmp_path / "orbit.csv"
+    out = subprocess.run([sys.executable, "-m", "magstack", "simulate", "--program", "orbit_inertial", "--seconds",
+                          "5700", "--rate-hz", "0.5", "--effects", "gain,offset,noise,quantization,interference",
+                          "--out", str(sim), "-q"], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    flight = tmp_path / "flight.csv"
+    rows = []
+    for line in sim.read_text().splitlines():
+        if line.startswith("#"):
+            rows.append(line)
+        else:
+            rows.append(",".join(c for i, c in enumerate(line.split(",")) if i not in (1, 2, 3)))
+    flight.write_text("\n".join(rows) + "\n")
+    assert "ref_x_uT" not in flight.read_text()
+    out = subprocess.run([sys.executable, "-m", "magstack", "diagnose", str(flight), "--json"],
+                         capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    j = json.loads(out.stdout)
+    assert j["verdict"] == "interference"
+    assert j["reference"]["reference"] == "igrf" and j["reference_budget"]["total_nT"] > 0
+    assert any("IGRF at the GPS position" in n for n in j["notes"])
