@@ -432,9 +432,9 @@ class FitResult:
 def noise_floor(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, lag_s: float) -> np.ndarray:
     """Per-axis white-noise level (uT) of residuals: robust (MAD) spread of differences of
     samples ``lag_s`` apart within a session, divided by sqrt(2). Differencing removes
-    slow misfit; the MAD ignores field-step transitions."""
-    out = np.full(3, np.nan)
-    diffs = []
+    slow misfit; the MAD ignores field-step transitions. One axis at a time (memory: a few
+    columns per row)."""
+    later, earlier = [], []
     for s in np.unique(session):
         idx = np.flatnonzero(session == s)
         idx = idx[np.argsort(t_s[idx], kind="stable")]
@@ -445,11 +445,17 @@ def noise_floor(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, lag_
         j = np.where(np.abs(t[j - 1] - t - lag_s) < np.abs(t[j] - t - lag_s), j - 1, j)  # nearest to t + lag
         ii = np.arange(t.size)
         good = (np.abs((t[j] - t) - lag_s) <= 0.5 * lag_s) & (j > ii)
-        diffs.append(resid_uT[idx[j[good]]] - resid_uT[idx[ii[good]]])
-    d = np.vstack(diffs) if diffs else np.zeros((0, 3))
-    if d.shape[0] >= 10:
-        med = np.median(d, axis=0)
-        out = 1.4826 * np.median(np.abs(d - med), axis=0) / np.sqrt(2.0)
+        later.append(idx[j[good]])
+        earlier.append(idx[good])
+    out = np.full(3, np.nan)
+    if sum(a.size for a in later) < 10:
+        return out
+    later, earlier = np.concatenate(later), np.concatenate(earlier)
+    for a in range(3):
+        d = resid_uT[later, a] - resid_uT[earlier, a]
+        d -= np.median(d)
+        np.abs(d, out=d)
+        out[a] = 1.4826 * np.median(d) / np.sqrt(2.0)
     return out
 
 
@@ -753,8 +759,9 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
     if mount is not None:   # the angles are shared by the three axes: a third of them to each
         p_i = p_i + sum(1 for k in mount.se_rad for a in range(3)
                         if k != mount.frame and np.isfinite(mount.se_rad[k][a])) / 3
-    rmse = np.sqrt(np.sum(resid ** 2, axis=0) / np.maximum(len(d) - p_i, 1))
-    raw = np.sqrt(np.mean((d.b_ref_uT - d.b_meas_uT) ** 2, axis=0))
+    rmse = np.sqrt(np.einsum("ij,ij->j", resid, resid) / np.maximum(len(d) - p_i, 1))
+    raw = d.b_ref_uT - d.b_meas_uT
+    raw = np.sqrt(np.einsum("ij,ij->j", raw, raw) / len(d))
     res = FitResult(cm, theta, se, held, len(d), int((~ok).sum()), rmse, raw, conds[0], conds[1],
                     noise_floor(resid, d.t_s, d.session, options.noise_lag_s), cov, options.robust)
     res.posterior = core.posterior
