@@ -201,7 +201,7 @@ def _pieces(d: FitData, rows: _Rows, piece: np.ndarray, n_pieces: int, model: Ca
         cuts = np.r_[0, np.flatnonzero(pc[1:] != pc[:-1]) + 1, pc.size]
         for a, e in zip(cuts[:-1], cuts[1:], strict=True):
             k = int(pc[a])
-            xy_sum[k] += Z[a:e].sum(axis=0)
+            xy_sum[k] += np.ones(e - a) @ Z[a:e]
             R[k] = qr_r(np.vstack([R[k], Z[a:e] if w is None else Z[a:e] * np.sqrt(w[a:e])[:, None]]))
             cov[k].update(b[a:e], temp[a:e], {c: v[a:e] for c, v in cur.items()}, sess[a:e], t[a:e],
                           options.field_present_uT, np.ones(e - a) if w is None else w[a:e])

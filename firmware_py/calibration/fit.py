@@ -221,15 +221,18 @@ class Coverage:
         self.n += b.shape[0]
         self.sum_w += float(b.shape[0] if weights is None else np.sum(weights))
         t = np.asarray(temp_c)
-        if np.any(np.isfinite(t)):
-            self.temp_min_c = min(self.temp_min_c, float(np.nanmin(t)))
-            self.temp_max_c = max(self.temp_max_c, float(np.nanmax(t)))
+        fin = np.isfinite(t)
+        if fin.any():
+            tf = t if fin.all() else t[fin]
+            self.temp_min_c = min(self.temp_min_c, float(tf.min()))
+            self.temp_max_c = max(self.temp_max_c, float(tf.max()))
+        mag = np.abs(b.T, order="C")                         # (3, N): one contiguous row per axis
         for j in range(3):
-            sel = (np.abs(b[:, j]) >= field_present_uT) & np.isfinite(t)
+            sel = (mag[j] >= field_present_uT) & fin
             if np.any(sel):
                 self.temp_with_field_c[j, 0] = min(self.temp_with_field_c[j, 0], float(t[sel].min()))
                 self.temp_with_field_c[j, 1] = max(self.temp_with_field_c[j, 1], float(t[sel].max()))
-        self.field_max_uT = np.maximum(self.field_max_uT, np.abs(b).max(axis=0))
+        self.field_max_uT = np.maximum(self.field_max_uT, mag.max(axis=1))
         for k, v in (currents_A or {}).items():
             lo, hi = self.currents_A.get(k, [np.inf, -np.inf])
             self.currents_A[k] = [min(lo, float(np.min(v))), max(hi, float(np.max(v)))]
