@@ -66,14 +66,17 @@ def test_cross_fit_held_out_figures_equal_a_direct_refit_of_every_fold():
     assert np.all(res.holdout_blocks_uT > 1.001 * res.rmse_uT)
 
 
-@pytest.mark.parametrize("model,terms,kw", [
-    ("eq3", ["session_offset", "drift"], {}),
-    ("eq3", [], {"use_priors": False}),
-    ("gain_offset", ["drift"], {"autocorr": False}),
-    ("eq3", ["session_offset"], {"on_unidentifiable": "refuse", "min_temp_span_c": 1e3}),
+@pytest.mark.parametrize("model,terms,kw,shuffle", [
+    ("eq3", ["session_offset", "drift"], {}, False),
+    ("eq3", ["session_offset", "drift"], {}, True),        # rows out of (session, time) order
+    ("eq3", [], {"use_priors": False}, False),
+    ("gain_offset", ["drift"], {"autocorr": False}, False),
+    ("eq3", ["session_offset"], {"on_unidentifiable": "refuse", "min_temp_span_c": 1e3}, False),
 ])
-def test_cross_fit_equals_the_refit_path(model, terms, kw):
+def test_cross_fit_equals_the_refit_path(model, terms, kw, shuffle):
     d = _sessions_data(weights=False)
+    if shuffle:
+        d = d.select(np.random.default_rng(0).permutation(len(d)))
     try:
         slow = _refit_path(d, model, terms, options=FitOptions(**kw))
     except Exception as exc:          # the full fit refuses: so must the cross-fit, with the same message

@@ -20,6 +20,7 @@ import numpy as np
 
 from magstack.firmware.blas import single_thread
 from magstack.firmware.calibration.blocking import BlockingInflation
+from magstack.firmware.calibration.estimator import Posterior
 from magstack.firmware.calibration.fit import (
     CoreFit,
     Coverage,
@@ -75,6 +76,20 @@ def basis_change(full: CalModel, sub: CalModel) -> np.ndarray:
 
 
 @dataclass
+class _Pieces:
+    """Pass 1's state per piece (session x time-block fold): R factor of the weighted [X | Y], coverage,
+    row count, sum of t_s, unweighted column sums of [X | Y]; the piece's session and fold."""
+
+    R: list[np.ndarray]
+    cov: list[Coverage]
+    count: np.ndarray
+    t_sum: np.ndarray
+    xy_sum: np.ndarray
+    session: np.ndarray
+    fold: np.ndarray
+
+
+@dataclass
 class _Fit:
     """One estimator run: the full fit (``kind`` "full"), a time-block fold or a left-out session."""
 
@@ -88,7 +103,7 @@ class _Fit:
     n: int
     coverage: Coverage
     first: FirstSolve | None = None
-    post: object = None
+    post: Posterior | None = None
     held: list = field(default_factory=list)
     error: str | None = None
     unseen: bool = False         # held-out rows of a session the fit did not see (it has no offset column)
@@ -143,31 +158,26 @@ def _cross_fit(d: FitData, model: CalModel, options: FitOptions) -> CrossFit:
     n_folds = options.n_folds if options.holdout else 1
     fold = block_folds(d, options) if options.holdout else np.zeros(len(d), dtype=np.int64)
     piece = np.searchsorted(sessions, d.session) * n_folds + fold
-    piece_fold = np.tile(np.arange(n_folds), sessions.size)
-    piece_session = np.repeat(sessions, n_folds)
     rows = _Rows(d, model)
-    R, cov, count, t_sum, xy_sum = _pieces(d, rows, piece, sessions.size * n_folds, model, options)
-    every = count > 0
-    fits = [_make(d, "full", 0, every, ~every, R, cov, count, t_sum, model, sessions, piece_session, options)]
+    pcs = _pieces(d, rows, piece, sessions, n_folds, model, options)
+    every = pcs.count > 0
+    fits = [_make("full", 0, every, ~every, pcs, model)]
     if options.holdout:
         for f in np.unique(fold):
-            test = every & (piece_fold == f)
+            test = every & (pcs.fold == f)
             if test.any() and (every & ~test).any():
-                fits.append(_make(d, "blocks", int(f), every & ~test, test, R, cov, count, t_sum, model, sessions,
-                                  piece_session, options))
+                fits.append(_make("blocks", int(f), every & ~test, test, pcs, model))
         for s in sessions if sessions.size > 1 else ():
-            test = every & (piece_session == s)
-            fits.append(_make(d, "session", int(s), every & ~test, test, R, cov, count, t_sum, model, sessions,
-                              piece_session, options))
+            test = every & (pcs.session == s)
+            fits.append(_make("session", int(s), every & ~test, test, pcs, model))
     for f in fits:
-        _guard(f, lambda f=f: setattr(f, "first", first_solve(f.R, f.n, f.model, f.coverage, options)))
-        if f.first is not None:
-            f.post = f.first.post
+        f.first = _run(f, lambda f=f: first_solve(f.R, f.n, f.model, f.coverage, options))
+        f.post = f.first.post if f.first is not None else None
     if options.autocorr:
-        _autocorr(d, rows, piece, fits, xy_sum, options)
+        _autocorr(d, rows, piece, fits, pcs.xy_sum, options)
     for f in fits:
         if f.error is None:
-            _guard(f, lambda f=f: setattr(f, "held", held_or_refuse(f.post, f.first.explain, options)))
+            f.held = _run(f, lambda f=f: held_or_refuse(f.post, f.first.explain, options)) or []
     full = fits[0]
     if full.error is not None:
         raise FitError(full.error)
@@ -180,10 +190,11 @@ def _cross_fit(d: FitData, model: CalModel, options: FitOptions) -> CrossFit:
     return out
 
 
-def _pieces(d: FitData, rows: _Rows, piece: np.ndarray, n_pieces: int, model: CalModel, options: FitOptions):
-    """Pass 1: per piece the R factor of the weighted [X | Y], coverage, row count, sum of t_s and the
-    unweighted column sums of [X | Y]."""
+def _pieces(d: FitData, rows: _Rows, piece: np.ndarray, sessions: np.ndarray, n_folds: int, model: CalModel,
+            options: FitOptions) -> _Pieces:
+    """Pass 1: every piece's state (:class:`_Pieces`); piece = session index x n_folds + fold."""
     m = model.n_columns + 3
+    n_pieces = sessions.size * n_folds
     R = [np.zeros((m, m)) for _ in range(n_pieces)]
     cov = [Coverage() for _ in range(n_pieces)]
     count = np.zeros(n_pieces, dtype=np.int64)
@@ -207,36 +218,37 @@ def _pieces(d: FitData, rows: _Rows, piece: np.ndarray, n_pieces: int, model: Ca
                           options.field_present_uT, np.ones(e - a) if w is None else w[a:e])
             count[k] += e - a
             t_sum[k] += float(np.sum(t[a:e]))
-    return R, cov, count, t_sum, xy_sum
+    return _Pieces(R, cov, count, t_sum, xy_sum, np.repeat(sessions, n_folds), np.tile(np.arange(n_folds),
+                                                                                        sessions.size))
 
 
-def _make(d, kind, key, train, test, R, cov, count, t_sum, model, sessions, piece_session, options) -> _Fit:
+def _make(kind: str, key: int, train: np.ndarray, test: np.ndarray, pcs: _Pieces, model: CalModel) -> _Fit:
     """The fit of the pieces ``train``: its model (sessions it saw, its mean time), stacked R, coverage."""
     if kind == "full":
         sub = model
     else:
-        seen = tuple(int(s) for s in sessions if (train & (piece_session == s)).any()) \
-            if "session_offset" in model.terms else ()
+        seen = tuple(int(s) for s in np.unique(pcs.session[train])) if "session_offset" in model.terms else ()
         sub = CalModel(model.terms, model.currents, seen, model.t0_c,
-                       float(t_sum[train].sum() / count[train].sum()), model.name)
-    T = np.eye(model.n_columns) if sub == model else basis_change(model, sub)
-    Rt = qr_r(np.vstack([R[k] for k in np.flatnonzero(train)]))
+                       float(pcs.t_sum[train].sum() / pcs.count[train].sum()), model.name)
     p = model.n_columns
+    T = np.eye(p) if sub == model else basis_change(model, sub)
+    Rt = qr_r(np.vstack([pcs.R[k] for k in np.flatnonzero(train)]))
     if not np.array_equal(T, np.eye(p)):
         Rt = qr_r(np.hstack([Rt[:, :p] @ T, Rt[:, p:]]))
     c = Coverage()
     for k in np.flatnonzero(train):
-        c.merge(cov[k])
-    unseen = bool(set(piece_session[test].tolist()) - set(sub.sessions)) if "session_offset" in model.terms else False
-    return _Fit(kind, key, train, test, sub, T, Rt, int(count[train].sum()), c, unseen=unseen)
+        c.merge(pcs.cov[k])
+    unseen = "session_offset" in model.terms and bool(set(pcs.session[test].tolist()) - set(sub.sessions))
+    return _Fit(kind, key, train, test, sub, T, Rt, int(pcs.count[train].sum()), c, unseen=unseen)
 
 
-def _guard(f: _Fit, step) -> None:
-    """Run ``step``; a FitError becomes the fit's error (a fold is then skipped)."""
+def _run(f: _Fit, step):
+    """``step()``; a FitError becomes the fit's error (a fold is then skipped with a note) and gives None."""
     try:
-        step()
+        return step()
     except FitError as exc:
         f.error = str(exc)
+        return None
 
 
 def _autocorr(d, rows, piece, fits, xy_sum, options) -> None:
@@ -269,8 +281,9 @@ def _autocorr(d, rows, piece, fits, xy_sum, options) -> None:
                 keep = np.flatnonzero(use)
                 accs[j].add(np.take(r[j], keep, axis=1), sess[keep])
     for f, acc in zip(live, accs, strict=True):
-        _guard(f, lambda f=f, acc=acc: setattr(f, "post", gate_solve(
-            f.R, f.n, f.model, f.first.prior, f.first.gated, acc.kappa(), options)))
+        post = _run(f, lambda f=f, acc=acc: gate_solve(f.R, f.n, f.model, f.first.prior, f.first.gated,
+                                                       acc.kappa(), options))
+        f.post = post if post is not None else f.post
 
 
 def _final_pass(d, rows, piece, fits) -> np.ndarray:

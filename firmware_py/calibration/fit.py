@@ -4,7 +4,9 @@ Pipeline: rows usable for the model -> design matrix -> identifiability (terms t
 data cannot determine are held at their prior, or the fit is refused) -> weighted
 least squares per output axis (optionally Huber IRLS) solved by QR -> parameter
 standard errors, condition numbers, in-sample RMSE -> held-out RMSE by interleaved time
-blocks and by leaving whole sessions out -> noise floor from the residuals.
+blocks and by leaving whole sessions out -> noise floor from the residuals. The fit and its
+folds run in 64k-row blocks from per-piece R factors (:mod:`.crossfit`) unless the model needs
+all rows at once (robust IRLS, time skew, mount rotations: ``_fit_core`` per fold).
 
 RMSE conventions (uT): in-sample per axis is ``sqrt(SSE / (N - p_i))`` (fitnlm's, as in
 belsten Table 7); held-out per axis is the plain RMS of out-of-fold residuals; the
