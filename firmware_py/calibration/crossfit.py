@@ -302,10 +302,8 @@ def _final_pass(d, rows, piece, fits) -> np.ndarray:
             if not keep.size:
                 continue
             if f.unseen:
-                idx = sl.start + keep
-                cur = {k: v[idx] for k, v in d.currents_A.items()}
-                Xf = f.model.design(d.b_meas_uT[idx], d.temp_c[idx], cur, d.session[idx], d.t_s[idx])
-                r = (Y[keep] - f.model.predict(f.post.theta, Xf)).T
+                Xf, Yf = _Rows(d, f.model).block(sl.start + keep)
+                r = (Yf - f.model.predict(f.post.theta, Xf)).T
             else:
                 r = np.take(Y.T, keep, axis=1) - np.take(P[j + 1], keep, axis=1)
             f.sq += np.einsum("ij,ij->i", r, r)
