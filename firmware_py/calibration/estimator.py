@@ -379,39 +379,23 @@ def autocorr_inflation(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarra
                        cap: float = 1e4) -> np.ndarray:
     """(3,) variance inflation ``kappa >= 1`` of autocorrelated residuals (blocking method).
 
-    Rows of each session in time order are cut into blocks of L = 1, 2, 4, ... rows; ``kappa(L) =
+    Rows of each session in time order are cut into blocks of L = 2, 4, 8, ... rows; ``kappa(L) =
     L var(block means) / var(rows)`` estimates the integrated autocorrelation time; the largest over the
     L that leave at least ``min_blocks`` blocks is used (conservative: correlated misfit must not pass for
-    independent evidence). A short session (fewer than ``2 min_blocks`` rows) gives 1.
+    independent evidence). A short session (fewer than ``2 min_blocks`` rows) gives 1. The accumulation
+    is :class:`.blocking.BlockingInflation` (which the cross-fit feeds block by block).
     """
+    from magstack.firmware.calibration.blocking import BlockingInflation
+
     r = np.asarray(resid_uT, dtype=float).reshape(-1, 3)
     s = np.asarray(session).reshape(-1)
     t = np.asarray(t_s, dtype=float).reshape(-1)
-    out = np.ones(3)
     if r.shape[0] < 2 * min_blocks:
-        return out
+        return np.ones(3)
     order = np.lexsort((t, s))
-    r, s = r[order], s[order]
-    r = r - np.mean(r, axis=0)
-    v = np.mean(r ** 2, axis=0)
-    v = np.where(v > 0, v, 1.0)
-    starts = np.flatnonzero(np.r_[True, s[1:] != s[:-1]])
-    ends = np.r_[starts[1:], s.size]
-    L = 2
-    best = np.ones(3)
-    while True:
-        means, counts = [], 0
-        for a, b in zip(starts, ends, strict=True):
-            k = (b - a) // L
-            if k:
-                means.append(r[a:a + k * L].reshape(k, L, 3).mean(axis=1))
-                counts += k
-        if counts < min_blocks:
-            break
-        m = np.vstack(means)
-        best = np.maximum(best, L * np.mean(m ** 2, axis=0) / v)
-        L *= 2
-    return np.minimum(np.maximum(best, 1.0), cap)
+    acc = BlockingInflation()
+    acc.add((r[order] - np.mean(r, axis=0)).T, s[order])
+    return acc.kappa(min_blocks, cap)
 
 
 def names_of(model: CalModel) -> list[tuple[int, int, str]]:

@@ -4,7 +4,9 @@ Pipeline: rows usable for the model -> design matrix -> identifiability (terms t
 data cannot determine are held at their prior, or the fit is refused) -> weighted
 least squares per output axis (optionally Huber IRLS) solved by QR -> parameter
 standard errors, condition numbers, in-sample RMSE -> held-out RMSE by interleaved time
-blocks and by leaving whole sessions out -> noise floor from the residuals.
+blocks and by leaving whole sessions out -> noise floor from the residuals. The fit and its
+folds run in 64k-row blocks from per-piece R factors (:mod:`.crossfit`) unless the model needs
+all rows at once (robust IRLS, time skew, mount rotations: ``_fit_core`` per fold).
 
 RMSE conventions (uT): in-sample per axis is ``sqrt(SSE / (N - p_i))`` (fitnlm's, as in
 belsten Table 7); held-out per axis is the plain RMS of out-of-fold residuals; the
@@ -221,21 +223,43 @@ class Coverage:
         self.n += b.shape[0]
         self.sum_w += float(b.shape[0] if weights is None else np.sum(weights))
         t = np.asarray(temp_c)
-        if np.any(np.isfinite(t)):
-            self.temp_min_c = min(self.temp_min_c, float(np.nanmin(t)))
-            self.temp_max_c = max(self.temp_max_c, float(np.nanmax(t)))
+        fin = np.isfinite(t)
+        if fin.any():
+            tf = t if fin.all() else t[fin]
+            self.temp_min_c = min(self.temp_min_c, float(tf.min()))
+            self.temp_max_c = max(self.temp_max_c, float(tf.max()))
+        mag = np.abs(b.T, order="C")                         # (3, N): one contiguous row per axis
         for j in range(3):
-            sel = (np.abs(b[:, j]) >= field_present_uT) & np.isfinite(t)
+            sel = (mag[j] >= field_present_uT) & fin
             if np.any(sel):
                 self.temp_with_field_c[j, 0] = min(self.temp_with_field_c[j, 0], float(t[sel].min()))
                 self.temp_with_field_c[j, 1] = max(self.temp_with_field_c[j, 1], float(t[sel].max()))
-        self.field_max_uT = np.maximum(self.field_max_uT, np.abs(b).max(axis=0))
+        self.field_max_uT = np.maximum(self.field_max_uT, mag.max(axis=1))
         for k, v in (currents_A or {}).items():
             lo, hi = self.currents_A.get(k, [np.inf, -np.inf])
             self.currents_A[k] = [min(lo, float(np.min(v))), max(hi, float(np.max(v)))]
-        self.sessions.update(int(s) for s in np.unique(session))
+        s = np.asarray(session).reshape(-1)
+        self.sessions.update((int(s[0]),) if np.all(s == s[0]) else (int(k) for k in np.unique(s)))
         self.t_min_s = min(self.t_min_s, float(np.min(t_s)))
         self.t_max_s = max(self.t_max_s, float(np.max(t_s)))
+
+    def merge(self, other: Coverage) -> Coverage:
+        """Fold ``other`` (rows counted elsewhere) into this coverage: extremes combine, counts add."""
+        self.n += other.n
+        self.sum_w += other.sum_w
+        self.temp_min_c, self.temp_max_c = min(self.temp_min_c, other.temp_min_c), max(self.temp_max_c,
+                                                                                       other.temp_max_c)
+        self.temp_with_field_c = np.column_stack([np.minimum(self.temp_with_field_c[:, 0],
+                                                             other.temp_with_field_c[:, 0]),
+                                                  np.maximum(self.temp_with_field_c[:, 1],
+                                                             other.temp_with_field_c[:, 1])])
+        self.field_max_uT = np.maximum(self.field_max_uT, other.field_max_uT)
+        for k, (lo, hi) in other.currents_A.items():
+            lo0, hi0 = self.currents_A.get(k, [np.inf, -np.inf])
+            self.currents_A[k] = [min(lo0, lo), max(hi0, hi)]
+        self.sessions |= other.sessions
+        self.t_min_s, self.t_max_s = min(self.t_min_s, other.t_min_s), max(self.t_max_s, other.t_max_s)
+        return self
 
     def temp_span_with_field(self, j: int) -> float:
         lo, hi = self.temp_with_field_c[j]
@@ -413,9 +437,9 @@ class FitResult:
 def noise_floor(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, lag_s: float) -> np.ndarray:
     """Per-axis white-noise level (uT) of residuals: robust (MAD) spread of differences of
     samples ``lag_s`` apart within a session, divided by sqrt(2). Differencing removes
-    slow misfit; the MAD ignores field-step transitions."""
-    out = np.full(3, np.nan)
-    diffs = []
+    slow misfit; the MAD ignores field-step transitions. One axis at a time (memory: a few
+    columns per row)."""
+    later, earlier = [], []
     for s in np.unique(session):
         idx = np.flatnonzero(session == s)
         idx = idx[np.argsort(t_s[idx], kind="stable")]
@@ -426,11 +450,17 @@ def noise_floor(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, lag_
         j = np.where(np.abs(t[j - 1] - t - lag_s) < np.abs(t[j] - t - lag_s), j - 1, j)  # nearest to t + lag
         ii = np.arange(t.size)
         good = (np.abs((t[j] - t) - lag_s) <= 0.5 * lag_s) & (j > ii)
-        diffs.append(resid_uT[idx[j[good]]] - resid_uT[idx[ii[good]]])
-    d = np.vstack(diffs) if diffs else np.zeros((0, 3))
-    if d.shape[0] >= 10:
-        med = np.median(d, axis=0)
-        out = 1.4826 * np.median(np.abs(d - med), axis=0) / np.sqrt(2.0)
+        later.append(idx[j[good]])
+        earlier.append(idx[good])
+    out = np.full(3, np.nan)
+    if sum(a.size for a in later) < 10:
+        return out
+    later, earlier = np.concatenate(later), np.concatenate(earlier)
+    for a in range(3):
+        d = resid_uT[later, a] - resid_uT[earlier, a]
+        d -= np.median(d)
+        np.abs(d, out=d)
+        out[a] = 1.4826 * np.median(d) / np.sqrt(2.0)
     return out
 
 
@@ -461,7 +491,7 @@ def build_prior(model: CalModel, options: FitOptions, s_hint: np.ndarray | None 
 class CoreFit:
     """What one estimator run on some rows produced (the batch fit, each held-out fold)."""
 
-    X: np.ndarray
+    X: np.ndarray | None              # the design (None from the cross-fit, which never keeps it whole)
     theta: np.ndarray
     se: np.ndarray
     held: list[HeldParam]
@@ -513,16 +543,19 @@ def _pick_axes(posts: Sequence[Posterior]) -> Posterior:
     return out
 
 
-def _fit_core(data: FitData, model: CalModel, options: FitOptions) -> CoreFit:
-    X = model.design(data.b_meas_uT, data.temp_c, data.currents_A, data.session, data.t_s)
-    Y = data.b_ref_uT
-    n = len(data)
-    w = np.ones(n) if data.weights is None else data.weights
-    sw = np.sqrt(w)[:, None]
-    cov = Coverage()
-    cov.update(data.b_meas_uT, data.temp_c, {k: data.currents_A[k] for k in model.currents}, data.session,
-               data.t_s, options.field_present_uT, w)
-    R = qr_r(np.hstack([X, Y]) * sw)
+@dataclass
+class FirstSolve:
+    """The estimator's solve from an R factor before the residual autocorrelation is known: why directions
+    are left to the prior (``explain``), the ``gated`` parameters, the ``prior`` and the posterior."""
+
+    explain: list[HeldParam]
+    gated: list[tuple[int, int]]
+    prior: Prior
+    post: Posterior
+
+
+def first_solve(R: np.ndarray, n: int, model: CalModel, cov: Coverage, options: FitOptions) -> FirstSolve:
+    """Identifiability, gating and the MAP solve of ``n`` weighted rows whose ``[X | Y]`` has R factor ``R``."""
     # the identifiability analysis explains why a direction is left to the prior; it decides nothing,
     # except for gain columns whose own field is within the DUT's noise (errors in variables, see gate_weak_fields)
     explain = identify(model, R, cov, dataclasses.replace(options, on_unidentifiable="hold", priors={}))
@@ -533,6 +566,29 @@ def _fit_core(data: FitData, model: CalModel, options: FitOptions) -> CoreFit:
         # the sensitivity tempco is relative: centre K_S on the fitted gain
         prior = build_prior(model, options, s_hint=model.unpack(post.theta)["S"])
         post = gate_solve(R, n, model, prior, gated, options=options)
+    return FirstSolve(explain, gated, prior, post)
+
+
+def held_or_refuse(post: Posterior, explain: Sequence[HeldParam], options: FitOptions) -> list[HeldParam]:
+    """:func:`prior_determined`; FitError naming them when ``on_unidentifiable`` is "refuse"."""
+    held = prior_determined(post, explain)
+    if held and options.on_unidentifiable == "refuse":
+        raise FitError("data cannot determine (the prior would): " + "; ".join(f"{h.name} ({h.reason})" for h in held))
+    return held
+
+
+def _fit_core(data: FitData, model: CalModel, options: FitOptions) -> CoreFit:
+    X = model.design(data.b_meas_uT, data.temp_c, data.currents_A, data.session, data.t_s)
+    Y = data.b_ref_uT
+    n = len(data)
+    w = np.ones(n) if data.weights is None else data.weights
+    sw = np.sqrt(w)[:, None]
+    cov = Coverage()
+    cov.update(data.b_meas_uT, data.temp_c, {k: data.currents_A[k] for k in model.currents}, data.session,
+               data.t_s, options.field_present_uT, w)
+    R = qr_r(np.hstack([X, Y]) * sw)
+    first = first_solve(R, n, model, cov, options)
+    prior, gated, post = first.prior, first.gated, first.post
     if options.autocorr:
         kappa = autocorr_inflation(Y - model.predict(post.theta, X), data.t_s, data.session)
         post = gate_solve(R, n, model, prior, gated, kappa, options)
@@ -555,12 +611,10 @@ def _fit_core(data: FitData, model: CalModel, options: FitOptions) -> CoreFit:
                     break
             posts.append(q)
         post = _pick_axes(posts)
-    held = prior_determined(post, explain)
-    if held and options.on_unidentifiable == "refuse":
-        raise FitError("data cannot determine (the prior would): " + "; ".join(f"{h.name} ({h.reason})" for h in held))
+    held = held_or_refuse(post, first.explain, options)
     theta = post.theta.copy()
     se = np.where(model.axis_mask(), post.sd, np.nan)
-    conds = np.vstack([post.cond, _raw_cond(R, model)])
+    conds = np.vstack([post.cond, raw_cond(R, model)])
     mount = None
     if "mount_rotation" in model.terms:
         if options.robust:
@@ -639,7 +693,7 @@ def _without_weak_directions(R: np.ndarray, model: CalModel, cols: list[int], ma
     return (As - (As @ weak.T) @ weak) * scale
 
 
-def _raw_cond(R: np.ndarray, model: CalModel) -> np.ndarray:
+def raw_cond(R: np.ndarray, model: CalModel) -> np.ndarray:
     """(3,) condition number of each axis's raw (not equilibrated) weighted design."""
     p = model.n_columns
     mask = model.axis_mask()
@@ -686,7 +740,7 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
         at_step = ok & reference_steps(data.b_ref_uT, data.session, options.exclude_ref_steps_uT)
         n_steps = int(at_step.sum())
         ok &= ~at_step
-    d = data.select(ok)
+    d = data if ok.all() else data.select(ok)
     cm = build_model(d, all_terms, currents, t0_c, name)
     if len(d) <= cm.n_columns:
         why = []
@@ -699,16 +753,20 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
                 why.append(f"{label} missing/flagged on {int(bad.sum())} rows")
         raise FitError(f"{len(d)} usable rows of {len(data)} for {cm.n_columns} columns: not enough data"
                        + (f" ({'; '.join(why)})" if why else ""))
-    core = _fit_core(d, cm, options)
+    from magstack.firmware.calibration import crossfit
+
+    cross = crossfit.cross_fit(d, cm, options) if crossfit.applies(cm, options) else None
+    core = cross.core if cross is not None else _fit_core(d, cm, options)
     X, theta, se, held, conds, cov, mount = (core.X, core.theta, core.se, core.held, core.conds, core.coverage,
                                              core.mount)
-    resid = frame_reference(d, mount) - cm.predict(theta, X)
+    resid = cross.resid_uT if cross is not None else frame_reference(d, mount) - cm.predict(theta, X)
     p_i = len(d) - core.posterior.dof          # tr H: the parameters the data determined
     if mount is not None:   # the angles are shared by the three axes: a third of them to each
         p_i = p_i + sum(1 for k in mount.se_rad for a in range(3)
                         if k != mount.frame and np.isfinite(mount.se_rad[k][a])) / 3
-    rmse = np.sqrt(np.sum(resid ** 2, axis=0) / np.maximum(len(d) - p_i, 1))
-    raw = np.sqrt(np.mean((d.b_ref_uT - d.b_meas_uT) ** 2, axis=0))
+    rmse = np.sqrt(np.einsum("ij,ij->j", resid, resid) / np.maximum(len(d) - p_i, 1))
+    raw = d.b_ref_uT - d.b_meas_uT
+    raw = np.sqrt(np.einsum("ij,ij->j", raw, raw) / len(d))
     res = FitResult(cm, theta, se, held, len(d), int((~ok).sum()), rmse, raw, conds[0], conds[1],
                     noise_floor(resid, d.t_s, d.session, options.noise_lag_s), cov, options.robust)
     res.posterior = core.posterior
@@ -726,7 +784,11 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
                                  else "INCLUDED as requested (--include-saturated)")))
     if options.exclude_ref_steps_uT is None:
         res.steps = diagnose_steps(resid, d.b_ref_uT, d.session)
-    if options.holdout:
+    if options.holdout and cross is not None:
+        res.holdout_blocks_uT, res.holdout_sessions_uT = cross.holdout_blocks_uT, cross.holdout_sessions_uT
+        res.holdout_per_session_uT = cross.holdout_per_session_uT
+        res.notes += cross.notes
+    elif options.holdout:
         res.holdout_blocks_uT = _holdout_blocks(d, all_terms, currents, t0_c, name, options, res.notes)
         res.holdout_sessions_uT, res.holdout_per_session_uT = _holdout_sessions(
             d, all_terms, currents, t0_c, name, options, res.notes, [h.name for h in held])

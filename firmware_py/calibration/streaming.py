@@ -105,18 +105,7 @@ class StreamingFit:
         self._raw_sq = self._raw_sq + other._raw_sq
         self.n_used += other.n_used
         self.n_excluded += other.n_excluded
-        a, b = self.coverage, other.coverage
-        a.n += b.n
-        a.sum_w += b.sum_w
-        a.temp_min_c, a.temp_max_c = min(a.temp_min_c, b.temp_min_c), max(a.temp_max_c, b.temp_max_c)
-        a.temp_with_field_c = np.column_stack([np.minimum(a.temp_with_field_c[:, 0], b.temp_with_field_c[:, 0]),
-                                               np.maximum(a.temp_with_field_c[:, 1], b.temp_with_field_c[:, 1])])
-        a.field_max_uT = np.maximum(a.field_max_uT, b.field_max_uT)
-        for k, (lo, hi) in b.currents_A.items():
-            lo0, hi0 = a.currents_A.get(k, [np.inf, -np.inf])
-            a.currents_A[k] = [min(lo0, lo), max(hi0, hi)]
-        a.sessions |= b.sessions
-        a.t_min_s, a.t_max_s = min(a.t_min_s, b.t_min_s), max(a.t_max_s, b.t_max_s)
+        self.coverage.merge(other.coverage)
         return self
 
     @property

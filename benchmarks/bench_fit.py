@@ -1,0 +1,98 @@
+"""Benchmark for issue 25: ``fit`` with its held-out figures against plain numpy lstsq of the same design.
+
+Run: ``python benchmarks/bench_fit.py [--n 1000000] [--refit]``. Data as ``bench_calibration.py`` (Eq. 3 + two
+currents, 30 parameters, one session, 0.25 s rows, so 5 interleaved 60 s time-block folds). CPU seconds by
+``process_time`` (best of ``--repeat``), peak memory by tracemalloc in a separate run; the baseline (design
+matrix + ``np.linalg.lstsq``) runs in the same process, with BLAS on one thread and on its default threads.
+``--refit`` also times the refit path (every fold refits its rows: the mechanism before issue 25) and prints
+how far the cross-fit's parameters and held-out figures are from it.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tracemalloc
+
+import numpy as np
+
+from magstack.firmware.blas import blas_threads, single_thread
+from magstack.firmware.calibration import FitOptions, crossfit, fit
+from magstack.firmware.calibration.model import CalModel, resolve_terms
+from magstack.sim.synthetic_calibration import make_data, random_theta
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _timing import best_cpu  # noqa: E402  (sibling module; scripts run from benchmarks/)
+
+CURRENTS = ("solar", "heater")
+
+
+def peak_mib(fn) -> float:
+    """Peak traced memory (MiB) of one ``fn()`` call."""
+    import gc
+    gc.collect()
+    tracemalloc.start()
+    fn()
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    return peak / 2 ** 20
+
+
+def refit_path(data, opts):
+    """The same fit with every held-out fold refitting its rows (the path before issue 25)."""
+    keep = crossfit.applies
+    crossfit.applies = lambda model, options: False
+    try:
+        return fit(data, "eq3", currents=CURRENTS, options=opts)
+    finally:
+        crossfit.applies = keep
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--n", type=int, default=1_000_000)
+    ap.add_argument("--repeat", type=int, default=2)
+    ap.add_argument("--refit", action="store_true")
+    args = ap.parse_args()
+    rng = np.random.default_rng(0)
+    model = CalModel(resolve_terms("eq3", currents=CURRENTS), CURRENTS, (), 25.0, 0.0)
+    data = make_data(model, random_theta(model, rng), args.n, rng, noise_uT=0.03, t0_s=0.0)
+    in_mib = sum(a.nbytes for a in (data.b_meas_uT, data.b_ref_uT, data.temp_c, data.t_s, data.session,
+                                    *data.currents_A.values())) / 2 ** 20
+    opts = FitOptions()
+
+    def lstsq():
+        X = model.design(data.b_meas_uT, data.temp_c, data.currents_A, data.session, data.t_s)
+        return np.linalg.lstsq(X, data.b_ref_uT, rcond=None)[0]
+
+    def lstsq_1():
+        with single_thread():
+            return lstsq()
+
+    def run():
+        return fit(data, "eq3", currents=CURRENTS, options=opts)
+
+    print(f"== fit with held-out figures, N = {args.n}, {int(model.axis_mask().sum())} parameters, input arrays "
+          f"{in_mib:.0f} MiB; BLAS default threads {blas_threads()}")
+    _, base1 = best_cpu(lstsq_1, args.repeat)
+    _, base_d = best_cpu(lstsq, args.repeat)
+    res, cpu = best_cpu(run, args.repeat)
+    pk_fit, pk_base = peak_mib(run), peak_mib(lstsq_1)
+    print(f"numpy lstsq (design + lstsq): {base1:.3f} s CPU BLAS 1 thread, {base_d:.3f} s default threads; "
+          f"peak {pk_base:.0f} MiB")
+    print(f"fit (cross-fit): {cpu:.3f} s CPU = {cpu / base1:.2f}x lstsq (1 thread), {cpu / base_d:.2f}x (default); "
+          f"peak {pk_fit:.1f} MiB = {pk_fit * 2 ** 20 / args.n:.0f} B/row")
+    print(f"   held-out time blocks {np.round(res.holdout_blocks_uT * 1e3, 3)} nT; in-sample "
+          f"{np.round(res.rmse_uT * 1e3, 3)} nT")
+    if args.refit:
+        old, cpu_old = best_cpu(lambda: refit_path(data, opts), 1)
+        pk_old = peak_mib(lambda: refit_path(data, opts))
+        rel = np.max(np.abs(res.theta - old.theta) / np.maximum(np.abs(old.theta), 1e-300))
+        rel_h = np.max(np.abs(res.holdout_blocks_uT - old.holdout_blocks_uT) / old.holdout_blocks_uT)
+        print(f"refit path (every fold refits its rows): {cpu_old:.3f} s CPU = {cpu_old / base1:.2f}x lstsq "
+              f"(1 thread), {cpu_old / base_d:.2f}x (default); peak {pk_old:.0f} MiB; cross-fit vs refit: "
+              f"parameters {rel:.1e}, held-out {rel_h:.1e} max relative difference")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,85 @@
+"""Residual autocorrelation by the blocking method, accumulated block by block (memory flat in rows).
+
+Residuals of each session, in time order, are cut into blocks of ``L = 2, 4, 8, ...`` rows from the
+session's start; ``kappa(L) = L var(block means) / var(rows)`` estimates the integrated autocorrelation
+time. Blocks of ``2L`` rows are pairs of blocks of ``L`` rows, so the block means of every ``L`` are built
+by pairwise averaging as the rows arrive; per level only the count, sum and sum of squares of the
+complete block means are kept, plus at most one pending (odd) block mean per level. A session's last,
+incomplete blocks are dropped, as in the one-shot definition (:func:`.estimator.autocorr_inflation`).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+class BlockingInflation:
+    """Accumulate residuals with :meth:`add`, then :meth:`kappa`.
+
+    Residuals arrive axis-first, ``(3, m)`` uT (a contiguous row per output axis: the reductions run
+    along memory), ordered by (session, time): a session's rows contiguous, possibly over several calls.
+    The spread is taken about the accumulated mean, so any centre gives the same result up to rounding;
+    callers subtract (an estimate of) the mean first so that rounding stays at the level of the spread.
+    """
+
+    def __init__(self) -> None:
+        self.n = 0
+        self._sum = np.zeros(3)
+        self._sum_sq = np.zeros(3)
+        self._count: list[int] = []              # level j: blocks of 2**(j+1) rows
+        self._s1: list[np.ndarray] = []
+        self._s2: list[np.ndarray] = []
+        self._carry: list[np.ndarray | None] = []
+        self._session = None
+
+    def add(self, resid_uT, session) -> None:
+        """Residuals ``resid_uT`` (3, m) of rows of sessions ``session`` (m,), in (session, time) order."""
+        r = np.asarray(resid_uT, dtype=float).reshape(3, -1)
+        s = np.asarray(session).reshape(-1)
+        if r.shape[1] == 0:
+            return
+        self.n += r.shape[1]
+        self._sum += r.sum(axis=1)
+        self._sum_sq += np.einsum("ij,ij->i", r, r)
+        cuts = np.r_[0, np.flatnonzero(s[1:] != s[:-1]) + 1, s.size]
+        for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+            if self._session is None or s[a] != self._session:
+                self._session = s[a]
+                self._carry = []
+            self._climb(r[:, a:b])
+
+    def _climb(self, items: np.ndarray) -> None:
+        """Pair up ``items`` (3, k: means of 2**j rows) level by level, keeping an odd one pending."""
+        j = 0
+        while items.shape[1]:
+            if j == len(self._carry):
+                self._carry.append(None)
+            if self._carry[j] is not None:
+                items = np.hstack([self._carry[j], items])
+            k = items.shape[1] // 2
+            self._carry[j] = items[:, -1:].copy() if items.shape[1] % 2 else None
+            items = 0.5 * (items[:, 0:2 * k:2] + items[:, 1:2 * k:2])
+            if k:
+                if j == len(self._count):
+                    self._count.append(0)
+                    self._s1.append(np.zeros(3))
+                    self._s2.append(np.zeros(3))
+                self._count[j] += k
+                self._s1[j] += items.sum(axis=1)
+                self._s2[j] += np.einsum("ij,ij->i", items, items)
+            j += 1
+
+    def kappa(self, min_blocks: int = 16, cap: float = 1e4) -> np.ndarray:
+        """(3,) ``kappa >= 1``: the largest ``kappa(L)`` over the ``L`` that leave at least ``min_blocks``
+        blocks, capped at ``cap``; 1 for fewer than ``2 min_blocks`` rows."""
+        out = np.ones(3)
+        if self.n < 2 * min_blocks:
+            return out
+        mean = self._sum / self.n
+        v = self._sum_sq / self.n - mean ** 2
+        v = np.where(v > 0, v, 1.0)
+        for j, k in enumerate(self._count):
+            if k < min_blocks:
+                break
+            spread = self._s2[j] / k - 2.0 * mean * self._s1[j] / k + mean ** 2
+            out = np.maximum(out, 2 ** (j + 1) * spread / v)
+        return np.minimum(np.maximum(out, 1.0), cap)

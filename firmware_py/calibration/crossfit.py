@@ -1,0 +1,345 @@
+"""The batch fit and its held-out folds from per-piece R factors, in blocks of rows (issue 25).
+
+Rows are cut into *pieces*: (session, time-block fold) pairs. One pass over the rows in blocks of
+:data:`CHUNK_ROWS` accumulates each piece's R factor of the weighted ``[X | Y]`` (QR, never normal
+equations) and its coverage. The full fit's R is the QR of all pieces' factors stacked; a held-out fit's
+training R is the QR of the other pieces' factors ("total minus fold"): no fold refits its rows. A fold's
+model can differ from the full one (``session_offset`` columns of the sessions it saw, ``drift`` about its
+own mean time); its design is a fixed linear map of the full design on its training rows
+(:func:`basis_change`), applied to the stacked factor. Two more passes rebuild the design block by block
+(it is never kept whole): the residual autocorrelation of every fit's training rows in time order
+(:class:`.blocking.BlockingInflation`), then the full fit's residuals and each fold's held-out residuals.
+The results equal refitting each fold's rows to rounding (tests/test_calibration_crossfit.py). Robust
+IRLS, ``time_skew`` and ``mount_rotation`` need all rows at once: :func:`applies` sends them to the refit path.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from magstack.firmware.blas import single_thread
+from magstack.firmware.calibration.blocking import BlockingInflation
+from magstack.firmware.calibration.estimator import Posterior
+from magstack.firmware.calibration.fit import (
+    CoreFit,
+    Coverage,
+    FirstSolve,
+    FitData,
+    FitOptions,
+    block_folds,
+    first_solve,
+    gate_solve,
+    held_or_refuse,
+    qr_r,
+    raw_cond,
+)
+from magstack.firmware.calibration.model import CalModel
+from magstack.firmware.errors import FitError
+
+#: Rows per block of every pass (the design of one block is the largest array built: 64k x p floats).
+CHUNK_ROWS = 65536
+
+
+def applies(model: CalModel, options: FitOptions) -> bool:
+    """Whether :func:`cross_fit` can fit ``model`` (else every fold refits its rows)."""
+    terms = set(model.terms)
+    if options.robust or {"time_skew", "mount_rotation"} & terms:
+        return False
+    return "offset" in terms or not {"session_offset", "drift"} & terms
+
+
+def basis_change(full: CalModel, sub: CalModel) -> np.ndarray:
+    """``T`` (p_full, p_sub) with ``sub.design(rows) == full.design(rows) @ T`` on rows of ``sub``'s sessions
+    (same terms; ``sub`` sees a subset of the sessions and its own ``t_ref_s``)."""
+    col = {(c.term, c.feature): k for k, c in enumerate(full.columns)}
+    off = col.get(("offset", "1"))
+    T = np.zeros((full.n_columns, sub.n_columns))
+
+    def indicator(j: int) -> np.ndarray:   # full-basis coefficients of 1[session == j] (effect coding)
+        e = np.zeros(full.n_columns)
+        e[off] = 1.0 / len(full.sessions)
+        for k in full.sessions[1:]:
+            e[col[("session_offset", f"session_{k}")]] -= 1.0 / len(full.sessions)
+        if j != full.sessions[0]:
+            e[col[("session_offset", f"session_{j}")]] += 1.0
+        return e
+
+    for k, c in enumerate(sub.columns):
+        if c.term == "session_offset":
+            T[:, k] = indicator(int(c.param[4:])) - indicator(sub.sessions[0])
+        else:
+            T[col[(c.term, c.feature)], k] = 1.0
+            if c.term == "drift":
+                T[off, k] += full.t_ref_s - sub.t_ref_s
+    return T
+
+
+@dataclass
+class _Pieces:
+    """Pass 1's state per piece (session x time-block fold): R factor of the weighted [X | Y], coverage,
+    row count, sum of t_s, unweighted column sums of [X | Y]; the piece's session and fold."""
+
+    R: list[np.ndarray]
+    cov: list[Coverage]
+    count: np.ndarray
+    t_sum: np.ndarray
+    xy_sum: np.ndarray
+    session: np.ndarray
+    fold: np.ndarray
+
+
+@dataclass
+class _Fit:
+    """One estimator run: the full fit (``kind`` "full"), a time-block fold or a left-out session."""
+
+    kind: str
+    key: int
+    train: np.ndarray            # (n_pieces,) bool
+    test: np.ndarray             # (n_pieces,) bool
+    model: CalModel
+    T: np.ndarray
+    R: np.ndarray
+    n: int
+    coverage: Coverage
+    first: FirstSolve | None = None
+    post: Posterior | None = None
+    held: list = field(default_factory=list)
+    error: str | None = None
+    unseen: bool = False         # held-out rows of a session the fit did not see (it has no offset column)
+    sq: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    cnt: int = 0
+
+    def theta_full_basis(self) -> np.ndarray:
+        """(p_full, 3) coefficients on the full model's design (valid on the training rows)."""
+        return self.T @ np.where(self.model.axis_mask(), self.post.theta, 0.0).T
+
+
+@dataclass
+class CrossFit:
+    """The full fit (``core``, its residuals ``resid_uT`` (N, 3)) and the held-out figures (uT) with the notes
+    the refit path would have written."""
+
+    core: CoreFit
+    resid_uT: np.ndarray
+    holdout_blocks_uT: np.ndarray | None = None
+    holdout_sessions_uT: np.ndarray | None = None
+    holdout_per_session_uT: dict[int, np.ndarray] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+
+
+class _Rows:
+    """Blocks of the fit rows: views in row order, or gathered in another order."""
+
+    def __init__(self, d: FitData, model: CalModel) -> None:
+        self.d, self.model = d, model
+
+    def block(self, idx):
+        d = self.d
+        cur = {k: v[idx] for k, v in d.currents_A.items()}
+        X = self.model.design(d.b_meas_uT[idx], d.temp_c[idx], cur, d.session[idx], d.t_s[idx])
+        return X, d.b_ref_uT[idx]
+
+    def chunks(self, order: np.ndarray | None):
+        n = len(self.d)
+        for a in range(0, n, CHUNK_ROWS):
+            yield slice(a, min(a + CHUNK_ROWS, n)) if order is None else order[a:a + CHUNK_ROWS]
+
+
+def cross_fit(d: FitData, model: CalModel, options: FitOptions) -> CrossFit:
+    """The fit of ``d`` under ``model`` and, when ``options.holdout``, its held-out figures; see the module
+    docstring. FitError as the refit path (a failing fold is skipped with a note)."""
+    with single_thread():          # block QRs and products of ~64k x 30: threads only wait (bench_blas.py)
+        return _cross_fit(d, model, options)
+
+
+def _cross_fit(d: FitData, model: CalModel, options: FitOptions) -> CrossFit:
+    sessions = np.unique(d.session)
+    n_folds = options.n_folds if options.holdout else 1
+    fold = block_folds(d, options) if options.holdout else np.zeros(len(d), dtype=np.int64)
+    piece = np.searchsorted(sessions, d.session) * n_folds + fold
+    rows = _Rows(d, model)
+    pcs = _pieces(d, rows, piece, sessions, n_folds, model, options)
+    every = pcs.count > 0
+    fits = [_make("full", 0, every, ~every, pcs, model)]
+    if options.holdout:
+        for f in np.unique(fold):
+            test = every & (pcs.fold == f)
+            if test.any() and (every & ~test).any():
+                fits.append(_make("blocks", int(f), every & ~test, test, pcs, model))
+        for s in sessions if sessions.size > 1 else ():
+            test = every & (pcs.session == s)
+            fits.append(_make("session", int(s), every & ~test, test, pcs, model))
+    for f in fits:
+        f.first = _run(f, lambda f=f: first_solve(f.R, f.n, f.model, f.coverage, options))
+        f.post = f.first.post if f.first is not None else None
+    if options.autocorr:
+        _autocorr(d, rows, piece, fits, pcs.xy_sum, options)
+    for f in fits:
+        if f.error is None:
+            f.held = _run(f, lambda f=f: held_or_refuse(f.post, f.first.explain, options)) or []
+    full = fits[0]
+    if full.error is not None:
+        raise FitError(full.error)
+    resid = _final_pass(d, rows, piece, fits)
+    out = CrossFit(CoreFit(None, full.post.theta.copy(), np.where(model.axis_mask(), full.post.sd, np.nan),
+                           full.held, np.vstack([full.post.cond, raw_cond(full.R, model)]), full.coverage, None,
+                           full.post), resid)
+    if options.holdout:
+        _figures(out, fits)
+    return out
+
+
+def _pieces(d: FitData, rows: _Rows, piece: np.ndarray, sessions: np.ndarray, n_folds: int, model: CalModel,
+            options: FitOptions) -> _Pieces:
+    """Pass 1: every piece's state (:class:`_Pieces`); piece = session index x n_folds + fold."""
+    m = model.n_columns + 3
+    n_pieces = sessions.size * n_folds
+    R = [np.zeros((m, m)) for _ in range(n_pieces)]
+    cov = [Coverage() for _ in range(n_pieces)]
+    count = np.zeros(n_pieces, dtype=np.int64)
+    t_sum = np.zeros(n_pieces)
+    xy_sum = np.zeros((n_pieces, m))
+    for sl in rows.chunks(None):
+        pc = piece[sl]
+        idx = sl if np.all(pc[1:] >= pc[:-1]) else sl.start + np.argsort(pc, kind="stable")   # piece order
+        pc = piece[idx]
+        X, Y = rows.block(idx)
+        Z = np.hstack([X, Y])
+        w = None if d.weights is None else d.weights[idx]
+        b, temp, sess, t = d.b_meas_uT[idx], d.temp_c[idx], d.session[idx], d.t_s[idx]
+        cur = {c: d.currents_A[c][idx] for c in model.currents}
+        cuts = np.r_[0, np.flatnonzero(pc[1:] != pc[:-1]) + 1, pc.size]
+        for a, e in zip(cuts[:-1], cuts[1:], strict=True):
+            k = int(pc[a])
+            xy_sum[k] += np.ones(e - a) @ Z[a:e]
+            R[k] = qr_r(np.vstack([R[k], Z[a:e] if w is None else Z[a:e] * np.sqrt(w[a:e])[:, None]]))
+            cov[k].update(b[a:e], temp[a:e], {c: v[a:e] for c, v in cur.items()}, sess[a:e], t[a:e],
+                          options.field_present_uT, np.ones(e - a) if w is None else w[a:e])
+            count[k] += e - a
+            t_sum[k] += float(np.sum(t[a:e]))
+    return _Pieces(R, cov, count, t_sum, xy_sum, np.repeat(sessions, n_folds), np.tile(np.arange(n_folds),
+                                                                                        sessions.size))
+
+
+def _make(kind: str, key: int, train: np.ndarray, test: np.ndarray, pcs: _Pieces, model: CalModel) -> _Fit:
+    """The fit of the pieces ``train``: its model (sessions it saw, its mean time), stacked R, coverage."""
+    if kind == "full":
+        sub = model
+    else:
+        seen = tuple(int(s) for s in np.unique(pcs.session[train])) if "session_offset" in model.terms else ()
+        sub = CalModel(model.terms, model.currents, seen, model.t0_c,
+                       float(pcs.t_sum[train].sum() / pcs.count[train].sum()), model.name)
+    p = model.n_columns
+    T = np.eye(p) if sub == model else basis_change(model, sub)
+    Rt = qr_r(np.vstack([pcs.R[k] for k in np.flatnonzero(train)]))
+    if not np.array_equal(T, np.eye(p)):
+        Rt = qr_r(np.hstack([Rt[:, :p] @ T, Rt[:, p:]]))
+    c = Coverage()
+    for k in np.flatnonzero(train):
+        c.merge(pcs.cov[k])
+    unseen = "session_offset" in model.terms and bool(set(pcs.session[test].tolist()) - set(sub.sessions))
+    return _Fit(kind, key, train, test, sub, T, Rt, int(pcs.count[train].sum()), c, unseen=unseen)
+
+
+def _run(f: _Fit, step):
+    """``step()``; a FitError becomes the fit's error (a fold is then skipped with a note) and gives None."""
+    try:
+        return step()
+    except FitError as exc:
+        f.error = str(exc)
+        return None
+
+
+def _autocorr(d, rows, piece, fits, xy_sum, options) -> None:
+    """Pass 2: residuals of every fit's training rows in (session, time) order -> kappa -> the final solve."""
+    live = [f for f in fits if f.error is None]
+    if not live:
+        return
+    p = fits[0].T.shape[0]
+    theta = np.hstack([f.theta_full_basis() for f in live])              # (p, 3 F)
+    center = []                              # each fit's mean training residual, from the column sums
+    for f in live:
+        s = xy_sum[f.train].sum(axis=0)
+        center.append((s[p:] - s[:p] @ f.theta_full_basis()) / f.n)
+    center = np.array(center)[:, :, None]
+    accs = [BlockingInflation() for _ in live]
+    s, t = d.session, d.t_s
+    ordered = bool(np.all(s[1:] >= s[:-1]) and np.all((s[1:] != s[:-1]) | (t[1:] >= t[:-1])))
+    order = None if ordered else np.lexsort((t, s))
+    for idx in rows.chunks(order):
+        X, Y = rows.block(idx)
+        r = (theta.T @ X.T).reshape(len(live), 3, -1)                    # fit, axis, row: rows contiguous
+        np.subtract(Y.T[None], r, out=r)
+        r -= center
+        pc, sess = piece[idx], s[idx]
+        for j, f in enumerate(live):
+            use = f.train[pc]
+            if use.all():
+                accs[j].add(r[j], sess)
+            else:
+                keep = np.flatnonzero(use)
+                accs[j].add(np.take(r[j], keep, axis=1), sess[keep])
+    for f, acc in zip(live, accs, strict=True):
+        post = _run(f, lambda f=f, acc=acc: gate_solve(f.R, f.n, f.model, f.first.prior, f.first.gated,
+                                                       acc.kappa(), options))
+        f.post = post if post is not None else f.post
+
+
+def _final_pass(d, rows, piece, fits) -> np.ndarray:
+    """Pass 3: the full fit's residuals (N, 3) and each fold's squared held-out residuals."""
+    full = fits[0]
+    folds = [f for f in fits[1:] if f.error is None]
+    theta = np.hstack([f.theta_full_basis() for f in [full] + folds])        # (p, 3 (1 + F))
+    resid = np.empty((len(d), 3))
+    for sl in rows.chunks(None):
+        X, Y = rows.block(sl)
+        P = (theta.T @ X.T).reshape(-1, 3, X.shape[0])                        # fit, axis, row
+        resid[sl] = Y - P[0].T
+        pc = piece[sl]
+        for j, f in enumerate(folds):
+            keep = np.flatnonzero(f.test[pc])
+            if not keep.size:
+                continue
+            if f.unseen:
+                Xf, Yf = _Rows(d, f.model).block(sl.start + keep)
+                r = (Yf - f.model.predict(f.post.theta, Xf)).T
+            else:
+                r = np.take(Y.T, keep, axis=1) - np.take(P[j + 1], keep, axis=1)
+            f.sq += np.einsum("ij,ij->i", r, r)
+            f.cnt += keep.size
+    return resid
+
+
+def _figures(out: CrossFit, fits: list[_Fit]) -> None:
+    """Pool the folds' held-out residuals into the figures and notes of the refit path."""
+    notes = out.notes
+    full_held = {h.name for h in fits[0].held}
+    sq, cnt = np.zeros(3), 0
+    for f in (f for f in fits if f.kind == "blocks"):
+        if f.error is not None:
+            notes.append(f"time-block fold {f.key} skipped: {f.error}")
+            continue
+        sq += f.sq
+        cnt += f.cnt
+    if cnt == 0:
+        notes.append("held-out by time blocks: no fold could be fitted")
+    else:
+        out.holdout_blocks_uT = np.sqrt(sq / cnt)
+    sq, cnt = np.zeros(3), 0
+    sess = [f for f in fits if f.kind == "session"]
+    if not sess:
+        notes.append("held-out by sessions: needs at least two sessions")
+        return
+    for f in sess:
+        if f.error is not None:
+            notes.append(f"session {f.key} left out: skipped: {f.error}")
+            continue
+        lost = sorted({h.name for h in f.held} - full_held)
+        if lost:
+            notes.append(f"session {f.key} left out: the other sessions cannot determine {', '.join(lost)} "
+                         "(prior-determined), so its held-out error measures extrapolation, not calibration quality")
+        out.holdout_per_session_uT[f.key] = np.sqrt(f.sq / f.cnt)
+        sq += f.sq
+        cnt += f.cnt
+    out.holdout_sessions_uT = np.sqrt(sq / cnt) if cnt else None
