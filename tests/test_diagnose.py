@@ -416,9 +416,11 @@ def test_modelled_mount_rotation_is_fitted_jointly_and_the_other_effect_named():
     for a, v in zip("xyz", want, strict=True):
         p = j["parameters"][f"K_O[{a}]"]
         assert abs(p["value"] - v) < max(5 * p["se"], 2e-3), (a, p)
-    # the same data without the rotation modelled: the rotation's misfit stays in the gap
+    # the same data without the rotation modelled: the rotation's misfit stays in the gap after the
+    # temperature offset (in quadrature with a 2.2 uT baseline it moves that by only a few nT)
     j0 = diagnose_model(s, "gain_offset").to_dict()
-    assert j0["baseline_rmse_nT"] > j["baseline_rmse_nT"] + 5.0
+    to = next(r for r in j0["ranking"] if r["effect"] == "temperature_offset")
+    assert to["rmse_nT"] > 2.0 * j["after_rmse_nT"], (to, j["after_rmse_nT"])
 
 
 def test_modelled_mount_rotation_alone_leaves_nothing():

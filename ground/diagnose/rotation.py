@@ -45,6 +45,8 @@ class MountColumns:
     session: np.ndarray
     angles: list[tuple[int, int]]
     held: list[str] = field(default_factory=list)
+    #: (3,3) the DUT-space image of the reference (forward gap: ``dut ~ A ref``), or None (reference space)
+    image: np.ndarray | None = None
 
     @property
     def q(self) -> int:
@@ -55,7 +57,8 @@ class MountColumns:
         return [f"omega[{k}][{AXES[a]}]" for k, a in self.angles]
 
     def axis_columns(self, i: int, rows=None) -> np.ndarray:
-        """(n, q): output axis i's component of ``e_a x B_ref`` on session k's rows, per angle (k, a)."""
+        """(n, q): output axis i's component of ``e_a x B_ref`` (``image[i] . (e_a x B_ref)`` with an image)
+        on session k's rows, per angle (k, a)."""
         ref = self.ref_uT if rows is None else self.ref_uT[rows]
         ses = self.session if rows is None else self.session[rows]
         out = np.zeros((ref.shape[0], self.q))
@@ -63,7 +66,8 @@ class MountColumns:
             e = np.zeros(3)
             e[a] = 1.0
             m = ses == k
-            out[m, c] = np.cross(e, ref[m])[:, i]
+            rot = np.cross(e, ref[m])
+            out[m, c] = rot[:, i] if self.image is None else rot @ self.image[i]
         return out
 
     def flat(self, rows=None) -> np.ndarray:
@@ -95,7 +99,9 @@ def mount_columns(gap: Gap, min_field_rms_uT: float | None = None) -> MountColum
                 angles.append((k, a))
     if not angles:
         return "no session has enough field perpendicular to any axis: " + "; ".join(held)
-    return MountColumns(frame, note, ref, s.session, angles, held)
+    # forward gap (dut = A R^-1 ref): the rotation acts before the gain, so its columns are mapped into DUT units
+    image = gap._dut_image() if gap.forward else None
+    return MountColumns(frame, note, ref, s.session, angles, held, image)
 
 
 def _stack(base: Block, mc: MountColumns, i: int, rows) -> np.ndarray:
