@@ -82,10 +82,11 @@ def test_slow_power_a_fit_removed_is_drawn_again():
 
 
 # ----------------------------------------------------------------------------- the diagnosis
-@pytest.mark.parametrize("seed", [6, 7])
+@pytest.mark.parametrize("seed", [2, 4])
 def test_slow_noise_alone_is_not_named(seed):
     """Sessions where one-block units alone would name an offset-like effect (p_blocks <= 0.003, which
-    survives Holm); the surrogate test refuses it."""
+    survives Holm); the surrogate test refuses it. (Seeds re-found for the forward gap and the folds that
+    keep neighbouring blocks apart, session 6: of seeds 0-6, 2 and 4 are such sessions; 6 and 7 were before.)"""
     d = diagnose_model(with_slow_noise(None, seed), "gain_offset").to_dict()
     top = d["ranking"][0]
     assert d["verdict"] == "none", top
