@@ -20,9 +20,14 @@ def test_validation_writes_the_matrix_false_alarms_with_both_noises_and_the_b_pa
     rows = doc["sessions"]
     assert len(rows) == len(calls)
     kinds = {r["kind"] for r in rows}
-    assert kinds == {"withheld", "null", "null_slow", "table", "sim"} | set(SCENARIOS)
-    assert set(s["scenarios"]) == set(SCENARIOS) and "| thermal_lag | thermal_lag |" in \
+    assert kinds == {"withheld", "null", "null_slow", "table", "sim", "orbit", "orbit_null"} | set(SCENARIOS)
+    assert set(s["scenarios"]) == set(SCENARIOS) | {"orbit"} and "| thermal_lag | thermal_lag |" in \
         (tmp_path / "summary.md").read_text()
+    # orbit telemetry through the refit's reference (IGRF + a wandering attitude error), 1900 s here
+    assert s["orbit_null_sessions"] == 2 and "IGRF" in s["orbit"]
+    orbit = {r["withheld"]: r for r in rows if r["kind"] == "orbit" and r["scale"] == 1.0}
+    assert orbit["interference"]["correct"] and orbit["temperature_gain"]["correct"]
+    assert orbit["interference"]["noise_floor_nT"] > orbit["interference"]["white_floor_nT"]
     assert s["null_sessions"] == 2 and s["null_slow_noise_sessions"] == 2
     assert "LIS3MDL" in s["slow_noise"]
     assert set(s["targets"]) >= {"all_found_at_realistic", "false_alarm_rate_le_5pct",

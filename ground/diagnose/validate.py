@@ -339,7 +339,9 @@ def run_validation(out_dir, seeds: int = 1, n_null: int | None = None, duration_
             d = diagnose_model(s, BASE_MODEL, opts)
         elif kind in ("orbit", "orbit_null"):
             from magstack.ground.diagnose.orbit import without_missing_currents
-            s, notes = without_missing_currents(simulate_orbit(e, scale, seed))
+            # two orbits at the default duration; scaled with a shorter --duration (tests)
+            s, notes = without_missing_currents(simulate_orbit(e, scale, seed,
+                                                               duration_s=ORBIT_S * min(duration_s / DURATION_S, 1)))
             d = diagnose_model(s, BASE_MODEL, opts, notes=notes)
         elif kind in SCENARIOS:
             d = _scenario(kind, e, scale, seed, duration_s, opts)
@@ -505,6 +507,9 @@ def _write(out: Path, rows: list[dict], summary: dict) -> None:
             md.append(f"| {kind} | {e} | {a.get('found')}/{a.get('n')} | {a.get('after_over_floor_max', math.nan):.2f} "
                       f"| {h.get('found')}/{h.get('n')} | {h.get('after_over_floor_max', math.nan):.2f} | "
                       f"{', '.join(a.get('verdicts', []))}; {', '.join(h.get('verdicts', []))} |")
+    md += ["", f"Orbit telemetry ({summary.get('orbit', '')}): after/floor against the white floor and the "
+               f"reference's error budget; false alarms {summary.get('orbit_false_alarms')} of "
+               f"{summary.get('orbit_null_sessions')} orbit sessions with nothing withheld."]
     md += ["", f"Not validated (no realistic strength known): {', '.join(summary['not_validated']) or 'none'}.",
            f"Total {summary['seconds']:.0f} s."]
     _atomic(out / "summary.md", "\n".join(md) + "\n")
