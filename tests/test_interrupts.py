@@ -55,22 +55,26 @@ def test_interrupted_validation_writes_the_sessions_done_so_far(tmp_path, signum
     assert "Traceback" not in "".join(err) + rest
 
 
-def test_validation_stopped_before_a_session_writes_nothing(tmp_path):
+def test_validation_interrupted_in_its_first_session_writes_nothing(tmp_path, monkeypatch):
+    import magstack.ground.diagnose.validate as v
+
+    def ctrl_c(*a, **k):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(v, "simulate", ctrl_c)
+    s = v.run_validation(tmp_path / "vd", n_null=1, duration_s=600.0)
+    assert s["interrupted"] and s["stopped_by"] == "SIGINT" and s["sessions_completed"] == 0
+    assert not (tmp_path / "vd").exists()
+
+
+def test_validation_interrupted_after_one_session_summarises_it(tmp_path):
+    from magstack.cli.interrupt import Stopped
     from magstack.ground.diagnose.validate import run_validation
 
-    stop = threading.Event()
-    stop.set()
-    s = run_validation(tmp_path / "vd", n_null=1, duration_s=600.0, stop=stop)
-    assert s["interrupted"] and s["sessions_completed"] == 0 and not (tmp_path / "vd").exists()
-
-
-def test_validation_stopped_after_one_session_summarises_it(tmp_path):
-    from magstack.ground.diagnose.validate import run_validation
-
-    stop = threading.Event()
-    s = run_validation(tmp_path / "vd", n_null=1, duration_s=600.0, stop=stop, on_session=stop.set)
+    def sigterm():
+        raise Stopped("SIGTERM")
+    s = run_validation(tmp_path / "vd", n_null=1, duration_s=600.0, on_session=sigterm)
     doc = json.loads((tmp_path / "vd" / "results.json").read_text())
-    assert s["sessions_completed"] == len(doc["sessions"]) == 1 and doc["summary"]["stopped_by"] == "stop"
+    assert s["sessions_completed"] == len(doc["sessions"]) == 1 and doc["summary"]["stopped_by"] == "SIGTERM"
     assert s["per_effect"]["time_skew"]["scale_1"]["n"] == 1 and "scale_0.5" not in s["per_effect"]["time_skew"]
 
 

@@ -244,15 +244,15 @@ def jobs_count(seeds: int = 1, n_null: int | None = None) -> int:
 
 
 def run_validation(out_dir, seeds: int = 1, n_null: int | None = None, duration_s: float = DURATION_S,
-                   on_session=None, stop=None) -> dict:
+                   on_session=None) -> dict:
     """Run the whole validation, write results into ``out_dir`` (created) and return the summary dict.
     ``on_session()`` is called after each session (progress).
 
-    Interrupted - ``KeyboardInterrupt`` (Ctrl-C; SIGTERM / SIGHUP under the ``magstack`` command) during a
-    session, or ``stop`` (an Event) found set before one - the sessions completed so far are summarised and
-    written as usual, the summary saying ``interrupted: true`` (with ``stopped_by``, the signal's name, and
-    ``sessions_completed`` of ``sessions_planned``; its ``targets`` are None: not decided), and returned instead
-    of raising. The session under way is dropped. With no session completed nothing is written.
+    Interrupted by ``KeyboardInterrupt`` (Ctrl-C; SIGTERM / SIGHUP under the ``magstack`` command), the
+    sessions completed so far are summarised and written as usual, the summary saying ``interrupted: true``
+    (with ``stopped_by``, the signal's name, and ``sessions_completed`` of ``sessions_planned``; its
+    ``targets`` are None: not decided), and returned instead of raising. The session under way is dropped.
+    With no session completed nothing is written (``out_dir`` is not created).
     """
     from magstack.ground.diagnose.sim_adapter import params_document, sim_gap
     from magstack.ground.diagnose.spec import table_gap
@@ -267,9 +267,6 @@ def run_validation(out_dir, seeds: int = 1, n_null: int | None = None, duration_
     t_all = time.perf_counter()
     try:
         for kind, e, scale, seed in jobs:
-            if stop is not None and stop.is_set():
-                stopped_by = getattr(stop, "signal_name", None) or "stop"
-                break
             t0 = time.perf_counter()
             if kind in ("withheld", "null"):
                 s = simulate(e, scale, seed, duration_s)
