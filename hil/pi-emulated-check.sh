@@ -8,7 +8,7 @@
 #    magstack on this host) and stops with one line naming what is missing (exit 4);
 # 2. builds an arm64 Debian 12 root with mmdebstrap (kept in $MAGSTACK_PI_WORK/root and reused; --rebuild);
 # 3. copies this checkout (tracked and untracked, not ignored files) to /home/pi/magstack in the root and, as
-#    user pi, follows the README's Pi recipe: `apt install python3-spidev` (as root), `python3 -m venv
+#    user pi, follows the README's Pi recipe: `apt update && apt install python3-spidev` (root), `python3 -m venv
 #    --system-site-packages ~/magstack-venv`, `~/magstack-venv/bin/pip install -e '.[pi]'`; then checks that
 #    spidev came from Debian and lgpio from an aarch64 wheel;
 # 4. runs the simulated flight application (`magstack run --example-config`, then `magstack run --sim
@@ -21,7 +21,9 @@
 # step failed (its log named). --check: only step 1. Logs and results: $MAGSTACK_PI_WORK (default
 # /var/tmp/magstack-pi-check). Environment: MAGSTACK_PI_WORK, MAGSTACK_PI_RUN_S (virtual seconds of the
 # flight run, default 600), MAGSTACK_HOST (the host's magstack command, default `magstack` on PATH),
-# MAGSTACK_PI_MIRROR (mmdebstrap mirror arguments, default mmdebstrap's own). hil/README.md says more.
+# MAGSTACK_PI_MIRROR (mmdebstrap mirror arguments, default mmdebstrap's own), MAGSTACK_PI_CA_BUNDLE (CA
+# certificates for pip inside the root, default the host's $PIP_CERT or $SSL_CERT_FILE, e.g. behind a
+# TLS-intercepting proxy). hil/README.md says more.
 set -euo pipefail
 
 me=pi-emulated-check
@@ -72,7 +74,16 @@ t_all=$SECONDS
 step=""
 mounted=()
 cleanup_mounts() { for m in "${mounted[@]}"; do umount -l "$m" 2>/dev/null || true; done; }
-trap 'rc=$?; cleanup_mounts; [ $rc = 0 ] || [ $rc = 1 ] || echo "$me: step \"$step\" failed (exit $rc; logs in $work/logs)" >&2' EXIT
+on_exit() {   # a step that failed (set -e) ends with one line naming it, exit 4
+    local rc=$?
+    cleanup_mounts
+    if [ -n "$step" ] && [ $rc != 0 ]; then
+        echo "$me: step \"$step\" failed (exit $rc; logs in $work/logs)" >&2
+        exit 4
+    fi
+}
+trap on_exit EXIT
+die() { echo "$me: $*" >&2; step=""; exit 4; }
 stage() { step=$1; t_step=$SECONDS; echo "$me: $1 ..."; }
 took() { echo "$me:   done in $((SECONDS - t_step)) s"; }
 
@@ -85,7 +96,7 @@ if [ $rebuild = 1 ] || [ ! -x "$root/usr/bin/python3" ]; then
         bookworm "$root" ${MAGSTACK_PI_MIRROR:-} >"$work/logs/mmdebstrap.log" 2>&1
     took
 fi
-[ "$(chroot "$root" uname -m)" = aarch64 ] || { echo "$me: the root does not run as aarch64" >&2; exit 4; }
+[ "$(chroot "$root" uname -m)" = aarch64 ] || die "the root does not run as aarch64"
 
 for m in proc dev; do
     if ! mountpoint -q "$root/$m"; then
@@ -94,8 +105,15 @@ for m in proc dev; do
     fi
 done
 cp -L /etc/resolv.conf "$root/etc/resolv.conf"
+# A host behind a TLS-intercepting proxy trusts an extra CA: pip inside the root gets the same bundle.
+ca=${MAGSTACK_PI_CA_BUNDLE:-${PIP_CERT:-${SSL_CERT_FILE:-}}}
+pip_cert=()
+if [ -n "$ca" ]; then
+    cp -L "$ca" "$root/etc/magstack-pi-ca.crt"
+    pip_cert=(PIP_CERT=/etc/magstack-pi-ca.crt)
+fi
 as_pi() { chroot --userspec=1000:1000 "$root" /usr/bin/env -i HOME=/home/pi PATH=/usr/bin:/bin LANG=C.UTF-8 \
-              /bin/sh -c "$1"; }
+              "${pip_cert[@]}" /bin/sh -c "$1"; }
 
 # 3. install as README.md says ---------------------------------------------------------------------------
 stage "install magstack in a venv inside the root (README recipe)"
@@ -105,20 +123,20 @@ mkdir -p "$root/home/pi/magstack"
 git -C "$repo" ls-files -z -c -o --exclude-standard | (cd "$repo" && tar --null -T - -cf -) \
     | tar -xf - -C "$root/home/pi/magstack"
 chroot "$root" chown -R pi:pi /home/pi/magstack
-chroot "$root" /usr/bin/env DEBIAN_FRONTEND=noninteractive apt-get install -y -q python3-spidev \
+chroot "$root" /bin/sh -c 'apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q python3-spidev' \
     >"$work/logs/apt.log" 2>&1
 as_pi 'python3 -m venv --system-site-packages ~/magstack-venv &&
        cd ~/magstack && ~/magstack-venv/bin/pip install --progress-bar off -e ".[pi]"' >"$work/logs/pip.log" 2>&1
 took
-spidev_from=$(as_pi '~/magstack-venv/bin/python -c "import spidev; print(spidev.__file__)"')
-lgpio_from=$(as_pi '~/magstack-venv/bin/python -c "import lgpio; print(lgpio.__file__)"')
+# located, not imported: importing lgpio creates its notification pipes in the current directory
+where='import importlib.util, sys; print(importlib.util.find_spec(sys.argv[1]).origin)'
+spidev_from=$(as_pi "~/magstack-venv/bin/python -c '$where' spidev")
+lgpio_from=$(as_pi "~/magstack-venv/bin/python -c '$where' lgpio")
 lgpio_wheel=$(grep -o 'lgpio-[^ ]*\.whl' "$work/logs/pip.log" | head -n 1 || true)
 echo "$me:   spidev from $spidev_from"
 echo "$me:   lgpio from $lgpio_from (${lgpio_wheel:-no wheel named in pip.log})"
-case $spidev_from in /usr/lib/python3/dist-packages/*) ;; *)
-    echo "$me: spidev did not come from Debian's python3-spidev" >&2; exit 4 ;; esac
-case $lgpio_wheel in *aarch64*) ;; *)
-    echo "$me: lgpio was not installed from an aarch64 wheel (see $work/logs/pip.log)" >&2; exit 4 ;; esac
+case $spidev_from in /usr/lib/python3/dist-packages/*) ;; *) die "spidev did not come from Debian's python3-spidev" ;; esac
+case $lgpio_wheel in *aarch64*) ;; *) die "lgpio was not installed from an aarch64 wheel (see $work/logs/pip.log)" ;; esac
 if grep -q 'Building wheel for' "$work/logs/pip.log"; then
     echo "$me:   note: pip built from source: $(grep -o 'Building wheel for [^ ]*' "$work/logs/pip.log" | sort -u | tr '\n' ' ')"
 fi
