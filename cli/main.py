@@ -26,6 +26,7 @@ import pkgutil
 import sys
 from pathlib import Path
 
+from magstack.cli.interrupt import exit_for, signals_raise
 from magstack.cli.options import CommandParser, common_flags, declared_paths, split_json_flag
 from magstack.cli.output import CommandResult, configure_logging, dumps, set_json_mode
 from magstack.cli.progress import set_progress_policy
@@ -177,8 +178,10 @@ def _main(argv: list[str] | None) -> int:
         # a file-system problem outside the typed tree (missing output directory, permissions)
         where = f" ({exc.filename})" if exc.filename else ""
         return _error(args, json_target, f"{exc.strerror or exc}{where}", EXIT_DEVICE)
-    except KeyboardInterrupt:
-        return _error(args, json_target, "interrupted", 130, kind="")
+    except KeyboardInterrupt as exc:   # Ctrl-C, or SIGTERM / SIGHUP raised as Stopped (cli/interrupt.py)
+        name, code = exit_for(exc)
+        return _error(args, json_target, "interrupted" if name == "SIGINT" else f"stopped by {name}", code,
+                      kind="")
 
 
 class _PipeSafe:
@@ -214,14 +217,18 @@ class _PipeSafe:
 def main(argv: list[str] | None = None) -> int:
     """The ``magstack`` entry point: :func:`_main` under the Unix conventions every command shares (issue 24
     item 10): a reader closing stdout ends output quietly (:class:`_PipeSafe`); Ctrl-C before a command has
-    installed its own handler (while the command modules load) is one line and exit 130, never a traceback."""
+    installed its own handler (while the command modules load) is one line and exit 130, never a traceback;
+    SIGTERM / SIGHUP outside a command's own handler raise :class:`~magstack.cli.interrupt.Stopped` (clean-up
+    runs: no temporary file or half-made folder is left), one line, exit 143 / 129."""
     saved = sys.stdout
     sys.stdout = _PipeSafe(saved) if saved is not None and not isinstance(saved, _PipeSafe) else saved
     try:
-        return _main(argv)
-    except KeyboardInterrupt:
-        print("magstack: interrupted", file=sys.stderr)
-        return 130
+        with signals_raise():
+            return _main(argv)
+    except KeyboardInterrupt as exc:
+        name, code = exit_for(exc)
+        print("magstack: interrupted" if name == "SIGINT" else f"magstack: stopped by {name}", file=sys.stderr)
+        return code
     finally:
         sys.stdout = saved
 

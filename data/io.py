@@ -3,6 +3,8 @@
 * :func:`atomic_write_text` - write a whole file so that it appears whole or not at all:
   a temporary file in the same directory, ``fsync``, ``os.replace`` onto the target, ``fsync``
   of the directory (so the rename itself survives a power cut).
+* :func:`staged_directory` - fill a directory that appears whole or not at all (a hidden sibling,
+  moved into place on success, removed on any exception, Ctrl-C and SIGTERM under ``magstack`` included).
 * :func:`fsync_dir` - the directory half of that, for writers that stream into their own
   ``.part`` file (``magstack.data.session.SessionWriter``).
 * :func:`json_safe` / :func:`to_json` - strict JSON (RFC 8259) from results that hold NumPy
@@ -25,8 +27,11 @@ import json
 import math
 import os
 import re
+import shutil
 import stat as stat_mod
-from collections.abc import Iterable, Mapping
+import tempfile
+from collections.abc import Iterable, Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path, PurePath
 from typing import Any
 
@@ -80,6 +85,36 @@ def atomic_write_text(path: str | os.PathLike, text: str, *, encoding: str = "ut
         if created:
             tmp.unlink(missing_ok=True)
     return p
+
+
+@contextmanager
+def staged_directory(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a new empty directory to fill in place of ``path``; on a normal exit its files appear at
+    ``path`` whole or not at all, on any exception it is removed and ``path`` is untouched.
+
+    The stage is a hidden sibling (``.<name>.tmp-XXXX``, same file system, the umask's mode). When
+    ``path`` does not exist the stage is renamed onto it (the folder appears with its files); when it
+    does, each file is moved over with ``os.replace`` (each file whole; other files in ``path`` are
+    kept). Only files at the top level of the stage are published.
+    """
+    p = Path(path)
+    stage = Path(tempfile.mkdtemp(prefix=f".{p.name}.tmp-", dir=p.parent))
+    try:
+        umask = os.umask(0)
+        os.umask(umask)
+        stage.chmod(0o777 & ~umask)   # mkdtemp's 0700 would become the published folder's mode
+        yield stage
+        if not p.exists():
+            os.rename(stage, p)
+        else:
+            for f in sorted(stage.iterdir()):
+                os.replace(f, p / f.name)
+        fsync_dir(p)
+        fsync_dir(p.parent)
+    except OSError as exc:
+        raise write_error(p, exc) from exc
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
 
 
 def open_exclusive(path: str | os.PathLike, mode: str = "w", **kwargs: Any):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+from pathlib import Path
 
 import numpy as np
 
@@ -159,8 +160,11 @@ def run(args: argparse.Namespace) -> CommandResult:
         doc["windows"] = describe(args.window, args.drop_window, len(session), len(session) if not (
             args.window or args.drop_window) else int(sel.size))
         lines = d.text().splitlines()
-        if args.report:
+        if args.report:   # the folder appears with its page or not at all (Ctrl-C, SIGTERM: issue 26 item 7)
+            from magstack.data.io import staged_directory
             from magstack.ground.diagnose.figures import write_report
-            lines.append(f"wrote {write_report(d, args.report)}")
+            with staged_directory(args.report) as stage:
+                name = write_report(d, stage).name
+            lines.append(f"wrote {Path(args.report) / name}")
     return CommandResult("diagnose", doc, lines)
 

@@ -2,7 +2,9 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
+from magstack.cli.interrupt import EXIT_FOR_SIGNAL
 from magstack.cli.options import finite_float, int_range, nonempty_dir
 from magstack.cli.output import CommandResult
 from magstack.cli.progress import bar
@@ -16,7 +18,10 @@ def register(subparsers) -> None:
                     "the effect at a realistic strength and at half, diagnose with it withheld; plus sessions with "
                     "nothing withheld (false alarms; with the base noise and with LIS3MDL-level 1/f noise) and the "
                     "fixed-table / fixed-parameter path. Writes "
-                    "results.json, confusion.csv and summary.md into --out; exit 1 when a target is missed.")
+                    "results.json, confusion.csv and summary.md into --out; exit 1 when a target is missed. "
+                    "Ctrl-C (or SIGTERM / SIGHUP) stops at once and writes the sessions completed so far "
+                    "(\"interrupted\": true, targets not decided), exit 130 (143 / 129). The smallest run, "
+                    "e.g. to try it: --seconds 600 --nulls 1 (1500 rows per session).")
     p.add_argument("--seeds", type=int_range(1, 100), default=1, help="sessions per effect and strength (default 1)")
     p.add_argument("--nulls", type=int_range(1, 10000), default=None,
                    help="sessions with nothing withheld, run with the base noise and again with slow (1/f) noise "
@@ -33,6 +38,15 @@ def run(args: argparse.Namespace) -> CommandResult:
     with bar(jobs_count(args.seeds, args.nulls), "validate-diagnosis", unit="session") as pb:
         s = run_validation(args.out, seeds=args.seeds, n_null=args.nulls, duration_s=args.seconds,
                            on_session=lambda: pb.update(1))
-    lines = open(f"{args.out}/summary.md", encoding="utf-8").read().splitlines()
+    summary = Path(args.out) / "summary.md"
+    if s.get("interrupted"):   # Ctrl-C / SIGTERM / SIGHUP: what was done is written (issue 26 item 7)
+        done = s["sessions_completed"]
+        lines = summary.read_text(encoding="utf-8").splitlines() if done else []
+        lines.append(f"interrupted by {s['stopped_by']} after {done} of {s['sessions_planned']} sessions: " + (
+            f"wrote the partial results.json, confusion.csv and summary.md to {args.out}" if done else
+            "nothing written"))
+        return CommandResult("validate-diagnosis", {"out": str(args.out), **s}, lines,
+                             EXIT_FOR_SIGNAL.get(s["stopped_by"], 130))
+    lines = summary.read_text(encoding="utf-8").splitlines()
     ok = all(v is not False for v in s["targets"].values())
     return CommandResult("validate-diagnosis", {"out": str(args.out), **s}, lines, 0 if ok else EXIT_NEGATIVE)

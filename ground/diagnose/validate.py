@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import math
 import time
 from collections.abc import Callable
@@ -23,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from magstack.data.io import atomic_write_text
 from magstack.data.session import Session
 from magstack.firmware.effects import EFFECT_NAMES, EFFECTS
 from magstack.ground.diagnose import Options, diagnose, diagnose_model
@@ -47,6 +49,7 @@ RATE_HZ = 2.5
 SESSIONS = 3
 
 _P = preset("hmc1053")
+log = logging.getLogger(__name__)
 
 
 def _scaled(f: float, **kw) -> Callable[[ErrorParams, float], ErrorParams]:
@@ -316,45 +319,64 @@ def jobs_count(seeds: int = 1, n_null: int | None = None) -> int:
 
 def run_validation(out_dir, seeds: int = 1, n_null: int | None = None, duration_s: float = DURATION_S,
                    on_session=None) -> dict:
-    """Run the whole validation, write results into ``out_dir`` and return the summary dict.
-    ``on_session()`` is called after each session (progress)."""
+    """Run the whole validation, write results into ``out_dir`` (created) and return the summary dict.
+    ``on_session()`` is called after each session (progress).
+
+    Interrupted by ``KeyboardInterrupt`` (Ctrl-C; SIGTERM / SIGHUP under the ``magstack`` command), the
+    sessions completed so far are summarised and written as usual, the summary saying ``interrupted: true``
+    (with ``stopped_by``, the signal's name, and ``sessions_completed`` of ``sessions_planned``; its
+    ``targets`` are None: not decided), and returned instead of raising. The session under way is dropped.
+    With no session completed nothing is written (``out_dir`` is not created).
+    """
     from magstack.ground.diagnose.sim_adapter import params_document, sim_gap
     from magstack.ground.diagnose.spec import table_gap
 
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     effects = [e for e in nameable() if e in STRENGTHS]
     not_validated = [e for e in nameable() if e not in STRENGTHS]
     jobs = _jobs(seeds, n_null)
     rows = []
     opts = Options()
+    stopped_by = None
     t_all = time.perf_counter()
-    for kind, e, scale, seed in jobs:
-        t0 = time.perf_counter()
-        if kind in ("withheld", "null"):
-            s = simulate(e, scale, seed, duration_s)
-            d = diagnose_model(s, _model_for(e), opts)
-        elif kind == "null_slow":
-            s = simulate(None, 0.0, seed, duration_s, params=_slow_noise_params(), effects=list(BASE_EFFECTS))
-            d = diagnose_model(s, BASE_MODEL, opts)
-        elif kind in ("orbit", "orbit_null"):
-            from magstack.ground.diagnose.orbit import without_missing_currents
-            # two orbits at the default duration; scaled with a shorter --duration (tests)
-            s, notes = without_missing_currents(simulate_orbit(e, scale, seed,
-                                                               duration_s=ORBIT_S * min(duration_s / DURATION_S, 1)))
-            d = diagnose_model(s, BASE_MODEL, opts, notes=notes)
-        elif kind in SCENARIOS:
-            d = _scenario(kind, e, scale, seed, duration_s, opts)
-        elif kind == "table":
-            d = _table_case(e, seed, duration_s, opts, table_gap)
-            e = None if e == "none" else e
-        else:
-            d = _sim_case(seed, duration_s, opts, out, params_document, sim_gap)
-        rows.append(_row(kind, e, scale, seed, d, time.perf_counter() - t0))
-        if on_session is not None:
-            on_session()
+    try:
+        for kind, e, scale, seed in jobs:
+            t0 = time.perf_counter()
+            if kind in ("withheld", "null"):
+                s = simulate(e, scale, seed, duration_s)
+                d = diagnose_model(s, _model_for(e), opts)
+            elif kind == "null_slow":
+                s = simulate(None, 0.0, seed, duration_s, params=_slow_noise_params(), effects=list(BASE_EFFECTS))
+                d = diagnose_model(s, BASE_MODEL, opts)
+            elif kind in ("orbit", "orbit_null"):
+                from magstack.ground.diagnose.orbit import without_missing_currents
+                # two orbits at the default duration; scaled with a shorter --duration (tests)
+                s, notes = without_missing_currents(simulate_orbit(
+                    e, scale, seed, duration_s=ORBIT_S * min(duration_s / DURATION_S, 1)))
+                d = diagnose_model(s, BASE_MODEL, opts, notes=notes)
+            elif kind in SCENARIOS:
+                d = _scenario(kind, e, scale, seed, duration_s, opts)
+            elif kind == "table":
+                d = _table_case(e, seed, duration_s, opts, table_gap)
+                e = None if e == "none" else e
+            else:
+                d = _sim_case(seed, duration_s, opts, out, params_document, sim_gap)
+            rows.append(_row(kind, e, scale, seed, d, time.perf_counter() - t0))
+            r = rows[-1]
+            log.info("validate-diagnosis: session %d of %d done: %s, %s at %gx, seed %d -> verdict %s (%.1f s)",
+                     len(rows), len(jobs), kind, r["withheld"], scale, seed, r["verdict"], r["seconds"])
+            if on_session is not None:
+                on_session()
+    except KeyboardInterrupt as exc:
+        stopped_by = getattr(exc, "signal_name", None) or "SIGINT"
     summary = summarise(rows, effects, not_validated, time.perf_counter() - t_all)
-    _write(out, rows, summary)
+    summary.update(interrupted=stopped_by is not None, stopped_by=stopped_by, sessions_completed=len(rows),
+                   sessions_planned=len(jobs))
+    if stopped_by is not None:
+        summary["targets"] = dict.fromkeys(summary["targets"])
+        log.info("validate-diagnosis: interrupted (%s) after %d of %d sessions", stopped_by, len(rows), len(jobs))
+    if rows:
+        _write(out, rows, summary)
     return summary
 
 
@@ -403,8 +425,8 @@ def _sim_case(seed, duration_s, opts, out, params_document, sim_gap):
 
     p = _base_params()
     eff = _effects_for(None)
-    path = out / f"sim_params_{seed}.json"
-    path.write_text(json.dumps(params_document(p, eff, "validate")))
+    out.mkdir(parents=True, exist_ok=True)
+    path = atomic_write_text(out / f"sim_params_{seed}.json", json.dumps(params_document(p, eff, "validate")))
     unit = dataclasses.replace(p, offset_uT=np.asarray(p.offset_uT) + np.array([0.15, -0.10, 0.12]))
     s = simulate(None, 0.0, seed, duration_s, params=unit, effects=eff)
     full, keep, notes = check_rows(s, exclude_bends=opts.exclude_bends)
@@ -471,20 +493,19 @@ def summarise(rows: list[dict], effects: list[str], not_validated: list[str], se
             "strength_sources": {e: STRENGTHS[e][1] for e in effects}}
 
 
-def _atomic(path: Path, text: str) -> None:
-    part = path.with_name(path.name + ".part")
-    part.write_text(text, encoding="utf-8")
-    part.replace(path)
-
-
 def _write(out: Path, rows: list[dict], summary: dict) -> None:
-    _atomic(out / "results.json", json.dumps({"summary": summary, "sessions": rows}, indent=1, default=float))
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "results.json", json.dumps({"summary": summary, "sessions": rows}, indent=1, default=float))
     labels = list(summary["confusion"])
     cols = list(next(iter(summary["confusion"].values())))
     lines = ["withheld\\verdict," + ",".join(cols)]
     lines += [w + "," + ",".join(str(summary["confusion"][w][c]) for c in cols) for w in labels]
-    _atomic(out / "confusion.csv", "\n".join(lines) + "\n")
-    md = ["# Withheld-effect validation", "", f"{summary['stimulus']}; base effects {', '.join(BASE_EFFECTS)}.", "",
+    atomic_write_text(out / "confusion.csv", "\n".join(lines) + "\n")
+    md = ["# Withheld-effect validation", ""]
+    if summary.get("interrupted"):
+        md += [f"**Interrupted** ({summary['stopped_by']}) after {summary['sessions_completed']} of "
+               f"{summary['sessions_planned']} sessions: partial results, targets not decided.", ""]
+    md += [f"{summary['stimulus']}; base effects {', '.join(BASE_EFFECTS)}.", "",
           "| effect | found (realistic) | after/floor (realistic) | found (half) | after/floor (half) |",
           "|---|---|---|---|---|"]
     for e, v in summary["per_effect"].items():
@@ -512,4 +533,4 @@ def _write(out: Path, rows: list[dict], summary: dict) -> None:
                f"{summary.get('orbit_null_sessions')} orbit sessions with nothing withheld."]
     md += ["", f"Not validated (no realistic strength known): {', '.join(summary['not_validated']) or 'none'}.",
            f"Total {summary['seconds']:.0f} s."]
-    _atomic(out / "summary.md", "\n".join(md) + "\n")
+    atomic_write_text(out / "summary.md", "\n".join(md) + "\n")
