@@ -390,14 +390,24 @@ def build_candidates(gap: Gap, base: Block) -> tuple[list[Candidate], list[dict]
     return cands, not_testable, modelled
 
 
+#: Forward gap: effects the catalogue applies to the sensor-axis field (after ``gain``), whose columns are built
+#: from the reference mapped into DUT units (``Gap._dut_image``), not from the reference itself: the cross-axis
+#: term of bridge x during a 150 uT Y excursion carries G[x,y] x 150 uT of the excursion (a B_y^3 shape that
+#: products of reference components for output x do not hold).
+SENSOR_SPACE = ("cross_axis", "nonlinearity")
+
+
 def linear_block(gap: Gap, name: str, terms) -> Block:
     """Columns of a linear candidate: its calibration terms plus, where the catalogue's forward physics
     seen from the calibration side needs them, higher-order columns (nonlinear.py)."""
-    blk = gap.term_design(terms)
+    field = gap.predictor_uT
+    if gap.forward and name in SENSOR_SPACE:
+        field = gap.predictor_uT @ gap._dut_image().T
+    blk = gap.term_design(terms, field)
     if name == "temperature_gain" and blk.p and not gap.forward:
         blk = Block.join([blk, temperature_gain_higher_order(gap, gap.session.temp_c)], gap.n)
     if name == "cross_axis" and blk.p:
-        q = nl.second_order_cross_axis(gap.predictor_uT)
+        q = nl.second_order_cross_axis(field)
         m = np.zeros((3, 6), bool)
         for k in range(6):
             m[k // 2, k] = True
