@@ -25,6 +25,7 @@ import numpy as np
 
 from magstack.drivers.cal_priors import GENERIC, CalPriors, priors_for
 from magstack.firmware.calibration.model import CalModel
+from magstack.firmware.errors import FitError
 
 #: A fitted parameter beyond this many prior sd is implausible for the part.
 IMPLAUSIBLE_Z = 3.0
@@ -85,10 +86,15 @@ def base_identifiability(gap, chip: CalPriors) -> dict | None:
                 cov[i, :, c] = 0.0
     prior = type(prior)(mean, cov, prior.source)
     opts = FitOptions(holdout=False)
-    R = qr_r(np.hstack([X, Y]))
-    post = gate_solve(R, len(s), cm, prior, [], options=opts)
-    kappa = autocorr_inflation(Y - cm.predict(post.theta, X), s.t_s, s.session)
-    post = gate_solve(R, len(s), cm, prior, [], kappa, opts)
+    try:
+        R = qr_r(np.hstack([X, Y]))
+        post = gate_solve(R, len(s), cm, prior, [], options=opts)
+        kappa = autocorr_inflation(Y - cm.predict(post.theta, X), s.t_s, s.session)
+        post = gate_solve(R, len(s), cm, prior, [], kappa, opts)
+    except (FitError, np.linalg.LinAlgError) as exc:   # the analysis explains; it never stops a diagnosis
+        return {"direction": "forward: dut = model(ref, temp, currents) + gap", "chip": chip.chip,
+                "error": f"the base model's identifiability could not be computed: {exc}", "parameters": {},
+                "determined_by_prior": []}
     params = {}
     from_prior = []
     sd = post.sd
@@ -98,7 +104,7 @@ def base_identifiability(gap, chip: CalPriors) -> dict | None:
         if by == "fixed":
             continue
         params[name] = {"value": float(post.theta[i, c]), "sd": _num(sd[i, c]), "unit": cm.columns[c].unit,
-                        "prior_mean": float(mean[i, c]), "prior_sd": _num(np.sqrt(cov[i, c, c])),
+                        "prior_mean": float(mean[i, c]) + 0.0, "prior_sd": _num(np.sqrt(cov[i, c, c])),
                         "data_share": _num(share[i, c]), "determined_by": by}
         if by == "prior":
             from_prior.append(name)
