@@ -647,3 +647,17 @@ def test_cli_chip_option_reaches_the_priors(tmp_path):
     assert out.returncode == 0, out.stderr
     j = json.loads(out.stdout)
     assert j["base_model"]["chip"] == "hmc1053" and j["verdict"] == "temperature_gain"
+
+
+def test_one_field_thermal_run_with_a_table_fitted_earlier_gets_a_temperature_verdict():
+    """The (b) path of issue 22 item 1: a gain+offset table from an earlier bench run (this file's generator, same
+    part), then the one-field cooling run; the temperature gain the table lacks is named and closes the gap."""
+    from magstack.firmware.cal_table import table_from_fit
+    from magstack.firmware.calibration import FitData, FitOptions, fit
+    clean = make(None, seed=5, temp=False)
+    table = table_from_fit(fit(FitData.from_session(clean), "gain_offset", options=FitOptions(holdout=False)),
+                           "test")
+    j = _table_diagnosis(_one_field_thermal(seconds=900.0), table).to_dict()
+    assert j["verdict"] in ("temperature_gain", "temperature_offset"), j["ranking"][:3]
+    assert 1 - j["after_rmse_nT"] / j["baseline_rmse_nT"] >= 0.75
+    assert j["after_rmse_nT"] <= 1.2 * j["noise_floor_nT"]
