@@ -658,6 +658,7 @@ def test_one_field_thermal_run_with_a_table_fitted_earlier_gets_a_temperature_ve
     table = table_from_fit(fit(FitData.from_session(clean), "gain_offset", options=FitOptions(holdout=False)),
                            "test")
     j = _table_diagnosis(_one_field_thermal(seconds=900.0), table).to_dict()
-    assert j["verdict"] in ("temperature_gain", "temperature_offset"), j["ranking"][:3]
+    # the HMC1053 prior rules out the offset tempco the data allow equally (z ~ 18)
+    assert j["verdict"] == "temperature_gain", j["ranking"][:3]
     assert 1 - j["after_rmse_nT"] / j["baseline_rmse_nT"] >= 0.75
     assert j["after_rmse_nT"] <= 1.2 * j["noise_floor_nT"]
