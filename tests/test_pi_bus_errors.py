@@ -60,3 +60,45 @@ def test_spi_open_error_names_the_device_node(monkeypatch):
     with pytest.raises(BusError, match=r"cannot open /dev/spidev0\.1: No such file or directory") as exc:
         SpidevSpiBus(0, 1, mode=1, max_speed_hz=500_000)
     assert exc.value.exit_code == EXIT_DEVICE
+
+
+def test_lgpio_gets_a_writable_work_dir_when_the_current_one_is_not(monkeypatch, tmp_path):
+    """lgpio creates its notification pipe in $LG_WD or the current directory; started in an unwritable one (a
+    service in /) its import failed with FileNotFoundError (found by hil/pi-emulated-check.sh)."""
+    import os
+
+    from magstack.drivers.bus import gpio
+
+    monkeypatch.delenv("LG_WD", raising=False)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    cwd = os.getcwd()
+    monkeypatch.setattr(gpio.os, "access", lambda p, mode: p != cwd)
+    assert gpio.lgpio_work_dir() == str(tmp_path)
+    monkeypatch.setitem(sys.modules, "lgpio", types.ModuleType("lgpio"))
+    gpio._lgpio_module(0)
+    assert os.environ["LG_WD"] == str(tmp_path)
+    # a writable current directory, or LG_WD already set: left alone
+    monkeypatch.setattr(gpio.os, "access", lambda p, mode: True)
+    monkeypatch.delenv("LG_WD")
+    assert gpio.lgpio_work_dir() is None
+    monkeypatch.setenv("LG_WD", "/somewhere")
+    assert gpio.lgpio_work_dir() is None
+
+
+def test_lgpio_that_cannot_start_is_a_bus_error(monkeypatch):
+    import builtins
+
+    from magstack.drivers.bus import gpio
+
+    real = builtins.__import__
+
+    def fail(name, *a, **k):
+        if name == "lgpio":
+            raise FileNotFoundError(2, "No such file or directory", ".lgd-nfy0")
+        return real(name, *a, **k)
+
+    monkeypatch.delitem(sys.modules, "lgpio", raising=False)
+    monkeypatch.setattr(builtins, "__import__", fail)
+    with pytest.raises(BusError, match="lgpio cannot start.*LG_WD") as exc:
+        gpio._lgpio_module(0)
+    assert exc.value.exit_code == EXIT_DEVICE

@@ -5,6 +5,8 @@ simulator provides lines wired to its chip models.
 """
 from __future__ import annotations
 
+import os
+import tempfile
 from typing import Protocol, runtime_checkable
 
 from magstack.drivers.errors import BusError
@@ -22,13 +24,29 @@ class InputLine(Protocol):
         """Current logic level of the line."""
 
 
+def lgpio_work_dir() -> str | None:
+    """Where lgpio may create its notification pipe (``.lgd-nfyN``): lgpio uses ``$LG_WD``, else the current
+    directory, and its import fails with FileNotFoundError where that is not writable (a service started in
+    ``/``). Returns the directory to put in ``LG_WD`` (the runtime or temporary directory), or None when the
+    current one is writable or ``LG_WD`` is already set."""
+    if os.environ.get("LG_WD") or os.access(os.getcwd(), os.W_OK):
+        return None
+    return os.environ.get("XDG_RUNTIME_DIR") or tempfile.gettempdir()
+
+
 def _lgpio_module(chip: int):
-    """The ``lgpio`` module, or a BusError (exit 4, one line) when it is not installed."""
+    """The ``lgpio`` module, or a BusError (exit 4, one line) when it is not installed or cannot start."""
+    wd = lgpio_work_dir()
+    if wd is not None:
+        os.environ["LG_WD"] = wd
     try:
         import lgpio  # Pi only ([pi] extra)
     except ImportError as exc:
         raise BusError("lgpio is not installed: on the Raspberry Pi install the pi extra (pip install -e '.[pi]'; "
                        "README, 'On a Raspberry Pi')", address=f"gpiochip{chip}", operation="open") from exc
+    except OSError as exc:      # its notification pipe could not be created
+        raise BusError(f"lgpio cannot start: {exc} (set LG_WD to a writable directory)", address=f"gpiochip{chip}",
+                       operation="open") from exc
     return lgpio
 
 
