@@ -149,10 +149,11 @@ class Gap:
                 out[:, j] = col
         return out
 
-    def deskewed(self, F: np.ndarray) -> tuple[Block, np.ndarray]:
-        """(base design, target) with the DUT reading corrected by ``F`` (N,3)."""
+    def deskewed(self, F: np.ndarray, base: Block | None = None) -> tuple[Block, np.ndarray]:
+        """(base design, target) with the DUT reading corrected by ``F`` (N,3); ``base``: the base design when
+        the caller has it (it does not depend on ``F`` where ``deskew_J`` moves only the target)."""
         if self.deskew_J is not None:
-            return self.base_design(), self.target + F @ self.deskew_J.T
+            return (self.base_design() if base is None else base), self.target + F @ self.deskew_J.T
         p = self.predictor_uT - F
         return self.base_design(p), self.target_for(p)
 

@@ -511,7 +511,24 @@ def lag_train_sse(gap: Gap, base: Block, Y: np.ndarray, fold: np.ndarray, grid: 
 
 
 def delay_sse_fn(gap: Gap, rows: np.ndarray):
-    """Training SSE of the base refitted on the DUT reading de-skewed by delays ``d`` (3,) s."""
+    """Training SSE of the base refitted on the DUT reading de-skewed by delays ``d`` (3,) s.
+
+    Where the de-skew moves only the target (the forward gap, a fixed prediction: ``Gap.deskew_J``), the
+    base design is the same for every delay: its rows and Gram matrix are formed once, and each trial costs
+    two products of the N x p design instead of rebuilding and re-factoring it (the same normal equations,
+    the same residual)."""
+    if gap.deskew_J is not None:
+        base = gap.base_design()
+        Xr = base.X[rows]
+        G = Xr.T @ Xr
+
+        def sse_fixed_design(d):
+            _, Y = gap.deskewed(gap.skew_columns(d, nl.shift_axes), base)
+            Yr = Y[rows]
+            th = solve_gram(G, Xr.T @ Yr, base.mask)
+            return float(np.sum((Yr - predict(Xr, th, base.mask)) ** 2))
+        return sse_fixed_design
+
     def sse_of(d):
         blk, Y = gap.deskewed(gap.skew_columns(d, nl.shift_axes))
         th = solve(blk.X, Y, blk.mask, rows)
