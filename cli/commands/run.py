@@ -60,7 +60,7 @@ def _sim_options(program_name: str, duration_s: float, seed: int):
         monotonic 0, so the field the sensors see belongs to the position and attitude at the telemetry's ``t_s``."""
         if not hasattr(base, "at_epoch"):
             return base
-        epoch0 = round(clock.epoch_s() - clock.monotonic_s(), 6)
+        epoch0 = round(clock.epoch_s() - clock.monotonic_s(), 3)     # a system clock: calls microseconds apart
         if epoch0 not in anchored:
             anchored[epoch0] = base.at_epoch(epoch0)
         return anchored[epoch0]
