@@ -236,3 +236,28 @@ def test_telemetry_table_crc32_is_an_integer(tmp_path, capsys):
     k = header.index("table_crc32")
     cells = [ln.split(",")[k] for ln in lines[lines.index(",".join(header)) + 1:] if ln and not ln.startswith("#")]
     assert cells and all(c.isdigit() for c in cells if c), cells[:3]
+
+
+def test_an_orbit_programme_drives_the_simulated_run_on_the_run_clock(tmp_path):
+    """`run --sim --sim-program orbit_tumbling` was refused ("unknown program": only `simulate` registered the
+    orbit programmes), and the orbit would have started at its own epoch, not the run clock's: the field the
+    sensors saw would not belong to the position and attitude at the telemetry's t_s (issue 23 scenario)."""
+    from magstack.cli.commands.run import _sim_options
+    from magstack.drivers.clock import VirtualClock
+    from magstack.firmware.flight.config import load_config
+
+    cfg = _sim_config(tmp_path, table=False)
+    res = subprocess.run([sys.executable, "-m", "magstack", "run", "--config", str(cfg), "--sim", "--sim-program",
+                          "orbit_tumbling", "--duration", "3", "--out", str(tmp_path / "tlm"), "--json"],
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout)["simulated"] is True
+    s = read_session(next((tmp_path / "tlm").glob("hmc1053-*.csv")))
+    assert len(s) == 3 and np.all(s.flag & 0b1111 == 0)
+    hmc = next(x for x in load_config(cfg).sensors if x.chip == "hmc1053")
+    options = _sim_options("orbit_tumbling", 60.0, 0)
+    for epoch in (1767225600.0, 1780000000.5):
+        clock = VirtualClock(start_epoch_s=epoch, start_monotonic_s=10.0)
+        truth = options(hmc, clock)["truth"]
+        assert truth.epoch_unix_s == pytest.approx(epoch - 10.0)     # truth time = the clock's monotonic time
+        assert options(hmc, clock)["truth"] is truth

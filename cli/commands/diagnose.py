@@ -55,7 +55,8 @@ def register(subparsers) -> None:
                    help="the reference field: 'session' = the files' ref_* columns; 'igrf' = orbit telemetry "
                         "(position and attitude columns, docs/refit.md): IGRF at the GPS position rotated by the "
                         "attitude, as refit computes it, with its error budget (crustal, external, attitude) in "
-                        "the noise floor; 'auto' (default): igrf for telemetry without ref_* columns, else session")
+                        "the noise floor; 'auto' (default): igrf for telemetry without ref_* values (no columns, or "
+                        "every cell empty as in flight telemetry), else session")
     p.add_argument("--attitude-sd-deg", type=finite_float(0, 30, unit="deg"), default=0.1,
                    help="attitude knowledge (1 sd per axis, deg) in the orbit reference's error budget (default 0.1)")
     p.add_argument("--chip", default=None, metavar="CHIP",
@@ -80,7 +81,10 @@ def _read(args):
             bad = next(p for p, t in zip(args.sessions, telemetry, strict=True) if not t)
             read_header(bad)     # names the missing position/attitude columns (exit 3)
         own_ref = args.reference == "auto" and all(read_header(p).has_ref for p in args.sessions)
-        s, notes = without_missing_currents(orbit_session(args.sessions, use_file_ref=own_ref))
+        s = orbit_session(args.sessions, use_file_ref=own_ref)
+        if own_ref and not np.isfinite(s.ref_uT).any():   # flight telemetry: ref_* columns there, every cell empty
+            own_ref, s = False, orbit_session(args.sessions)
+        s, notes = without_missing_currents(s)
         what = "its ref_* columns (use --reference igrf for the refit's reference)" if own_ref else \
             "IGRF at the GPS position rotated by the attitude (the refit's reference)"
         log.info("diagnose: orbit telemetry, %d rows; reference %s", len(s), what)

@@ -38,22 +38,35 @@ def register(subparsers) -> None:
                    help="telemetry directory (overrides the config)")
     p.add_argument("--sim-program", default="rotation", metavar="NAME",
                    help="with --sim: coil program giving the simulated field (default rotation; see magstack "
-                        "simulate --help)")
+                        "simulate --help); an orbit_* programme starts at the run's clock epoch")
     p.add_argument("--seed", type=int_range(0, 2**32 - 1), default=0, help="with --sim: simulation seed (default 0)")
     p.set_defaults(func=run)
 
 
 def _sim_options(program_name: str, duration_s: float, seed: int):
     """Per-sensor simulator options: one truth source for the run, a simulated bench per timeline."""
+    import magstack.sim.orbit_truth  # noqa: F401  (registers the orbit_* programs)
     from magstack.sim.coil_programs import PROGRAMS, program
     from magstack.sim.i2c_bench import default_bench
 
     if program_name not in PROGRAMS:
         raise ConfigurationError(f"--sim-program: unknown program {program_name!r}; valid: {', '.join(PROGRAMS)}")
-    truth = program(program_name, max(duration_s, PROGRAMS[program_name].default_duration_s), sessions=1)
+    base = program(program_name, max(duration_s, PROGRAMS[program_name].default_duration_s), sessions=1)
     benches: dict[int, object] = {}
+    anchored: dict[float, object] = {}
+
+    def truth_for(clock):
+        """The truth on the clock's time line: an orbit programme (``at_epoch``) starts at the clock's epoch of
+        monotonic 0, so the field the sensors see belongs to the position and attitude at the telemetry's ``t_s``."""
+        if not hasattr(base, "at_epoch"):
+            return base
+        epoch0 = round(clock.epoch_s() - clock.monotonic_s(), 3)     # a system clock: calls microseconds apart
+        if epoch0 not in anchored:
+            anchored[epoch0] = base.at_epoch(epoch0)
+        return anchored[epoch0]
 
     def options(sensor, clock) -> dict:
+        truth = truth_for(clock)
         if sensor.chip == "hmc1053":
             return {"truth": truth, "seed": seed}
         bench = benches.get(id(clock))
