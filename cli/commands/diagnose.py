@@ -80,11 +80,9 @@ def _read(args):
         if not all(telemetry):
             bad = next(p for p, t in zip(args.sessions, telemetry, strict=True) if not t)
             read_header(bad)     # names the missing position/attitude columns (exit 3)
-        own_ref = args.reference == "auto" and all(read_header(p).has_ref for p in args.sessions)
-        s = orbit_session(args.sessions, use_file_ref=own_ref)
-        if own_ref and not np.isfinite(s.ref_uT).any():   # flight telemetry: ref_* columns there, every cell empty
-            own_ref, s = False, orbit_session(args.sessions)
-        s, notes = without_missing_currents(s)
+        # auto: the files' ref_* values when there are any (merged flight telemetry: columns, every cell empty)
+        s, notes = without_missing_currents(orbit_session(args.sessions, reference=args.reference))
+        own_ref = s.metadata.get("reference") != "igrf"
         what = "its ref_* columns (use --reference igrf for the refit's reference)" if own_ref else \
             "IGRF at the GPS position rotated by the attitude (the refit's reference)"
         log.info("diagnose: orbit telemetry, %d rows; reference %s", len(s), what)

@@ -44,11 +44,12 @@ def diagnose_model(session, model: str = "gain_offset", options: Options | None 
 
 
 def diagnose_orbit(paths, model: str = "gain_offset", options: Options | None = None, t0_c: float = 25.0,
-                   use_file_ref: bool = False, dut1_s: float = 0.0) -> Diagnosis:
+                   reference: str = "igrf", dut1_s: float = 0.0) -> Diagnosis:
     """Mode (a) on orbit telemetry (refit's input, docs/refit.md): the reference is IGRF at the GPS position
-    rotated by the attitude (``use_file_ref``: the files' ref columns), currents interpolated as ``refit``
+    rotated by the attitude (``reference`` "session": the files' ref columns; "auto": those when they hold
+    values; orbit.session_from_blocks), currents interpolated as ``refit``
     does; the reference's error budget joins the noise floor (orbit.py)."""
     from magstack.ground.diagnose.orbit import orbit_session, without_missing_currents
 
-    s, notes = without_missing_currents(orbit_session(paths, dut1_s, use_file_ref))
+    s, notes = without_missing_currents(orbit_session(paths, dut1_s, reference))
     return diagnose_model(s, model, options, t0_c, notes)

@@ -26,6 +26,7 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
+from magstack.data.errors import SessionFileError
 from magstack.data.session import Session
 from magstack.data.telemetry import TelemetryBlock, iter_telemetry, read_header
 from magstack.ground.errors import DiagnosisError
@@ -48,12 +49,12 @@ def is_orbit_telemetry(path) -> bool:
     """True when ``path`` carries position and attitude columns (a telemetry file, docs/refit.md)."""
     try:
         read_header(path)
-    except Exception:   # noqa: BLE001 - not telemetry (missing columns) or unreadable: the session reader reports
+    except SessionFileError:    # not telemetry (missing columns) or unreadable: the session reader reports it
         return False
     return True
 
 
-def orbit_session(paths: Sequence[str], dut1_s: float = 0.0, use_file_ref: bool = False) -> Session:
+def orbit_session(paths: Sequence[str], dut1_s: float = 0.0, reference: str = "igrf") -> Session:
     """One Session of telemetry files in order (see :func:`session_from_blocks`)."""
     from magstack.firmware.calibration.housekeeping import MAX_GAP_S, interpolate_currents
 
@@ -67,40 +68,50 @@ def orbit_session(paths: Sequence[str], dut1_s: float = 0.0, use_file_ref: bool 
         elif hdr.currents != names:
             raise DiagnosisError(f"{path}: current columns {list(hdr.currents)} differ from the first file's "
                                  f"{list(names)}")
-        if use_file_ref and not hdr.has_ref:
+        if reference == "session" and not hdr.has_ref:
             raise DiagnosisError(f"{path}: --reference session needs ref_x_uT, ref_y_uT, ref_z_uT columns")
         files.append(interpolate_currents(iter_telemetry(path), names, MAX_GAP_S))
-    return session_from_blocks(files, names or (), meta, dut1_s, use_file_ref)
+    return session_from_blocks(files, names or (), meta, dut1_s, reference)
 
 
 def session_from_blocks(files: Iterable[Iterable[TelemetryBlock]], names: Sequence[str], meta: dict,
-                        dut1_s: float = 0.0, use_file_ref: bool = False) -> Session:
-    """One Session of telemetry blocks (per file, currents already interpolated): reference from IGRF +
-    attitude (NaN on rows without a plausible position or attitude; ``use_file_ref``: the blocks' own
-    ``ref_uT``, e.g. a simulator's truth), the geodetic latitude (deg) as the extra column :data:`LAT_COLUMN`.
-    Session ids are kept per file and offset between files."""
+                        dut1_s: float = 0.0, reference: str = "igrf") -> Session:
+    """One Session of telemetry blocks (per file, currents already interpolated) and its reference field.
+
+    ``reference``: "igrf" = IGRF + attitude (NaN on rows without a plausible position or attitude), the
+    geodetic latitude (deg) in the extra column :data:`LAT_COLUMN`; "session" = the blocks' own ``ref_uT``
+    (e.g. a simulator's truth; latitude NaN); "auto" = the blocks' own values when every block has the
+    columns and some cell holds a value (merged flight telemetry has the columns, every cell empty), else
+    IGRF. ``meta["reference"]`` is "igrf" when IGRF was used. Session ids are kept per file and offset
+    between files."""
     from magstack.firmware.calibration.refit import reference_block
 
-    parts = []
+    blocks = []
     offset = 0
-    for blocks in files:
+    for per_file in files:
         top = offset
-        for blk in blocks:
-            b_ref, lat, _ecl = reference_block(blk, dut1_s)
-            if use_file_ref:
-                b_ref = blk.ref_uT
+        for blk in per_file:
             sess = blk.session.astype(np.int64) + offset
             top = max(top, int(sess.max()) + 1 if sess.size else top)
-            parts.append((blk.t_s, b_ref, blk.dut_uT, blk.temp_c, sess, blk.currents_A, blk.flag, lat))
+            blocks.append((blk, sess))
         offset = top
-    if not parts:
+    if not blocks:
         raise DiagnosisError("the telemetry holds no rows")
+    own = reference == "session" or (reference == "auto" and all(b.ref_uT is not None for b, _ in blocks)
+                                     and any(np.isfinite(b.ref_uT).any() for b, _ in blocks))
+    parts = []
+    for blk, sess in blocks:
+        if own:
+            b_ref, lat = blk.ref_uT, np.full(len(blk), np.nan)
+        else:
+            b_ref, lat, _ecl = reference_block(blk, dut1_s)
+        parts.append((blk.t_s, b_ref, blk.dut_uT, blk.temp_c, sess, blk.currents_A, blk.flag, lat))
     cat = np.concatenate
     flag = None if any(p[6] is None for p in parts) else cat([p[6] for p in parts])
     meta = dict(meta)
-    if not use_file_ref:
+    if not own:
         meta["reference"] = "igrf"
-    meta["reference_model"] = ("the files' ref columns" if use_file_ref
+    meta["reference_model"] = ("the files' ref columns" if own
                                else "IGRF at the GPS position, rotated by the attitude (the refit's reference)")
     return Session(cat([p[0] for p in parts]), cat([p[1] for p in parts]), cat([p[2] for p in parts]),
                    cat([p[3] for p in parts]), cat([p[4] for p in parts]),
@@ -139,7 +150,9 @@ def reference_budget(b_ref_uT: np.ndarray, lat_deg: np.ndarray, attitude_sd_deg:
     att_var = sd ** 2 * np.maximum(b2 - b ** 2, 0.0)                      # (N,3)
     ext = np.where(lat >= AURORAL_LAT_DEG, AURORAL_NT, EXTERNAL_NT)[:, None] * np.ones((1, 3))
     var = att_var + CRUSTAL_NT ** 2 + ext ** 2
-    axes = lambda v: [float(np.sqrt(np.sum(v[:, i]) / n)) for i in range(3)]   # noqa: E731
+
+    def axes(v: np.ndarray) -> list[float]:
+        return [float(x) for x in np.sqrt(np.sum(v, axis=0) / n)]
     return {"total_nT": float(np.sqrt(np.sum(var) / n)), "axes_nT": axes(var),
             "attitude_axes_nT": axes(att_var), "attitude_sd_deg": float(attitude_sd_deg),
             "crustal_nT_per_axis": CRUSTAL_NT, "external_nT_per_axis": EXTERNAL_NT,

@@ -39,22 +39,32 @@ def chip_priors(gap, chip: str | None = None) -> CalPriors:
     return priors_for(chip or gap.session.metadata.get("dut_chip"))
 
 
-def term_prior(gap, cm: CalModel, keep: list[int], chip: CalPriors, modelled: bool) -> tuple[np.ndarray, np.ndarray]:
-    """(mean, sd) (3, k) of the columns ``keep`` of ``cm`` in the gap's direction; ``modelled``: the effect is
-    in the simulator already, so the candidate is a change (mean 0)."""
+def directed_prior(cm: CalModel, chip: CalPriors, forward: bool):
+    """``model_prior(cm, chip)`` with its means in the gap's direction: forward, the sign-flipped terms
+    (:data:`_SIGN_FLIP`) change sign (the calibration-side priors of drivers/cal_priors.py)."""
     from magstack.firmware.calibration.estimator import model_prior
 
     pr = model_prior(cm, chip)
+    if not forward:
+        return pr
+    mean = pr.mean.copy()
+    for c, col in enumerate(cm.columns):
+        if col.term in _SIGN_FLIP:
+            mean[:, c] = -mean[:, c]
+    return type(pr)(mean, pr.cov, pr.source)
+
+
+def term_prior(gap, cm: CalModel, keep: list[int], chip: CalPriors, modelled: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, sd) (3, k) of the columns ``keep`` of ``cm`` in the gap's direction; ``modelled``: the effect is
+    in the simulator already, so the candidate is a change (mean 0)."""
+    pr = directed_prior(cm, chip, gap.forward)
     mean = pr.mean[:, keep].copy()
     sd = np.sqrt(np.diagonal(pr.cov, axis1=1, axis2=2))[:, keep]
     for k, c in enumerate(keep):
-        term = cm.columns[c].term
-        if modelled or (term == "gain_matrix" and (gap.identity_gain or gap.mode != "model")):
+        if modelled or (cm.columns[c].term == "gain_matrix" and (gap.identity_gain or gap.mode != "model")):
             # a change of what the simulator has (a gain column of an identity-gain base, target dut - ref, or
             # of a fixed prediction is a change of gain)
             mean[:, k] = 0.0
-        elif gap.forward and term in _SIGN_FLIP:
-            mean[:, k] = -mean[:, k]
     return mean, sd
 
 
@@ -63,7 +73,7 @@ def base_identifiability(gap, chip: CalPriors) -> dict | None:
 
     None for a fixed gap or a base with no calibration terms. Hysteresis state columns and mount angles in the
     base are not part of this analysis (they have their own estimators)."""
-    from magstack.firmware.calibration.estimator import autocorr_inflation, model_prior, names_of
+    from magstack.firmware.calibration.estimator import autocorr_inflation, names_of
     from magstack.firmware.calibration.fit import FitOptions, gate_solve
     from magstack.firmware.calibration.linalg import qr_r
 
@@ -73,12 +83,10 @@ def base_identifiability(gap, chip: CalPriors) -> dict | None:
     cm, _keep = gap.term_model(gap.base_terms)
     X = cm.design(gap.predictor_uT, s.temp_c, s.currents_A, s.session, s.t_s)
     Y = gap.target + (gap.predictor_uT if gap.identity_gain else 0.0)    # the DUT reading
-    prior = model_prior(cm, chip)
+    prior = directed_prior(cm, chip, forward=True)
     mean = prior.mean.copy()
     cov = prior.cov.copy()
     for c, col in enumerate(cm.columns):
-        if col.term in _SIGN_FLIP:
-            mean[:, c] = -mean[:, c]
         if col.term == "gain_matrix" and gap.identity_gain:   # held at identity by the model
             for i in range(3):
                 mean[i, c] = 1.0 if i == col.index else 0.0

@@ -125,7 +125,8 @@ def fit_spectrum(power: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarr
     for b0 in (-2.0, 0.0, 2.0):     # beta 0.24, 1, 1.76: the likelihood is not convex in beta
         x0 = np.r_[np.log(0.5) * np.ones(3), np.log(0.5) * np.ones(3), b0]
         # quasi-Newton with the analytic gradient: ~80 evaluations per start where Nelder-Mead in 7 dimensions
-        # took ~1500, and a lower negative log-likelihood (tested: 12230.3 against 12232.1-12249.5)
+        # took ~1500, and a lower negative log-likelihood (on a synthetic white + 1/f^1.5 periodogram of 4088 bins:
+        # 12230.3 from all three starts against 12232.1-12249.5)
         r = scipy.optimize.minimize(nll, x0, jac=True, method="L-BFGS-B",
                                     options={"maxiter": 2000, "ftol": 1e-12, "gtol": 1e-8})
         if best is None or r.fun < best.fun:
