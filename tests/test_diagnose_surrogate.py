@@ -57,8 +57,8 @@ def test_whittle_fit_recovers_the_exponent(beta):
 def test_surrogates_of_white_noise_are_white_with_its_variance():
     x = np.random.default_rng(0).standard_normal((4000, 3)) * np.array([1.0, 2.0, 0.5])
     y = SurrogateSource(x, seed=1).draw(40)
-    assert np.allclose(y.var(axis=(0, 2)), x.var(axis=0), rtol=0.1)
-    lag1 = np.mean([np.corrcoef(y[:-1, 0, k], y[1:, 0, k])[0, 1] for k in range(40)])
+    assert np.allclose(y.var(axis=(1, 2)), x.var(axis=0), rtol=0.1)     # y: (3,k,N)
+    lag1 = np.mean([np.corrcoef(y[0, k, :-1], y[0, k, 1:])[0, 1] for k in range(40)])
     assert abs(lag1) < 0.05
 
 
@@ -76,7 +76,7 @@ def test_slow_power_a_fit_removed_is_drawn_again():
     own = slow_power(x)
     assert np.all(own < 0.5 * want)             # the fit took most of the slow power away
     y = SurrogateSource(x, seed=2).draw(200)
-    got = np.mean([slow_power(y[:, :, k]) for k in range(200)], axis=0)
+    got = np.mean([slow_power(y[:, k, :].T) for k in range(200)], axis=0)
     # restored (at most LOW_CAP x the template's own), not inflated
     assert np.all(got > 2.0 * own) and np.all((got > 0.3 * want) & (got < 3.0 * want)), (got / want)
 

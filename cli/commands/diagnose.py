@@ -14,7 +14,7 @@ from magstack.cli.output import CommandResult
 from magstack.cli.progress import stages
 from magstack.data.session import load_sessions
 from magstack.data.windows import add_window_options, describe, select_rows
-from magstack.ground.diagnose import Options, attach_rows, check_rows, diagnose, model_gap, parse_model
+from magstack.ground.diagnose import Options, attach_rows, check_rows, diagnose, kept_rows, model_gap, parse_model
 from magstack.ground.diagnose.spec import hysteresis_base, table_gap
 
 log = logging.getLogger(__name__)
@@ -131,7 +131,7 @@ def run(args: argparse.Namespace) -> CommandResult:
             session = session.select(sel)
         full, keep, more = check_rows(session, exclude_bends=opts.exclude_bends,
                                       include_saturated=opts.include_saturated)
-        s = full.select(keep)
+        s = kept_rows(full, keep)
         if args.block_s is not None:       # 'auto' chooses a length the session can hold
             _check_blocks(s, args.block_s, args.folds)
         log.info("diagnose: %d rows read, %d kept (%s)", len(session), int(keep.sum()),

@@ -5,12 +5,12 @@ The core (every module here except ``validate`` and ``sim_adapter``) never impor
 error model (import-linter contract in pyproject.toml).
 """
 from magstack.ground.diagnose.core import Diagnosis, diagnose
-from magstack.ground.diagnose.gap import Gap, check_rows, fixed_gap, model_gap
+from magstack.ground.diagnose.gap import Gap, check_rows, fixed_gap, kept_rows, model_gap
 from magstack.ground.diagnose.search import Options
 from magstack.ground.diagnose.spec import parse_model
 
 __all__ = ["Diagnosis", "diagnose", "Gap", "check_rows", "fixed_gap", "model_gap", "Options", "parse_model",
-           "diagnose_model", "diagnose_orbit", "shift_source", "attach_rows"]
+           "diagnose_model", "diagnose_orbit", "shift_source", "attach_rows", "kept_rows"]
 
 
 def shift_source(full, keep):
@@ -37,7 +37,7 @@ def diagnose_model(session, model: str = "gain_offset", options: Options | None 
     full, keep, more = check_rows(session, exclude_bends=options.exclude_bends,
                                   include_saturated=options.include_saturated)
     notes = list(notes) + more
-    s = full.select(keep)
+    s = kept_rows(full, keep)
     extra = hysteresis_base(s.dut_uT) if hyst else None
     g = model_gap(s, terms, modelled, f"--model {model}", t0_c, extra)
     return diagnose(attach_rows(g, full, keep, notes), options)

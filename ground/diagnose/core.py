@@ -226,8 +226,7 @@ def verdict_parameters(gap: Gap, res: sr.SearchResult, fold: np.ndarray, run: np
     base = gap.base_design()
     Y = gap.target
     if v.kind == "delay":
-        grid = v.extra["grid_s"]
-        d = nl.search_delays(sr.delay_sse_fn(gap, np.ones(gap.n, bool)), grid)
+        d = v.extra["delay_s"]     # the search on all rows (search.delay_searches, with the folds')
         jk = jackknife_se([np.asarray(x) for x in v.extra["fold_delays_s"]])
         out = {f"dt[{a}]": {"value": float(d[j]), "se": float(jk[j]),
                             "se_jackknife": float(jk[j]), "unit": "s",

@@ -19,6 +19,7 @@ repeat per power cycle); all figures are uT inside, nT at the JSON boundary.
 """
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -122,11 +123,12 @@ class Gap:
             self._A = coef[:3].T
         return self._A
 
-    def skew_columns(self, delay_s, shift_fn) -> np.ndarray:
+    def skew_columns(self, delay_s, shift_fn, cache: bool = True) -> np.ndarray:
         """(N,3) what DUT axis j gains by reading ``delay_j`` late, from the reference's (nearly
         noiseless) field mapped into DUT units: ``F_j = A_j . (ref(t + delay_j) - ref(t))``.
         ``shift_fn`` = nonlinear.shift_axes; shifting the clean reference (not the DUT reading) keeps
-        the DUT's sample noise out of the correction."""
+        the DUT's sample noise out of the correction. ``cache``: keep each axis' column for a repeat of its
+        delay (the coordinate search; at most SKEW_CACHE_FLOATS floats)."""
         if self.shift_source is None:
             from magstack.ground.diagnose.nonlinear import runs
             t, ref, keep = self.session.t_s, self.session.ref_uT, slice(None)
@@ -136,7 +138,8 @@ class Gap:
         A = self._dut_image()
         d = np.asarray(delay_s, dtype=float)
         out = np.zeros((self.n, 3))
-        cache = self.__dict__.setdefault("_skew_cache", {})
+        cache = self.__dict__.setdefault("_skew_cache", {}) if cache else {}
+        moved = {}                      # one shift of the reference per distinct delay, shared by the axes
         for j in range(3):
             if d[j] != 0:
                 key = (j, float(d[j]))
@@ -144,8 +147,9 @@ class Gap:
                 if col is None:
                     if len(cache) * self.n > SKEW_CACHE_FLOATS:
                         cache.clear()
-                    moved = shift_fn(ref, t, run, np.full(3, -d[j])) - ref
-                    col = cache[key] = moved[keep] @ A[j]
+                    if key[1] not in moved:
+                        moved[key[1]] = (shift_fn(ref, t, run, np.full(3, -d[j])) - ref)[keep]
+                    col = cache[key] = moved[key[1]] @ A[j]
                 out[:, j] = col
         return out
 
@@ -424,16 +428,21 @@ def check_rows(s: Session, min_rows: int = 50, exclude_bends: float | None = Non
             if ok.sum() < min_rows:
                 raise DiagnosisError(f"only {int(ok.sum())} usable rows of {len(s)} with the reference inside its "
                                      f"range: need at least {min_rows}")
-    s2 = s.select(ok)
+    # rows already usable and in order (the common case) share the caller's arrays (nothing here writes to
+    # a session's arrays): a copy of a 10^6-row session is 76 MiB
+    s2 = dataclasses.replace(s) if ok.all() else s.select(ok)
     order = np.lexsort((s2.t_s, s2.session))
-    s2 = s2.select(order)
+    in_order = bool(np.all(order == np.arange(order.size)))
+    if not in_order:
+        s2 = s2.select(order)
     # excursion history (hysteresis): every row with a DUT reading, sorted the same way
     has = np.all(np.isfinite(s.dut_uT), axis=1) & np.isfinite(s.t_s)
     h_rows = np.flatnonzero(has)
     h_rows = h_rows[np.lexsort((s.t_s[h_rows], s.session[h_rows]))]
     pos = np.full(len(s), -1, dtype=np.int64)
     pos[h_rows] = np.arange(h_rows.size)
-    s2.dut_history = (s.dut_uT[h_rows], pos[np.flatnonzero(ok)[order]])
+    same = has.all() and bool(np.all(h_rows == np.arange(h_rows.size)))
+    s2.dut_history = (s.dut_uT if same else s.dut_uT[h_rows], pos[np.flatnonzero(ok)[order]])
     s2.reference_guard = dict(guard)
     keep = np.ones(len(s2), bool)
     if exclude_bends is not None:
@@ -451,6 +460,12 @@ def check_rows(s: Session, min_rows: int = 50, exclude_bends: float | None = Non
                          "the field beyond the recorded run")
             keep &= ~edge
     return s2, keep, notes
+
+
+def kept_rows(full: Session, keep: np.ndarray) -> Session:
+    """The rows of :func:`check_rows`' session that ``keep`` marks; when it marks them all, the same arrays
+    (a copy of a 10^6-row session is 76 MiB; nothing in the diagnosis writes to a session's arrays)."""
+    return dataclasses.replace(full) if keep.all() else full.select(keep)
 
 
 def reference_guard(s: Session, usable: np.ndarray, include_saturated: bool) -> tuple[dict, np.ndarray]:

@@ -86,16 +86,21 @@ def search_delays(sse_of, grid: np.ndarray, passes: int = 2) -> np.ndarray:
                 trial = d.copy()
                 trial[j] = g
                 vals.append(sse_of(trial))
-            vals = np.array(vals)
-            k = int(np.argmin(vals))
-            best = grid[k]
-            if 0 < k < grid.size - 1:   # parabola through the minimum and its neighbours
-                y0, y1, y2 = vals[k - 1], vals[k], vals[k + 1]
-                den = y0 - 2 * y1 + y2
-                if den > 0:
-                    best = grid[k] + 0.5 * (y0 - y2) / den * (grid[1] - grid[0])
-            d[j] = best
+            d[j] = parabola_minimum(grid, np.array(vals))
     return d
+
+
+def parabola_minimum(grid: np.ndarray, vals: np.ndarray) -> float:
+    """The evenly spaced ``grid``'s point with the lowest value, refined by the parabola through it and its
+    neighbours (not refined at an end of the grid or where the parabola does not open upwards)."""
+    k = int(np.argmin(vals))
+    best = float(grid[k])
+    if 0 < k < grid.size - 1:
+        y0, y1, y2 = vals[k - 1], vals[k], vals[k + 1]
+        den = y0 - 2 * y1 + y2
+        if den > 0:
+            best = float(grid[k] + 0.5 * (y0 - y2) / den * (grid[1] - grid[0]))
+    return best
 
 
 #: Thermal-lag time constants tried: geometric grid from LAG_MIN_ROWS row spacings (at least LAG_MIN_S)

@@ -27,7 +27,7 @@ from magstack.data.errors import SessionFileError
 from magstack.data.session import Session
 from magstack.drivers.errors import ConfigurationError
 from magstack.firmware.effects import EFFECT_NAMES
-from magstack.ground.diagnose.gap import Gap, fixed_gap
+from magstack.ground.diagnose.gap import Gap, fixed_gap, kept_rows
 from magstack.sim.error_model import ErrorModel, ErrorParams
 
 FORMAT = "magstack-error-params"
@@ -153,7 +153,7 @@ def sim_gap(full: Session, keep: np.ndarray, params_path, t0_c: float | None = N
     truth is interpolated only between neighbouring samples."""
     params, effects = load_params(params_path)
     pred = predict_dut(full, params, effects)[keep]
-    s = full.select(keep)
+    s = kept_rows(full, keep)
     modelled = modelled_effects(params, effects)
     nuisance = ("session_offset",) if ("session_offset" in modelled and len(np.unique(s.session)) > 1) else ()
     t0 = params.temp_ref_c if t0_c is None else t0_c

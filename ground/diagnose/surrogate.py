@@ -67,10 +67,12 @@ LOW_CYCLES = 8
 LOW_CAP = 4.0
 #: The noise model is fitted between LOW_CYCLES and FIT_SPAN x LOW_CYCLES cycles per record.
 FIT_SPAN = 64
-#: Rows x 3 axes x surrogates in one batch (the transform's complex intermediates are ~6x this in bytes/8).
-BATCH_FLOATS = 2e6
+#: Rows x 3 axes x surrogates in one batch (32 MB; the transforms' intermediates are one surrogate's).
+BATCH_FLOATS = 4e6
 #: Floats of the candidates' own columns tested together on one set of surrogate batches.
-DESIGN_FLOATS = 2e7
+DESIGN_FLOATS = 1e7
+#: Rows the surrogate test uses at most (every m-th row beyond: :func:`test_rows`).
+MAX_TEST_ROWS = 2 ** 16
 
 
 @dataclass
@@ -156,6 +158,7 @@ class SurrogateSource:
         # up to 20x slower), the mirrored series padded with its end value (a few % of it)
         self.L = scipy.fft.next_fast_len(2 * self.n, real=True)
         self.F = scipy.fft.rfft(np.concatenate([mirrored, np.repeat(x[:1], self.L - 2 * self.n, axis=0)]), axis=0)
+        self.FT = np.ascontiguousarray(self.F.T)                  # (3, bins): one axis' spectrum contiguous
         nf0, nf = F0.shape[0], self.F.shape[0]
         k_a0 = int(min(2 * LOW_CYCLES, max(nf0 - 1, 0)))
         k_c = int(min(nf0 - 1, FIT_SPAN * k_a0))
@@ -195,32 +198,43 @@ class SurrogateSource:
                 "slow_power_capped_axes": [a for a, c in zip("xyz", self.capped, strict=True) if c],
                 "slow_power_cap": LOW_CAP}
 
-    def draw(self, k: int) -> np.ndarray:
-        """(N,3,k) surrogates (built as (k,3,bins) so every transform runs on contiguous rows)."""
-        L = self.L
-        nf = self.F.shape[0]
-        ph = np.exp(2j * np.pi * self.rng.random((k, nf)))
-        if L % 2 == 0:
-            ph[:, -1] = np.where(self.rng.random(k) < 0.5, 1.0, -1.0)   # the Nyquist bin stays real
-        G = ph[:, None, :] * self.F.T[None, :, :]
+    def draw(self, k: int, pos: np.ndarray | None = None) -> np.ndarray:
+        """(3,k,n) surrogates: axis, surrogate, row (rows ``pos`` of the series in that order, all by default).
+        The random numbers of the batch are drawn first; the transforms run one surrogate at a time, so the
+        transient complex spectrum is one surrogate's, whatever the batch."""
+        L, nf = self.L, self.F.shape[0]
+        u = self.rng.random((k, nf))
+        nyq = np.where(self.rng.random(k) < 0.5, 1.0, -1.0) if L % 2 == 0 else None
         if self.k_a:
             z = (self.rng.standard_normal((k, 3, self.k_a)) + 1j * self.rng.standard_normal((k, 3, self.k_a)))
             z /= np.sqrt(2)
             z = np.einsum("ij,kjm->kim", self.chol, z)               # coherent across axes as measured
             z[:, :, 0] = np.real(z[:, :, 0]) * np.sqrt(2)            # the mean is real
-            G[:, :, :self.k_a] = np.sqrt(self.p_low).T[None, :, :] * z
-        y = scipy.fft.irfft(G, n=L, axis=-1, overwrite_x=True)[:, :, :self.n]
-        return np.transpose(y, (2, 1, 0))
+            z *= np.sqrt(self.p_low).T[None, :, :]
+        out = np.empty((3, k, self.n if pos is None else pos.size))
+        for m in range(k):
+            ph = np.exp(2j * np.pi * u[m])
+            if nyq is not None:
+                ph[-1] = nyq[m]                                       # the Nyquist bin stays real
+            G = ph[None, :] * self.FT
+            if self.k_a:
+                G[:, :self.k_a] = z[m]
+            y = scipy.fft.irfft(G, n=L, axis=-1, overwrite_x=True)
+            out[:, m, :] = y[:, :self.n] if pos is None else y[:, pos]
+        return out
 
 
 # ----------------------------------------------------------------------------- held-out algebra
 class Shared:
-    """What every candidate's test shares: the row order grouping the folds, the base columns per axis
-    in that order with their fold Gram matrices, and ``B_f^T y`` of the current batch (computed once)."""
+    """What every candidate's test shares: the rows tested (:func:`test_rows`) in the order grouping the
+    folds, the base columns per axis in that order with their fold Gram matrices, and ``B_f^T y`` of the
+    current batch (computed once)."""
 
-    def __init__(self, gap: Gap, base: Block, fold: np.ndarray):
-        self.order = np.argsort(fold, kind="stable")
-        _, counts = np.unique(fold, return_counts=True)
+    def __init__(self, gap: Gap, base: Block, fold: np.ndarray, rows: np.ndarray):
+        self.rows = rows
+        self.pos = np.argsort(fold[rows], kind="stable")           # tested rows, fold-grouped, in ``rows``
+        self.order = rows[self.pos]                                 # the same as row numbers
+        _, counts = np.unique(fold[rows], return_counts=True)
         ends = np.cumsum(counts)
         self.counts = counts
         self.slices = [slice(int(e - c), int(e)) for e, c in zip(ends, counts, strict=True)]
@@ -230,18 +244,20 @@ class Shared:
         self._cache: dict = {}
 
     def base_products(self, Y: np.ndarray, i: int) -> list[np.ndarray]:
-        """Per fold ``B_f^T Y_f`` (p_base,k) of axis i for targets ``Y`` (n,3,k) in fold order."""
+        """Per fold ``B_f^T y_f`` (p_base,k) of axis i for targets ``Y`` (3,k,n) in fold order."""
         if self._key is not Y:
             self._key, self._cache = Y, {}
         if i not in self._cache:
-            self._cache[i] = [self.B[i][s].T @ Y[s, i, :] for s in self.slices]
+            self._cache[i] = [(Y[i][:, s] @ self.B[i][s]).T for s in self.slices]
         return self._cache[i]
 
 
 class HeldOut:
     """Held-out SSE (minus ``y_f^T y_f``, which cancels between models) per fold for one axis' design
     (shared base columns + the candidate's own), from the fold Gram matrices and ``Z_f^T y`` of many
-    right-hand sides at once."""
+    right-hand sides at once. The Gram matrices do not depend on ``y``: each fold's and option's solve
+    (``solve_normal`` of the training Gram matrix, a linear map) is formed once, so a batch of surrogates
+    costs the products ``Z_f^T y`` and a few small matrix products per fold and option."""
 
     def __init__(self, shared: Shared, i: int, design: AxisDesign):
         self.sh, self.i, self.d = shared, i, design
@@ -249,31 +265,46 @@ class HeldOut:
         self.nb = B.shape[1]
         P = self.nb + O.shape[1]
         n = B.shape[0]
-        self.usable = [(n - c) > P and c > 0 for c in shared.counts]
-        self.Gf = []
+        Gf = []
         for f, s in enumerate(shared.slices):
             BO = B[s].T @ O[s]
-            self.Gf.append(np.block([[shared.BB[i][f], BO], [BO.T, O[s].T @ O[s]]]))
-        self.G = sum(self.Gf) if self.Gf else np.zeros((P, P))
+            Gf.append(np.block([[shared.BB[i][f], BO], [BO.T, O[s].T @ O[s]]]))
+        G = sum(Gf) if Gf else np.zeros((P, P))
+        base = np.arange(self.nb)
+        #: per usable fold: (base solve, [option solves]); a solve: (index, training inverse, held-out Gram)
+        self.plans = []
+        for f, c in enumerate(shared.counts):
+            if not ((n - c) > P and c > 0):
+                self.plans.append(None)
+                continue
+            Gt = G - Gf[f]
+            plan = [self._plan(base, Gt, Gf[f])]
+            plan += [self._plan(np.r_[base, self.nb + o].astype(np.int64), Gt, Gf[f]) for o in design.options]
+            self.plans.append(plan)
+
+    @staticmethod
+    def _plan(idx, Gt, Gf):
+        if idx.size == 0:
+            return None
+        sub = np.ix_(idx, idx)
+        return idx, solve_normal(Gt[sub], np.eye(idx.size)), Gf[sub]
 
     def reduction(self, Y: np.ndarray) -> np.ndarray:
-        """(k,) held-out SSE(base) - SSE(base + candidate), summed over folds, for targets Y (n,3,k)
+        """(k,) held-out SSE(base) - SSE(base + candidate), summed over folds, for targets Y (3,k,n)
         in fold order."""
         cb = self.sh.base_products(Y, self.i)
-        O = self.d.O
-        cf = [np.vstack([cb[f], O[s].T @ Y[s, self.i, :]]) for f, s in enumerate(self.sh.slices)]
+        O, Yi = self.d.O, Y[self.i]
+        cf = [np.vstack([cb[f], (Yi[:, s] @ O[s]).T]) for f, s in enumerate(self.sh.slices)]
         c = sum(cf)
-        base = np.arange(self.nb)
-        out = np.zeros(Y.shape[2])
-        for f in range(len(cf)):
-            if not self.usable[f]:
+        out = np.zeros(Yi.shape[0])
+        for f, plan in enumerate(self.plans):
+            if plan is None:
                 continue
-            Gt, ct = self.G - self.Gf[f], c - cf[f]
-            h0 = self._h(base, Gt, ct, self.Gf[f], cf[f])[0]
+            ct = c - cf[f]
+            h0 = self._h(plan[0], ct, cf[f])[0]
             best_h, best_e = None, None
-            for o in self.d.options:
-                idx = np.r_[base, self.nb + o].astype(np.int64)
-                h, e = self._h(idx, Gt, ct, self.Gf[f], cf[f])
+            for p in plan[1:]:
+                h, e = self._h(p, ct, cf[f])
                 if best_h is None:
                     best_h, best_e = h, e
                 else:   # the option with the largest explained training sum of squares (lowest training SSE)
@@ -283,14 +314,25 @@ class HeldOut:
         return out
 
     @staticmethod
-    def _h(idx, Gt, ct, Gf, cf):
-        if idx.size == 0:
+    def _h(plan, ct, cf):
+        if plan is None:
             z = np.zeros(ct.shape[1])
             return z, z
-        th = solve_normal(Gt[np.ix_(idx, idx)], ct[idx])
-        held = -2.0 * np.sum(th * cf[idx], axis=0) + np.sum(th * (Gf[np.ix_(idx, idx)] @ th), axis=0)
-        explained = np.sum(th * ct[idx], axis=0)
+        idx, inv, Gf = plan
+        c_t, c_f = ct[idx], cf[idx]
+        th = inv @ c_t
+        held = np.sum(th * (Gf @ th - 2.0 * c_f), axis=0)
+        explained = np.sum(th * c_t, axis=0)
         return held, explained
+
+
+def test_rows(n: int) -> np.ndarray:
+    """Rows the surrogate test uses: all up to ``MAX_TEST_ROWS``, else every m-th row (m = ceil(n /
+    MAX_TEST_ROWS)). A fixed thinning, chosen before any outcome, keeps the test exact (observed and
+    surrogate statistics on the same rows); the slow noise it is about survives thinning, white noise stays
+    white; it costs power against white noise only, where the block test already decides."""
+    m = -(-n // MAX_TEST_ROWS)
+    return np.arange(0, n, max(m, 1))
 
 
 # ----------------------------------------------------------------------------- designs
@@ -312,26 +354,29 @@ def _nonzero(X: np.ndarray) -> np.ndarray:
     return X[:, np.any(X != 0, axis=0)]
 
 
-def candidate_designs(gap: Gap, cand) -> list[AxisDesign]:
-    """Per output axis the surrogate test's design for candidate ``cand`` (search.Candidate)."""
+def candidate_designs(gap: Gap, cand, order: np.ndarray | None = None) -> list[AxisDesign]:
+    """Per output axis the surrogate test's design for candidate ``cand`` (search.Candidate), on rows
+    ``order`` (all rows by default; each block's columns are taken down to them as soon as it is built)."""
+    if order is None:
+        order = np.arange(gap.n)
     from magstack.ground.diagnose import rotation as rot
     from magstack.ground.diagnose import search as sr
     own: list[list[np.ndarray]]
     if cand.kind == "linear":
         blk = sr.linear_block(gap, cand.effect, cand.terms)
-        own = [[_axis_cols(blk, i)] for i in range(3)]
+        own = [[_axis_cols(blk, i)[order]] for i in range(3)]
     elif cand.kind == "hysteresis":
         hist, idx = gap.history()
         extra = gap.term_design(("offset",)) if "offset" not in gap.base_terms else None
         own = []
         for j in range(3):
-            fixed = _axis_cols(extra, j) if extra is not None else np.zeros((gap.n, 0))
+            fixed = _axis_cols(extra, j)[order] if extra is not None else np.zeros((order.size, 0))
             opts = []
             for c in cand.thresholds[j]:
                 for s0 in (-1.0, 1.0):
                     thr, init = np.full(3, np.inf), np.ones(3)
                     thr[j], init[j] = c, s0
-                    col = nl.hysteresis_state(hist, thr, init)[idx][:, j:j + 1]
+                    col = nl.hysteresis_state(hist, thr, init)[idx[order]][:, j:j + 1]
                     opts.append(np.hstack([fixed, col]))
             own.append(opts or [fixed])
     elif cand.kind == "lag":
@@ -339,24 +384,28 @@ def candidate_designs(gap: Gap, cand) -> list[AxisDesign]:
         # coarse-grid tau (plus the one chosen), chosen per fold by training SSE as the search does (a fixed tau
         # fitted on the data alone made the test anti-conservative: 1 of 4 orbit null sessions named a lag)
         taus = np.unique(np.r_[nl.lag_grid(gap.session.t_s, gap.session.session), cand.lag_tau_s])
-        blks = [sr.lag_block(gap, float(tau)) for tau in taus]
-        own = [[_axis_cols(b, i) for b in blks] for i in range(3)]
+        own = [[], [], []]
+        for tau in taus:
+            b = sr.lag_block(gap, float(tau))
+            for i in range(3):
+                own[i].append(_axis_cols(b, i)[order])
+            del b
     elif cand.kind == "joint":
         mc = rot.mount_columns(gap)
-        own = [[_nonzero(mc.axis_columns(i))] for i in range(3)]
+        own = [[_nonzero(mc.axis_columns(i))[order]] for i in range(3)]
     else:   # delay: first-order proxy, the reference's rate of change in DUT units (per DUT axis)
         t = gap.session.t_s
         dt = np.diff(t)
         h = 0.25 * float(np.median(dt[dt > 0])) if np.any(dt > 0) else 1e-3
         u = (gap.skew_columns(np.full(3, h), nl.shift_axes) - gap.skew_columns(np.full(3, -h), nl.shift_axes)) / (2 * h)
-        own = [[u] for _ in range(3)]
+        own = [[u[order]] for _ in range(3)]
     out = []
     for i in range(3):
         opts, k = [], 0
         for o in own[i]:
             opts.append(np.arange(k, k + o.shape[1]))
             k += o.shape[1]
-        out.append(AxisDesign(np.hstack(own[i]) if own[i] else np.zeros((gap.n, 0)), opts))
+        out.append(AxisDesign(np.ascontiguousarray(np.hstack(own[i])) if own[i] else np.zeros((order.size, 0)), opts))
     return out
 
 
@@ -364,14 +413,12 @@ def candidate_designs(gap: Gap, cand) -> list[AxisDesign]:
 def prepare(gap: Gap, cand, shared: Shared):
     """(observed T, function mapping surrogates (N,3,k) in fold order to their T (k,), floats its own
     columns hold)."""
-    designs = candidate_designs(gap, cand)
-    for d in designs:
-        d.O = np.ascontiguousarray(d.O[shared.order])
+    designs = candidate_designs(gap, cand, shared.order)
     held = [HeldOut(shared, i, d) for i, d in enumerate(designs)]
 
     def statistic(Ys: np.ndarray) -> np.ndarray:
         return sum(held[i].reduction(Ys) for i in range(3))
-    t_obs = float(statistic(gap.target[shared.order][:, :, None])[0])
+    t_obs = float(statistic(np.ascontiguousarray(gap.target[shared.order].T[:, None, :]))[0])
     return t_obs, statistic, sum(d.O.size for d in designs)
 
 
@@ -415,8 +462,9 @@ def surrogate_tests(gap: Gap, cands: list, base: Block, fold: np.ndarray, templa
     ``template_uT`` (see the module docs). Each batch of surrogates is drawn once and serves every
     candidate still under test; candidates are prepared in groups of at most ``DESIGN_FLOATS`` design
     floats (memory bounded for any number of rows). Also returns the noise model's summary."""
-    n = gap.n
-    src = SurrogateSource(template_uT, seed)
+    rows = test_rows(gap.n)
+    n = rows.size
+    src = SurrogateSource(np.asarray(template_uT)[rows], seed)
     kmax = max_surrogates or int(min(MAX_SURROGATES, max(MIN_SURROGATES, ROW_BUDGET // max(n, 1))))
     batch = int(max(1, min(199, BATCH_FLOATS // (3 * n))))
     out: list[SurrogateResult | None] = [None] * len(cands)
@@ -429,13 +477,13 @@ def surrogate_tests(gap: Gap, cands: list, base: Block, fold: np.ndarray, templa
         k = 0
         while active:
             m = min(batch, kmax - k)
-            Ys = np.ascontiguousarray(src.draw(m)[shared.order])
+            Ys = src.draw(m, shared.pos)                                # (3,k,n) in fold order
             k += m
             active = [(i, t) for i, t in active if not t.update(Ys, k, kmax, p_needed)]
         for i, t in group:
             out[i] = t.result
 
-    shared = Shared(gap, base, fold)
+    shared = Shared(gap, base, fold, rows)
     for i, c in enumerate(cands):
         t_obs, statistic, size = prepare(gap, c, shared)
         if not t_obs > 0:

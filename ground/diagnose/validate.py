@@ -400,7 +400,7 @@ def _table_case(change: str, seed: int, duration_s: float, opts, table_gap):
     from magstack.firmware.cal_table import table_from_fit
     from magstack.firmware.calibration import FitData, fit
     from magstack.ground.diagnose import attach_rows
-    from magstack.ground.diagnose.gap import check_rows
+    from magstack.ground.diagnose.gap import check_rows, kept_rows
 
     clean = simulate(None, 0.0, seed, duration_s)
     res = fit(FitData.from_session(clean), "gain_offset", options=_fit_options())
@@ -414,7 +414,7 @@ def _table_case(change: str, seed: int, duration_s: float, opts, table_gap):
     later = simulate(None, 0.0, seed + 1, duration_s, params=p, effects=eff)
     later.t_s = later.t_s + duration_s + 600.0   # a later run of the same program
     full, keep, notes = check_rows(later, exclude_bends=opts.exclude_bends)
-    g = table_gap(full.select(keep), table, "validation table")
+    g = table_gap(kept_rows(full, keep), table, "validation table")
     return diagnose(attach_rows(g, full, keep, notes), opts)
 
 

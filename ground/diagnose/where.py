@@ -45,15 +45,19 @@ def _bands(r: np.ndarray, v: np.ndarray, edges) -> list[dict]:
 
 def field_rate_uT_per_s(b_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray) -> np.ndarray:
     """|dB/dt| (uT/s) by differences inside contiguous runs (0 at single-sample runs)."""
-    run = runs(t_s, session)
     out = np.zeros(t_s.size)
-    for k in np.unique(run):
-        idx = np.flatnonzero(run == k)
-        if idx.size < 2:
+    for idx in run_slices(runs(t_s, session)):
+        if idx.stop - idx.start < 2:
             continue
         g = np.gradient(b_uT[idx], t_s[idx], axis=0)
         out[idx] = np.linalg.norm(g, axis=1)
     return out
+
+
+def run_slices(run: np.ndarray) -> list[slice]:
+    """The rows of each contiguous run as slices (``nonlinear.runs`` numbers runs in row order)."""
+    start = np.r_[0, np.flatnonzero(np.diff(run)) + 1]
+    return [slice(int(a), int(b)) for a, b in zip(start, np.r_[start[1:], run.size], strict=True)]
 
 
 def breakdowns(r: np.ndarray, s: Session, blocks: np.ndarray) -> dict:
@@ -75,13 +79,17 @@ def breakdowns(r: np.ndarray, s: Session, blocks: np.ndarray) -> dict:
     for d in out["session"]:
         d.pop("lo")
         d.pop("hi")
-    tb = []
-    for b in np.unique(blocks):
-        m = blocks == b
-        tb.append({"t_mid_s": float(np.mean(s.t_s[m])), "session": int(s.session[m][0]),
-                   "rms_norm_nT": float(np.linalg.norm(np.sqrt(np.mean(r[m] ** 2, axis=0))) * 1e3),
-                   "mean_nT": [float(v) for v in np.mean(r[m], axis=0) * 1e3]})
-    out["time_blocks"] = tb
+    ids, first, inv, cnt = np.unique(blocks, return_index=True, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+
+    def per_block(w):
+        return np.bincount(inv, weights=w, minlength=ids.size) / cnt
+    t_mid = per_block(s.t_s)
+    ms = np.column_stack([per_block(r[:, i] ** 2) for i in range(3)])
+    mean = np.column_stack([per_block(r[:, i]) for i in range(3)]) * 1e3
+    out["time_blocks"] = [{"t_mid_s": float(t_mid[b]), "session": int(s.session[first[b]]),
+                           "rms_norm_nT": float(np.linalg.norm(np.sqrt(ms[b])) * 1e3),
+                           "mean_nT": [float(v) for v in mean[b]]} for b in range(ids.size)]
     return out
 
 
@@ -94,9 +102,9 @@ def spectrum(r: np.ndarray, t_s: np.ndarray, session: np.ndarray) -> dict:
     x *= 1e3
     run = runs(t_s, session)
     uniform, dts = True, []
-    for k in np.unique(run):
-        idx = np.flatnonzero(run == k)
-        if idx.size < 2:
+    slices = run_slices(run)
+    for idx in slices:
+        if idx.stop - idx.start < 2:
             continue
         d = np.diff(t_s[idx])
         med = float(np.median(d))
@@ -107,7 +115,7 @@ def spectrum(r: np.ndarray, t_s: np.ndarray, session: np.ndarray) -> dict:
         uniform = False
     if uniform and dts:
         fs = 1.0 / float(np.median(dts))
-        lens = {k: int(np.sum(run == k)) for k in np.unique(run)}
+        lens = {k: sl.stop - sl.start for k, sl in enumerate(slices)}
         nper = 256
         while nper > 16 and sum(v for v in lens.values() if v >= nper) < 0.5 * t_s.size:
             nper //= 2
@@ -115,7 +123,7 @@ def spectrum(r: np.ndarray, t_s: np.ndarray, session: np.ndarray) -> dict:
         for k, n_k in lens.items():
             if n_k < nper:
                 continue
-            idx = np.flatnonzero(run == k)
+            idx = slices[k]
             f, p = scipy.signal.welch(x[idx], fs=fs, nperseg=nper, axis=0)
             acc = p * n_k if acc is None else acc + p * n_k
             wsum += n_k

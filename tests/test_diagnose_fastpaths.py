@@ -1,0 +1,143 @@
+"""The diagnosis's fast paths (issue 25) against the plain computations they replace, on small data.
+
+Each fast path must give what the direct least squares gives: the tone fit's per-session 2 x 2 solves
+against lstsq of the full sine/cosine design, the separable delay search against the coordinate
+search of the training SSE, the surrogate test's precomputed fold solves against solving each time.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from magstack.ground.diagnose import noise
+
+
+def _sin_cos_design(t, f, session):
+    cols = []
+    for k in np.unique(session):
+        m = session == k
+        cols += [np.where(m, np.sin(2 * np.pi * f * t), 0.0), np.where(m, np.cos(2 * np.pi * f * t), 0.0)]
+    return np.column_stack(cols)
+
+
+def test_tone_fit_per_session_equals_the_full_design_lstsq():
+    rng = np.random.default_rng(4)
+    t = np.sort(rng.uniform(0, 600, 3000))
+    session = np.repeat([0, 1, 2], 1000)
+    session[-3:] = 7                                  # a 3-row session
+    x = rng.standard_normal((3000, 3)) + 0.5 * np.sin(2 * np.pi * 0.013 * t + session)[:, None]
+    f = 0.01307
+    X = _sin_cos_design(t, f, session)
+    coef, *_ = np.linalg.lstsq(X, x, rcond=None)
+    want = X @ coef
+    _, inv = np.unique(session, return_inverse=True)
+    ss, fit = noise._explained(x, np.exp(2j * np.pi * f * t), inv.ravel(), 4)
+    assert np.allclose(fit, want, atol=1e-10)
+    assert np.isclose(ss, float(np.sum(want ** 2)), rtol=1e-10)
+
+
+def test_tone_fit_of_a_session_too_short_to_tell_sine_from_cosine_is_the_minimum_norm_fit():
+    t = np.array([0.0, 1.0, 2.0, 3.0, 10.0])
+    session = np.array([0, 0, 0, 0, 1])               # session 1: one row, a rank-1 2 x 2 system
+    x = np.arange(15.0).reshape(5, 3)
+    f = 0.1
+    X = _sin_cos_design(t, f, session)
+    coef, *_ = np.linalg.lstsq(X, x, rcond=None)
+    _, fit = noise._explained(x, np.exp(2j * np.pi * f * t), np.array([0, 0, 0, 0, 1]), 2)
+    assert np.allclose(fit, X @ coef, atol=1e-9)
+
+
+def _skewed_session(n=1800, seed=2):
+    from magstack.data.session import Session
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / 2.5
+    w = 2 * np.pi * np.array([1 / 37.0, 1 / 53.0, 1 / 71.0])
+    def field(tt):
+        return np.column_stack([40 * np.sin(w[0] * tt), 35 * np.cos(w[1] * tt), 30 * np.sin(w[2] * tt + 1)])
+    ref = field(t)
+    late = np.column_stack([field(t - d)[:, j] for j, d in enumerate([0.12, 0.0, -0.07])])
+    dut = late @ np.array([[1.05, 0.01, 0], [0, 0.97, 0.02], [0.01, 0, 1.02]]).T + 0.4
+    dut += rng.standard_normal((n, 3)) * 0.03
+    return Session(t, ref, dut, np.full(n, 25.0), np.repeat([0, 1, 2], n // 3), {})
+
+
+def test_separable_delay_search_finds_what_the_coordinate_search_finds_for_every_fold():
+    from magstack.ground.diagnose import nonlinear as nl
+    from magstack.ground.diagnose import search as sr
+    from magstack.ground.diagnose.gap import model_gap
+    s = _skewed_session()
+    gap = model_gap(s, ("gain_matrix", "offset"), (), "test")
+    fold = np.repeat(np.arange(5), -(-s.t_s.size // 5))[: s.t_s.size][np.random.default_rng(0).permutation(s.t_s.size)]
+    grid = nl.delay_grid(s.t_s)
+    fold_d, all_d = sr.delay_searches(gap, fold, grid)
+    for f, d in zip(np.unique(fold), fold_d, strict=True):
+        want = nl.search_delays(sr.delay_sse_fn(gap, fold != f), grid)
+        assert np.allclose(d, want, atol=1e-9 * np.ptp(grid))
+    want_all = nl.search_delays(sr.delay_sse_fn(gap, np.ones(s.t_s.size, bool)), grid)
+    assert np.allclose(all_d, want_all, atol=1e-9 * np.ptp(grid))
+    # the DUT's x reads the field of 0.12 s before (dt = -0.12: "reads the field at t + dt"), z of 0.07 s
+    # after (grid spacing 0.071 s)
+    assert abs(all_d[0] + 0.12) < 0.03 and abs(all_d[1]) < 0.03 and abs(all_d[2] - 0.07) < 0.03
+
+
+def test_coupled_deskew_keeps_the_coordinate_search():
+    from magstack.ground.diagnose import nonlinear as nl
+    from magstack.ground.diagnose import search as sr
+    from magstack.ground.diagnose.gap import model_gap
+    s = _skewed_session(900)
+    gap = model_gap(s, ("gain_matrix", "offset"), (), "test")
+    gap.deskew_J = np.array([[1.0, 0.1, 0], [0, 1.0, 0], [0, 0, 1.0]])    # a table's gain matrix couples the axes
+    fold = np.arange(s.t_s.size) % 3
+    grid = nl.delay_grid(s.t_s)
+    fold_d, all_d = sr.delay_searches(gap, fold, grid)
+    assert np.allclose(all_d, nl.search_delays(sr.delay_sse_fn(gap, np.ones(s.t_s.size, bool)), grid))
+    assert np.allclose(fold_d[1], nl.search_delays(sr.delay_sse_fn(gap, fold != 1), grid))
+
+
+def test_surrogate_statistic_with_precomputed_fold_solves_is_the_held_out_sse_reduction():
+    """T of a linear candidate on the session's own target (surrogate.prepare) against per-fold least
+    squares: SSE(base) - SSE(base + candidate) on each fold's held-out rows, fitted on the others."""
+    from magstack.ground.diagnose import search as sr
+    from magstack.ground.diagnose import surrogate as su
+    from magstack.ground.diagnose.gap import model_gap
+    s = _skewed_session(1500, seed=5)
+    s.temp_c = 20 + 10 * np.sin(np.arange(1500) / 300.0)
+    s.dut_uT[:, 0] += 0.02 * (s.temp_c - 25)
+    gap = model_gap(s, ("gain_matrix", "offset"), (), "test")
+    base = gap.base_design()
+    cands, _, _ = sr.build_candidates(gap, base)
+    cand = next(c for c in cands if c.effect == "temperature_offset")
+    fold = np.arange(1500) * 5 // 1500
+    shared = su.Shared(gap, base, fold, su.test_rows(gap.n))
+    t_obs, _, _ = su.prepare(gap, cand, shared)
+    own = sr.linear_block(gap, cand.effect, cand.terms)
+    want = 0.0
+    for i in range(3):
+        Bi = base.X[:, base.mask[i]]
+        Zi = np.hstack([Bi, own.X[:, own.mask[i]]])
+        y = gap.target[:, i]
+        for f in range(5):
+            tr, te = fold != f, fold == f
+            for X, sign in ((Bi, 1.0), (Zi, -1.0)):
+                th, *_ = np.linalg.lstsq(X[tr], y[tr], rcond=None)
+                want += sign * float(np.sum((y[te] - X[te] @ th) ** 2))
+    assert np.isclose(t_obs, want, rtol=1e-8)
+
+
+def test_surrogate_test_rows_thin_long_sessions_evenly():
+    from magstack.ground.diagnose import surrogate as su
+    assert su.test_rows(1000).size == 1000
+    r = su.test_rows(su.MAX_TEST_ROWS * 3 + 1)
+    assert r.size <= su.MAX_TEST_ROWS and np.all(np.diff(r) == 4)
+
+
+def test_chunked_excitation_check_agrees_with_the_least_squares_residual():
+    from magstack.ground.diagnose import search as sr
+    rng = np.random.default_rng(1)
+    n = 3 * sr.EXCITATION_CHUNK + 17
+    base = np.column_stack([np.ones(n), rng.standard_normal(n), np.linspace(0, 1, n)])
+    inside = base @ np.array([[0.3], [2.0], [-1.0]])                     # a combination of the base columns
+    assert not sr._excited(inside, base)
+    nudged = inside.copy()
+    nudged[n // 2, 0] += 1e-2 * np.linalg.norm(inside)                    # one row off the base's span
+    assert sr._excited(nudged, base)
+    assert sr._excited(np.hstack([inside, rng.standard_normal((n, 1))]), base)
