@@ -60,9 +60,10 @@ def _skewed_session(n=1800, seed=2):
     return Session(t, ref, dut, np.full(n, 25.0), np.repeat([0, 1, 2], n // 3), {})
 
 
-def test_separable_delay_search_finds_what_the_coordinate_search_finds_for_every_fold():
+def test_separable_delay_search_finds_what_the_coordinate_search_finds_for_every_fold(monkeypatch):
     from magstack.ground.diagnose import nonlinear as nl
     from magstack.ground.diagnose import search as sr
+    monkeypatch.setattr(sr, "FOLD_CHUNK", 256)       # per-fold sums over several row chunks
     from magstack.ground.diagnose.gap import model_gap
     s = _skewed_session()
     gap = model_gap(s, ("gain_matrix", "offset"), (), "test")
@@ -141,3 +142,38 @@ def test_chunked_excitation_check_agrees_with_the_least_squares_residual():
     nudged[n // 2, 0] += 1e-2 * np.linalg.norm(inside)                    # one row off the base's span
     assert sr._excited(nudged, base)
     assert sr._excited(np.hstack([inside, rng.standard_normal((n, 1))]), base)
+
+
+def test_hysteresis_threshold_choice_by_normal_equations_is_the_refit_choice():
+    """choose_thresholds against refitting base + hysteresis_block for every option (the search's rule)."""
+    from magstack.ground.diagnose import nonlinear as nl
+    from magstack.ground.diagnose import search as sr
+    from magstack.ground.diagnose.gap import model_gap, predict, solve
+    s = _skewed_session(2400, seed=7)
+    exc = (np.arange(2400) % 800 >= 100) & (np.arange(2400) % 800 < 220)   # one large X excursion per power cycle
+    s.ref_uT[exc, 0] = 180.0 * np.where(np.arange(2400)[exc] // 800 % 2, -1, 1)
+    s.dut_uT[exc, 0] = 1.05 * s.ref_uT[exc, 0]
+    state = nl.hysteresis_state(s.dut_uT, np.array([150.0, np.inf, np.inf]), np.array([1.0, 1, 1]))
+    s.dut_uT += 0.3 * state[:, :1]
+    gap = model_gap(s, ("gain_matrix", "offset"), (), "test")
+    base = gap.base_design()
+    cands = nl.hysteresis_thresholds(*gap.history())
+    assert any(cands)
+    rows = np.arange(2400) % 5 != 2
+    got = sr.choose_thresholds(gap, base, gap.target, cands, rows)
+    thr, init = np.full(3, np.inf), np.ones(3)
+    for j in range(3):
+        best = (np.inf, None, None)
+        for c in cands[j]:
+            for s0 in (-1.0, 1.0):
+                t_, i_ = thr.copy(), init.copy()
+                t_[j], i_[j] = c, s0
+                from magstack.ground.diagnose.gap import Block
+                blk = Block.join([base, sr.hysteresis_block(gap, t_, i_)], gap.n)
+                th = solve(blk.X, gap.target, blk.mask, rows)
+                sse = float(np.sum((gap.target[rows] - predict(blk.X[rows], th, blk.mask)) ** 2))
+                if sse < best[0]:
+                    best = (sse, c, s0)
+        if best[1] is not None:
+            thr[j], init[j] = best[1], best[2]
+    assert np.array_equal(got[0], thr) and np.array_equal(got[1], init)

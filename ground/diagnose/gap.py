@@ -138,19 +138,25 @@ class Gap:
         A = self._dut_image()
         d = np.asarray(delay_s, dtype=float)
         out = np.zeros((self.n, 3))
-        cache = self.__dict__.setdefault("_skew_cache", {}) if cache else {}
-        moved = {}                      # one shift of the reference per distinct delay, shared by the axes
+        cache = self.__dict__.setdefault("_skew_cache", {}) if cache else None
+        todo = []
         for j in range(3):
             if d[j] != 0:
-                key = (j, float(d[j]))
-                col = cache.get(key)
+                col = None if cache is None else cache.get((j, float(d[j])))
                 if col is None:
-                    if len(cache) * self.n > SKEW_CACHE_FLOATS:
-                        cache.clear()
-                    if key[1] not in moved:
-                        moved[key[1]] = (shift_fn(ref, t, run, np.full(3, -d[j])) - ref)[keep]
-                    col = cache[key] = moved[key[1]] @ A[j]
-                out[:, j] = col
+                    todo.append(j)
+                else:
+                    out[:, j] = col
+        for dv in sorted({float(d[j]) for j in todo}):   # one shift of the reference per distinct delay
+            moved = (shift_fn(ref, t, run, np.full(3, -dv)) - ref)[keep]
+            for j in todo:
+                if float(d[j]) == dv:
+                    out[:, j] = moved @ A[j]
+                    if cache is not None:
+                        if len(cache) * self.n > SKEW_CACHE_FLOATS:
+                            cache.clear()
+                        cache[(j, dv)] = out[:, j].copy()
+            del moved
         return out
 
     def deskewed(self, F: np.ndarray, base: Block | None = None) -> tuple[Block, np.ndarray]:

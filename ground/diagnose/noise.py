@@ -53,7 +53,8 @@ def lag_s(t_s: np.ndarray) -> float:
     return float(max(MIN_LAG_S, LAG_SPACINGS * (float(np.median(pos)) if pos.size else 0.0)))
 
 
-def _explained(x: np.ndarray, z: np.ndarray, inv: np.ndarray, n_sess: int) -> tuple[float, np.ndarray]:
+def _explained(x: np.ndarray, z: np.ndarray, inv: np.ndarray, n_sess: int,
+               want_fit: bool = True) -> tuple[float, np.ndarray | None]:
     """Least-squares fit of ``a sin + b cos`` per session (a phase per power cycle) to ``x`` (N,3), with
     ``z = exp(i 2 pi f t)`` (N,) and ``inv`` the session index of each row: (explained sum of squares, fit
     (N,3)). The sessions' columns are disjoint, so each session is its own 2 x 2 normal-equation solve
@@ -69,7 +70,10 @@ def _explained(x: np.ndarray, z: np.ndarray, inv: np.ndarray, n_sess: int) -> tu
     for a in range(x.shape[1]):
         C[:, 0, a], C[:, 1, a] = per_session(s * x[:, a]), per_session(c * x[:, a])
     coef = np.linalg.pinv(G, rcond=1e-12, hermitian=True) @ C           # (sessions, 2, 3)
-    fit = s[:, None] * coef[inv, 0, :] + c[:, None] * coef[inv, 1, :]
+    if not want_fit:
+        return float(np.sum(coef * C)), None
+    fit = s[:, None] * coef[inv, 0, :]
+    fit += c[:, None] * coef[inv, 1, :]
     return float(np.sum(coef * C)), fit
 
 
@@ -79,7 +83,7 @@ def _scan(x: np.ndarray, t: np.ndarray, freqs: np.ndarray, inv: np.ndarray, n_se
     z, step = np.exp(2j * np.pi * freqs[0] * t), np.exp(2j * np.pi * (freqs[1] - freqs[0]) * t)
     vals = np.empty(freqs.size)
     for j in range(freqs.size):
-        vals[j] = _explained(x, z, inv, n_sess)[0]
+        vals[j] = _explained(x, z, inv, n_sess, want_fit=False)[0]
         z = z * step
     return vals
 
@@ -125,6 +129,7 @@ def find_tones(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray) -> tu
         # the power maximum near the flagged bin (the ratio can peak on the flank), refined on the real times
         near = np.arange(max(k - 3, 0), min(k + 4, P.shape[0]))
         k = int(near[np.argmax(P[near].sum(axis=1))])
+        del y, P, local, ratio          # the periodogram's arrays are not needed for the refinement
         df = 1.0 / (L * spacing * stride)
         # the explained power's maximum within 2 bins, to 0.1 bin: a 0.5-bin grid, then 0.1 bin around its best
         # (the main lobe is 2 bins wide: the 41-point 0.1-bin grid's maximum, at half the evaluations)
@@ -133,7 +138,7 @@ def find_tones(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray) -> tu
         fine = c0 + df * np.linspace(-0.5, 0.5, 11)
         f_best = float(fine[int(np.argmax(_scan(x, t, fine, inv, ids.size)))])
         _, fit = _explained(x, np.exp(2j * np.pi * f_best * t), inv, ids.size)
-        x = x - fit
+        x -= fit                         # x is this function's own copy
         amp = np.sqrt(2.0 * np.mean(fit ** 2, axis=0))
         tones.append({"freq_hz": f_best, "amplitude_nT": [float(a * 1e3) for a in amp],
                       "ratio_to_local_spectrum": float(score[k])})

@@ -469,21 +469,39 @@ def hysteresis_block(gap: Gap, thresholds: np.ndarray, initial: np.ndarray | Non
 def choose_thresholds(gap: Gap, base: Block, Y: np.ndarray, cands: list, rows: np.ndarray
                       ) -> tuple[np.ndarray, np.ndarray]:
     """Per axis (axis by axis), the candidate threshold and the initial state (-1 or +1: the unknown
-    remanence before the axis' first excursion) with the lowest training SSE on ``rows``."""
+    remanence before the axis' first excursion) with the lowest training SSE on ``rows`` of base +
+    hysteresis_block (the axes decided before and the trial one). Each option's SSE from normal equations:
+    the base's Gram matrix on ``rows`` once, per option only the products with its state column."""
+    hist, idx = gap.history()
+    sel = idx[rows]
+    Xb, mb = base.X[rows], base.mask
+    if "offset" not in gap.base_terms:      # hysteresis_block carries the constant the base lacks
+        off = gap.term_design(("offset",))
+        Xb, mb = np.hstack([Xb, off.X[rows]]), np.hstack([mb, off.mask])
+    Yr = Y[rows]
+    Gb, Cb, yy = Xb.T @ Xb, Xb.T @ Yr, float(np.sum(Yr ** 2))
     thr = np.full(3, np.inf)
     init = np.ones(3)
+    chosen: list[np.ndarray] = []           # state columns (on rows) of the axes decided so far
     for j in range(3):
-        best, best_init, best_sse = np.inf, 1.0, np.inf
+        best, best_init, best_sse, best_col = np.inf, 1.0, np.inf, None
         for c in cands[j]:
             for s0 in (-1.0, 1.0):
-                trial, ti = thr.copy(), init.copy()
-                trial[j], ti[j] = c, s0
-                blk = Block.join([base, hysteresis_block(gap, trial, ti)], gap.n)
-                th = solve(blk.X, Y, blk.mask, rows)
-                sse = float(np.sum((Y[rows] - predict(blk.X[rows], th, blk.mask)) ** 2))
+                one, ini = np.full(3, np.inf), np.ones(3)
+                one[j], ini[j] = c, s0
+                col = nl.hysteresis_state(hist, one, ini)[sel, j]
+                E = np.column_stack(chosen + [col])
+                XE = Xb.T @ E
+                G = np.block([[Gb, XE], [XE.T, E.T @ E]])
+                C = np.vstack([Cb, E.T @ Yr])
+                mask = np.hstack([mb, np.ones((3, E.shape[1]), bool)])
+                th = solve_gram(G, C, mask)
+                sse = yy - float(np.sum(th * C.T))
                 if sse < best_sse:
-                    best, best_init, best_sse = c, s0, sse
+                    best, best_init, best_sse, best_col = c, s0, sse, col
         thr[j], init[j] = best, best_init
+        if best_col is not None:
+            chosen.append(best_col)
     return thr, init
 
 
@@ -549,6 +567,22 @@ def delay_sse_fn(gap: Gap, rows: np.ndarray):
     return sse_of
 
 
+#: Rows per chunk of per-fold products (fold_products).
+FOLD_CHUNK = 65536
+
+
+def fold_products(A: np.ndarray, B: np.ndarray, code: np.ndarray, n_folds: int) -> np.ndarray:
+    """(folds, a, b): ``A_f^T B_f`` over the rows of each fold (``code`` 0..n_folds-1), in row chunks (no
+    N-row copy of A or B)."""
+    out = np.zeros((n_folds, A.shape[1], B.shape[1]))
+    for a in range(0, A.shape[0], FOLD_CHUNK):
+        c, Ac, Bc = code[a:a + FOLD_CHUNK], A[a:a + FOLD_CHUNK], B[a:a + FOLD_CHUNK]
+        for f in np.unique(c):
+            m = c == f
+            out[f] += Ac[m].T @ Bc[m]
+    return out
+
+
 def delay_searches(gap: Gap, fold: np.ndarray, grid: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
     """Delays (3,) s minimising the training SSE with each fold left out (in ``np.unique(fold)`` order) and
     on all rows: what ``nonlinear.search_delays(delay_sse_fn(gap, rows), grid)`` finds for each row set.
@@ -568,20 +602,19 @@ def delay_searches(gap: Gap, fold: np.ndarray, grid: np.ndarray) -> tuple[list[n
         return found[:-1], found[-1]
     jd = np.diag(J)
     base = gap.base_design()
-    order = np.argsort(fold, kind="stable")
-    ends = np.cumsum(np.unique(fold, return_counts=True)[1])
-    sl = [slice(int(e - c), int(e)) for e, c in zip(ends, np.diff(np.r_[0, ends]), strict=True)]
-    X, t0 = base.X[order], gap.target[order]
-    G = np.array([X[s].T @ X[s] for s in sl])                        # (folds, p, p)
-    Xt = np.array([X[s].T @ t0[s] for s in sl])                      # (folds, p, 3)
-    tt = np.array([np.sum(t0[s] ** 2, axis=0) for s in sl])          # (folds, 3)
+    code = np.searchsorted(folds, fold)                              # fold index 0..folds-1 per row
+    X, t0 = base.X, gap.target
+    G = fold_products(X, X, code, folds.size)                        # (folds, p, p)
+    Xt = fold_products(X, t0, code, folds.size)                      # (folds, p, 3)
+    tt = np.column_stack([np.bincount(code, t0[:, i] ** 2, folds.size) for i in range(3)])
     sets = [np.arange(folds.size) != k for k in range(folds.size)] + [np.ones(folds.size, bool)]
     sse = np.zeros((len(sets), 3, grid.size))
     for g, d in enumerate(grid):
-        F = gap.skew_columns(np.full(3, d), nl.shift_axes, cache=False)[order]
-        XF = np.array([X[s].T @ F[s] for s in sl])                  # (folds, p, 3)
-        tF = np.array([np.sum(t0[s] * F[s], axis=0) for s in sl])    # (folds, 3)
-        FF = np.array([np.sum(F[s] ** 2, axis=0) for s in sl])       # (folds, 3)
+        F = gap.skew_columns(np.full(3, d), nl.shift_axes, cache=False)
+        XF = fold_products(X, F, code, folds.size)                   # (folds, p, 3)
+        tF = np.column_stack([np.bincount(code, t0[:, i] * F[:, i], folds.size) for i in range(3)])
+        FF = np.column_stack([np.bincount(code, F[:, i] ** 2, folds.size) for i in range(3)])
+        del F
         for e, use in enumerate(sets):
             Ge = G[use].sum(axis=0)
             c = Xt[use].sum(axis=0) + XF[use].sum(axis=0) * jd[None, :]
@@ -669,10 +702,21 @@ def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: n
         r = np.full(Y.shape, np.nan)
         grid = nl.delay_grid(gap.session.t_s)
         fold_d, all_d = delay_searches(gap, fold, grid)
-        for f, d in zip(np.unique(fold), fold_d, strict=True):
+        folds = np.unique(fold)
+        fixed = gap.deskew_J is not None and gap.rotation is None
+        if fixed:   # the design does not move with the delay: its fold Gram matrices once, no N-row copies
+            code = np.searchsorted(folds, fold)
+            Gf = fold_products(base.X, base.X, code, folds.size)
+        for k, (f, d) in enumerate(zip(folds, fold_d, strict=True)):
             test, train = fold == f, fold != f
-            blk, Yd = gap.deskewed(gap.skew_columns(d, nl.shift_axes, cache=False))
-            r[test] = fold_residual(gap, blk, Yd, train, test)
+            blk, Yd = gap.deskewed(gap.skew_columns(d, nl.shift_axes, cache=False), base)
+            if fixed:
+                Cf = fold_products(base.X, Yd, code, folds.size)
+                th = solve_gram(Gf.sum(axis=0) - Gf[k], Cf.sum(axis=0) - Cf[k], base.mask)
+                r[test] = Yd[test] - predict(base.X[test], th, base.mask)
+            else:
+                r[test] = fold_residual(gap, blk, Yd, train, test)
+            del blk, Yd
         gap.__dict__.pop("_skew_cache", None)       # the searched delays' columns are not used again
         cols = gap.term_design(("time_skew",)).X
     sse = block_sse(r, blocks, nb)
