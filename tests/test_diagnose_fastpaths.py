@@ -177,3 +177,41 @@ def test_hysteresis_threshold_choice_by_normal_equations_is_the_refit_choice():
         if best[1] is not None:
             thr[j], init[j] = best[1], best[2]
     assert np.array_equal(got[0], thr) and np.array_equal(got[1], init)
+
+
+def test_lag_and_linear_columns_built_on_a_row_subset_equal_the_whole_gaps_rows():
+    """The surrogate test builds row-wise candidate columns on its tested rows only (Gap.rows_view)."""
+    from magstack.ground.diagnose import search as sr
+    from magstack.ground.diagnose.gap import model_gap
+    s = _skewed_session(1500, seed=3)
+    s.temp_c = 20 + 10 * np.sin(np.arange(1500) / 200.0)
+    gap = model_gap(s, ("gain_matrix", "offset"), (), "test")
+    rows = np.arange(0, 1500, 7)
+    whole = sr.lag_block(gap, 60.0)
+    assert np.allclose(sr.lag_block(gap, 60.0, rows).X, whole.X[rows], rtol=0, atol=1e-12)
+    cands, _, _ = sr.build_candidates(gap, gap.base_design())
+    linear = [c for c in cands if c.kind == "linear"]
+    assert {"temperature_gain", "cross_axis", "nonlinearity"} <= {c.effect for c in linear}
+    for c in linear:
+        full = sr.linear_block(gap, c.effect, c.terms)
+        sub = sr.linear_block(gap.rows_view(rows), c.effect, c.terms)
+        if c.effect == "drift":     # the pivot is the rows' mean time: the same span with the constant
+            assert np.allclose(np.diff(sub.X, axis=0), np.diff(full.X[rows], axis=0), atol=1e-12)
+            continue
+        assert np.allclose(sub.X, full.X[rows], rtol=0, atol=1e-12), c.effect
+
+
+def test_out_of_fold_over_blocks_in_chunks_equals_the_joined_design(monkeypatch):
+    from magstack.ground.diagnose import gap as gp
+    from magstack.ground.diagnose.gap import Block, out_of_fold, out_of_fold_blocks
+    monkeypatch.setattr(gp, "OOF_CHUNK", 97)
+    rng = np.random.default_rng(8)
+    n = 1000
+    a = Block(rng.standard_normal((n, 4)), np.array([[1, 1, 0, 1], [1, 0, 1, 1], [0, 1, 1, 1]], bool),
+              [["a"] * 4] * 3, ["u"] * 4)
+    b = Block(rng.standard_normal((n, 2)), np.array([[1, 0], [0, 1], [1, 1]], bool), [["b"] * 2] * 3, ["u"] * 2)
+    Y = rng.standard_normal((n, 3))
+    fold = rng.integers(0, 5, n)
+    j = Block.join([a, b], n)
+    want, _ = out_of_fold(j.X, Y, j.mask, fold)
+    assert np.allclose(out_of_fold_blocks([a, b], Y, fold), want, rtol=0, atol=1e-10)

@@ -159,6 +159,17 @@ class Gap:
             del moved
         return out
 
+    def rows_view(self, rows: np.ndarray) -> Gap:
+        """This gap on ``rows`` (indices), to build row-wise candidate columns for those rows only: session,
+        target and predictor taken down; the reference's DUT-space image (:meth:`_dut_image`) stays the whole
+        gap's. Terms that are not row-wise (time derivatives, shifts, histories) must not be built here; the
+        drift pivot (the rows' mean time) and the session list may differ from the whole gap's, which leaves
+        the span of columns with a constant unchanged."""
+        g = dataclasses.replace(self, session=self.session.select(rows), target=self.target[rows],
+                                predictor_uT=self.predictor_uT[rows], notes=list(self.notes))
+        g._A = self._dut_image()
+        return g
+
     def deskewed(self, F: np.ndarray, base: Block | None = None) -> tuple[Block, np.ndarray]:
         """(base design, target) with the DUT reading corrected by ``F`` (N,3); ``base``: the base design when
         the caller has it (it does not depend on ``F`` where ``deskew_J`` moves only the target)."""
@@ -387,6 +398,40 @@ def out_of_fold(X: np.ndarray, Y: np.ndarray, mask: np.ndarray, fold: np.ndarray
     return resid, thetas
 
 
+#: Rows per chunk of :func:`out_of_fold_blocks`.
+OOF_CHUNK = 65536
+
+
+def out_of_fold_blocks(blocks: Sequence[Block], Y: np.ndarray, fold: np.ndarray) -> np.ndarray:
+    """:func:`out_of_fold`'s residual (N,3) for the design ``Block.join(blocks)``, never formed: its fold
+    normal equations and each fold's predictions are built in row chunks of OOF_CHUNK (memory of one chunk
+    of the joined design instead of N rows of it)."""
+    folds = np.unique(fold)
+    code = np.searchsorted(folds, fold)
+    mask = np.hstack([b.mask for b in blocks])
+    p = mask.shape[1]
+    G, C = np.zeros((folds.size, p, p)), np.zeros((folds.size, p, Y.shape[1]))
+    counts = np.bincount(code, minlength=folds.size)
+    chunks = [slice(a, a + OOF_CHUNK) for a in range(0, Y.shape[0], OOF_CHUNK)]
+    for sl in chunks:
+        X, c = np.hstack([b.X[sl] for b in blocks]), code[sl]
+        for f in np.unique(c):
+            m = c == f
+            G[f] += X[m].T @ X[m]
+            C[f] += X[m].T @ Y[sl][m]
+    theta = [None if (Y.shape[0] - counts[f]) <= p or counts[f] == 0 else
+             solve_gram(G.sum(axis=0) - G[f], C.sum(axis=0) - C[f], mask) for f in range(folds.size)]
+    resid = np.full(Y.shape, np.nan)
+    for sl in chunks:
+        X, c = np.hstack([b.X[sl] for b in blocks]), code[sl]
+        for f in np.unique(c):
+            if theta[f] is not None:
+                m = c == f
+                rows = np.flatnonzero(m) + sl.start
+                resid[rows] = Y[rows] - predict(X[m], theta[f], mask)
+    return resid
+
+
 def jackknife_se(thetas: list[np.ndarray]) -> np.ndarray:
     """Delete-one-fold jackknife standard error of fold estimates (each fit leaves one fold out)."""
     if len(thetas) < 2:
@@ -541,8 +586,9 @@ def model_gap(s: Session, base_terms: Sequence[str], modelled: Sequence[str], de
     direction: ``dut = model(ref, temp, currents) + gap`` (the DUT reading de-skews by ``-F``)."""
     terms = tuple(base_terms)
     identity = "gain_matrix" not in terms
-    target = s.dut_uT - s.ref_uT if identity else s.dut_uT.copy()
-    g = Gap("model", s, target, s.ref_uT.copy(), terms, identity, tuple(modelled), description, t0_c, extra_base,
+    # the session's own arrays where no difference is needed (nothing in the diagnosis writes to a gap's arrays)
+    target = s.dut_uT - s.ref_uT if identity else s.dut_uT
+    g = Gap("model", s, target, s.ref_uT, terms, identity, tuple(modelled), description, t0_c, extra_base,
             forward=True)
     g.deskew_J = -np.eye(3)
     try:

@@ -40,12 +40,22 @@ import numpy as np
 import scipy.stats
 
 from magstack.firmware.calibration.linalg import qr_r
-from magstack.firmware.calibration.model import JOINT_TERMS
+from magstack.firmware.calibration.model import JOINT_TERMS, time_derivative
 from magstack.firmware.effects import EFFECT_NAMES, EFFECTS
 from magstack.firmware.errors import FitError
 from magstack.ground.diagnose import nonlinear as nl
 from magstack.ground.diagnose import rotation as rot
-from magstack.ground.diagnose.gap import Block, Gap, gram, out_of_fold, predict, solve, solve_gram, solve_normal
+from magstack.ground.diagnose.gap import (
+    Block,
+    Gap,
+    gram,
+    out_of_fold,
+    out_of_fold_blocks,
+    predict,
+    solve,
+    solve_gram,
+    solve_normal,
+)
 from magstack.ground.errors import DiagnosisError
 
 #: Temperature effects need at least this temperature span (degC) to be tested.
@@ -509,12 +519,16 @@ def choose_thresholds(gap: Gap, base: Block, Y: np.ndarray, cands: list, rows: n
 LAG_TERMS = ("temperature_gain", "temperature_offset")
 
 
-def lag_block(gap: Gap, tau_s: float) -> Block:
+def lag_block(gap: Gap, tau_s: float, rows: np.ndarray | None = None) -> Block:
     """The thermal-lag candidate's columns: the temperature terms (LAG_TERMS, plus a constant when the base
-    has none) evaluated on the temperature lagged by ``tau_s`` (nonlinear.lagged_temperature)."""
+    has none) evaluated on the temperature lagged by ``tau_s`` (nonlinear.lagged_temperature). ``rows``: the
+    columns on those rows only (the lag is filtered on the whole series; the terms are row by row)."""
     s = gap.session
-    lagged = dataclasses.replace(s)
-    lagged.temp_c = nl.lagged_temperature(s.t_s, s.temp_c, s.session, tau_s)
+    temp = nl.lagged_temperature(s.t_s, s.temp_c, s.session, tau_s)
+    if rows is not None:
+        gap, temp = gap.rows_view(rows), temp[rows]
+    lagged = dataclasses.replace(gap.session)
+    lagged.temp_c = temp
     terms = LAG_TERMS if "offset" in gap.base_terms else ("offset",) + LAG_TERMS
     blk = dataclasses.replace(gap, session=lagged).term_design(terms)
     if not gap.forward:
@@ -628,12 +642,13 @@ def delay_searches(gap: Gap, fold: np.ndarray, grid: np.ndarray) -> tuple[list[n
 
 
 # ----------------------------------------------------------------------------- evaluation
-def oof_residual(gap: Gap, blk: Block, Y: np.ndarray, fold: np.ndarray) -> np.ndarray:
-    """Out-of-fold residual (N,3) of ``blk`` (jointly with the modelled mount rotation, if any)."""
+def oof_residual(gap: Gap, blk: Block | list[Block], Y: np.ndarray, fold: np.ndarray) -> np.ndarray:
+    """Out-of-fold residual (N,3) of ``blk`` (or of the blocks of a list side by side, never joined into one
+    N-row design; jointly with the modelled mount rotation, if any)."""
     if gap.rotation is None:
-        return out_of_fold(blk.X, Y, blk.mask, fold)[0]
+        return out_of_fold_blocks(blk if isinstance(blk, list) else [blk], Y, fold)
     mc, sigma = gap.rotation
-    return rot.out_of_fold(blk, mc, Y, fold, sigma)[0]
+    return rot.out_of_fold(Block.join(blk, gap.n) if isinstance(blk, list) else blk, mc, Y, fold, sigma)[0]
 
 
 def fold_residual(gap: Gap, blk: Block, Y: np.ndarray, train: np.ndarray, test: np.ndarray) -> np.ndarray:
@@ -650,11 +665,10 @@ def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: n
     Y = gap.target
     if cand.kind == "linear":
         own = linear_block(gap, cand.effect, cand.terms)
-        blk = Block.join([base, own], gap.n)
-        r = oof_residual(gap, blk, Y, fold)
+        r = oof_residual(gap, [base, own], Y, fold)
         cols = own.X
         n_par = int(own.mask.sum())
-        del blk, own
+        del own
     elif cand.kind == "hysteresis":
         r = np.full(Y.shape, np.nan)
         fold_thr = []
@@ -718,7 +732,8 @@ def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: n
                 r[test] = fold_residual(gap, blk, Yd, train, test)
             del blk, Yd
         gap.__dict__.pop("_skew_cache", None)       # the searched delays' columns are not used again
-        cols = gap.term_design(("time_skew",)).X
+        # the time_skew term's columns (dB/dt of the predictor), without the calibration model's full design
+        cols = time_derivative(gap.predictor_uT, gap.session.t_s, gap.session.session)
     sse = block_sse(r, blocks, nb)
     # the confounding check's rows copied out (a strided view would keep the whole N x q design alive)
     t = Trial(cand.effect, cand.kind, rms3(r), r.astype(np.float32), sse,

@@ -35,6 +35,11 @@ reference's rate of change mapped into DUT units, every axis' proxy for every ou
 rotation's angle columns with a free coefficient per output axis), so their surrogate test is of a
 slightly richer model than the one ranked - for both sides alike.
 
+Rows. On a session longer than ``MAX_TEST_ROWS`` the test runs on every m-th row (:func:`test_rows`): template,
+folds and every design thinned alike, fixed before any outcome, so the test stays exact; slow noise, what the
+test is for, survives thinning (only white-noise power per row is fewer rows; the block test, on all rows,
+covers it). Memory and time then stop growing with the session beyond building the candidates' columns.
+
 p-value. Monte Carlo ``(1 + hits) / (1 + k)``, one set of surrogates for every candidate, with
 sequential stopping per candidate (Besag & Clifford 1991): stop
 at ``STOP_HITS`` hits (``p = hits / k``), at ``max_surrogates`` (by a row budget, at most 1999), or,
@@ -340,6 +345,19 @@ def _axis_cols(blk: Block, i: int) -> np.ndarray:
     return blk.X[:, np.flatnonzero(blk.mask[i])]
 
 
+def _per_axis(blk: Block) -> list[np.ndarray]:
+    """Each output axis' columns of ``blk``; axes using the same columns share one array (the temperature
+    terms of every axis are the same 4 columns: a third of the memory)."""
+    seen: dict[bytes, np.ndarray] = {}
+    out = []
+    for i in range(3):
+        key = blk.mask[i].tobytes()
+        if key not in seen:
+            seen[key] = np.ascontiguousarray(_axis_cols(blk, i))
+        out.append(seen[key])
+    return out
+
+
 def base_axis_columns(gap: Gap, base: Block) -> list[np.ndarray]:
     """Per output axis the base columns (with a modelled mount rotation: its angle columns, a free
     coefficient per output axis)."""
@@ -362,15 +380,15 @@ def candidate_designs(gap: Gap, cand, order: np.ndarray | None = None) -> list[A
     from magstack.ground.diagnose import rotation as rot
     from magstack.ground.diagnose import search as sr
     own: list[list[np.ndarray]]
-    if cand.kind == "linear":
-        blk = sr.linear_block(gap, cand.effect, cand.terms)
-        own = [[_axis_cols(blk, i)[order]] for i in range(3)]
+    if cand.kind == "linear":       # row-wise terms (surrogates test no delay here): built on the tested rows
+        blk = sr.linear_block(gap.rows_view(order), cand.effect, cand.terms)
+        own = [[c] for c in _per_axis(blk)]
     elif cand.kind == "hysteresis":
         hist, idx = gap.history()
-        extra = gap.term_design(("offset",)) if "offset" not in gap.base_terms else None
+        extra = gap.rows_view(order).term_design(("offset",)) if "offset" not in gap.base_terms else None
         own = []
         for j in range(3):
-            fixed = _axis_cols(extra, j)[order] if extra is not None else np.zeros((order.size, 0))
+            fixed = _axis_cols(extra, j) if extra is not None else np.zeros((order.size, 0))
             opts = []
             for c in cand.thresholds[j]:
                 for s0 in (-1.0, 1.0):
@@ -386,10 +404,8 @@ def candidate_designs(gap: Gap, cand, order: np.ndarray | None = None) -> list[A
         taus = np.unique(np.r_[nl.lag_grid(gap.session.t_s, gap.session.session), cand.lag_tau_s])
         own = [[], [], []]
         for tau in taus:
-            b = sr.lag_block(gap, float(tau))
-            for i in range(3):
-                own[i].append(_axis_cols(b, i)[order])
-            del b
+            for i, c in enumerate(_per_axis(sr.lag_block(gap, float(tau), order))):
+                own[i].append(c)
     elif cand.kind == "joint":
         mc = rot.mount_columns(gap)
         own = [[_nonzero(mc.axis_columns(i))[order]] for i in range(3)]
@@ -398,14 +414,20 @@ def candidate_designs(gap: Gap, cand, order: np.ndarray | None = None) -> list[A
         dt = np.diff(t)
         h = 0.25 * float(np.median(dt[dt > 0])) if np.any(dt > 0) else 1e-3
         u = (gap.skew_columns(np.full(3, h), nl.shift_axes) - gap.skew_columns(np.full(3, -h), nl.shift_axes)) / (2 * h)
-        own = [[u[order]] for _ in range(3)]
+        u = u[order]
+        own = [[u] for _ in range(3)]
     out = []
+    stacked: dict[tuple, np.ndarray] = {}      # axes with the same pieces share one stacked array
     for i in range(3):
         opts, k = [], 0
         for o in own[i]:
             opts.append(np.arange(k, k + o.shape[1]))
             k += o.shape[1]
-        out.append(AxisDesign(np.ascontiguousarray(np.hstack(own[i])) if own[i] else np.zeros((order.size, 0)), opts))
+        key = tuple(id(o) for o in own[i])
+        if key not in stacked:
+            stacked[key] = np.ascontiguousarray(np.hstack(own[i])) if own[i] else np.zeros((order.size, 0))
+        out.append(AxisDesign(stacked[key], opts))
+    del own
     return out
 
 
@@ -419,7 +441,7 @@ def prepare(gap: Gap, cand, shared: Shared):
     def statistic(Ys: np.ndarray) -> np.ndarray:
         return sum(held[i].reduction(Ys) for i in range(3))
     t_obs = float(statistic(np.ascontiguousarray(gap.target[shared.order].T[:, None, :]))[0])
-    return t_obs, statistic, sum(d.O.size for d in designs)
+    return t_obs, statistic, sum(O.size for O in {id(d.O): d.O for d in designs}.values())
 
 
 class _Test:
