@@ -74,6 +74,8 @@ LOW_CAP = 4.0
 FIT_SPAN = 64
 #: Rows x 3 axes x surrogates in one batch (32 MB; the transforms' intermediates are one surrogate's).
 BATCH_FLOATS = 4e6
+#: Complex spectrum bins transformed in one call (draw): ~16 MB.
+TRANSFORM_BINS = 1e6
 #: Floats of the candidates' own columns tested together on one set of surrogate batches.
 DESIGN_FLOATS = 1e7
 #: Rows the surrogate test uses at most (every m-th row beyond: :func:`test_rows`).
@@ -205,8 +207,9 @@ class SurrogateSource:
 
     def draw(self, k: int, pos: np.ndarray | None = None) -> np.ndarray:
         """(3,k,n) surrogates: axis, surrogate, row (rows ``pos`` of the series in that order, all by default).
-        The random numbers of the batch are drawn first; the transforms run one surrogate at a time, so the
-        transient complex spectrum is one surrogate's, whatever the batch."""
+        The random numbers of the batch are drawn first; the transforms run on groups of surrogates of at most
+        TRANSFORM_BINS complex bins (a few surrogates of a short session at once, one of a long one), so the
+        transient complex spectrum stays bounded whatever the batch."""
         L, nf = self.L, self.F.shape[0]
         u = self.rng.random((k, nf))
         nyq = np.where(self.rng.random(k) < 0.5, 1.0, -1.0) if L % 2 == 0 else None
@@ -217,15 +220,17 @@ class SurrogateSource:
             z[:, :, 0] = np.real(z[:, :, 0]) * np.sqrt(2)            # the mean is real
             z *= np.sqrt(self.p_low).T[None, :, :]
         out = np.empty((3, k, self.n if pos is None else pos.size))
-        for m in range(k):
-            ph = np.exp(2j * np.pi * u[m])
+        step = max(1, int(TRANSFORM_BINS // (3 * nf)))               # surrogates per transform call
+        for a in range(0, k, step):
+            b = min(a + step, k)
+            ph = np.exp(2j * np.pi * u[a:b])                          # (m, bins)
             if nyq is not None:
-                ph[-1] = nyq[m]                                       # the Nyquist bin stays real
-            G = ph[None, :] * self.FT
+                ph[:, -1] = nyq[a:b]                                  # the Nyquist bin stays real
+            G = ph[:, None, :] * self.FT[None, :, :]                  # (m, 3, bins)
             if self.k_a:
-                G[:, :self.k_a] = z[m]
+                G[:, :, :self.k_a] = z[a:b]
             y = scipy.fft.irfft(G, n=L, axis=-1, overwrite_x=True)
-            out[:, m, :] = y[:, :self.n] if pos is None else y[:, pos]
+            out[:, a:b, :] = np.transpose(y[:, :, :self.n] if pos is None else y[:, :, pos], (1, 0, 2))
         return out
 
 
