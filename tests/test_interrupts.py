@@ -16,9 +16,15 @@ import threading
 import pytest
 
 
+def _default_sigint() -> None:
+    # a suite started in the background by a non-interactive shell inherits SIGINT ignored, and Python then keeps
+    # it ignored: the child gets the default disposition (Ctrl-C raises KeyboardInterrupt) whatever the parent had
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _magstack(*args: str, cwd) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "magstack", *args], cwd=cwd, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True, preexec_fn=_default_sigint)
 
 
 @pytest.mark.parametrize("signum, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
