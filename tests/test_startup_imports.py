@@ -35,3 +35,17 @@ def test_only_the_named_command_module_is_imported():
 def test_on_board_flight_modules_import_no_scipy_stats():
     # the table and the flight code take the term lists from firmware/cal_terms.py, not the calibration fit
     assert heavy_imports("import magstack.firmware.flight.app, magstack.firmware.corrector") == []
+
+
+def test_a_refit_run_imports_no_statistics_plotting_demo_or_diagnosis(tmp_path):
+    # issue 25: a whole `magstack refit` process pays for the reader (pandas) and the fit, nothing else
+    from magstack.cli.main import main
+
+    tele, out = tmp_path / "t.csv", tmp_path / "c.json"
+    assert main(["simulate", "--program", "orbit_tumbling", "--seconds", "3600", "--rate-hz", "1", "--sessions", "1",
+                 "--t0", "1780272000", "--out", str(tele), "-q"]) == 0
+    code = ("import sys\nfrom magstack.cli.main import main\n"
+            f"assert main(['refit', {str(tele)!r}, '--out', {str(out)!r}, '-q']) in (0, 1)\n"
+            "assert 'magstack.cli.demo' not in sys.modules and 'magstack.cli.commands.demo' not in sys.modules")
+    assert heavy_imports(code) == ["pandas"]
+    assert out.exists()
