@@ -61,9 +61,10 @@ def _skewed_session(n=1800, seed=2):
 
 
 def test_separable_delay_search_finds_what_the_coordinate_search_finds_for_every_fold(monkeypatch):
+    from magstack.ground.diagnose import gap as gp
     from magstack.ground.diagnose import nonlinear as nl
     from magstack.ground.diagnose import search as sr
-    monkeypatch.setattr(sr, "FOLD_CHUNK", 256)       # per-fold sums over several row chunks
+    monkeypatch.setattr(gp, "FOLD_CHUNK", 256)       # per-fold sums over several row chunks
     from magstack.ground.diagnose.gap import model_gap
     s = _skewed_session()
     gap = model_gap(s, ("gain_matrix", "offset"), (), "test")
@@ -204,7 +205,7 @@ def test_lag_and_linear_columns_built_on_a_row_subset_equal_the_whole_gaps_rows(
 def test_out_of_fold_over_blocks_in_chunks_equals_the_joined_design(monkeypatch):
     from magstack.ground.diagnose import gap as gp
     from magstack.ground.diagnose.gap import Block, out_of_fold, out_of_fold_blocks
-    monkeypatch.setattr(gp, "OOF_CHUNK", 97)
+    monkeypatch.setattr(gp, "FOLD_CHUNK", 97)
     rng = np.random.default_rng(8)
     n = 1000
     a = Block(rng.standard_normal((n, 4)), np.array([[1, 1, 0, 1], [1, 0, 1, 1], [0, 1, 1, 1]], bool),

@@ -398,36 +398,47 @@ def out_of_fold(X: np.ndarray, Y: np.ndarray, mask: np.ndarray, fold: np.ndarray
     return resid, thetas
 
 
-#: Rows per chunk of :func:`out_of_fold_blocks`.
-OOF_CHUNK = 65536
+#: Rows per chunk of :func:`fold_products` and :func:`out_of_fold_blocks`.
+FOLD_CHUNK = 65536
+
+
+def fold_products(A, B, code: np.ndarray, n_folds: int) -> np.ndarray:
+    """(folds, a, b): ``A_f^T B_f`` over the rows of each fold (``code`` 0..n_folds-1), in row chunks of
+    FOLD_CHUNK. ``A`` and ``B`` are arrays (N,a), (N,b) or lists of arrays taken side by side per chunk (the
+    joined N-row matrix is never formed)."""
+    A, B = (A if isinstance(A, list) else [A]), (B if isinstance(B, list) else [B])
+    out = np.zeros((n_folds, sum(x.shape[1] for x in A), sum(x.shape[1] for x in B)))
+    for a in range(0, A[0].shape[0], FOLD_CHUNK):
+        sl = slice(a, a + FOLD_CHUNK)
+        c, Ac, Bc = code[sl], np.hstack([x[sl] for x in A]), np.hstack([x[sl] for x in B])
+        for f in np.unique(c):
+            m = c == f
+            out[f] += Ac[m].T @ Bc[m]
+    return out
 
 
 def out_of_fold_blocks(blocks: Sequence[Block], Y: np.ndarray, fold: np.ndarray) -> np.ndarray:
     """:func:`out_of_fold`'s residual (N,3) for the design ``Block.join(blocks)``, never formed: its fold
-    normal equations and each fold's predictions are built in row chunks of OOF_CHUNK (memory of one chunk
-    of the joined design instead of N rows of it)."""
+    normal equations (:func:`fold_products`) and each fold's predictions are built in row chunks (memory of
+    one chunk of the joined design instead of N rows of it)."""
     folds = np.unique(fold)
     code = np.searchsorted(folds, fold)
     mask = np.hstack([b.mask for b in blocks])
     p = mask.shape[1]
-    G, C = np.zeros((folds.size, p, p)), np.zeros((folds.size, p, Y.shape[1]))
+    Xs = [b.X for b in blocks]
+    GC = fold_products(Xs, Xs + [Y], code, folds.size)             # (folds, p, p + 3): [X^T X | X^T Y]
+    G, C = GC[:, :, :p], GC[:, :, p:]
     counts = np.bincount(code, minlength=folds.size)
-    chunks = [slice(a, a + OOF_CHUNK) for a in range(0, Y.shape[0], OOF_CHUNK)]
-    for sl in chunks:
-        X, c = np.hstack([b.X[sl] for b in blocks]), code[sl]
-        for f in np.unique(c):
-            m = c == f
-            G[f] += X[m].T @ X[m]
-            C[f] += X[m].T @ Y[sl][m]
     theta = [None if (Y.shape[0] - counts[f]) <= p or counts[f] == 0 else
              solve_gram(G.sum(axis=0) - G[f], C.sum(axis=0) - C[f], mask) for f in range(folds.size)]
     resid = np.full(Y.shape, np.nan)
-    for sl in chunks:
-        X, c = np.hstack([b.X[sl] for b in blocks]), code[sl]
+    for a in range(0, Y.shape[0], FOLD_CHUNK):
+        sl = slice(a, a + FOLD_CHUNK)
+        X, c = np.hstack([x[sl] for x in Xs]), code[sl]
         for f in np.unique(c):
             if theta[f] is not None:
                 m = c == f
-                rows = np.flatnonzero(m) + sl.start
+                rows = np.flatnonzero(m) + a
                 resid[rows] = Y[rows] - predict(X[m], theta[f], mask)
     return resid
 
@@ -479,12 +490,10 @@ def check_rows(s: Session, min_rows: int = 50, exclude_bends: float | None = Non
             if ok.sum() < min_rows:
                 raise DiagnosisError(f"only {int(ok.sum())} usable rows of {len(s)} with the reference inside its "
                                      f"range: need at least {min_rows}")
-    # rows already usable and in order (the common case) share the caller's arrays (nothing here writes to
-    # a session's arrays): a copy of a 10^6-row session is 76 MiB
-    s2 = dataclasses.replace(s) if ok.all() else s.select(ok)
+    # rows already usable and in order (the common case) share the caller's arrays (kept_rows)
+    s2 = kept_rows(s, ok)
     order = np.lexsort((s2.t_s, s2.session))
-    in_order = bool(np.all(order == np.arange(order.size)))
-    if not in_order:
+    if not np.all(order == np.arange(order.size)):
         s2 = s2.select(order)
     # excursion history (hysteresis): every row with a DUT reading, sorted the same way
     has = np.all(np.isfinite(s.dut_uT), axis=1) & np.isfinite(s.t_s)

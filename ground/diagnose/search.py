@@ -48,6 +48,7 @@ from magstack.ground.diagnose import rotation as rot
 from magstack.ground.diagnose.gap import (
     Block,
     Gap,
+    fold_products,
     gram,
     out_of_fold,
     out_of_fold_blocks,
@@ -579,22 +580,6 @@ def delay_sse_fn(gap: Gap, rows: np.ndarray):
         th = solve(blk.X, Y, blk.mask, rows)
         return float(np.sum((Y[rows] - predict(blk.X[rows], th, blk.mask)) ** 2))
     return sse_of
-
-
-#: Rows per chunk of per-fold products (fold_products).
-FOLD_CHUNK = 65536
-
-
-def fold_products(A: np.ndarray, B: np.ndarray, code: np.ndarray, n_folds: int) -> np.ndarray:
-    """(folds, a, b): ``A_f^T B_f`` over the rows of each fold (``code`` 0..n_folds-1), in row chunks (no
-    N-row copy of A or B)."""
-    out = np.zeros((n_folds, A.shape[1], B.shape[1]))
-    for a in range(0, A.shape[0], FOLD_CHUNK):
-        c, Ac, Bc = code[a:a + FOLD_CHUNK], A[a:a + FOLD_CHUNK], B[a:a + FOLD_CHUNK]
-        for f in np.unique(c):
-            m = c == f
-            out[f] += Ac[m].T @ Bc[m]
-    return out
 
 
 def delay_searches(gap: Gap, fold: np.ndarray, grid: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:

@@ -241,7 +241,6 @@ class Shared:
     current batch (computed once)."""
 
     def __init__(self, gap: Gap, base: Block, fold: np.ndarray, rows: np.ndarray):
-        self.rows = rows
         self.pos = np.argsort(fold[rows], kind="stable")           # tested rows, fold-grouped, in ``rows``
         self.order = rows[self.pos]                                 # the same as row numbers
         _, counts = np.unique(fold[rows], return_counts=True)
@@ -377,11 +376,9 @@ def _nonzero(X: np.ndarray) -> np.ndarray:
     return X[:, np.any(X != 0, axis=0)]
 
 
-def candidate_designs(gap: Gap, cand, order: np.ndarray | None = None) -> list[AxisDesign]:
+def candidate_designs(gap: Gap, cand, order: np.ndarray) -> list[AxisDesign]:
     """Per output axis the surrogate test's design for candidate ``cand`` (search.Candidate), on rows
-    ``order`` (all rows by default; each block's columns are taken down to them as soon as it is built)."""
-    if order is None:
-        order = np.arange(gap.n)
+    ``order`` (each block's columns are taken down to them as soon as it is built)."""
     from magstack.ground.diagnose import rotation as rot
     from magstack.ground.diagnose import search as sr
     own: list[list[np.ndarray]]
@@ -438,7 +435,7 @@ def candidate_designs(gap: Gap, cand, order: np.ndarray | None = None) -> list[A
 
 # ----------------------------------------------------------------------------- the test
 def prepare(gap: Gap, cand, shared: Shared):
-    """(observed T, function mapping surrogates (N,3,k) in fold order to their T (k,), floats its own
+    """(observed T, function mapping surrogates (3,k,n) in fold order to their T (k,), floats its own
     columns hold)."""
     designs = candidate_designs(gap, cand, shared.order)
     held = [HeldOut(shared, i, d) for i, d in enumerate(designs)]
