@@ -216,3 +216,99 @@ def test_out_of_fold_over_blocks_in_chunks_equals_the_joined_design(monkeypatch)
     j = Block.join([a, b], n)
     want, _ = out_of_fold(j.X, Y, j.mask, fold)
     assert np.allclose(out_of_fold_blocks([a, b], Y, fold), want, rtol=0, atol=1e-10)
+
+
+# ---------------------------------------------------------------- session 8: the 4 x 900-row fixed cost
+def test_solve_normal_is_the_checked_cholesky_solve_bit_for_bit_and_falls_back_like_it():
+    """solve_normal calls LAPACK without scipy's per-call checks: the same bits as cho_factor/cho_solve of the
+    equilibrated system; a singular system and a non-finite one take the pseudo-inverse path as before."""
+    import scipy.linalg
+
+    from magstack.ground.diagnose.gap import RCOND, solve_normal
+    rng = np.random.default_rng(5)
+    for p in (1, 4, 9):
+        X = rng.standard_normal((50, p)) * rng.uniform(0.1, 100, p)
+        G, C = X.T @ X, X.T @ rng.standard_normal((50, 3))
+        d = np.sqrt(np.diag(G))
+        c = scipy.linalg.cho_factor(G / np.outer(d, d))
+        want = scipy.linalg.cho_solve(c, C / d[:, None]) / d[:, None]
+        assert np.array_equal(solve_normal(G, C), want)
+    X = rng.standard_normal((50, 3))
+    X = np.column_stack([X, X[:, 0] + X[:, 1]])                    # rank 3 of 4
+    G, C = X.T @ X, X.T @ rng.standard_normal((50, 2))
+    d = np.sqrt(np.diag(G))
+    want = np.linalg.pinv(G / np.outer(d, d), rcond=RCOND, hermitian=True) @ (C / d[:, None]) / d[:, None]
+    assert np.allclose(solve_normal(G, C), want, rtol=1e-9, atol=1e-12)
+    G[0, 0] = np.nan
+    try:
+        out = solve_normal(G, C)
+    except np.linalg.LinAlgError:
+        out = None                     # numpy's SVD refuses NaN: the caller sees that, as before
+    assert out is None or not np.all(np.isfinite(out))
+
+
+def test_axis_cross_is_numpys_cross_with_the_unit_vector():
+    from magstack.ground.diagnose.rotation import axis_cross
+    b = np.random.default_rng(1).standard_normal((20, 3))
+    for a in range(3):
+        assert np.array_equal(axis_cross(a, b) + 0.0, np.cross(np.eye(3)[a], b) + 0.0)
+
+
+def test_surrogates_do_not_depend_on_how_many_are_transformed_at_once(monkeypatch):
+    from magstack.ground.diagnose import surrogate as su
+    rng = np.random.default_rng(2)
+    x = np.cumsum(rng.standard_normal((700, 3)), axis=0) * 0.02 + rng.standard_normal((700, 3))
+    src = su.SurrogateSource(x, 0)
+    pos = np.argsort(np.arange(700) % 3, kind="stable")
+    got = []
+    for bins in (1e7, 5000, 10):                       # all at once, a few per call, one per call
+        monkeypatch.setattr(su, "TRANSFORM_BINS", bins)
+        src.rng = np.random.default_rng(7)
+        got.append(src.draw(23, pos))
+    assert np.array_equal(got[0], got[1]) and np.array_equal(got[0], got[2])
+    src.rng = np.random.default_rng(7)
+    assert np.array_equal(src.draw(23)[:, :, pos], got[0])
+
+
+def test_hysteresis_options_are_the_state_columns_of_each_threshold_and_initial_state():
+    from magstack.ground.diagnose import nonlinear as nl
+    from magstack.ground.diagnose import search as sr
+    from magstack.ground.diagnose.gap import model_gap
+    s = _skewed_session(900)
+    s.dut_uT[100:140, 1] = 120.0
+    s.dut_uT[500:530, 1] = -120.0
+    gap = model_gap(s, ("gain_matrix", "offset"), (), "test")
+    hist, idx = gap.history()
+    cands = [[30.0], [50.0, 100.0], []]
+    U = sr.hysteresis_options(gap, cands, 1)
+    assert U.shape == (gap.n, 4)
+    for k, c in enumerate(cands[1]):
+        for m, s0 in enumerate((-1.0, 1.0)):
+            want = nl.hysteresis_state(hist, np.array([np.inf, c, np.inf]), np.array([1.0, s0, 1.0]))[idx, 1]
+            assert np.array_equal(U[:, 2 * k + m], want)
+    assert sr.hysteresis_options(gap, cands, 1) is U                 # kept for the next fold
+
+
+def test_lag_train_sse_is_each_folds_training_sse_and_the_lagged_temperature_is_kept_read_only():
+    from magstack.ground.diagnose import nonlinear as nl
+    from magstack.ground.diagnose import search as sr
+    from magstack.ground.diagnose.gap import Block, model_gap, predict, solve
+    s = _skewed_session(900)
+    s.temp_c = 20 + 10 * np.sin(2 * np.pi * s.t_s / 300.0)
+    s.dut_uT[:, 0] += 0.5 * (nl.lagged_temperature(s.t_s, s.temp_c, s.session, 40.0) - 25)
+    gap = model_gap(s, ("gain_matrix", "offset"), (), "test")
+    base, Y = gap.base_design(), gap.target
+    fold = np.arange(gap.n) * 7 % 4
+    grid = np.array([10.0, 40.0, 90.0])
+    got = sr.lag_train_sse(gap, base, Y, fold, grid)
+    for k, tau in enumerate(grid):
+        blk = Block.join([base, sr.lag_block(gap, tau)], gap.n)
+        for f in range(4):
+            tr = fold != f
+            th = solve(blk.X, Y, blk.mask, tr)
+            want = float(np.sum((Y[tr] - predict(blk.X[tr], th, blk.mask)) ** 2))
+            assert abs(got[f, k] - want) <= 1e-9 * want
+    assert np.argmin(got.sum(axis=0)) == 1
+    kept = sr.lagged_temperature(gap, 40.0)
+    assert kept is sr.lagged_temperature(gap, 40.0) and not kept.flags.writeable
+    assert np.array_equal(kept, nl.lagged_temperature(s.t_s, s.temp_c, s.session, 40.0))

@@ -324,7 +324,10 @@ def solve_gram(G: np.ndarray, XtY: np.ndarray, mask: np.ndarray) -> np.ndarray:
         cols = np.flatnonzero(mask[axes[0]])
         if cols.size == 0:
             continue
-        theta[np.ix_(axes, cols)] = solve_normal(G[np.ix_(cols, cols)], XtY[np.ix_(cols, axes)]).T
+        if cols.size == p:                                  # every column: no sub-matrix to gather
+            theta[axes] = solve_normal(G, XtY[:, axes]).T
+        else:
+            theta[np.ix_(axes, cols)] = solve_normal(G[np.ix_(cols, cols)], XtY[np.ix_(cols, axes)]).T
     return theta
 
 
@@ -334,17 +337,19 @@ def solve_normal(G: np.ndarray, C: np.ndarray) -> np.ndarray:
     the pseudo-inverse with relative cut-off RCOND (minimum-norm solution)."""
     if G.shape[0] == 0:
         return np.zeros((0, C.shape[1]))
-    d = np.sqrt(np.diag(G))
+    d = np.sqrt(G.diagonal())
     d[d == 0] = 1.0
     Gn = G / np.outer(d, d)
     Cn = C / d[:, None]
-    try:
-        c, low = scipy.linalg.cho_factor(Gn)
-        if np.min(np.diag(c)) ** 2 < RCOND * np.max(np.diag(c)) ** 2:
-            raise np.linalg.LinAlgError
-        sol = scipy.linalg.cho_solve((c, low), Cn)
-    except (np.linalg.LinAlgError, ValueError):
-        sol = np.linalg.pinv(Gn, rcond=RCOND, hermitian=True) @ Cn
+    if np.isfinite(Gn).all() and np.isfinite(Cn).all():     # (what cho_factor's own check would refuse)
+        # the LAPACK calls without scipy's per-call input checks: this runs hundreds of times per diagnosis
+        c, info = scipy.linalg.lapack.dpotrf(Gn, lower=False, clean=False)
+        dc = c.diagonal()
+        if info == 0 and dc.min() ** 2 >= RCOND * dc.max() ** 2:
+            sol, info = scipy.linalg.lapack.dpotrs(c, Cn, lower=False)
+            if info == 0:
+                return sol / d[:, None]
+    sol = np.linalg.pinv(Gn, rcond=RCOND, hermitian=True) @ Cn
     return sol / d[:, None]
 
 

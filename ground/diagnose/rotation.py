@@ -62,17 +62,28 @@ class MountColumns:
         ref = self.ref_uT if rows is None else self.ref_uT[rows]
         ses = self.session if rows is None else self.session[rows]
         out = np.zeros((ref.shape[0], self.q))
+        rows_of: dict[int, np.ndarray] = {}
         for c, (k, a) in enumerate(self.angles):
-            e = np.zeros(3)
-            e[a] = 1.0
-            m = ses == k
-            rot = np.cross(e, ref[m])
+            if k not in rows_of:
+                rows_of[k] = np.flatnonzero(ses == k)
+            m = rows_of[k]
+            rot = axis_cross(a, ref[m])
             out[m, c] = rot[:, i] if self.image is None else rot @ self.image[i]
         return out
 
     def flat(self, rows=None) -> np.ndarray:
         """(n, 3q) the angle columns as seen by each output axis (for confounding checks)."""
         return np.hstack([self.axis_columns(i, rows) for i in range(3)])
+
+
+def axis_cross(a: int, b: np.ndarray) -> np.ndarray:
+    """(n,3) ``e_a x b`` for the unit vector of axis ``a`` and rows ``b`` (n,3): two components are +-b's
+    others, one is zero (what np.cross gives, without its general product)."""
+    j, k = (a + 1) % 3, (a + 2) % 3
+    out = np.zeros_like(b)
+    out[:, j] = -b[:, k]
+    out[:, k] = b[:, j]
+    return out
 
 
 def mount_columns(gap: Gap, min_field_rms_uT: float | None = None) -> MountColumns | str:

@@ -46,6 +46,7 @@ from magstack.firmware.errors import FitError
 from magstack.ground.diagnose import nonlinear as nl
 from magstack.ground.diagnose import rotation as rot
 from magstack.ground.diagnose.gap import (
+    RCOND,
     Block,
     Gap,
     fold_products,
@@ -477,42 +478,78 @@ def hysteresis_block(gap: Gap, thresholds: np.ndarray, initial: np.ndarray | Non
     return blk
 
 
+def hysteresis_options(gap: Gap, cands: list, j: int) -> np.ndarray:
+    """(N, 2 x len(cands[j])) axis j's state column (:func:`nonlinear.hysteresis_state`) on the gap's rows for
+    every option, in the order threshold, then initial state -1, +1. The state is the same for both initial
+    states after the axis' first excursion, so each threshold's history is scanned once; kept on the gap
+    (the search asks for the same options once per fold) while it holds at most HYST_OPTION_FLOATS floats."""
+    cache = gap.__dict__.setdefault("_hyst_options", {})
+    key = (j, tuple(float(c) for c in cands[j]))
+    if key in cache:
+        return cache[key]
+    hist, idx = gap.history()
+    out = np.empty((gap.n, 2 * len(cands[j])))
+    for k, c in enumerate(cands[j]):
+        one = np.full(3, np.inf)
+        one[j] = c
+        st = nl.hysteresis_state(hist, one)[idx, j]           # 0 before the first excursion
+        before = st == 0
+        out[:, 2 * k] = np.where(before, -1.0, st)
+        out[:, 2 * k + 1] = np.where(before, 1.0, st)
+    if out.size + sum(v.size for v in cache.values()) <= HYST_OPTION_FLOATS:
+        cache[key] = out
+    return out
+
+
+#: Floats of hysteresis option columns a gap keeps between folds (:func:`hysteresis_options`).
+HYST_OPTION_FLOATS = 4_000_000
+
+
 def choose_thresholds(gap: Gap, base: Block, Y: np.ndarray, cands: list, rows: np.ndarray
                       ) -> tuple[np.ndarray, np.ndarray]:
     """Per axis (axis by axis), the candidate threshold and the initial state (-1 or +1: the unknown
     remanence before the axis' first excursion) with the lowest training SSE on ``rows`` of base +
-    hysteresis_block (the axes decided before and the trial one). Each option's SSE from normal equations:
-    the base's Gram matrix on ``rows`` once, per option only the products with its state column."""
-    hist, idx = gap.history()
-    sel = idx[rows]
-    Xb, mb = base.X[rows], base.mask
+    hysteresis_block (the axes decided before and the trial one); the first option on ties.
+
+    Every option adds one column ``u`` (the same to every output axis) to a design ``A`` that is the same for
+    all of them (the base, the constant hysteresis_block adds when the base lacks one, the state columns of
+    the axes decided before). So per output axis ``A`` is solved once, for its target and for all options'
+    ``A^T u`` together, and each option's SSE reduction follows from the Schur complement:
+    ``(u.y - (A^T u).theta)^2 / (u.u - (A^T u).(A^T A)^-1 A^T u)`` (none where the column lies in A's span to
+    the solver's RCOND, as its pseudo-inverse gives)."""
+    sel = np.flatnonzero(rows) if rows.dtype == bool else rows
+    Xb, mb = base.X[sel], base.mask
     if "offset" not in gap.base_terms:      # hysteresis_block carries the constant the base lacks
         off = gap.term_design(("offset",))
-        Xb, mb = np.hstack([Xb, off.X[rows]]), np.hstack([mb, off.mask])
-    Yr = Y[rows]
-    Gb, Cb, yy = Xb.T @ Xb, Xb.T @ Yr, float(np.sum(Yr ** 2))
+        Xb, mb = np.hstack([Xb, off.X[sel]]), np.hstack([mb, off.mask])
+    Yr = Y[sel]
     thr = np.full(3, np.inf)
     init = np.ones(3)
-    chosen: list[np.ndarray] = []           # state columns (on rows) of the axes decided so far
+    A, mA = Xb, mb
     for j in range(3):
-        best, best_init, best_sse, best_col = np.inf, 1.0, np.inf, None
-        for c in cands[j]:
-            for s0 in (-1.0, 1.0):
-                one, ini = np.full(3, np.inf), np.ones(3)
-                one[j], ini[j] = c, s0
-                col = nl.hysteresis_state(hist, one, ini)[sel, j]
-                E = np.column_stack(chosen + [col])
-                XE = Xb.T @ E
-                G = np.block([[Gb, XE], [XE.T, E.T @ E]])
-                C = np.vstack([Cb, E.T @ Yr])
-                mask = np.hstack([mb, np.ones((3, E.shape[1]), bool)])
-                th = solve_gram(G, C, mask)
-                sse = yy - float(np.sum(th * C.T))
-                if sse < best_sse:
-                    best, best_init, best_sse, best_col = c, s0, sse, col
-        thr[j], init[j] = best, best_init
-        if best_col is not None:
-            chosen.append(best_col)
+        if not len(cands[j]):
+            continue
+        U = hysteresis_options(gap, cands, j)[sel]               # (rows, K)
+        G, AU, AY = A.T @ A, A.T @ U, A.T @ Yr
+        uu, uy = np.einsum("ij,ij->j", U, U), U.T @ Yr            # (K,), (K, 3)
+        red = np.zeros(U.shape[1])
+        groups: dict[bytes, list[int]] = {}
+        for i in range(3):
+            groups.setdefault(mA[i].tobytes(), []).append(i)
+        for axes in groups.values():
+            m = np.flatnonzero(mA[axes[0]])
+            sol = solve_normal(G[np.ix_(m, m)], np.hstack([AY[np.ix_(m, axes)], AU[m]]))
+            theta, W = sol[:, :len(axes)], sol[:, len(axes):]
+            s = uu - np.einsum("ij,ij->j", AU[m], W)              # the new column's part outside span(A)
+            z = uy[:, axes] - AU[m].T @ theta                     # (K, axes): its product with the residual
+            inside = ~(s > RCOND * uu)
+            red += np.where(inside, 0.0, np.sum(z * z, axis=1) / np.where(inside, 1.0, s))
+        if not np.isfinite(red).any():
+            continue
+        k = int(np.argmax(np.where(np.isfinite(red), red, -np.inf)))
+        thr[j], init[j] = cands[j][k // 2], (-1.0, 1.0)[k % 2]
+        A = np.hstack([A, U[:, k:k + 1]])
+        mA = np.hstack([mA, np.ones((3, 1), bool)])
     return thr, init
 
 
@@ -524,8 +561,7 @@ def lag_block(gap: Gap, tau_s: float, rows: np.ndarray | None = None) -> Block:
     """The thermal-lag candidate's columns: the temperature terms (LAG_TERMS, plus a constant when the base
     has none) evaluated on the temperature lagged by ``tau_s`` (nonlinear.lagged_temperature). ``rows``: the
     columns on those rows only (the lag is filtered on the whole series; the terms are row by row)."""
-    s = gap.session
-    temp = nl.lagged_temperature(s.t_s, s.temp_c, s.session, tau_s)
+    temp = lagged_temperature(gap, tau_s)
     if rows is not None:
         gap, temp = gap.rows_view(rows), temp[rows]
     lagged = dataclasses.replace(gap.session)
@@ -538,21 +574,46 @@ def lag_block(gap: Gap, tau_s: float, rows: np.ndarray | None = None) -> Block:
     return Block(blk.X, blk.mask, names, blk.units)
 
 
+def lagged_temperature(gap: Gap, tau_s: float) -> np.ndarray:
+    """``nonlinear.lagged_temperature`` of the gap's session (read-only), kept on the gap per time constant
+    while the kept series hold at most LAG_CACHE_FLOATS floats: the search, the per-fold fits and the
+    surrogate test ask for the same grid of time constants."""
+    cache = gap.__dict__.setdefault("_lag_temp", {})
+    key = float(tau_s)
+    if key not in cache:
+        s = gap.session
+        temp = nl.lagged_temperature(s.t_s, s.temp_c, s.session, key)
+        temp.setflags(write=False)
+        if (len(cache) + 1) * gap.n > LAG_CACHE_FLOATS:
+            return temp
+        cache[key] = temp
+    return cache[key]
+
+
+#: Floats of lagged temperature series a gap keeps (:func:`lagged_temperature`).
+LAG_CACHE_FLOATS = 2_000_000
+
+
 def lag_train_sse(gap: Gap, base: Block, Y: np.ndarray, fold: np.ndarray, grid: np.ndarray) -> np.ndarray:
     """(folds, taus) training SSE of base + lag_block(tau) for each fold left out, from per-fold Gram
     matrices (one pass over the rows per tau)."""
     folds = np.unique(fold)
+    order = np.argsort(fold, kind="stable")             # rows grouped by fold, in row order within each
+    ends = np.searchsorted(fold[order], folds, side="right")
+    spans = [slice(int(a), int(b)) for a, b in zip(np.r_[0, ends[:-1]], ends, strict=True)]
+    Ys = Y[order]
+    yy = np.sum(Y ** 2, axis=0)
+    yt = [yy - np.sum(Ys[sp] ** 2, axis=0) for sp in spans]
     out = np.full((folds.size, grid.size), np.inf)
     for k, tau in enumerate(grid):
         blk = Block.join([base, lag_block(gap, float(tau))], gap.n)
         G, C = gram(blk.X, Y)
-        yy = np.sum(Y ** 2, axis=0)
-        for i, f in enumerate(folds):
-            test = fold == f
-            Gf, Cf = gram(blk.X, Y, test)
-            Gt, Ct, yt = G - Gf, C - Cf, yy - np.sum(Y[test] ** 2, axis=0)
+        Xs = blk.X[order]
+        for i, sp in enumerate(spans):
+            Gf, Cf = gram(Xs[sp], Ys[sp])
+            Gt, Ct = G - Gf, C - Cf
             th = np.where(blk.mask, solve_gram(Gt, Ct, blk.mask), 0.0)
-            out[i, k] = float(sum(yt[a] - 2 * th[a] @ Ct[:, a] + th[a] @ Gt @ th[a] for a in range(3)))
+            out[i, k] = float(sum(yt[i][a] - 2 * th[a] @ Ct[:, a] + th[a] @ Gt @ th[a] for a in range(3)))
     return out
 
 
@@ -607,21 +668,24 @@ def delay_searches(gap: Gap, fold: np.ndarray, grid: np.ndarray) -> tuple[list[n
     Xt = fold_products(X, t0, code, folds.size)                      # (folds, p, 3)
     tt = np.column_stack([np.bincount(code, t0[:, i] ** 2, folds.size) for i in range(3)])
     sets = [np.arange(folds.size) != k for k in range(folds.size)] + [np.ones(folds.size, bool)]
-    sse = np.zeros((len(sets), 3, grid.size))
+    XF = np.empty((grid.size, folds.size, X.shape[1], 3))
+    tF, FF = np.empty((grid.size, folds.size, 3)), np.empty((grid.size, folds.size, 3))
     for g, d in enumerate(grid):
         F = gap.skew_columns(np.full(3, d), nl.shift_axes, cache=False)
-        XF = fold_products(X, F, code, folds.size)                   # (folds, p, 3)
-        tF = np.column_stack([np.bincount(code, t0[:, i] * F[:, i], folds.size) for i in range(3)])
-        FF = np.column_stack([np.bincount(code, F[:, i] ** 2, folds.size) for i in range(3)])
+        XF[g] = fold_products(X, F, code, folds.size)                # (folds, p, 3)
+        tF[g] = np.column_stack([np.bincount(code, t0[:, i] * F[:, i], folds.size) for i in range(3)])
+        FF[g] = np.column_stack([np.bincount(code, F[:, i] ** 2, folds.size) for i in range(3)])
         del F
-        for e, use in enumerate(sets):
-            Ge = G[use].sum(axis=0)
-            c = Xt[use].sum(axis=0) + XF[use].sum(axis=0) * jd[None, :]
-            yy = tt[use].sum(axis=0) + 2 * jd * tF[use].sum(axis=0) + jd ** 2 * FF[use].sum(axis=0)
-            for i in range(3):
-                m = np.flatnonzero(base.mask[i])
-                th = solve_normal(Ge[np.ix_(m, m)], c[m, i:i + 1])[:, 0] if m.size else np.zeros(0)
-                sse[e, i, g] = yy[i] - float(th @ c[m, i])
+    sse = np.zeros((len(sets), 3, grid.size))
+    for e, use in enumerate(sets):                  # per row set and axis one factorisation for every delay
+        Ge = G[use].sum(axis=0)
+        c = Xt[use].sum(axis=0)[None] + XF[:, use].sum(axis=1) * jd[None, None, :]          # (grid, p, 3)
+        yy = tt[use].sum(axis=0) + 2 * jd * tF[:, use].sum(axis=1) + jd ** 2 * FF[:, use].sum(axis=1)
+        for i in range(3):
+            m = np.flatnonzero(base.mask[i])
+            ci = c[:, m, i].T                                                                  # (p_i, grid)
+            th = solve_normal(Ge[np.ix_(m, m)], ci) if m.size else np.zeros((0, grid.size))
+            sse[e, i] = yy[:, i] - np.sum(th * ci, axis=0)
     found = [np.array([nl.parabola_minimum(grid, sse[e, i]) for i in range(3)]) for e in range(len(sets))]
     return found[:-1], found[-1]
 
