@@ -312,3 +312,28 @@ def test_lag_train_sse_is_each_folds_training_sse_and_the_lagged_temperature_is_
     kept = sr.lagged_temperature(gap, 40.0)
     assert kept is sr.lagged_temperature(gap, 40.0) and not kept.flags.writeable
     assert np.array_equal(kept, nl.lagged_temperature(s.t_s, s.temp_c, s.session, 40.0))
+
+
+def test_batched_normal_solves_equal_one_by_one_and_route_rank_deficient_systems_to_the_pseudo_inverse():
+    from magstack.ground.diagnose.gap import solve_normal, solve_normal_batch
+    rng = np.random.default_rng(11)
+    Gs, Cs = [], []
+    for k in range(5):
+        X = rng.standard_normal((40, 6)) * rng.uniform(0.01, 50, 6)
+        if k == 2:
+            X[:, 5] = X[:, 0] - 2 * X[:, 3]                 # rank 5 of 6
+        if k == 4:
+            X[:, 1] = 0.0                                   # an empty column
+        Gs.append(X.T @ X)
+        Cs.append(X.T @ rng.standard_normal((40, 3)))
+    G, C = np.stack(Gs), np.stack(Cs)
+    head = solve_normal_batch(G[:4], C[:4])            # Cholesky of the batch succeeds; system 2 fails the rank test
+    got = solve_normal_batch(G, C)                      # system 4 is not positive definite: numpy refuses the batch
+    assert np.allclose(head, got[:4], rtol=1e-12, atol=1e-15)
+    for k in range(5):
+        want = solve_normal(G[k], C[k])
+        assert np.allclose(G[k] @ got[k], G[k] @ want, rtol=1e-9, atol=1e-9 * np.abs(C[k]).max())
+        if k != 2:
+            assert np.allclose(got[k], want, rtol=1e-9, atol=1e-12)
+    assert np.array_equal(got[2], solve_normal(G[2], C[2]))      # the pseudo-inverse path, as alone
+    assert solve_normal_batch(np.zeros((0, 3, 3)), np.zeros((0, 3, 2))).shape == (0, 3, 2)

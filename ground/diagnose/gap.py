@@ -353,6 +353,36 @@ def solve_normal(G: np.ndarray, C: np.ndarray) -> np.ndarray:
     return sol / d[:, None]
 
 
+def solve_normal_batch(G: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """:func:`solve_normal` of a stack of systems ``G`` (k,p,p), ``C`` (k,p,r) -> (k,p,r): the same
+    equilibration and rank test, the well-conditioned systems solved together (one numpy call instead of k),
+    the others one by one through :func:`solve_normal` (its pseudo-inverse path). Equal to solving each
+    system alone to rounding (~1e-15 relative)."""
+    k, p = G.shape[0], G.shape[1]
+    out = np.zeros((k, p, C.shape[2]))
+    if k == 0 or p == 0:
+        return out
+    d = np.sqrt(np.einsum("kii->ki", G))
+    d[d == 0] = 1.0
+    Gn = G / (d[:, :, None] * d[:, None, :])
+    Cn = C / d[:, :, None]
+    ok = np.isfinite(Gn).all(axis=(1, 2)) & np.isfinite(Cn).all(axis=(1, 2))
+    if ok.any():
+        try:
+            L = np.linalg.cholesky(Gn[ok])
+            dl = np.einsum("kii->ki", L)
+            good = dl.min(axis=1) ** 2 >= RCOND * dl.max(axis=1) ** 2
+        except np.linalg.LinAlgError:             # some system not positive definite: each on its own
+            good = np.zeros(int(ok.sum()), bool)
+        idx = np.flatnonzero(ok)[good]
+        if idx.size:
+            out[idx] = np.linalg.solve(Gn[idx], Cn[idx]) / d[idx][:, :, None]
+        ok[np.flatnonzero(ok)[~good]] = False
+    for i in np.flatnonzero(~ok):
+        out[i] = solve_normal(G[i], C[i])
+    return out
+
+
 def solve(X: np.ndarray, Y: np.ndarray, mask: np.ndarray, rows: np.ndarray | None = None,
           with_se: bool = False):
     """Least squares per output axis over the columns ``mask[i]`` uses.

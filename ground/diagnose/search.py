@@ -34,6 +34,7 @@ For each effect of :data:`magstack.firmware.effects.EFFECTS` that the simulator 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -57,6 +58,7 @@ from magstack.ground.diagnose.gap import (
     solve,
     solve_gram,
     solve_normal,
+    solve_normal_batch,
 )
 from magstack.ground.errors import DiagnosisError
 
@@ -172,17 +174,28 @@ def sign_flip_p(d: np.ndarray, seed: int = 0) -> float:
     d = d[np.isfinite(d)]
     if d.size < MIN_BLOCKS or not np.any(d):
         return 1.0
-    rng = np.random.default_rng(seed)
     obs = float(np.mean(d))
     tol = 1e-12 * float(np.mean(np.abs(d)))
-    hits, done = 0, 0
     batch = max(1, min(N_RESAMPLES, 2_000_000 // d.size))
+    if batch == N_RESAMPLES:            # one batch: the same signs for every test with this seed and size
+        return (1 + int(np.sum(flip_signs(seed, d.size) @ d / d.size >= obs - tol))) / (1 + N_RESAMPLES)
+    rng = np.random.default_rng(seed)
+    hits, done = 0, 0
     while done < N_RESAMPLES:
         k = min(batch, N_RESAMPLES - done)
         signs = rng.integers(0, 2, size=(k, d.size), dtype=np.int8) * 2 - 1
         hits += int(np.sum(signs @ d / d.size >= obs - tol))
         done += k
     return (1 + hits) / (1 + N_RESAMPLES)
+
+
+@functools.lru_cache(maxsize=4)
+def flip_signs(seed: int, n: int) -> np.ndarray:
+    """(N_RESAMPLES, n) random signs (int8, read-only): the first batch :func:`sign_flip_p` draws from ``seed``.
+    A diagnosis tests a dozen effects on the same blocks with the same seed: drawn once, not per test."""
+    s = np.random.default_rng(seed).integers(0, 2, size=(N_RESAMPLES, n), dtype=np.int8) * 2 - 1
+    s.setflags(write=False)
+    return s
 
 
 #: Below this many test units the sign-flip test's attainable minimum (2^-n) cannot reach Holm's
@@ -609,11 +622,17 @@ def lag_train_sse(gap: Gap, base: Block, Y: np.ndarray, fold: np.ndarray, grid: 
         blk = Block.join([base, lag_block(gap, float(tau))], gap.n)
         G, C = gram(blk.X, Y)
         Xs = blk.X[order]
-        for i, sp in enumerate(spans):
-            Gf, Cf = gram(Xs[sp], Ys[sp])
-            Gt, Ct = G - Gf, C - Cf
-            th = np.where(blk.mask, solve_gram(Gt, Ct, blk.mask), 0.0)
-            out[i, k] = float(sum(yt[i][a] - 2 * th[a] @ Ct[:, a] + th[a] @ Gt @ th[a] for a in range(3)))
+        GC = [gram(Xs[sp], Ys[sp]) for sp in spans]
+        Gt = G[None] - np.stack([g for g, _ in GC])                 # (folds, p, p) training Gram matrices
+        Ct = C[None] - np.stack([c for _, c in GC])                 # (folds, p, 3)
+        if blk.mask.all():           # every axis uses every column: the folds' systems solved together
+            th = solve_normal_batch(Gt, Ct)                         # (folds, p, 3)
+            out[:, k] = (np.array(yt).sum(axis=1) - 2 * np.einsum("fpa,fpa->f", th, Ct)
+                         + np.einsum("fpa,fpa->f", th, Gt @ th))
+            continue
+        for i in range(len(spans)):
+            th = np.where(blk.mask, solve_gram(Gt[i], Ct[i], blk.mask), 0.0)
+            out[i, k] = float(sum(yt[i][a] - 2 * th[a] @ Ct[i][:, a] + th[a] @ Gt[i] @ th[a] for a in range(3)))
     return out
 
 

@@ -120,17 +120,28 @@ def fit_spectrum(power: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarr
         beta = 2.0 / (1.0 + np.exp(-x[6]))
         return w, a, beta
 
+    add = np.add.reduce
+
     def nll(x):
-        """Negative Whittle log-likelihood and its analytic gradient in ``x``."""
+        """Negative Whittle log-likelihood and its analytic gradient in ``x`` (the optimiser calls it ~300
+        times: temporaries reused in place; every value is the plain expression's, bit for bit)."""
         w, a, beta = unpack(x)
         kb = np.exp(-beta * lk)
-        P = w[None, :] + a[None, :] * kb[:, None]
-        d = 1.0 / P - power / (P * P)                   # d nll / d P
+        kbc = kb[:, None]
+        P = a * kbc
+        P += w                                          # w + a k^-beta
+        d = np.multiply(P, P)
+        np.divide(power, d, out=d)
+        np.subtract(np.divide(1.0, P), d, out=d)        # d nll / d P = 1/P - I/P^2
         g = np.empty(7)
-        g[0:3] = w * np.sum(d, axis=0)
-        g[3:6] = a * np.sum(d * kb[:, None], axis=0)
-        g[6] = -beta * (1.0 - beta / 2.0) * float(np.sum(d * (a[None, :] * (kb * lk)[:, None])))
-        return float(np.sum(np.log(P) + power / P)), g
+        g[0:3] = w * add(d, axis=0)
+        g[3:6] = a * add(d * kbc, axis=0)
+        t = a * (kb * lk)[:, None]
+        t *= d
+        g[6] = -beta * (1.0 - beta / 2.0) * float(add(t, axis=None))
+        f = np.log(P)
+        f += power / P
+        return float(add(f, axis=None)), g
 
     best = None
     for b0 in (-2.0, 0.0, 2.0):     # beta 0.24, 1, 1.76: the likelihood is not convex in beta
