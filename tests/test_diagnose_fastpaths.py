@@ -7,6 +7,7 @@ search of the training SSE, the surrogate test's precomputed fold solves against
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from magstack.ground.diagnose import noise
 
@@ -145,10 +146,13 @@ def test_chunked_excitation_check_agrees_with_the_least_squares_residual():
     assert sr._excited(np.hstack([inside, rng.standard_normal((n, 1))]), base)
 
 
-def test_hysteresis_threshold_choice_by_normal_equations_is_the_refit_choice():
-    """choose_thresholds against refitting base + hysteresis_block for every option (the search's rule)."""
+@pytest.mark.parametrize("option_floats", [1_000_000, 3000])
+def test_hysteresis_threshold_choice_by_normal_equations_is_the_refit_choice(monkeypatch, option_floats):
+    """choose_thresholds against refitting base + hysteresis_block for every option (the search's rule); also
+    with the options of each axis formed one threshold at a time (a long session's memory bound)."""
     from magstack.ground.diagnose import nonlinear as nl
     from magstack.ground.diagnose import search as sr
+    monkeypatch.setattr(sr, "HYST_OPTION_FLOATS", option_floats)
     from magstack.ground.diagnose.gap import model_gap, predict, solve
     s = _skewed_session(2400, seed=7)
     exc = (np.arange(2400) % 800 >= 100) & (np.arange(2400) % 800 < 220)   # one large X excursion per power cycle

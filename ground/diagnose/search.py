@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -491,31 +492,36 @@ def hysteresis_block(gap: Gap, thresholds: np.ndarray, initial: np.ndarray | Non
     return blk
 
 
-def hysteresis_options(gap: Gap, cands: list, j: int) -> np.ndarray:
-    """(N, 2 x len(cands[j])) axis j's state column (:func:`nonlinear.hysteresis_state`) on the gap's rows for
-    every option, in the order threshold, then initial state -1, +1. The state is the same for both initial
-    states after the axis' first excursion, so each threshold's history is scanned once; kept on the gap
-    (the search asks for the same options once per fold) while it holds at most HYST_OPTION_FLOATS floats."""
+def hysteresis_options(gap: Gap, cands: list, j: int, which: Sequence[int] | None = None) -> np.ndarray:
+    """(N, 2 x len(which)) axis j's state column (:func:`nonlinear.hysteresis_state`) on the gap's rows for
+    the thresholds ``cands[j][which]`` (all by default), each with the initial state -1 then +1. The state is
+    the same for both initial states after the axis' first excursion, so each threshold's history is scanned
+    once. All of an axis' options are kept on the gap (the search asks for them once per fold) when they hold
+    at most HYST_OPTION_FLOATS floats (short sessions)."""
     cache = gap.__dict__.setdefault("_hyst_options", {})
     key = (j, tuple(float(c) for c in cands[j]))
     if key in cache:
-        return cache[key]
+        return cache[key] if which is None else cache[key][:, [2 * k + m for k in which for m in (0, 1)]]
+    which = list(range(len(cands[j]))) if which is None else list(which)
+    whole = len(which) == len(cands[j]) and 2 * len(which) * gap.n + sum(v.size for v in cache.values()) \
+        <= HYST_OPTION_FLOATS
     hist, idx = gap.history()
-    out = np.empty((gap.n, 2 * len(cands[j])))
-    for k, c in enumerate(cands[j]):
+    out = np.empty((gap.n, 2 * len(which)))
+    for i, k in enumerate(which):
         one = np.full(3, np.inf)
-        one[j] = c
+        one[j] = cands[j][k]
         st = nl.hysteresis_state(hist, one)[idx, j]           # 0 before the first excursion
         before = st == 0
-        out[:, 2 * k] = np.where(before, -1.0, st)
-        out[:, 2 * k + 1] = np.where(before, 1.0, st)
-    if out.size + sum(v.size for v in cache.values()) <= HYST_OPTION_FLOATS:
+        out[:, 2 * i] = np.where(before, -1.0, st)
+        out[:, 2 * i + 1] = np.where(before, 1.0, st)
+    if whole:
         cache[key] = out
     return out
 
 
-#: Floats of hysteresis option columns a gap keeps between folds (:func:`hysteresis_options`).
-HYST_OPTION_FLOATS = 4_000_000
+#: Floats of hysteresis option columns a gap keeps between folds (:func:`hysteresis_options`), and at most
+#: formed at once by :func:`choose_thresholds` (the options of a long session are taken a few at a time).
+HYST_OPTION_FLOATS = 1_000_000
 
 
 def choose_thresholds(gap: Gap, base: Block, Y: np.ndarray, cands: list, rows: np.ndarray
@@ -526,10 +532,12 @@ def choose_thresholds(gap: Gap, base: Block, Y: np.ndarray, cands: list, rows: n
 
     Every option adds one column ``u`` (the same to every output axis) to a design ``A`` that is the same for
     all of them (the base, the constant hysteresis_block adds when the base lacks one, the state columns of
-    the axes decided before). So per output axis ``A`` is solved once, for its target and for all options'
-    ``A^T u`` together, and each option's SSE reduction follows from the Schur complement:
+    the axes decided before; kept as two blocks, its products formed block by block). So per output axis
+    ``A`` is solved once, for its target and for all options' ``A^T u`` together, and each option's SSE
+    reduction follows from the Schur complement:
     ``(u.y - (A^T u).theta)^2 / (u.u - (A^T u).(A^T A)^-1 A^T u)`` (none where the column lies in A's span to
-    the solver's RCOND, as its pseudo-inverse gives)."""
+    the solver's RCOND, as its pseudo-inverse gives). Options are formed in groups of at most
+    HYST_OPTION_FLOATS floats (all at once for a short session)."""
     sel = np.flatnonzero(rows) if rows.dtype == bool else rows
     Xb, mb = base.X[sel], base.mask
     if "offset" not in gap.base_terms:      # hysteresis_block carries the constant the base lacks
@@ -538,30 +546,43 @@ def choose_thresholds(gap: Gap, base: Block, Y: np.ndarray, cands: list, rows: n
     Yr = Y[sel]
     thr = np.full(3, np.inf)
     init = np.ones(3)
-    A, mA = Xb, mb
+    Gb, Cb = Xb.T @ Xb, Xb.T @ Yr
+    E = np.zeros((sel.size, 0))              # state columns of the axes decided so far (A = [Xb E], never joined)
+    mA = mb
     for j in range(3):
-        if not len(cands[j]):
+        n_thr = len(cands[j])
+        if not n_thr:
             continue
-        U = hysteresis_options(gap, cands, j)[sel]               # (rows, K)
-        G, AU, AY = A.T @ A, A.T @ U, A.T @ Yr
-        uu, uy = np.einsum("ij,ij->j", U, U), U.T @ Yr            # (K,), (K, 3)
-        red = np.zeros(U.shape[1])
+        XE = Xb.T @ E
+        G = np.block([[Gb, XE], [XE.T, E.T @ E]])
+        AY = np.vstack([Cb, E.T @ Yr])
         groups: dict[bytes, list[int]] = {}
         for i in range(3):
             groups.setdefault(mA[i].tobytes(), []).append(i)
-        for axes in groups.values():
-            m = np.flatnonzero(mA[axes[0]])
-            sol = solve_normal(G[np.ix_(m, m)], np.hstack([AY[np.ix_(m, axes)], AU[m]]))
-            theta, W = sol[:, :len(axes)], sol[:, len(axes):]
-            s = uu - np.einsum("ij,ij->j", AU[m], W)              # the new column's part outside span(A)
-            z = uy[:, axes] - AU[m].T @ theta                     # (K, axes): its product with the residual
-            inside = ~(s > RCOND * uu)
-            red += np.where(inside, 0.0, np.sum(z * z, axis=1) / np.where(inside, 1.0, s))
-        if not np.isfinite(red).any():
+        per = max(1, int(HYST_OPTION_FLOATS // (2 * max(gap.n, 1))))      # thresholds per group
+        best_red, best_k, best_col = -np.inf, -1, None
+        for g0 in range(0, n_thr, per):
+            which = range(g0, min(g0 + per, n_thr))
+            U = hysteresis_options(gap, cands, j, which if per < n_thr else None)[sel]      # (rows, K)
+            AU = np.vstack([Xb.T @ U, E.T @ U])
+            uu, uy = np.einsum("ij,ij->j", U, U), U.T @ Yr                                  # (K,), (K, 3)
+            red = np.zeros(U.shape[1])
+            for axes in groups.values():
+                m = np.flatnonzero(mA[axes[0]])
+                sol = solve_normal(G[np.ix_(m, m)], np.hstack([AY[np.ix_(m, axes)], AU[m]]))
+                theta, W = sol[:, :len(axes)], sol[:, len(axes):]
+                s = uu - np.einsum("ij,ij->j", AU[m], W)              # the new column's part outside span(A)
+                z = uy[:, axes] - AU[m].T @ theta                     # (K, axes): its product with the residual
+                inside = ~(s > RCOND * uu)
+                red += np.where(inside, 0.0, np.sum(z * z, axis=1) / np.where(inside, 1.0, s))
+            red = np.where(np.isfinite(red), red, -np.inf)
+            k = int(np.argmax(red))
+            if red[k] > best_red:                                     # the first option on ties
+                best_red, best_k, best_col = red[k], 2 * g0 + k, U[:, k].copy()
+        if best_col is None:
             continue
-        k = int(np.argmax(np.where(np.isfinite(red), red, -np.inf)))
-        thr[j], init[j] = cands[j][k // 2], (-1.0, 1.0)[k % 2]
-        A = np.hstack([A, U[:, k:k + 1]])
+        thr[j], init[j] = cands[j][best_k // 2], (-1.0, 1.0)[best_k % 2]
+        E = np.hstack([E, best_col[:, None]])
         mA = np.hstack([mA, np.ones((3, 1), bool)])
     return thr, init
 
@@ -604,7 +625,7 @@ def lagged_temperature(gap: Gap, tau_s: float) -> np.ndarray:
 
 
 #: Floats of lagged temperature series a gap keeps (:func:`lagged_temperature`).
-LAG_CACHE_FLOATS = 2_000_000
+LAG_CACHE_FLOATS = 500_000
 
 
 def lag_train_sse(gap: Gap, base: Block, Y: np.ndarray, fold: np.ndarray, grid: np.ndarray) -> np.ndarray:
@@ -621,8 +642,7 @@ def lag_train_sse(gap: Gap, base: Block, Y: np.ndarray, fold: np.ndarray, grid: 
     for k, tau in enumerate(grid):
         blk = Block.join([base, lag_block(gap, float(tau))], gap.n)
         G, C = gram(blk.X, Y)
-        Xs = blk.X[order]
-        GC = [gram(Xs[sp], Ys[sp]) for sp in spans]
+        GC = [gram(blk.X[order[sp]], Ys[sp]) for sp in spans]     # one fold's rows at a time
         Gt = G[None] - np.stack([g for g, _ in GC])                 # (folds, p, p) training Gram matrices
         Ct = C[None] - np.stack([c for _, c in GC])                 # (folds, p, 3)
         if blk.mask.all():           # every axis uses every column: the folds' systems solved together
