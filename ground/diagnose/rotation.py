@@ -47,6 +47,7 @@ class MountColumns:
     held: list[str] = field(default_factory=list)
     #: (3,3) the DUT-space image of the reference (forward gap: ``dut ~ A ref``), or None (reference space)
     image: np.ndarray | None = None
+    _kept: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def q(self) -> int:
@@ -58,7 +59,16 @@ class MountColumns:
 
     def axis_columns(self, i: int, rows=None) -> np.ndarray:
         """(n, q): output axis i's component of ``e_a x B_ref`` (``image[i] . (e_a x B_ref)`` with an image)
-        on session k's rows, per angle (k, a)."""
+        on session k's rows, per angle (k, a). A short session's columns are formed once per axis and kept
+        (read-only; the joint fit asks for them per fold and chunk); a long one's on demand."""
+        if self.ref_uT.shape[0] * self.q * 3 <= KEPT_COLUMN_FLOATS:
+            if i not in self._kept:
+                self._kept[i] = self._columns(i, None)
+                self._kept[i].setflags(write=False)
+            return self._kept[i] if rows is None else self._kept[i][rows]
+        return self._columns(i, rows)
+
+    def _columns(self, i: int, rows) -> np.ndarray:
         ref = self.ref_uT if rows is None else self.ref_uT[rows]
         ses = self.session if rows is None else self.session[rows]
         out = np.zeros((ref.shape[0], self.q))
@@ -74,6 +84,10 @@ class MountColumns:
     def flat(self, rows=None) -> np.ndarray:
         """(n, 3q) the angle columns as seen by each output axis (for confounding checks)."""
         return np.hstack([self.axis_columns(i, rows) for i in range(3)])
+
+
+#: Floats of angle columns a MountColumns keeps (all three axes of a short session).
+KEPT_COLUMN_FLOATS = 1_000_000
 
 
 def axis_cross(a: int, b: np.ndarray) -> np.ndarray:
