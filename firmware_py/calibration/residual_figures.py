@@ -21,41 +21,61 @@ from magstack.firmware.calibration.steps import STEP_NOISE_FACTOR, StepDiagnosis
 class LagPairs:
     """The residual differences ``r[later] - r[earlier]`` of the row pairs :func:`.fit.noise_floor` forms
     (nearest row to ``t + lag_s`` in the session, within ``lag_s / 2``), for rows ordered by (session, time)
-    arriving in consecutive blocks: each block gives the pairs whose later row it holds. Pending: the
-    residuals of earlier rows whose partner has not arrived (rows within ``1.5 lag_s`` of the block's end)."""
+    arriving in consecutive blocks: each block gives the pairs whose later row it holds. Waiting: the
+    residuals of earlier rows whose partner has not arrived (rows within ``1.5 lag_s`` of the block's end).
+    A block's session runs whose every row pairs with the row a fixed number of rows later (regular
+    sampling) are remembered as that shift: replays of the block then pair by slicing."""
 
     def __init__(self, t_s: np.ndarray, session: np.ndarray, lag_s: float) -> None:
         self.t_s, self.session, self.lag_s = t_s, session, lag_s
+        self._shift: dict[tuple[int, int], int] = {}       # rows (from, to) -> their partners' offset
+        self.restart()
+
+    def restart(self) -> None:
+        """A new pass from the first row."""
         self._r = np.empty((3, 0))
         self._later = np.empty(0, dtype=np.int64)
 
+    def _pairs(self, start: int, a: int, b: int, s) -> tuple[np.ndarray, np.ndarray]:
+        """Block-relative (earlier, later) rows of the pairs of block rows ``a .. b`` (session ``s``)."""
+        lo = int(np.searchsorted(self.session, s, side="left"))
+        t, lag = self.t_s[lo:int(np.searchsorted(self.session, s, side="right"))], self.lag_s
+        if t.size < 2:
+            return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
+        i = np.arange(start + a - lo, start + b - lo)
+        ti = t[i]
+        x = ti + lag                    # sorted: search the window of t that can hold the answers
+        w0 = int(np.searchsorted(t, x[0]))
+        j = np.clip(w0 + np.searchsorted(t[w0:int(np.searchsorted(t, x[-1], side="right")) + 1], x), 1, t.size - 1)
+        j = np.where(np.abs(t[j - 1] - ti - lag) < np.abs(t[j] - ti - lag), j - 1, j)  # nearest to t + lag
+        good = (np.abs((t[j] - ti) - lag) <= 0.5 * lag) & (j > i)
+        return lo + i[good] - start, lo + j[good] - start
+
     def diffs(self, start: int, r: np.ndarray) -> np.ndarray:
         """(3, k) differences completed by the block of rows ``start ..`` with residuals ``r`` (3, m)."""
-        stop = start + r.shape[1]
-        s, lag = self.session[start:stop], self.lag_s
+        m = r.shape[1]
+        s = self.session[start:start + m]
         cuts = np.r_[0, np.flatnonzero(s[1:] != s[:-1]) + 1, s.size]
-        early, late = [self._later[:0]], [self._later[:0]]
+        due = self._later < start + m
+        out = [np.take(r, self._later[due] - start, axis=1) - self._r[:, due]]
+        wait_r, wait_later = [self._r[:, ~due]], [self._later[~due]]
         for a, b in zip(cuts[:-1], cuts[1:], strict=True):
-            lo = int(np.searchsorted(self.session, s[a], side="left"))
-            t = self.t_s[lo:int(np.searchsorted(self.session, s[a], side="right"))]
-            if t.size < 2:
-                continue
-            i = np.arange(start + a - lo, start + b - lo)
-            ti = t[i]
-            x = ti + lag                # sorted: search the window of t that can hold the answers
-            w0 = int(np.searchsorted(t, x[0]))
-            j = np.clip(w0 + np.searchsorted(t[w0:int(np.searchsorted(t, x[-1], side="right")) + 1], x), 1,
-                        t.size - 1)
-            j = np.where(np.abs(t[j - 1] - ti - lag) < np.abs(t[j] - ti - lag), j - 1, j)  # nearest to t + lag
-            good = (np.abs((t[j] - ti) - lag) <= 0.5 * lag) & (j > i)
-            early.append(lo + i[good] - start)
-            late.append(lo + j[good] - start)
-        e, lt = np.concatenate(early), np.concatenate(late)          # rows within the block
-        now, due = lt < r.shape[1], self._later < stop
-        out = [np.take(r, self._later[due] - start, axis=1) - self._r[:, due],
-               np.take(r, lt[now], axis=1) - np.take(r, e[now], axis=1)]
-        self._r = np.hstack([self._r[:, ~due], np.take(r, e[~now], axis=1)])
-        self._later = np.concatenate([self._later[~due], lt[~now] + start])
+            k = self._shift.get((start + a, start + b))
+            if k is None:
+                e, lt = self._pairs(start, a, b, s[a])
+                if e.size == b - a and e.size and np.all(lt - e == lt[0] - e[0]):
+                    k = self._shift[(start + a, start + b)] = int(lt[0] - e[0])
+            if k is not None:           # rows a .. b pair with a + k .. b + k
+                c = max(a, min(b, m - k))
+                out.append(r[:, a + k:c + k] - r[:, a:c])
+                wait_r.append(r[:, c:b])
+                wait_later.append(np.arange(c, b) + (start + k))
+            else:
+                now = lt < m
+                out.append(np.take(r, lt[now], axis=1) - np.take(r, e[now], axis=1))
+                wait_r.append(np.take(r, e[~now], axis=1))
+                wait_later.append(lt[~now] + start)
+        self._r, self._later = np.hstack(wait_r), np.concatenate(wait_later)
         return np.hstack(out)
 
 
@@ -76,7 +96,7 @@ class ResidualFigures:
     def __init__(self, b_meas_uT, b_ref_uT, t_s, session, lag_s: float, steps: bool = True) -> None:
         self.b_meas_uT, self.b_ref_uT, self.session = b_meas_uT, b_ref_uT, session
         self.n = len(session)
-        self._pairs_args = (t_s, session, lag_s)
+        self._pairs = LagPairs(t_s, session, lag_s)
         self._pass = 0
         self.sse_uT2 = np.zeros(3)
         self.raw_sse_uT2 = np.zeros(3)
@@ -88,7 +108,7 @@ class ResidualFigures:
         self._start_pass()
 
     def _start_pass(self) -> None:
-        self._pairs = LagPairs(*self._pairs_args)
+        self._pairs.restart()
         if self._threshold is not None and not self._threshold.pending and self._split is None:
             thr = STEP_NOISE_FACTOR * self._threshold.value
             if math.isfinite(thr) and thr > 0:
