@@ -33,6 +33,7 @@ from magstack.firmware.calibration.fit import (
     held_or_refuse,
     qr_r,
     raw_cond,
+    time_block_fold,
 )
 from magstack.firmware.calibration.model import CalModel
 from magstack.firmware.calibration.residual_figures import ResidualFigures
@@ -199,7 +200,7 @@ class _PieceOf:
     block of rows from each session's first time (no per-row array is kept)."""
 
     def __init__(self, d: FitData, rows: _Rows, options: FitOptions) -> None:
-        self.d, self.block_s = d, options.block_s
+        self.d, self.options = d, options
         self.n_folds = options.n_folds if options.holdout else 1
         self.sessions = d.sessions()
         self.t0_s = np.full(self.sessions.size, np.inf)
@@ -210,8 +211,7 @@ class _PieceOf:
         k = np.searchsorted(self.sessions, self.d.session[idx])
         if self.n_folds == 1:
             return k
-        t = self.d.t_s[idx]
-        return k * self.n_folds + np.floor((t - self.t0_s[k]) / self.block_s).astype(np.int64) % self.n_folds
+        return k * self.n_folds + time_block_fold(self.d.t_s[idx], self.t0_s[k], self.options)
 
 
 def _ordered(d: FitData, rows: _Rows) -> bool:
@@ -347,10 +347,10 @@ def _final_pass(d, rows, piece, fits, figures: ResidualFigures | None) -> np.nda
                 continue
             if f.unseen:
                 Xf, Yf = _Rows(d, f.model).block(sl.start + keep)
-                r = (Yf - f.model.predict(f.post.theta, Xf)).T
+                rf = (Yf - f.model.predict(f.post.theta, Xf)).T
             else:
-                r = np.take(Y.T, keep, axis=1) - np.take(P[j], keep, axis=1)
-            f.sq += np.einsum("ij,ij->i", r, r)
+                rf = np.take(Y.T, keep, axis=1) - np.take(P[j], keep, axis=1)
+            f.sq += np.einsum("ij,ij->i", rf, rf)
             f.cnt += keep.size
     while figures is not None:
         figures.end_pass()

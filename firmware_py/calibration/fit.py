@@ -852,8 +852,13 @@ def block_folds(d: FitData, options: FitOptions) -> np.ndarray:
     fold = np.zeros(len(d), dtype=np.int64)
     for s in np.unique(d.session):
         m = d.session == s
-        fold[m] = np.floor((d.t_s[m] - d.t_s[m].min()) / options.block_s).astype(np.int64) % options.n_folds
+        fold[m] = time_block_fold(d.t_s[m], d.t_s[m].min(), options)
     return fold
+
+
+def time_block_fold(t_s: np.ndarray, t_first_s, options: FitOptions) -> np.ndarray:
+    """Fold of rows at ``t_s`` (s) of a session whose first row is at ``t_first_s`` (see :func:`block_folds`)."""
+    return np.floor((t_s - t_first_s) / options.block_s).astype(np.int64) % options.n_folds
 
 
 def _holdout_blocks(d: FitData, terms, currents, t0_c, name, options, notes) -> np.ndarray | None:

@@ -100,6 +100,7 @@ class ExactMedian:
         self.top_hist = np.zeros(1 << _BITS, dtype=np.int64)                   # first pass: top 16 bits
         self._first: list[np.ndarray] | None = []                              # ... and the values, if few
         self._targets: list[_Target] | None = None
+        self.passes = 0
 
     @property
     def pending(self) -> bool:
@@ -124,6 +125,7 @@ class ExactMedian:
 
     def end_pass(self) -> None:
         """Close a pass over all values; replay them while :attr:`pending`."""
+        self.passes += 1
         if self._targets is None:
             self._targets = [_Target(r) for r in sorted({(self.n - 1) // 2, self.n // 2})] if self.n else []
             v = np.concatenate(self._first) if self._first else None
@@ -169,7 +171,8 @@ class MedianAbsDeviation:
         self.center = ExactMedian()
         self._scan: tuple | None = None         # c, lo, width, counts (below lo / per bin / above), counted
         self._bracket: tuple | None = None      # lo, hi, count below, collected
-        self._exact: ExactMedian | None = None
+        self._exact: ExactMedian | None = None     # the fall-back, fed once the median is exact
+        self._fall_back = False
         self.value: float | None = None
 
     @property
@@ -189,12 +192,12 @@ class MedianAbsDeviation:
             lo, hi, below, got = self._bracket
             y = np.abs(v - self.center.value)
             self._bracket = (lo, hi, below + int(np.count_nonzero(y < lo)), got + [y[(y >= lo) & (y <= hi)]])
-        elif self._exact is not None:
+        elif self._exact is not None:             # created once the median was exact
             self._exact.feed(np.abs(v - self.center.value))
 
     def end_pass(self) -> None:
         """Close a pass over all values; replay them while :attr:`pending`."""
-        first = self.center._targets is None
+        first = self.center.passes == 0
         if self.center.pending:
             self.center.end_pass()
         n = self.center.n
@@ -210,14 +213,14 @@ class MedianAbsDeviation:
             self._close_bracket(ranks)
         elif self._scan is not None:
             self._scan = (*self._scan[:4], True)
-        elif first and self.center.pending:
-            self._start_scan(ranks)
-        elif not self.center.pending and self._scan is None:
-            self._exact = ExactMedian()
+        elif first:                                 # a median from few values is exact already
+            self._fall_back = not self.center.pending or not self._start_scan(ranks)
         if self._scan is not None and self._scan[-1] and not self.center.pending:
-            self._open_bracket(ranks)
+            self._fall_back = not self._open_bracket(ranks)
+        if self._fall_back and self._exact is None and not self.center.pending:
+            self._exact = ExactMedian()
 
-    def _start_scan(self, ranks: list[int]) -> None:
+    def _start_scan(self, ranks: list[int]) -> bool:
         """Bins for the deviations from ``c``: ranks bounded by the first pass's bins of the values."""
         c, hi_c = self.center.interval()
         h = self.center.top_hist
@@ -227,12 +230,13 @@ class MedianAbsDeviation:
         near = np.where((edge[0] <= c) & (c <= edge[1]), 0.0, np.minimum(np.abs(edge[0] - c), np.abs(edge[1] - c)))
         a, b = _weighted_rank(near, h[used], ranks[0]), _weighted_rank(far, h[used], ranks[-1])
         if not (np.isfinite(hi_c - c) and np.isfinite(a) and np.isfinite(b)):
-            self._exact = ExactMedian()
-            return
+            return False
         width = max((b - a) / (1 << _BITS), float(np.spacing(max(b, 1e-300))))
         self._scan = (c, a, width, np.zeros((1 << _BITS) + 2, dtype=np.int64), None)
+        return True
 
-    def _open_bracket(self, ranks: list[int]) -> None:
+    def _open_bracket(self, ranks: list[int]) -> bool:
+        """Whether the deviations of the wanted ranks are bracketed in few enough values to collect."""
         c, a, width, counts, _ = self._scan
         self._scan = None
         cum = np.cumsum(counts)                       # bin 0: below a, then the bins, then above
@@ -240,21 +244,20 @@ class MedianAbsDeviation:
         m = self.center.value
         w = abs(m - c) + 4 * float(np.spacing(abs(m) + abs(c) + a + (k[-1] + 2) * width))
         if k[0] == 0 or k[-1] == counts.size - 1 or not np.isfinite(w):      # outside the counted range
-            self._exact = ExactMedian()
-            return
+            return False
         lo, hi = a + (k[0] - 2) * width - w, a + (k[-1] + 1) * width + w     # a bin of margin each side
         reach = np.ceil(w / width) + 1
         if cum[min(int(k[-1] + reach), counts.size - 1)] - cum[max(int(k[0] - reach) - 1, 0)] > COLLECT_CAP:
-            self._exact = ExactMedian()
-            return
+            return False
         self._bracket = (lo, hi, 0, [])
+        return True
 
     def _close_bracket(self, ranks: list[int]) -> None:
         _, _, below, got = self._bracket
         self._bracket = None
         y = np.concatenate(got) if got else np.empty(0)
         if not (below <= ranks[0] and ranks[-1] < below + y.size):
-            self._exact = ExactMedian()              # cannot happen (the bracket holds the ranks); stay exact
+            self._fall_back = True                   # cannot happen (the bracket holds the ranks); stay exact
             return
         y = np.partition(y, [r - below for r in ranks])
         self.value = float(np.mean(np.array([y[r - below] for r in ranks])))
