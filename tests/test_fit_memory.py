@@ -17,7 +17,8 @@ from magstack.firmware.calibration import FitOptions, fit
 from magstack.firmware.calibration.model import CalModel, resolve_terms
 from magstack.sim.synthetic_calibration import make_data, random_theta
 
-#: Bytes per added row allowed: measured 1.0 B/row here (the row mask of usable rows); 91 B/row on 505ad2f
+#: Bytes per added row allowed: measured -0.3 to 1.0 B/row here (the one per-row array is the 1-byte mask of
+#: usable rows; the peak itself is set by fixed per-block buffers); 91 B/row on 505ad2f
 #: (N x 3 residuals, fold and piece ids, the noise floor's index pairs and differences, the step split's arrays).
 MAX_BYTES_PER_ROW = 8
 CURRENTS = ("solar", "heater")
