@@ -9,7 +9,11 @@ own mean time); its design is a fixed linear map of the full design on its train
 (:func:`basis_change`), applied to the stacked factor. Two more passes rebuild the design block by block
 (it is never kept whole): the residual autocorrelation of every fit's training rows in time order
 (:class:`.blocking.BlockingInflation`), then the full fit's residuals and each fold's held-out residuals.
-The results equal refitting each fold's rows to rounding (tests/test_calibration_crossfit.py). Robust
+Rows in (session, time) order hand the full fit's residuals block by block to
+:class:`.residual_figures.ResidualFigures` (noise floor, step split, sums of squares), replaying the last
+pass until its exact medians are found; no per-row array is kept (a row's piece is computed per block).
+Other rows keep the (N, 3) residuals. The results equal refitting each fold's rows to rounding
+(tests/test_calibration_crossfit.py). Robust
 IRLS, ``time_skew`` and ``mount_rotation`` need all rows at once: :func:`applies` sends them to the refit path.
 """
 from __future__ import annotations
