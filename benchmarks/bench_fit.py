@@ -2,14 +2,17 @@
 
 Run: ``python benchmarks/bench_fit.py [--n 1000000] [--refit]``. Data as ``bench_calibration.py`` (Eq. 3 + two
 currents, 30 parameters, one session, 0.25 s rows, so 5 interleaved 60 s time-block folds). CPU seconds by
-``process_time`` (best of ``--repeat``), peak memory by tracemalloc in a separate run; the baseline (design
-matrix + ``np.linalg.lstsq``) runs in the same process, with BLAS on one thread and on its default threads.
+``process_time`` (best of ``--repeat``), peak memory by tracemalloc in a separate run (the input arrays are built
+before tracing starts: the peak is the fit's own memory), also at ``--n-small`` rows (default N / 2) for the
+growth per added row; the baseline (design matrix + ``np.linalg.lstsq``) runs in the same process, with BLAS on
+one thread and on its default threads.
 ``--refit`` also times the refit path (every fold refits its rows: the mechanism before issue 25) and prints
 how far the cross-fit's parameters and held-out figures are from it.
 """
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import sys
 import tracemalloc
@@ -52,11 +55,16 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--n", type=int, default=1_000_000)
     ap.add_argument("--repeat", type=int, default=2)
+    ap.add_argument("--n-small", type=int, default=None, help="second size for the memory growth (default N / 2)")
     ap.add_argument("--refit", action="store_true")
     args = ap.parse_args()
-    rng = np.random.default_rng(0)
     model = CalModel(resolve_terms("eq3", currents=CURRENTS), CURRENTS, (), 25.0, 0.0)
-    data = make_data(model, random_theta(model, rng), args.n, rng, noise_uT=0.03, t0_s=0.0)
+
+    def bench_data(n):
+        rng = np.random.default_rng(0)
+        return make_data(model, random_theta(model, rng), n, rng, noise_uT=0.03, t0_s=0.0)
+
+    data = bench_data(args.n)
     in_mib = sum(a.nbytes for a in (data.b_meas_uT, data.b_ref_uT, data.temp_c, data.t_s, data.session,
                                     *data.currents_A.values())) / 2 ** 20
     opts = FitOptions()
@@ -80,8 +88,11 @@ def main() -> None:
     pk_fit, pk_base = peak_mib(run), peak_mib(lstsq_1)
     print(f"numpy lstsq (design + lstsq): {base1:.3f} s CPU BLAS 1 thread, {base_d:.3f} s default threads; "
           f"peak {pk_base:.0f} MiB")
+    n_small = args.n_small or max(args.n // 2, 1000)
+    pk_small = peak_mib(functools.partial(fit, bench_data(n_small), "eq3", currents=CURRENTS, options=opts))
     print(f"fit (cross-fit): {cpu:.3f} s CPU = {cpu / base1:.2f}x lstsq (1 thread), {cpu / base_d:.2f}x (default); "
-          f"peak {pk_fit:.1f} MiB = {pk_fit * 2 ** 20 / args.n:.0f} B/row")
+          f"peak {pk_fit:.1f} MiB at {args.n} rows, {pk_small:.1f} MiB at {n_small}: "
+          f"{(pk_fit - pk_small) * 2 ** 20 / (args.n - n_small):.1f} B per added row")
     print(f"   held-out time blocks {np.round(res.holdout_blocks_uT * 1e3, 3)} nT; in-sample "
           f"{np.round(res.rmse_uT * 1e3, 3)} nT")
     if args.refit:

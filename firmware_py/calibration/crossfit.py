@@ -9,7 +9,11 @@ own mean time); its design is a fixed linear map of the full design on its train
 (:func:`basis_change`), applied to the stacked factor. Two more passes rebuild the design block by block
 (it is never kept whole): the residual autocorrelation of every fit's training rows in time order
 (:class:`.blocking.BlockingInflation`), then the full fit's residuals and each fold's held-out residuals.
-The results equal refitting each fold's rows to rounding (tests/test_calibration_crossfit.py). Robust
+Rows in (session, time) order hand the full fit's residuals block by block to
+:class:`.residual_figures.ResidualFigures` (noise floor, step split, sums of squares), replaying the last
+pass until its exact medians are found; no per-row array is kept (a row's piece is computed per block).
+Other rows keep the (N, 3) residuals. The results equal refitting each fold's rows to rounding
+(tests/test_calibration_crossfit.py). Robust
 IRLS, ``time_skew`` and ``mount_rotation`` need all rows at once: :func:`applies` sends them to the refit path.
 """
 from __future__ import annotations
@@ -22,23 +26,25 @@ from magstack.firmware.blas import single_thread
 from magstack.firmware.calibration.blocking import BlockingInflation
 from magstack.firmware.calibration.estimator import Posterior
 from magstack.firmware.calibration.fit import (
+    BLOCK_ROWS,
     CoreFit,
     Coverage,
     FirstSolve,
     FitData,
     FitOptions,
-    block_folds,
     first_solve,
     gate_solve,
     held_or_refuse,
     qr_r,
     raw_cond,
+    time_block_fold,
 )
 from magstack.firmware.calibration.model import CalModel
+from magstack.firmware.calibration.residual_figures import ResidualFigures
 from magstack.firmware.errors import FitError
 
 #: Rows per block of every pass (the design of one block is the largest array built: 64k x p floats).
-CHUNK_ROWS = 65536
+CHUNK_ROWS = BLOCK_ROWS
 
 
 def applies(model: CalModel, options: FitOptions) -> bool:
@@ -117,11 +123,13 @@ class _Fit:
 
 @dataclass
 class CrossFit:
-    """The full fit (``core``, its residuals ``resid_uT`` (N, 3)) and the held-out figures (uT) with the notes
-    the refit path would have written."""
+    """The full fit (``core``), the figures of its residuals (``figures``, rows in (session, time) order) or
+    else the residuals themselves (``resid_uT`` (N, 3)), and the held-out figures (uT) with the notes the
+    refit path would have written."""
 
     core: CoreFit
-    resid_uT: np.ndarray
+    resid_uT: np.ndarray | None
+    figures: ResidualFigures | None = None
     holdout_blocks_uT: np.ndarray | None = None
     holdout_sessions_uT: np.ndarray | None = None
     holdout_per_session_uT: dict[int, np.ndarray] = field(default_factory=dict)
@@ -154,16 +162,14 @@ def cross_fit(d: FitData, model: CalModel, options: FitOptions) -> CrossFit:
 
 
 def _cross_fit(d: FitData, model: CalModel, options: FitOptions) -> CrossFit:
-    sessions = np.unique(d.session)
-    n_folds = options.n_folds if options.holdout else 1
-    fold = block_folds(d, options) if options.holdout else np.zeros(len(d), dtype=np.int64)
-    piece = np.searchsorted(sessions, d.session) * n_folds + fold
     rows = _Rows(d, model)
+    piece = _PieceOf(d, rows, options)
+    sessions, n_folds = piece.sessions, piece.n_folds
     pcs = _pieces(d, rows, piece, sessions, n_folds, model, options)
     every = pcs.count > 0
     fits = [_make("full", 0, every, ~every, pcs, model)]
     if options.holdout:
-        for f in np.unique(fold):
+        for f in np.unique(pcs.fold[every]):
             test = every & (pcs.fold == f)
             if test.any() and (every & ~test).any():
                 fits.append(_make("blocks", int(f), every & ~test, test, pcs, model))
@@ -173,24 +179,57 @@ def _cross_fit(d: FitData, model: CalModel, options: FitOptions) -> CrossFit:
     for f in fits:
         f.first = _run(f, lambda f=f: first_solve(f.R, f.n, f.model, f.coverage, options))
         f.post = f.first.post if f.first is not None else None
+    ordered = _ordered(d, rows)
     if options.autocorr:
-        _autocorr(d, rows, piece, fits, pcs.xy_sum, options)
+        _autocorr(d, rows, piece, fits, pcs.xy_sum, options, ordered)
     for f in fits:
         if f.error is None:
             f.held = _run(f, lambda f=f: held_or_refuse(f.post, f.first.explain, options)) or []
     full = fits[0]
     if full.error is not None:
         raise FitError(full.error)
-    resid = _final_pass(d, rows, piece, fits)
+    figures = ResidualFigures(d.b_meas_uT, d.b_ref_uT, d.t_s, d.session, options.noise_lag_s,
+                              steps=options.exclude_ref_steps_uT is None) if ordered else None
+    resid = _final_pass(d, rows, piece, fits, figures)
     out = CrossFit(CoreFit(None, full.post.theta.copy(), np.where(model.axis_mask(), full.post.sd, np.nan),
                            full.held, np.vstack([full.post.cond, raw_cond(full.R, model)]), full.coverage, None,
-                           full.post), resid)
+                           full.post), resid, figures)
     if options.holdout:
         _figures(out, fits)
     return out
 
 
-def _pieces(d: FitData, rows: _Rows, piece: np.ndarray, sessions: np.ndarray, n_folds: int, model: CalModel,
+class _PieceOf:
+    """Piece of rows (session index x n_folds + time-block fold, as :func:`.fit.block_folds`), computed per
+    block of rows from each session's first time (no per-row array is kept)."""
+
+    def __init__(self, d: FitData, rows: _Rows, options: FitOptions) -> None:
+        self.d, self.options = d, options
+        self.n_folds = options.n_folds if options.holdout else 1
+        self.sessions = d.sessions()
+        self.t0_s = np.full(self.sessions.size, np.inf)
+        for sl in rows.chunks(None):
+            np.minimum.at(self.t0_s, np.searchsorted(self.sessions, d.session[sl]), d.t_s[sl])
+
+    def __getitem__(self, idx) -> np.ndarray:
+        k = np.searchsorted(self.sessions, self.d.session[idx])
+        if self.n_folds == 1:
+            return k
+        return k * self.n_folds + time_block_fold(self.d.t_s[idx], self.t0_s[k], self.options)
+
+
+def _ordered(d: FitData, rows: _Rows) -> bool:
+    """Whether the rows are in (session, time) order (checked block by block, one row of overlap)."""
+    s, t = d.session, d.t_s
+    for sl in rows.chunks(None):
+        a, b = max(sl.start - 1, 0), sl.stop
+        s0, s1 = s[a:b - 1], s[a + 1:b]
+        if np.any(s1 < s0) or np.any((s1 == s0) & (t[a + 1:b] < t[a:b - 1])):
+            return False
+    return True
+
+
+def _pieces(d: FitData, rows: _Rows, piece: _PieceOf, sessions: np.ndarray, n_folds: int, model: CalModel,
             options: FitOptions) -> _Pieces:
     """Pass 1: every piece's state (:class:`_Pieces`); piece = session index x n_folds + fold."""
     m = model.n_columns + 3
@@ -202,8 +241,10 @@ def _pieces(d: FitData, rows: _Rows, piece: np.ndarray, sessions: np.ndarray, n_
     xy_sum = np.zeros((n_pieces, m))
     for sl in rows.chunks(None):
         pc = piece[sl]
-        idx = sl if np.all(pc[1:] >= pc[:-1]) else sl.start + np.argsort(pc, kind="stable")   # piece order
-        pc = piece[idx]
+        idx = sl
+        if not np.all(pc[1:] >= pc[:-1]):                                    # piece order
+            o = np.argsort(pc, kind="stable")
+            idx, pc = sl.start + o, pc[o]
         X, Y = rows.block(idx)
         Z = np.hstack([X, Y])
         w = None if d.weights is None else d.weights[idx]
@@ -251,7 +292,7 @@ def _run(f: _Fit, step):
         return None
 
 
-def _autocorr(d, rows, piece, fits, xy_sum, options) -> None:
+def _autocorr(d, rows, piece, fits, xy_sum, options, ordered: bool) -> None:
     """Pass 2: residuals of every fit's training rows in (session, time) order -> kappa -> the final solve."""
     live = [f for f in fits if f.error is None]
     if not live:
@@ -265,7 +306,6 @@ def _autocorr(d, rows, piece, fits, xy_sum, options) -> None:
     center = np.array(center)[:, :, None]
     accs = [BlockingInflation() for _ in live]
     s, t = d.session, d.t_s
-    ordered = bool(np.all(s[1:] >= s[:-1]) and np.all((s[1:] != s[:-1]) | (t[1:] >= t[:-1])))
     order = None if ordered else np.lexsort((t, s))
     for idx in rows.chunks(order):
         X, Y = rows.block(idx)
@@ -286,16 +326,24 @@ def _autocorr(d, rows, piece, fits, xy_sum, options) -> None:
         f.post = post if post is not None else f.post
 
 
-def _final_pass(d, rows, piece, fits) -> np.ndarray:
-    """Pass 3: the full fit's residuals (N, 3) and each fold's squared held-out residuals."""
+def _final_pass(d, rows, piece, fits, figures: ResidualFigures | None) -> np.ndarray | None:
+    """Pass 3: the full fit's residuals, into ``figures`` (then replayed while it needs them again) or else
+    returned whole (N, 3); each fold's squared held-out residuals."""
     full = fits[0]
     folds = [f for f in fits[1:] if f.error is None]
-    theta = np.hstack([f.theta_full_basis() for f in [full] + folds])        # (p, 3 (1 + F))
-    resid = np.empty((len(d), 3))
+    theta = full.theta_full_basis()
+    theta_f = np.hstack([f.theta_full_basis() for f in folds]) if folds else None   # (p, 3 F)
+    resid = None if figures is not None else np.empty((len(d), 3))
     for sl in rows.chunks(None):
         X, Y = rows.block(sl)
-        P = (theta.T @ X.T).reshape(-1, 3, X.shape[0])                        # fit, axis, row
-        resid[sl] = Y - P[0].T
+        r = _resid(X, Y, theta)
+        if figures is not None:
+            figures.add(sl.start, r)
+        else:
+            resid[sl] = r.T
+        if not folds:
+            continue
+        P = (theta_f.T @ X.T).reshape(-1, 3, X.shape[0])                      # fold, axis, row
         pc = piece[sl]
         for j, f in enumerate(folds):
             keep = np.flatnonzero(f.test[pc])
@@ -303,12 +351,25 @@ def _final_pass(d, rows, piece, fits) -> np.ndarray:
                 continue
             if f.unseen:
                 Xf, Yf = _Rows(d, f.model).block(sl.start + keep)
-                r = (Yf - f.model.predict(f.post.theta, Xf)).T
+                rf = (Yf - f.model.predict(f.post.theta, Xf)).T
             else:
-                r = np.take(Y.T, keep, axis=1) - np.take(P[j + 1], keep, axis=1)
-            f.sq += np.einsum("ij,ij->i", r, r)
+                rf = np.take(Y.T, keep, axis=1) - np.take(P[j], keep, axis=1)
+            f.sq += np.einsum("ij,ij->i", rf, rf)
             f.cnt += keep.size
+    while figures is not None:
+        figures.end_pass()
+        if not figures.pending:
+            break
+        for sl in rows.chunks(None):                 # the same residuals again, bit for bit
+            X, Y = rows.block(sl)
+            figures.add(sl.start, _resid(X, Y, theta))
     return resid
+
+
+def _resid(X: np.ndarray, Y: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """(3, m) residuals ``Y - X theta``, axis first (every pass computes them alike, to the bit)."""
+    r = theta.T @ X.T
+    return np.subtract(Y.T, r, out=r)
 
 
 def _figures(out: CrossFit, fits: list[_Fit]) -> None:

@@ -62,6 +62,10 @@ __all__ = ["FitData", "FitOptions", "FitResult", "Coverage", "HeldParam", "StepD
            "RANK_RTOL", "CORE_TERMS", "STEP_RATIO", "STEP_SHARE", "STEP_NOISE_FACTOR"]
 
 
+#: Rows per block where a pass over the rows works block by block (the cross-fit's passes, the row checks).
+BLOCK_ROWS = 65536
+
+
 @dataclass
 class FitData:
     """Paired samples for a fit. b_meas_uT: DUT (N,3) uT; b_ref_uT: reference (N,3) uT;
@@ -108,20 +112,32 @@ class FitData:
                        None if self.flag is None else self.flag[mask])
 
     def usable(self, terms: Sequence[str], currents: Sequence[str]) -> np.ndarray:
-        """Rows whose every quantity the model needs is finite and whose flag has no disqualifying bit."""
-        ok = np.all(np.isfinite(self.b_meas_uT), axis=1) & np.all(np.isfinite(self.b_ref_uT), axis=1)
-        ok &= np.isfinite(self.t_s)
-        if {"temperature_gain", "temperature_offset"} & set(terms):
-            ok &= np.isfinite(self.temp_c)
+        """Rows whose every quantity the model needs is finite and whose flag has no disqualifying bit
+        (checked in blocks of rows: the mask is the only per-row array)."""
         for name in currents:
             if name not in self.currents_A:
                 raise FitError(f"data has no current {name!r} (have {sorted(self.currents_A)})")
-            ok &= np.isfinite(self.currents_A[name])
-        if self.flag is not None:
-            ok &= usable(self.flag)        # the dictionary's one rule: informational bits keep a row
-        if self.weights is not None:
-            ok &= self.weights > 0
+        temp = bool({"temperature_gain", "temperature_offset"} & set(terms))
+        ok = np.empty(len(self), dtype=bool)
+        for a in range(0, len(self), BLOCK_ROWS):
+            sl = slice(a, a + BLOCK_ROWS)
+            k = np.all(np.isfinite(self.b_meas_uT[sl]), axis=1) & np.all(np.isfinite(self.b_ref_uT[sl]), axis=1)
+            k &= np.isfinite(self.t_s[sl])
+            if temp:
+                k &= np.isfinite(self.temp_c[sl])
+            for name in currents:
+                k &= np.isfinite(self.currents_A[name][sl])
+            if self.flag is not None:
+                k &= usable(self.flag[sl])        # the dictionary's one rule: informational bits keep a row
+            if self.weights is not None:
+                k &= self.weights[sl] > 0
+            ok[sl] = k
         return ok
+
+    def sessions(self) -> np.ndarray:
+        """The sorted distinct sessions (found block by block)."""
+        return np.unique(np.concatenate([np.unique(self.session[a:a + BLOCK_ROWS])
+                                         for a in range(0, len(self), BLOCK_ROWS)] or [self.session]))
 
 
 @dataclass
@@ -467,7 +483,7 @@ def noise_floor(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, lag_
 # ---------------------------------------------------------------------- the fit
 def build_model(data: FitData, terms: Sequence[str], currents: Sequence[str], t0_c: float,
                 name: str) -> CalModel:
-    sessions = tuple(int(s) for s in np.unique(data.session)) if "session_offset" in terms else ()
+    sessions = tuple(int(s) for s in data.sessions()) if "session_offset" in terms else ()
     t_ref = float(np.mean(data.t_s)) if len(data) else 0.0
     return CalModel(tuple(terms), tuple(currents), sessions, t0_c, t_ref, name)
 
@@ -759,16 +775,22 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
     core = cross.core if cross is not None else _fit_core(d, cm, options)
     X, theta, se, held, conds, cov, mount = (core.X, core.theta, core.se, core.held, core.conds, core.coverage,
                                              core.mount)
-    resid = cross.resid_uT if cross is not None else frame_reference(d, mount) - cm.predict(theta, X)
+    figures = cross.figures if cross is not None else None     # streamed from the cross-fit's blocks
+    if figures is None:
+        resid = cross.resid_uT if cross is not None else frame_reference(d, mount) - cm.predict(theta, X)
+        raw = d.b_ref_uT - d.b_meas_uT
+        sse, raw_sse = np.einsum("ij,ij->j", resid, resid), np.einsum("ij,ij->j", raw, raw)
+        floor = noise_floor(resid, d.t_s, d.session, options.noise_lag_s)
+    else:
+        sse, raw_sse, floor = figures.sse_uT2, figures.raw_sse_uT2, figures.noise_floor_uT()
     p_i = len(d) - core.posterior.dof          # tr H: the parameters the data determined
     if mount is not None:   # the angles are shared by the three axes: a third of them to each
         p_i = p_i + sum(1 for k in mount.se_rad for a in range(3)
                         if k != mount.frame and np.isfinite(mount.se_rad[k][a])) / 3
-    rmse = np.sqrt(np.einsum("ij,ij->j", resid, resid) / np.maximum(len(d) - p_i, 1))
-    raw = d.b_ref_uT - d.b_meas_uT
-    raw = np.sqrt(np.einsum("ij,ij->j", raw, raw) / len(d))
-    res = FitResult(cm, theta, se, held, len(d), int((~ok).sum()), rmse, raw, conds[0], conds[1],
-                    noise_floor(resid, d.t_s, d.session, options.noise_lag_s), cov, options.robust)
+    rmse = np.sqrt(sse / np.maximum(len(d) - p_i, 1))
+    raw = np.sqrt(raw_sse / len(d))
+    res = FitResult(cm, theta, se, held, len(d), int(len(data) - len(d)), rmse, raw, conds[0], conds[1], floor,
+                    cov, options.robust)
     res.posterior = core.posterior
     res.prior_name = _prior_name(options)
     res.chip = options.chip
@@ -783,7 +805,7 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
                                  "excluded (include them with --include-saturated)" if not options.include_saturated
                                  else "INCLUDED as requested (--include-saturated)")))
     if options.exclude_ref_steps_uT is None:
-        res.steps = diagnose_steps(resid, d.b_ref_uT, d.session)
+        res.steps = diagnose_steps(resid, d.b_ref_uT, d.session) if figures is None else figures.steps
     if options.holdout and cross is not None:
         res.holdout_blocks_uT, res.holdout_sessions_uT = cross.holdout_blocks_uT, cross.holdout_sessions_uT
         res.holdout_per_session_uT = cross.holdout_per_session_uT
@@ -830,8 +852,13 @@ def block_folds(d: FitData, options: FitOptions) -> np.ndarray:
     fold = np.zeros(len(d), dtype=np.int64)
     for s in np.unique(d.session):
         m = d.session == s
-        fold[m] = np.floor((d.t_s[m] - d.t_s[m].min()) / options.block_s).astype(np.int64) % options.n_folds
+        fold[m] = time_block_fold(d.t_s[m], d.t_s[m].min(), options)
     return fold
+
+
+def time_block_fold(t_s: np.ndarray, t_first_s, options: FitOptions) -> np.ndarray:
+    """Fold of rows at ``t_s`` (s) of a session whose first row is at ``t_first_s`` (see :func:`block_folds`)."""
+    return np.floor((t_s - t_first_s) / options.block_s).astype(np.int64) % options.n_folds
 
 
 def _holdout_blocks(d: FitData, terms, currents, t0_c, name, options, notes) -> np.ndarray | None:
