@@ -341,3 +341,25 @@ def test_batched_normal_solves_equal_one_by_one_and_route_rank_deficient_systems
             assert np.allclose(got[k], want, rtol=1e-9, atol=1e-12)
     assert np.array_equal(got[2], solve_normal(G[2], C[2]))      # the pseudo-inverse path, as alone
     assert solve_normal_batch(np.zeros((0, 3, 3)), np.zeros((0, 3, 2))).shape == (0, 3, 2)
+
+
+def test_field_rate_of_all_runs_at_once_is_np_gradient_run_by_run():
+    """Runs of one row, two rows, evenly spaced (np.gradient's scalar-spacing formula) and jittered ones, split by
+    sessions, pauses and a repeated time stamp: bit for bit what np.gradient gives per run."""
+    from magstack.ground.diagnose.nonlinear import runs
+    from magstack.ground.diagnose.where import field_rate_uT_per_s, run_slices
+    rng = np.random.default_rng(4)
+    steps = np.full(400, 0.4)
+    steps[100:180] += rng.uniform(-0.05, 0.05, 80)       # jittered stretch
+    steps[[30, 31, 60, 70, 72, 250, 251, 252]] = 5.0    # pauses: runs of one row (30, 250, 251) and two (70-71)
+    steps[300] = 0.0                                    # a repeated time stamp breaks the run
+    t = np.cumsum(steps)
+    session = np.repeat([3, 7], 200)
+    b = rng.standard_normal((400, 3)) * 20
+    want = np.zeros(400)
+    for idx in run_slices(runs(t, session)):
+        if idx.stop - idx.start >= 2:
+            want[idx] = np.linalg.norm(np.gradient(b[idx], t[idx], axis=0), axis=1)
+    got = field_rate_uT_per_s(b, t, session)
+    assert np.array_equal(got, want)
+    assert np.any(got == 0) and np.all(np.isfinite(got))
