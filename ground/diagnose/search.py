@@ -178,7 +178,8 @@ def sign_flip_p(d: np.ndarray, seed: int = 0) -> float:
     obs = float(np.mean(d))
     tol = 1e-12 * float(np.mean(np.abs(d)))
     batch = max(1, min(N_RESAMPLES, 2_000_000 // d.size))
-    if batch == N_RESAMPLES:            # one batch: the same signs for every test with this seed and size
+    if batch == N_RESAMPLES and isinstance(seed, (int, np.integer)):   # one batch: the same signs for every
+        # test with this seed and size (an int seed: the same draw every time)
         return (1 + int(np.sum(flip_signs(seed, d.size) @ d / d.size >= obs - tol))) / (1 + N_RESAMPLES)
     rng = np.random.default_rng(seed)
     hits, done = 0, 0
@@ -630,7 +631,8 @@ LAG_CACHE_FLOATS = 500_000
 
 def lag_train_sse(gap: Gap, base: Block, Y: np.ndarray, fold: np.ndarray, grid: np.ndarray) -> np.ndarray:
     """(folds, taus) training SSE of base + lag_block(tau) for each fold left out, from per-fold Gram
-    matrices (one pass over the rows per tau)."""
+    matrices (per tau one pass over the rows and one gather of each fold's rows; the folds' systems solved
+    together where every axis uses every column)."""
     folds = np.unique(fold)
     order = np.argsort(fold, kind="stable")             # rows grouped by fold, in row order within each
     ends = np.searchsorted(fold[order], folds, side="right")
@@ -638,6 +640,7 @@ def lag_train_sse(gap: Gap, base: Block, Y: np.ndarray, fold: np.ndarray, grid: 
     Ys = Y[order]
     yy = np.sum(Y ** 2, axis=0)
     yt = [yy - np.sum(Ys[sp] ** 2, axis=0) for sp in spans]
+    yt_all = np.array(yt).sum(axis=1)                   # (folds,) over the axes
     out = np.full((folds.size, grid.size), np.inf)
     for k, tau in enumerate(grid):
         blk = Block.join([base, lag_block(gap, float(tau))], gap.n)
@@ -647,7 +650,7 @@ def lag_train_sse(gap: Gap, base: Block, Y: np.ndarray, fold: np.ndarray, grid: 
         Ct = C[None] - np.stack([c for _, c in GC])                 # (folds, p, 3)
         if blk.mask.all():           # every axis uses every column: the folds' systems solved together
             th = solve_normal_batch(Gt, Ct)                         # (folds, p, 3)
-            out[:, k] = (np.array(yt).sum(axis=1) - 2 * np.einsum("fpa,fpa->f", th, Ct)
+            out[:, k] = (yt_all - 2 * np.einsum("fpa,fpa->f", th, Ct)
                          + np.einsum("fpa,fpa->f", th, Gt @ th))
             continue
         for i in range(len(spans)):
