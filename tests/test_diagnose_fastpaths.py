@@ -363,3 +363,19 @@ def test_field_rate_of_all_runs_at_once_is_np_gradient_run_by_run():
     got = field_rate_uT_per_s(b, t, session)
     assert np.array_equal(got, want)
     assert np.any(got == 0) and np.all(np.isfinite(got))
+
+
+def test_lagged_temperature_with_precomputed_groups_is_the_same_series():
+    """The time order passed in (nonlinear.lag_groups, kept by the search) changes nothing, with sessions one
+    after another and with two recordings overlapping in time (filtered one by one)."""
+    from magstack.ground.diagnose import nonlinear as nl
+    rng = np.random.default_rng(8)
+    t = np.r_[np.arange(300.0), 1000 + np.arange(200.0)]
+    temp = 20 + np.cumsum(rng.standard_normal(500)) * 0.05
+    for session in (np.repeat([0, 1], [300, 200]), np.tile([4, 5], 250)):
+        groups = nl.lag_groups(t, session)
+        for tau in (3.0, 40.0):
+            assert np.array_equal(nl.lagged_temperature(t, temp, session, tau, groups),
+                                  nl.lagged_temperature(t, temp, session, tau))
+    assert len(nl.lag_groups(t, np.tile([4, 5], 250))) == 2
+    assert len(nl.lag_groups(t, np.repeat([0, 1], [300, 200]))) == 1

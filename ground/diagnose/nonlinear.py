@@ -141,29 +141,36 @@ def refine_log_minimum(grid: np.ndarray, vals: np.ndarray) -> float:
     return float(np.exp(np.clip(x[1] + 0.5 * (y0 - y2) / den * h, x[0], x[2])))
 
 
-def lagged_temperature(t_s: np.ndarray, temp_c: np.ndarray, session: np.ndarray, tau_s: float) -> np.ndarray:
+def lagged_temperature(t_s: np.ndarray, temp_c: np.ndarray, session: np.ndarray, tau_s: float,
+                       groups: list[np.ndarray] | None = None) -> np.ndarray:
     """First-order lag (time constant ``tau_s``) of the temperature: ``dT_die/dt = (T - T_die)/tau``. The die
     does not cool at a power cycle: the rows are taken in time order across sessions, in stretches split
     where the record stops for more than LAG_EQUILIBRIUM x tau (the die has then caught up; each stretch
     starts in equilibrium). Computed exactly for a temperature linear between grid points on a uniform grid
     of the median spacing (scipy.signal.lfilter), read back at the rows; gaps (left-out rows, dropouts,
     short pauses) are bridged by linear interpolation of the temperature. Sessions that overlap in time
-    (separate recordings) are filtered one by one."""
+    (separate recordings) are filtered one by one. ``groups``: :func:`lag_groups` of these rows, if known."""
     t_all = np.asarray(t_s, dtype=float)
     out = np.array(temp_c, dtype=float, copy=True)
     if tau_s <= 0:
         return out
+    for g in lag_groups(t_all, session) if groups is None else groups:
+        cut = np.flatnonzero(np.diff(t_all[g]) > LAG_EQUILIBRIUM * tau_s) + 1
+        for m in np.split(g, cut):
+            _lag_stretch(t_all, out, m, tau_s)
+    return out
+
+
+def lag_groups(t_s: np.ndarray, session: np.ndarray) -> list[np.ndarray]:
+    """The row groups :func:`lagged_temperature` filters, each in time order: all rows, or each session's when
+    sessions overlap in time. Independent of the time constant (a search over many passes them in)."""
+    t_all = np.asarray(t_s, dtype=float)
     order = np.argsort(t_all, kind="stable")
     ids = np.unique(session)
     spans = [(t_all[session == k].min(), t_all[session == k].max()) for k in ids]
     overlap = any(a[1] > b[0] and b[1] > a[0] for i, a in enumerate(spans) for b in spans[i + 1:])
     groups = [np.flatnonzero(session == k) for k in ids] if overlap else [order]
-    for g in groups:
-        g = g[np.argsort(t_all[g], kind="stable")]
-        cut = np.flatnonzero(np.diff(t_all[g]) > LAG_EQUILIBRIUM * tau_s) + 1
-        for m in np.split(g, cut):
-            _lag_stretch(t_all, out, m, tau_s)
-    return out
+    return [g[np.argsort(t_all[g], kind="stable")] for g in groups]
 
 
 #: A pause longer than this many time constants restarts the lag in equilibrium.

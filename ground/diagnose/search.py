@@ -612,12 +612,18 @@ def lag_block(gap: Gap, tau_s: float, rows: np.ndarray | None = None) -> Block:
 def lagged_temperature(gap: Gap, tau_s: float) -> np.ndarray:
     """``nonlinear.lagged_temperature`` of the gap's session (read-only), kept on the gap per time constant
     while the kept series hold at most LAG_CACHE_FLOATS floats: the search, the per-fold fits and the
-    surrogate test ask for the same grid of time constants."""
+    surrogate test ask for the same grid of time constants (a short session also keeps the rows' time order,
+    :func:`nonlinear.lag_groups`)."""
     cache = gap.__dict__.setdefault("_lag_temp", {})
     key = float(tau_s)
     if key not in cache:
         s = gap.session
-        temp = nl.lagged_temperature(s.t_s, s.temp_c, s.session, key)
+        groups = gap.__dict__.get("_lag_groups")      # the rows' time order: kept for a short session too
+        if groups is None:
+            groups = nl.lag_groups(s.t_s, s.session)
+            if gap.n <= LAG_CACHE_FLOATS:
+                gap.__dict__["_lag_groups"] = groups
+        temp = nl.lagged_temperature(s.t_s, s.temp_c, s.session, key, groups)
         temp.setflags(write=False)
         if (len(cache) + 1) * gap.n > LAG_CACHE_FLOATS:
             return temp
