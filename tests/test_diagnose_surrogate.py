@@ -13,7 +13,7 @@ import pytest
 from test_diagnose import make
 
 from magstack.ground.diagnose import Options, diagnose_model
-from magstack.ground.diagnose.surrogate import SurrogateSource, fit_spectrum
+from magstack.ground.diagnose.surrogate import SurrogateSource, fit_spectrum, unit_phasors
 
 
 def pink(n: int, rate_hz: float, rms_uT: float, seed: int, f_lo_hz: float = 1e-4) -> np.ndarray:
@@ -52,6 +52,32 @@ def test_whittle_fit_recovers_the_exponent(beta):
     assert np.all(np.abs(np.log(model / true)) < 0.35)   # the MLE's own sampling error at the band edges
     if beta > 0:
         assert abs(b - beta) < 0.15
+
+
+def whittle_nll(power, k, w, a, beta):
+    P = w[None, :] + a[None, :] * k[:, None] ** -beta
+    return float(np.sum(np.log(P) + power / P))
+
+
+def test_a_random_walk_exponent_is_reached_exactly_at_its_bound():
+    """Random-walk noise (beta = 2) is common (drift); with the exponent a bounded variable the fit lands on
+    the bound itself, not somewhere on the way to it, and no free exponent in (1.5, 2) does better."""
+    rng = np.random.default_rng(11)
+    k = np.arange(16, 1025).astype(float)
+    true = 0.2 + np.array([300.0, 500.0, 100.0])[None, :] * (k[:, None] / 16) ** -2.0
+    power = true * rng.exponential(size=true.shape)
+    w, a, b = fit_spectrum(power, k)
+    assert b == 2.0
+    truth = whittle_nll(power, k, np.full(3, 0.2), np.array([300.0, 500.0, 100.0]) * 256.0, 2.0)
+    assert whittle_nll(power, k, w, a, b) <= truth          # the maximum likelihood beats the truth
+    assert np.all(np.abs(np.log(a / (np.array([300.0, 500.0, 100.0]) * 256.0))) < 0.2)
+
+
+def test_unit_phasors_equal_the_complex_exponential_to_rounding():
+    u = np.r_[0.0, np.nextafter(1.0, 0.0), 0.25, 0.5, 0.75, 1.0 / 4096, np.random.default_rng(0).random(200000)]
+    z = unit_phasors(u)
+    assert np.max(np.abs(z - np.exp(2j * np.pi * u))) <= 2e-15
+    assert np.max(np.abs(np.abs(z) - 1.0)) <= 2e-15
 
 
 def test_surrogates_of_white_noise_are_white_with_its_variance():

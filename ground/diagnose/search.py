@@ -637,30 +637,43 @@ LAG_CACHE_FLOATS = 500_000
 
 def lag_train_sse(gap: Gap, base: Block, Y: np.ndarray, fold: np.ndarray, grid: np.ndarray) -> np.ndarray:
     """(folds, taus) training SSE of base + lag_block(tau) for each fold left out, from per-fold Gram
-    matrices (per tau one pass over the rows and one gather of each fold's rows; the folds' systems solved
-    together where every axis uses every column)."""
+    matrices: the base's own fold products formed once, per tau only the lag columns' products with the
+    base, themselves and the target on each fold's rows (the folds' systems solved together where every
+    axis uses every column)."""
     folds = np.unique(fold)
     order = np.argsort(fold, kind="stable")             # rows grouped by fold, in row order within each
     ends = np.searchsorted(fold[order], folds, side="right")
     spans = [slice(int(a), int(b)) for a, b in zip(np.r_[0, ends[:-1]], ends, strict=True)]
     Ys = Y[order]
+    Bs = base.X[order]
     yy = np.sum(Y ** 2, axis=0)
     yt = [yy - np.sum(Ys[sp] ** 2, axis=0) for sp in spans]
     yt_all = np.array(yt).sum(axis=1)                   # (folds,) over the axes
+    pb, nf = Bs.shape[1], len(spans)
+    base_f = [gram(Bs[sp], Ys[sp]) for sp in spans]     # the base's fold products: the same for every tau
     out = np.full((folds.size, grid.size), np.inf)
     for k, tau in enumerate(grid):
-        blk = Block.join([base, lag_block(gap, float(tau))], gap.n)
-        G, C = gram(blk.X, Y)
-        GC = [gram(blk.X[order[sp]], Ys[sp]) for sp in spans]     # one fold's rows at a time
-        Gt = G[None] - np.stack([g for g, _ in GC])                 # (folds, p, p) training Gram matrices
-        Ct = C[None] - np.stack([c for _, c in GC])                 # (folds, p, 3)
-        if blk.mask.all():           # every axis uses every column: the folds' systems solved together
+        lag = lag_block(gap, float(tau))
+        L = lag.X[order]
+        p = pb + L.shape[1]
+        mask = np.hstack([base.mask, lag.mask])
+        Gf, Cf = np.empty((nf, p, p)), np.empty((nf, p, 3))
+        for f, sp in enumerate(spans):                  # one fold's rows at a time
+            Lf = L[sp]
+            Gf[f, :pb, :pb], Cf[f, :pb] = base_f[f]
+            Gf[f, :pb, pb:] = Bs[sp].T @ Lf
+            Gf[f, pb:, :pb] = Gf[f, :pb, pb:].T
+            Gf[f, pb:, pb:] = Lf.T @ Lf
+            Cf[f, pb:] = Lf.T @ Ys[sp]
+        Gt = Gf.sum(axis=0)[None] - Gf                  # (folds, p, p) training Gram matrices
+        Ct = Cf.sum(axis=0)[None] - Cf                  # (folds, p, 3)
+        if mask.all():               # every axis uses every column: the folds' systems solved together
             th = solve_normal_batch(Gt, Ct)                         # (folds, p, 3)
             out[:, k] = (yt_all - 2 * np.einsum("fpa,fpa->f", th, Ct)
                          + np.einsum("fpa,fpa->f", th, Gt @ th))
             continue
-        for i in range(len(spans)):
-            th = np.where(blk.mask, solve_gram(Gt[i], Ct[i], blk.mask), 0.0)
+        for i in range(nf):
+            th = np.where(mask, solve_gram(Gt[i], Ct[i], mask), 0.0)
             out[i, k] = float(sum(yt[i][a] - 2 * th[a] @ Ct[i][:, a] + th[a] @ Gt[i] @ th[a] for a in range(3)))
     return out
 
