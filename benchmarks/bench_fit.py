@@ -1,7 +1,8 @@
 """Benchmark for issue 25: ``fit`` with its held-out figures against plain numpy lstsq of the same design.
 
-Run: ``python benchmarks/bench_fit.py [--n 1000000] [--refit]``. Data as ``bench_calibration.py`` (Eq. 3 + two
-currents, 30 parameters, one session, 0.25 s rows, so 5 interleaved 60 s time-block folds). CPU seconds by
+Run: ``python benchmarks/bench_fit.py [--n 1000000] [--refit] [--nan-fraction 0.01]``. Data as
+``bench_calibration.py`` (Eq. 3 + two currents, 30 parameters, one session, 0.25 s rows, so 5 interleaved 60 s
+time-block folds; ``--nan-fraction``: that share of rows with a NaN DUT reading, excluded by the fit). CPU seconds by
 ``process_time`` (best of ``--repeat``), peak memory by tracemalloc in a separate run (the input arrays are built
 before tracing starts: the peak is the fit's own memory), also at ``--n-small`` rows (default N / 2) for the
 growth per added row; the baseline (design matrix + ``np.linalg.lstsq``) runs in the same process, with BLAS on
@@ -57,21 +58,27 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--n-small", type=int, default=None, help="second size for the memory growth (default N / 2)")
     ap.add_argument("--refit", action="store_true")
+    ap.add_argument("--nan-fraction", type=float, default=0.0,
+                    help="fraction of rows with a NaN DUT reading (excluded by the fit: rows not copied)")
     args = ap.parse_args()
     model = CalModel(resolve_terms("eq3", currents=CURRENTS), CURRENTS, (), 25.0, 0.0)
 
     def bench_data(n):
         rng = np.random.default_rng(0)
-        return make_data(model, random_theta(model, rng), n, rng, noise_uT=0.03, t0_s=0.0)
+        d = make_data(model, random_theta(model, rng), n, rng, noise_uT=0.03, t0_s=0.0)
+        d.b_meas_uT[rng.random(n) < args.nan_fraction, 1] = np.nan
+        return d
 
     data = bench_data(args.n)
     in_mib = sum(a.nbytes for a in (data.b_meas_uT, data.b_ref_uT, data.temp_c, data.t_s, data.session,
                                     *data.currents_A.values())) / 2 ** 20
     opts = FitOptions()
 
+    ok = np.all(np.isfinite(data.b_meas_uT), axis=1)
+
     def lstsq():
         X = model.design(data.b_meas_uT, data.temp_c, data.currents_A, data.session, data.t_s)
-        return np.linalg.lstsq(X, data.b_ref_uT, rcond=None)[0]
+        return np.linalg.lstsq(X[ok], data.b_ref_uT[ok], rcond=None)[0]
 
     def lstsq_1():
         with single_thread():
@@ -80,8 +87,9 @@ def main() -> None:
     def run():
         return fit(data, "eq3", currents=CURRENTS, options=opts)
 
-    print(f"== fit with held-out figures, N = {args.n}, {int(model.axis_mask().sum())} parameters, input arrays "
-          f"{in_mib:.0f} MiB; BLAS default threads {blas_threads()}")
+    print(f"== fit with held-out figures, N = {args.n} ({np.count_nonzero(~ok)} with a NaN reading), "
+          f"{int(model.axis_mask().sum())} parameters, input arrays {in_mib:.0f} MiB; BLAS default threads "
+          f"{blas_threads()}")
     _, base1 = best_cpu(lstsq_1, args.repeat)
     _, base_d = best_cpu(lstsq, args.repeat)
     res, cpu = best_cpu(run, args.repeat)

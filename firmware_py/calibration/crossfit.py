@@ -218,10 +218,16 @@ class _PieceOf:
         return k * self.n_folds + time_block_fold(self.d.t_s[idx], self.t0_s[k], self.options)
 
 
-def _ordered(d: FitData, rows: _Rows) -> bool:
+def ordered(d: FitData) -> bool:
+    """Whether the rows of ``d`` are in (session, time) order (the streamed figures need it)."""
+    n = len(d)
+    return _ordered(d, (slice(a, min(a + CHUNK_ROWS, n)) for a in range(0, n, CHUNK_ROWS)))
+
+
+def _ordered(d: FitData, rows) -> bool:
     """Whether the rows are in (session, time) order (checked block by block, one row of overlap)."""
     s, t = d.session, d.t_s
-    for sl in rows.chunks(None):
+    for sl in (rows.chunks(None) if isinstance(rows, _Rows) else rows):
         a, b = max(sl.start - 1, 0), sl.stop
         s0, s1 = s[a:b - 1], s[a + 1:b]
         if np.any(s1 < s0) or np.any((s1 == s0) & (t[a + 1:b] < t[a:b - 1])):

@@ -15,6 +15,7 @@ scalar figure is the vector norm of the three per-axis values.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -104,6 +105,22 @@ class FitData:
         """From any object with Session's attributes (magstack.data.session.Session)."""
         return cls(s.dut_uT, s.ref_uT, s.temp_c, s.t_s, s.session, dict(s.currents_A), weights,
                    getattr(s, "flag", None))
+
+    def kept(self, mask: np.ndarray) -> FitData:
+        """The rows where ``mask`` is True, not copied: every column a :class:`.kept_rows.KeptColumn` (indexing by
+        row slices and integer arrays gathers those rows). For code that reads its rows block by block (the
+        cross-fit); :meth:`select` copies them."""
+        from magstack.firmware.calibration.kept_rows import KeptColumn, KeptRows
+        rows = KeptRows(mask)
+        out = object.__new__(FitData)                  # the columns are checked already: no __post_init__
+
+        def col(a):
+            return None if a is None else KeptColumn(rows, a)
+        out.b_meas_uT, out.b_ref_uT, out.temp_c = col(self.b_meas_uT), col(self.b_ref_uT), col(self.temp_c)
+        out.t_s, out.session = col(self.t_s), col(self.session)
+        out.currents_A = {k: col(v) for k, v in self.currents_A.items()}
+        out.weights, out.flag = col(self.weights), col(self.flag)
+        return out
 
     def select(self, mask: np.ndarray) -> FitData:
         return FitData(self.b_meas_uT[mask], self.b_ref_uT[mask], self.temp_c[mask], self.t_s[mask],
@@ -484,7 +501,11 @@ def noise_floor(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, lag_
 def build_model(data: FitData, terms: Sequence[str], currents: Sequence[str], t0_c: float,
                 name: str) -> CalModel:
     sessions = tuple(int(s) for s in data.sessions()) if "session_offset" in terms else ()
-    t_ref = float(np.mean(data.t_s)) if len(data) else 0.0
+    if isinstance(data.t_s, np.ndarray):
+        t_ref = float(np.mean(data.t_s)) if len(data) else 0.0
+    else:       # rows not copied (FitData.kept): the mean block by block (equal to np.mean to rounding)
+        t_ref = math.fsum(float(np.sum(data.t_s[a:a + BLOCK_ROWS])) for a in range(0, len(data), BLOCK_ROWS))
+        t_ref = t_ref / len(data) if len(data) else 0.0
     return CalModel(tuple(terms), tuple(currents), sessions, t0_c, t_ref, name)
 
 
@@ -756,8 +777,13 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
         at_step = ok & reference_steps(data.b_ref_uT, data.session, options.exclude_ref_steps_uT)
         n_steps = int(at_step.sum())
         ok &= ~at_step
-    d = data if ok.all() else data.select(ok)
+    from magstack.firmware.calibration import crossfit
+
+    d = data if ok.all() else data.kept(ok)
     cm = build_model(d, all_terms, currents, t0_c, name)
+    if d is not data and not (crossfit.applies(cm, options) and crossfit.ordered(d)):
+        d = data.select(ok)     # the whole-array paths below need the rows copied
+        cm = build_model(d, all_terms, currents, t0_c, name)
     if len(d) <= cm.n_columns:
         why = []
         for label, bad in (("DUT field", ~np.all(np.isfinite(data.b_meas_uT), axis=1)),
@@ -769,8 +795,6 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
                 why.append(f"{label} missing/flagged on {int(bad.sum())} rows")
         raise FitError(f"{len(d)} usable rows of {len(data)} for {cm.n_columns} columns: not enough data"
                        + (f" ({'; '.join(why)})" if why else ""))
-    from magstack.firmware.calibration import crossfit
-
     cross = crossfit.cross_fit(d, cm, options) if crossfit.applies(cm, options) else None
     core = cross.core if cross is not None else _fit_core(d, cm, options)
     X, theta, se, held, conds, cov, mount = (core.X, core.theta, core.se, core.held, core.conds, core.coverage,

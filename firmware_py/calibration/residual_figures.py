@@ -37,19 +37,28 @@ class LagPairs:
         self._later = np.empty(0, dtype=np.int64)
 
     def _pairs(self, start: int, a: int, b: int, s) -> tuple[np.ndarray, np.ndarray]:
-        """Block-relative (earlier, later) rows of the pairs of block rows ``a .. b`` (session ``s``)."""
-        lo = int(np.searchsorted(self.session, s, side="left"))
-        t, lag = self.t_s[lo:int(np.searchsorted(self.session, s, side="right"))], self.lag_s
-        if t.size < 2:
+        """Block-relative (earlier, later) rows of the pairs of block rows ``a .. b`` (session ``s``). Only the
+        session's times from row ``start + a`` up to the first row past the last target time are read (a
+        window grown by doubling): the same pairs as searching the whole session."""
+        lo = int(self.session.searchsorted(s, side="left"))
+        hi = int(self.session.searchsorted(s, side="right"))
+        if hi - lo < 2:
             return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
-        i = np.arange(start + a - lo, start + b - lo)
-        ti = t[i]
+        w_lo, lag = start + a, self.lag_s
+        t_last = float(self.t_s[start + b - 1]) + lag
+        w_hi = min(hi, w_lo + 2 * (b - a) + 1)
+        while True:
+            t = self.t_s[w_lo:w_hi]
+            if w_hi >= hi or t[-1] > t_last:
+                break
+            w_hi = min(hi, w_lo + 2 * (w_hi - w_lo))
+        i = np.arange(b - a)
+        ti = t[:b - a]
         x = ti + lag                    # sorted: search the window of t that can hold the answers
-        w0 = int(np.searchsorted(t, x[0]))
-        j = np.clip(w0 + np.searchsorted(t[w0:int(np.searchsorted(t, x[-1], side="right")) + 1], x), 1, t.size - 1)
+        j = np.clip(np.searchsorted(t, x), 1, t.size - 1)
         j = np.where(np.abs(t[j - 1] - ti - lag) < np.abs(t[j] - ti - lag), j - 1, j)  # nearest to t + lag
         good = (np.abs((t[j] - ti) - lag) <= 0.5 * lag) & (j > i)
-        return lo + i[good] - start, lo + j[good] - start
+        return a + i[good], a + j[good]
 
     def diffs(self, start: int, r: np.ndarray) -> np.ndarray:
         """(3, k) differences completed by the block of rows ``start ..`` with residuals ``r`` (3, m)."""
