@@ -78,7 +78,9 @@ def main() -> None:
 
     def lstsq():
         X = model.design(data.b_meas_uT, data.temp_c, data.currents_A, data.session, data.t_s)
-        return np.linalg.lstsq(X[ok], data.b_ref_uT[ok], rcond=None)[0]
+        if ok.all():
+            return np.linalg.lstsq(X, data.b_ref_uT, rcond=None)[0]
+        return np.linalg.lstsq(X[ok], data.b_ref_uT[ok], rcond=None)[0]     # the usable rows, as fit uses
 
     def lstsq_1():
         with single_thread():
