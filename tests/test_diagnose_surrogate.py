@@ -61,7 +61,7 @@ def whittle_nll(power, k, w, a, beta):
 
 def test_a_random_walk_exponent_is_reached_exactly_at_its_bound():
     """Random-walk noise (beta = 2) is common (drift); with the exponent a bounded variable the fit lands on
-    the bound itself, not somewhere on the way to it, and no free exponent in (1.5, 2) does better."""
+    the bound itself, not somewhere on the way to it, with a likelihood at least the true parameters'."""
     rng = np.random.default_rng(11)
     k = np.arange(16, 1025).astype(float)
     true = 0.2 + np.array([300.0, 500.0, 100.0])[None, :] * (k[:, None] / 16) ** -2.0
