@@ -65,7 +65,7 @@ def _data(n: int, seed: int = 0) -> FitData:
 
 
 @pytest.mark.parametrize("how", ["nan", "flag", "weight", "current"])
-def test_a_fit_through_kept_rows_equals_the_fit_of_the_copied_rows(how):
+def test_a_fit_through_kept_rows_equals_the_fit_of_the_copied_rows(how, monkeypatch):
     d = _data(70_000 + 123)                    # more than one 65,536-row block
     rng = np.random.default_rng(5)
     bad = rng.random(len(d)) < 0.02
@@ -80,7 +80,9 @@ def test_a_fit_through_kept_rows_equals_the_fit_of_the_copied_rows(how):
         d.currents_A["heater"][bad] = np.nan
     before = {k: v.copy() for k, v in (("meas", d.b_meas_uT), ("ref", d.b_ref_uT), ("t", d.t_s))}
     opts = FitOptions()
-    res = fit(d, "eq3", currents=CURRENTS, options=opts)
+    with monkeypatch.context() as m:           # the fit must not copy the kept rows
+        m.setattr(FitData, "select", lambda self, mask: pytest.fail("kept rows copied"))
+        res = fit(d, "eq3", currents=CURRENTS, options=opts)
     ok = d.usable(res.model.terms, CURRENTS)
     assert res.n_excluded == int((~ok).sum()) > 0
     ref = fit(d.select(ok), "eq3", currents=CURRENTS, options=opts)
@@ -93,13 +95,17 @@ def test_a_fit_through_kept_rows_equals_the_fit_of_the_copied_rows(how):
         np.testing.assert_array_equal(v, {"meas": d.b_meas_uT, "ref": d.b_ref_uT, "t": d.t_s}[k])
 
 
-def test_rows_out_of_order_with_excluded_rows_fall_back_to_the_copy():
+def test_rows_out_of_order_with_excluded_rows_fall_back_to_the_copy(monkeypatch):
     d = _data(5000)
     d.b_meas_uT[::50, 0] = np.nan
     o = np.random.default_rng(1).permutation(len(d))
     shuffled = FitData(d.b_meas_uT[o], d.b_ref_uT[o], d.temp_c[o], d.t_s[o], d.session[o],
                        {k: v[o] for k, v in d.currents_A.items()})
+    copies = []
+    select = FitData.select
+    monkeypatch.setattr(FitData, "select", lambda self, mask: copies.append(1) or select(self, mask))
     a = fit(shuffled, "eq3", currents=CURRENTS, options=FitOptions())
+    assert copies                              # out of (session, time) order: the whole-array path, copied
     b = fit(d, "eq3", currents=CURRENTS, options=FitOptions())
     np.testing.assert_allclose(a.theta, b.theta, rtol=1e-9, atol=1e-12)
     assert a.n_excluded == b.n_excluded == 100

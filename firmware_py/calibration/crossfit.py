@@ -179,9 +179,9 @@ def _cross_fit(d: FitData, model: CalModel, options: FitOptions) -> CrossFit:
     for f in fits:
         f.first = _run(f, lambda f=f: first_solve(f.R, f.n, f.model, f.coverage, options))
         f.post = f.first.post if f.first is not None else None
-    ordered = _ordered(d, rows)
+    in_order = ordered(d)
     if options.autocorr:
-        _autocorr(d, rows, piece, fits, pcs.xy_sum, options, ordered)
+        _autocorr(d, rows, piece, fits, pcs.xy_sum, options, in_order)
     for f in fits:
         if f.error is None:
             f.held = _run(f, lambda f=f: held_or_refuse(f.post, f.first.explain, options)) or []
@@ -189,7 +189,7 @@ def _cross_fit(d: FitData, model: CalModel, options: FitOptions) -> CrossFit:
     if full.error is not None:
         raise FitError(full.error)
     figures = ResidualFigures(d.b_meas_uT, d.b_ref_uT, d.t_s, d.session, options.noise_lag_s,
-                              steps=options.exclude_ref_steps_uT is None) if ordered else None
+                              steps=options.exclude_ref_steps_uT is None) if in_order else None
     resid = _final_pass(d, rows, piece, fits, figures)
     out = CrossFit(CoreFit(None, full.post.theta.copy(), np.where(model.axis_mask(), full.post.sd, np.nan),
                            full.held, np.vstack([full.post.cond, raw_cond(full.R, model)]), full.coverage, None,
@@ -219,16 +219,11 @@ class _PieceOf:
 
 
 def ordered(d: FitData) -> bool:
-    """Whether the rows of ``d`` are in (session, time) order (the streamed figures need it)."""
-    n = len(d)
-    return _ordered(d, (slice(a, min(a + CHUNK_ROWS, n)) for a in range(0, n, CHUNK_ROWS)))
-
-
-def _ordered(d: FitData, rows) -> bool:
-    """Whether the rows are in (session, time) order (checked block by block, one row of overlap)."""
-    s, t = d.session, d.t_s
-    for sl in (rows.chunks(None) if isinstance(rows, _Rows) else rows):
-        a, b = max(sl.start - 1, 0), sl.stop
+    """Whether the rows of ``d`` are in (session, time) order, which the streamed figures need (checked block by
+    block, one row of overlap)."""
+    s, t, n = d.session, d.t_s, len(d)
+    for lo in range(0, n, CHUNK_ROWS):
+        a, b = max(lo - 1, 0), min(lo + CHUNK_ROWS, n)
         s0, s1 = s[a:b - 1], s[a + 1:b]
         if np.any(s1 < s0) or np.any((s1 == s0) & (t[a + 1:b] < t[a:b - 1])):
             return False
