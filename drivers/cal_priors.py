@@ -6,12 +6,15 @@ tables are the prior, one frozen :class:`CalPriors` per chip, every value with i
 
 Sign conventions are those of the calibration model (belsten Eq. 3, *calibration* direction)::
 
-    B_act = (S + K_S dT) B_meas + O + K_O dT + sum_k D_k I_k
+    B_act = (S + K_S dT + diag(K_S2) dT^2) B_meas + O + K_O dT + sum_k D_k I_k
 
 so a sensitivity that *falls* with temperature (datasheet tempco ``alpha`` < 0) gives ``K_S = -alpha S``
-(``k_s_rel_per_c`` = -alpha, applied to the fitted S), and an offset that drifts by ``+o`` per degC in the
-reading gives ``K_O = -o``. A value the sources leave unverified (``[U]``) or that is inferred (``[I]``)
-gets a wider sd than the source's own spread.
+(``k_s_rel_per_c`` = -alpha, applied to the fitted S). A sensitivity ``s0 (1 + alpha dT)`` is calibrated by
+``1 / (1 + alpha dT) = 1 - alpha dT + alpha^2 dT^2 - ...``: the second order ``K_S2 = alpha^2 S`` (positive
+whatever alpha's sign); a sensitivity of the form ``s0 / (1 + alpha dT)`` is calibrated exactly by the linear
+term (``K_S2 = 0``). The K_S2 prior is centred on ``alpha^2`` with an sd that reaches 0. An offset that
+drifts by ``+o`` per degC in the reading gives ``K_O = -o``. A value the sources leave unverified (``[U]``)
+or that is inferred (``[I]``) gets a wider sd than the source's own spread.
 
 Source keys: [F:...] fact from a source, [F2:...] secondary, [I] inference, [U] unverified
 (/work/shared/hardware-facts.md, section given); [LAB T1] = Table 1 of the three-chip lab study
@@ -43,7 +46,8 @@ class CalPriors:
     ``gain_diag`` S[i,i] (1), ``gain_offdiag`` S[i,j] (1), ``offset_uT`` O (uT), ``k_s_rel_per_c``
     the diagonal of K_S relative to the fitted S (1/degC: K_S[i,i] ~ k_s_rel S[i,i]), ``k_s_offdiag_per_c``
     K_S[i,j] (1/degC), ``k_o_uT_per_c`` K_O (uT/degC), ``current_uT_per_A`` D (uT/A), ``cubic_per_uT2`` c3,
-    ``cross_products_per_uT`` P, and the nuisance terms (``time_skew_s``, ``session_offset_uT``,
+    ``cross_products_per_uT`` P, ``k_s2_rel_per_c2`` the on-axis second-order sensitivity tempco relative to
+    the fitted S (1/degC^2: K_S2[i] ~ k_s2_rel S[i,i]), and the nuisance terms (``time_skew_s``, ``session_offset_uT``,
     ``drift_uT_per_s``). ``operating_temp_c`` and ``field_range_uT`` bound a table's validity box.
     """
 
@@ -63,6 +67,8 @@ class CalPriors:
     operating_temp_c: tuple[float, float]
     field_range_uT: float
     source: str
+    k_s2_rel_per_c2: PriorValue = PriorValue(0.0, 1e-6, "[I] temperature-compensated part: the linear tempco is "
+                                                        "small, its square smaller (1e-6 /degC^2 = 100 ppm at 10 degC)")
 
 
 # Nuisance terms of bench sessions: loose on every part (the data decide them whenever they can).
@@ -90,6 +96,9 @@ _HMC1053 = CalPriors(
     operating_temp_c=(-40.0, 125.0),       # [F:HMC1055]
     field_range_uT=600.0,                  # [F:HMC1055] +-6 G
     source="HMC1053 datasheet figures via hardware-facts.md section 5",
+    k_s2_rel_per_c2=PriorValue(7.3e-6, 7.3e-6, "[I] second order of the -2700 ppm/degC sensitivity tempco "
+                                               "[F2:SEC-1053]: alpha^2 = 7.3e-6 for s0 (1 + alpha dT); sd reaches the "
+                                               "s0 / (1 + alpha dT) form (0) at 1 sd and 2 alpha^2 (3000 ppm) at 1 sd"),
 )
 
 
@@ -145,7 +154,8 @@ GENERIC = CalPriors(
     cross_products_per_uT=PriorValue(0.0, 1e-3, "[I] generic"),
     time_skew_s=_SKEW, session_offset_uT=_SESSION, drift_uT_per_s=_DRIFT,
     operating_temp_c=(-40.0, 85.0), field_range_uT=1000.0,
-    source="generic wide priors (no chip table)")
+    source="generic wide priors (no chip table)",
+    k_s2_rel_per_c2=PriorValue(0.0, 1e-5, "[I] generic: the square of a 3000 ppm/degC tempco is 9e-6 /degC^2"))
 
 #: Chip name -> priors.
 PRIORS = MappingProxyType({p.chip: p for p in (_HMC1053, _LSM303DLHC, _HMC5983, _LIS3MDL)})

@@ -10,7 +10,7 @@ snapshot; "never loaded" is an explicit state (``active is None``).
 File layout (``schema_version`` 1), a JSON object with keys: ``schema``
 ("magstack-cal-table"), ``schema_version``, ``table_name``, ``device_id``, ``description``,
 ``created_utc`` (ISO 8601), ``model`` {name, terms, currents, t0_c}, ``parameters``
-{S, K_S, O, K_O, D, c3, P: {unit, value}; ground_only {...}}, ``validity`` {temp_c: [lo, hi]
+{S, K_S, K_S2, O, K_O, D, c3, P: {unit, value}; ground_only {...}}, ``validity`` {temp_c: [lo, hi]
 or null, field_uT, currents_A {name: [lo, hi]}}, ``fit`` (statistics, informational), and
 ``crc32``: "0x%08x" of zlib.crc32 over the canonical JSON (sorted keys, no spaces, ASCII)
 of the object without ``crc32``.
@@ -32,7 +32,7 @@ import numpy as np
 from magstack.data.io import atomic_write_text, json_safe, read_bytes_bounded
 from magstack.errors import InputDataError
 from magstack.firmware import fixed_point
-from magstack.firmware.cal_terms import CAL_TERMS, GROUND_ONLY_TERMS
+from magstack.firmware.cal_terms import CAL_TERMS, GROUND_ONLY_TERMS, TEMPERATURE_TERMS
 from magstack.firmware.errors import CalTableInvalid
 from magstack.firmware.table_schema import MAX_BYTES as MAX_TABLE_BYTES
 from magstack.firmware.table_schema import check_document, parse_table_json
@@ -46,6 +46,7 @@ BOUNDS = {
     "S_diag": (0.1, 10.0),          # unitless
     "S_offdiag": 5.0,               # |.|, unitless
     "K_S": 0.1,                     # |.| 1/degC
+    "K_S2": 2e-4,                   # |.| 1/degC^2 (a bridge's a^2 is ~1e-5; the fixed-point limit is 2.4e-4)
     "O_uT": 1000.0,                 # |.| uT
     "K_O_uT_per_degC": 10.0,        # |.| uT/degC
     "D_uT_per_A": 1000.0,           # |.| uT/A
@@ -58,8 +59,10 @@ BOUNDS = {
 #: Maximum condition number of S + K_S dT anywhere in the validity temperature range.
 MAX_COND = 1e3
 
-_UNITS = {"S": "1", "K_S": "1/degC", "O": "uT", "K_O": "uT/degC", "D": "uT/A", "c3": "1/uT^2", "P": "1/uT"}
-_TERM_PARAMS = {"gain_matrix": "S", "temperature_gain": "K_S", "offset": "O", "temperature_offset": "K_O",
+_UNITS = {"S": "1", "K_S": "1/degC", "K_S2": "1/degC^2", "O": "uT", "K_O": "uT/degC", "D": "uT/A", "c3": "1/uT^2",
+          "P": "1/uT"}
+_TERM_PARAMS = {"gain_matrix": "S", "temperature_gain": "K_S", "temperature_gain2": "K_S2", "offset": "O",
+                "temperature_offset": "K_O",
                 "currents": "D", "cubic": "c3", "cross_products": "P"}
 
 
@@ -77,6 +80,7 @@ class CalTable:
     terms: tuple[str, ...]
     S: np.ndarray
     K_S: np.ndarray = field(default_factory=lambda: _ro(np.zeros((3, 3))))
+    K_S2: np.ndarray = field(default_factory=lambda: _ro(np.zeros(3)))    # on-axis, 1/degC^2
     O: np.ndarray = field(default_factory=lambda: _ro(np.zeros(3)))
     K_O: np.ndarray = field(default_factory=lambda: _ro(np.zeros(3)))
     D: tuple[tuple[str, np.ndarray], ...] = ()
@@ -99,7 +103,7 @@ class CalTable:
     def __post_init__(self) -> None:
         for name in ("S", "K_S", "P"):
             object.__setattr__(self, name, _ro(np.asarray(getattr(self, name), dtype=float).reshape(3, 3)))
-        for name in ("O", "K_O", "c3"):
+        for name in ("K_S2", "O", "K_O", "c3"):
             object.__setattr__(self, name, _ro(np.asarray(getattr(self, name), dtype=float).reshape(3)))
         object.__setattr__(self, "D", tuple((str(k), _ro(np.asarray(v, dtype=float).reshape(3)))
                                             for k, v in self.D))
@@ -114,8 +118,9 @@ class CalTable:
         return tuple(k for k, _ in self.D)
 
     def gain_at(self, temp_c: float) -> np.ndarray:
-        """S + K_S (T - t0)."""
-        return self.S + self.K_S * (temp_c - self.t0_c)
+        """S + K_S dT + diag(K_S2) dT^2, dT = T - t0."""
+        dT = temp_c - self.t0_c
+        return self.S + self.K_S * dT + np.diag(self.K_S2) * dT * dT
 
     # ------------------------------------------------------------------ JSON
     def to_document(self) -> dict:
@@ -282,8 +287,8 @@ class ValidationResult:
 def validate(table: CalTable) -> ValidationResult:
     """Pure check of a parsed table; returns every problem found."""
     pr: list[str] = []
-    arrays = {"S": table.S, "K_S": table.K_S, "O": table.O, "K_O": table.K_O, "c3": table.c3, "P": table.P,
-              **{f"D_{k}": v for k, v in table.D}}
+    arrays = {"S": table.S, "K_S": table.K_S, "K_S2": table.K_S2, "O": table.O, "K_O": table.K_O, "c3": table.c3,
+              "P": table.P, **{f"D_{k}": v for k, v in table.D}}
     for k, a in arrays.items():
         if not np.all(np.isfinite(a)):
             pr.append(f"{k} has non-finite values")
@@ -307,7 +312,8 @@ def validate(table: CalTable) -> ValidationResult:
     off = table.S[~np.eye(3, dtype=bool)]
     if np.any(np.abs(off) > BOUNDS["S_offdiag"]):
         pr.append(f"S off-diagonal beyond +-{BOUNDS['S_offdiag']}")
-    for name, a, key, unit in (("K_S", table.K_S, "K_S", "1/degC"), ("O", table.O, "O_uT", "uT"),
+    for name, a, key, unit in (("K_S", table.K_S, "K_S", "1/degC"), ("K_S2", table.K_S2, "K_S2", "1/degC^2"),
+                               ("O", table.O, "O_uT", "uT"),
                                ("K_O", table.K_O, "K_O_uT_per_degC", "uT/degC"),
                                ("c3", table.c3, "c3_per_uT2", "1/uT^2"), ("P", table.P, "P_per_uT", "1/uT")):
         if np.any(np.abs(a) > BOUNDS[key]):
@@ -323,16 +329,17 @@ def validate(table: CalTable) -> ValidationResult:
         if not (tlo <= a <= b <= thi):
             pr.append(f"validity temp_c [{a}, {b}] not an interval inside [{tlo}, {thi}] degC")
         temps = [a, b]
-    elif {"temperature_gain", "temperature_offset"} & set(table.terms):
+    elif set(TEMPERATURE_TERMS) & set(table.terms):
         pr.append("table has temperature terms but no validity temperature range")
     if not 0 < table.validity_field_uT <= BOUNDS["field_uT"]:
         pr.append(f"validity field_uT {table.validity_field_uT} not in (0, {BOUNDS['field_uT']}]")
     for k, (a, b) in table.validity_currents_A:
         if not (-BOUNDS["current_A"] <= a <= b <= BOUNDS["current_A"]):
             pr.append(f"validity current {k} [{a}, {b}] A not an interval within +-{BOUNDS['current_A']}")
-    # conditioning over the validity temperature range (the gain is linear in T: check both ends)
+    # conditioning over the validity temperature range (the gain is linear in T, or quadratic with K_S2:
+    # both ends and a grid between them)
     conds = []
-    for t in temps:
+    for t in _temperature_grid(temps, table):
         sv = np.linalg.svd(table.gain_at(t), compute_uv=False)
         conds.append(sv[0] / sv[-1] if sv[-1] > 0 else math.inf)
     max_cond = float(max(conds))
@@ -359,15 +366,23 @@ def validate(table: CalTable) -> ValidationResult:
     return ValidationResult(not pr, tuple(pr), worst, max_cond)
 
 
+def _temperature_grid(temps: list[float], table: CalTable) -> list[float]:
+    """The ends of the validity temperature range, and 31 points between them when K_S2 is non-zero."""
+    if len(temps) == 2 and np.any(table.K_S2):
+        return [float(t) for t in np.linspace(temps[0], temps[1], 33)]
+    return temps
+
+
 def worst_case_output_uT(table: CalTable) -> float:
     """Max over axes of an upper bound on |B_cal| for any input in the validity box (uT)."""
     temps = [table.t0_c] if table.validity_temp_c is None else list(table.validity_temp_c)
+    dT2 = max((t - table.t0_c) ** 2 for t in temps)
     worst = 0.0
     for i in range(3):
         m = 0.0
-        for t in temps:  # every term is linear in T, so its max |.| is at an end of the range
+        for t in temps:  # the linear terms' max |.| is at an end of the range; K_S2 dT^2 bounded apart
             dT = t - table.t0_c
-            g = np.abs(table.S[i] + table.K_S[i] * dT).sum() * table.validity_field_uT
+            g = (np.abs(table.S[i] + table.K_S[i] * dT).sum() + abs(table.K_S2[i]) * dT2) * table.validity_field_uT
             o = abs(table.O[i] + table.K_O[i] * dT)
             m = max(m, g + o)
         for (_name, d), (_, (a, b)) in zip(table.D, table.validity_currents_A, strict=True):
@@ -426,7 +441,7 @@ def _validity_from_posterior(result, block: dict, bound_uT: float, part_temp_c, 
                      f"field: the field limit is the data's {math.ceil(data_field):g} uT")
         field = float(max(1.0, math.ceil(data_field)))
     data_t = ((math.floor(cov.temp_min_c * 100) / 100, math.ceil(cov.temp_max_c * 100) / 100) if has_t else None)
-    if not ({"temperature_gain", "temperature_offset"} & set(m.terms)):
+    if not (set(TEMPERATURE_TERMS) & set(m.terms)):
         notes.append("no temperature terms: the posterior says nothing about temperature; validity temperature = "
                      "the data's range")
         return data_t, field, notes
@@ -509,7 +524,7 @@ def table_from_fit(result, device_id: str, *, description: str = "", created_utc
         ground["drift_t_ref_s"] = m.t_ref_s
     # terms without table parameters (the bench mount: fitted as a nuisance, reported in fit_stats)
     terms = tuple(t for t in m.terms if t != "mount_rotation")
-    return CalTable(device_id=device_id, terms=terms, S=p["S"], K_S=p["K_S"], O=p["O"], K_O=p["K_O"],
+    return CalTable(device_id=device_id, terms=terms, S=p["S"], K_S=p["K_S"], K_S2=p["K_S2"], O=p["O"], K_O=p["K_O"],
                     D=tuple((k, p["D"][k]) for k in m.currents), c3=p["c3"], P=p["P"], t0_c=m.t0_c,
                     validity_temp_c=validity_temp_c,
                     validity_field_uT=validity_field_uT,

@@ -6,10 +6,14 @@ from __future__ import annotations
 from magstack.firmware.effects import EFFECTS
 
 #: Every calibration term, in catalogue (pipeline) order, taken from the effect catalogue.
-CAL_TERMS: tuple[str, ...] = tuple(dict.fromkeys(e.cal_term for e in EFFECTS.values() if e.cal_term))
+CAL_TERMS: tuple[str, ...] = tuple(dict.fromkeys(
+    t for e in EFFECTS.values() if e.cal_term for t in (e.cal_term, *e.cal_terms_extra)))
 
 #: Terms carried to the on-board applier (fixed point and float).
-FLIGHT_TERMS: tuple[str, ...] = ("gain_matrix", "temperature_gain", "offset", "temperature_offset", "currents")
+FLIGHT_TERMS: tuple[str, ...] = ("gain_matrix", "temperature_gain", "temperature_gain2", "offset", "temperature_offset",
+                                  "currents")
+#: Terms whose inputs include the temperature.
+TEMPERATURE_TERMS: tuple[str, ...] = ("temperature_gain", "temperature_gain2", "temperature_offset")
 #: Terms the float64 applier can also apply (not the fixed-point one).
 FLOAT_ONLY_TERMS: tuple[str, ...] = ("cubic", "cross_products")
 #: Terms that explain the fit data (nuisance) but are not applied to new data:

@@ -32,7 +32,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 AXES = ("x", "y", "z")
-_NAME = re.compile(r"^(S|K_S|O|K_O|c3|P|D_[A-Za-z0-9_]+)\[([xyz])(?:,(x|y|z|xy|xz|yz))?\]$")
+_NAME = re.compile(r"^(S|K_S2|K_S|O|K_O|c3|P|D_[A-Za-z0-9_]+)\[([xyz])(?:,(x|y|z|xy|xz|yz))?\]$")
 
 
 def parse_name(name: str) -> tuple[str, int, str | None]:
@@ -56,6 +56,8 @@ def features(names: Sequence[str], b_uT: np.ndarray, dT: np.ndarray,
             out[:, k] = b[:, AXES.index(j)]
         elif p == "K_S":
             out[:, k] = b[:, AXES.index(j)] * dT
+        elif p == "K_S2":
+            out[:, k] = b[:, i] * dT * dT
         elif p == "O":
             out[:, k] = 1.0
         elif p == "K_O":
@@ -134,7 +136,7 @@ def worst_sd_bound_uT(posterior: Mapping, t0_c: float, temp_c: float, field_uT: 
         blk = posterior[a]
         names = blk["names"]
         L = _chol(np.asarray(blk["cov"], dtype=float))
-        lin_names = [k for k, nm in enumerate(names) if parse_name(nm)[0] in ("S", "K_S", "O", "K_O")]
+        lin_names = [k for k, nm in enumerate(names) if parse_name(nm)[0] in ("S", "K_S", "K_S2", "O", "K_O")]
         F = features([names[k] for k in lin_names], b, np.full(b.shape[0], dT))
         v = F @ L[lin_names]                         # L^T f for the linear features, per direction
         extra = 0.0

@@ -8,7 +8,8 @@ other modules look it up by name and must not keep their own lists.
 
 ``order`` is the effect's position in the forward pipeline truth -> sensed value.
 ``cal_term`` names the calibration-model term that can absorb it (None: cannot be
-calibrated, e.g. noise).
+calibrated, e.g. noise); ``cal_terms_extra`` names terms for its higher orders (the
+sensitivity tempco's second order, ``temperature_gain2``).
 """
 from __future__ import annotations
 
@@ -25,6 +26,8 @@ class Effect:
     units: str
     source: str
     cal_term: str | None
+    #: Further calibration terms for the same effect's higher orders (after ``cal_term`` in the term order).
+    cal_terms_extra: tuple[str, ...] = ()
 
 
 _EFFECTS = (
@@ -63,8 +66,10 @@ _EFFECTS = (
     Effect("nonlinearity", 60, "on-axis odd-order nonlinearity",
            "B_i <- B_i + c3_i * B_i^3.", "c3 in 1/uT^2", "HMC105x linearity 0.1 %FS; belsten Fig. 3", "cubic"),
     Effect("temperature_gain", 70, "sensitivity changes with temperature",
-           "B <- (I + K_S (T - T0)) B.", "1/degC", "belsten Eq. 3 (K_S), Table 7; HMC1053 -2700 ppm/degC",
-           "temperature_gain"),
+           "B <- (I + K_S dT + diag(k_s2) dT^2) B, dT = T - T0: a bridge's sensitivity s0/(1 + a dT) is "
+           "linear in dT only to first order; its second order a^2 dT^2 is the on-axis k_s2.",
+           "1/degC, 1/degC^2", "belsten Eq. 3 (K_S), Table 7; HMC1053 datasheet -2700 ppm/degC",
+           "temperature_gain", ("temperature_gain2",)),
     Effect("hysteresis", 80, "remanent offset after a large field",
            "After the sensed field on an axis reaches a threshold the offset shifts by a remanent amount "
            "signed by the excursion's sign, until an opposite excursion (power cycles do not clear it: "

@@ -1,4 +1,4 @@
-"""Integer-only on-board applier of a calibration table (Eq. 3 + currents).
+"""Integer-only on-board applier of a calibration table (Eq. 3, the second-order sensitivity tempco, currents).
 
 Units and Q formats (every coefficient is an int32; ``Qm.f`` = f fractional bits)::
 
@@ -7,24 +7,27 @@ Units and Q formats (every coefficient is an int32; ``Qm.f`` = f fractional bits
     input  I_k     int32 mA, clipped to +-2**20 mA (1048 A)             -> SATURATED flag
     S_ij           value * 2**27   (Q4.27,   unitless,    |S|   < 16)
     K_S,ij         value * 2**34   (1/degC,               |K_S| < 0.125 /degC)
+    K_S2,i         value * 2**40   (1/degC^2,             |K_S2| < 2**-12 /degC^2: |int| < 2**28)
     O_i            nT * 2**8       (Q23.8 nT,             |O|   < 8388 uT)
     K_O,i          nT/degC * 2**16 (Q15.16 nT/degC,       |K_O| < 32.7 uT/degC)
     D_k,i          nT/mA * 2**20   (Q11.20 nT/mA = uT/A,  |D|   < 2048 uT/A)
-    t0             int32 centi-degC (the table's t0_c, a multiple of 0.01 degC)
+    t0             int32 centi-degC (the table's t0_c, a multiple of 0.01 degC), |t0| <= 2**15
     output B_cal,i int32 nT * 2**8 (Q23.8 nT, LSB 1/256 nT), saturated to int32 -> SATURATED flag
 
 Per sample, with dTc = T - t0 (centi-degC) and an int64 accumulator in units of 2**-27 nT::
 
     G_ij  = S_ij + rdiv(K_S,ij * dTc, 12800)             # 2**-34/degC * 0.01 degC -> 2**-27
+    G_ii += rdiv(rdiv(K_S2,i * dTc, 100) * dTc, 819200)  # 2**-40/degC^2 * (0.01 degC)^2 -> 2**-27
     acc_i = sum_j G_ij * B_j + (O_i << 19) + rdiv(K_O,i * dTc << 11, 100) + sum_k (D_k,i * I_k) << 7
     out_i = sat32(rshift_round(acc_i, 19))
 
 ``rdiv``/``rshift_round`` round half away from zero. Overflow-freedom of the int64
-accumulator follows from the int32 coefficients and the input clips, for any table:
-|G| < 2**33, |G B| < 2**57 (three terms < 2**58.6), |O << 19| < 2**50, the K_O product
-< 2**57 before the division, each current term < 2**58 and at most MAX_CURRENTS = 4,
-so |acc| < 2**61 < 2**63. The output saturates (never wraps); validation refuses tables
-whose worst case over their validity range would saturate.
+accumulator follows from the int32 coefficients, |K_S2| < 2**28, |t0| <= 2**15 and the input
+clips (so |dTc| <= 2**16), for any table: the K_S term < 2**33.4, the K_S2 products < 2**44 and
+< 2**53.4 before their divisions and the term < 2**33.7, so |G| < 2**34.8 and |G B| < 2**58.8
+(three terms < 2**60.4); |O << 19| < 2**50, the K_O product < 2**58 before the division, each current
+term < 2**58 and at most MAX_CURRENTS = 4, so |acc| < 2**61.3 < 2**63. The output saturates (never
+wraps); validation refuses tables whose worst case over their validity range would saturate.
 """
 from __future__ import annotations
 
@@ -37,6 +40,9 @@ from magstack.firmware.float_applier import ApplyFlag
 
 S_FRAC = 27
 K_S_FRAC = 34
+K_S2_FRAC = 40
+#: Largest |K_S2| integer (2**28 - 1, i.e. |K_S2| < 2**-12 /degC^2): keeps the accumulator bound above.
+K_S2_INT_LIMIT = 2 ** 28 - 1
 O_FRAC = 8
 K_O_FRAC = 16
 D_FRAC = 20
@@ -50,7 +56,8 @@ MAX_CURRENTS = 4
 #: Output range in uT (int32 with 8 fractional bits of nT).
 OUT_LIMIT_uT = INT32_MAX / 2 ** OUT_FRAC / 1e3
 #: The terms the integer applier carries.
-FIXED_POINT_TERMS = ("gain_matrix", "temperature_gain", "offset", "temperature_offset", "currents")
+FIXED_POINT_TERMS = ("gain_matrix", "temperature_gain", "temperature_gain2", "offset", "temperature_offset",
+                     "currents")
 
 
 def _q(value: float, frac: int, what: str) -> int:
@@ -97,6 +104,7 @@ class FixedPointTable:
     field_limit_nT: int                      # validity: |B_j| <= this
     temp_range_cdeg: tuple[int, int] | None  # validity (None: table has no temperature terms)
     current_ranges_mA: tuple[tuple[int, int], ...]
+    K_S2: tuple[int, int, int] = (0, 0, 0)   # on-axis second-order sensitivity tempco
 
     @classmethod
     def from_table(cls, table) -> FixedPointTable:
@@ -110,12 +118,18 @@ class FixedPointTable:
         if len(table.currents) > MAX_CURRENTS:
             raise CalTableInvalid(f"{len(table.currents)} currents; the fixed-point applier takes at most "
                                   f"{MAX_CURRENTS}")
+        if not np.isfinite(table.t0_c) or abs(table.t0_c * 100) > T_LIMIT_cdeg:
+            raise CalTableInvalid(f"t0_c = {table.t0_c!r} is outside +-{T_LIMIT_cdeg / 100:g} degC")
         t0 = round(table.t0_c * 100)
         if abs(t0 - table.t0_c * 100) > 1e-6:
             raise CalTableInvalid(f"t0_c = {table.t0_c!r} is not a multiple of 0.01 degC")
         S = tuple(tuple(_q(table.S[i][j], S_FRAC, f"S[{i},{j}]") for j in range(3)) for i in range(3))
         K = tuple(tuple(_q(table.K_S[i][j], K_S_FRAC, f"K_S[{i},{j}] (1/degC)") for j in range(3))
                   for i in range(3))
+        K2 = tuple(_q(table.K_S2[i], K_S2_FRAC, f"K_S2[{i}] (1/degC^2)") for i in range(3))
+        if any(abs(k) > K_S2_INT_LIMIT for k in K2):
+            raise CalTableInvalid(f"K_S2 = {list(table.K_S2)} /degC^2 beyond the fixed-point limit "
+                                  f"+-{K_S2_INT_LIMIT / 2 ** K_S2_FRAC:.3g} /degC^2")
         O = tuple(_q(table.O[i] * 1e3, O_FRAC, f"O[{i}] (nT)") for i in range(3))
         KO = tuple(_q(table.K_O[i] * 1e3, K_O_FRAC, f"K_O[{i}] (nT/degC)") for i in range(3))
         D = tuple(tuple(_q(d[i], D_FRAC, f"D_{name}[{i}] (nT/mA)") for i in range(3)) for name, d in table.D)
@@ -125,13 +139,13 @@ class FixedPointTable:
             tr = (int(np.floor(lo * 100)), int(np.ceil(hi * 100)))
         return cls(S, K, O, KO, D, int(t0), int(np.floor(table.validity_field_uT * 1e3)), tr,
                    tuple((int(np.floor(lo * 1e3)), int(np.ceil(hi * 1e3))) for _, (lo, hi)
-                         in table.validity_currents_A))
+                         in table.validity_currents_A), K_S2=K2)
 
     # ----------------------------------------------------------- per sample (flight path)
     @property
     def uses_temperature(self) -> bool:
         """True if any temperature coefficient is non-zero (the temperature input matters)."""
-        return any(any(r) for r in self.K_S) or any(self.K_O)
+        return any(any(r) for r in self.K_S) or any(self.K_O) or any(self.K_S2)
 
     def apply_sample(self, b_nT, temp_cdeg: int, currents_mA=()) -> tuple[tuple[int, int, int], int]:
         """One sample, integers only. Returns ((Bx, By, Bz) in nT * 2**8, ApplyFlag bits).
@@ -164,6 +178,8 @@ class FixedPointTable:
             acc = 0
             for j in range(3):
                 g = self.S[i][j] + rdiv(self.K_S[i][j] * dtc, 12800)
+                if j == i:
+                    g += rdiv(rdiv(self.K_S2[i] * dtc, 100) * dtc, 819200)
                 acc += g * b[j]
             acc += self.O[i] << (ACC_FRAC - O_FRAC)
             acc += rdiv((self.K_O[i] * dtc) << (ACC_FRAC - K_O_FRAC), 100)
@@ -241,8 +257,8 @@ class FixedPointTable:
         return out, status.astype(np.int64)
 
     def _temperature_terms(self, dtc: np.ndarray):
-        """(G (9, M), const (3, M), row (N,) or None): G_ij (row 3 i + j) and the constant term of each
-        axis for M temperatures, and each sample's column among them (None: M = 1, every sample)."""
+        """(G (9, M), const (3, M), row (N,) or None): G_ij (row 3 i + j; K_S2 on i == j) and the constant term
+        of each axis for M temperatures, and each sample's column among them (None: M = 1, every sample)."""
         lo, hi = (int(dtc.min()), int(dtc.max())) if dtc.size else (0, 0)
         if lo == hi:
             levels, row = np.array([lo], np.int64), None
@@ -253,6 +269,9 @@ class FixedPointTable:
         S = np.array(self.S, np.int64).reshape(9, 1)
         K = np.array(self.K_S, np.int64).reshape(9, 1)
         gain = S + _rdiv_v(K * levels[None, :], 12800)
+        if any(self.K_S2):
+            K2 = np.array(self.K_S2, np.int64)[:, None]
+            gain[[0, 4, 8]] += _rdiv_v(_rdiv_v(K2 * levels[None, :], 100) * levels[None, :], 819200)
         const = (np.array(self.O, np.int64) << (ACC_FRAC - O_FRAC))[:, None] + _rdiv_v(
             (np.array(self.K_O, np.int64)[:, None] * levels[None, :]) << (ACC_FRAC - K_O_FRAC), 100)
         if row is None:

@@ -1,6 +1,7 @@
 """float64 reference applier of a calibration table (vectorised numpy).
 
-    B_cal = (S + K_S dT) B_meas + O + K_O dT + sum_k D_k I_k + c3 * B_meas^3 + P @ (BxBy, BxBz, ByBz)
+    B_cal = (S + K_S dT) B_meas + K_S2 dT^2 B_meas + O + K_O dT + sum_k D_k I_k + c3 * B_meas^3
+            + P @ (BxBy, BxBz, ByBz)
 
 with ``dT = temp_c - t0_c``. Inputs uT, degC, A; output uT. Ground-only terms of the
 table (time skew, session offsets, drift) are not applied. This is the reference the
@@ -13,6 +14,8 @@ from enum import IntFlag
 
 import numpy as np
 
+from magstack.firmware.cal_terms import TEMPERATURE_TERMS
+
 
 class ApplyFlag(IntFlag):
     """Per-row status bits written to a session's ``flag`` column by ``magstack apply``."""
@@ -24,7 +27,7 @@ class ApplyFlag(IntFlag):
 
 
 def _needs_temp(table) -> bool:
-    return bool({"temperature_gain", "temperature_offset"} & set(table.terms))
+    return bool(set(TEMPERATURE_TERMS) & set(table.terms))
 
 
 def apply_float(table, b_meas_uT, temp_c=None, currents_A: Mapping[str, np.ndarray] | None = None):
@@ -53,6 +56,8 @@ def apply_float(table, b_meas_uT, temp_c=None, currents_A: Mapping[str, np.ndarr
         missing |= ~np.isfinite(cur[name])
     S, K = np.asarray(table.S), np.asarray(table.K_S)
     out = b @ S.T + dT[:, None] * (b @ K.T) + np.asarray(table.O)[None, :] + dT[:, None] * np.asarray(table.K_O)
+    if "temperature_gain2" in table.terms:
+        out = out + (dT * dT)[:, None] * np.asarray(table.K_S2)[None, :] * b
     for name, d in table.D:
         out = out + cur[name][:, None] * np.asarray(d)[None, :]
     if "cubic" in table.terms:

@@ -33,7 +33,8 @@ MAX_DEPTH = 8
 MAX_BYTES = 1 << 20
 
 #: Parameter name -> shape of its ``value`` (``"3x3"``, ``"3"``, ``"currents"`` = {name: [3]}).
-PARAMETER_SHAPES = {"S": "3x3", "K_S": "3x3", "P": "3x3", "O": "3", "K_O": "3", "c3": "3", "D": "currents"}
+PARAMETER_SHAPES = {"S": "3x3", "K_S": "3x3", "P": "3x3", "K_S2": "3", "O": "3", "K_O": "3", "c3": "3",
+                    "D": "currents"}
 
 
 class _Path:

@@ -14,6 +14,7 @@ import numpy as np
 from magstack.data.dictionary import APPLY, APPLY_FLAG_SHIFT, flag_legend
 from magstack.data.errors import SessionFileError
 from magstack.data.session import Session
+from magstack.firmware.cal_terms import TEMPERATURE_TERMS
 from magstack.firmware.calibration.housekeeping import merge_currents
 from magstack.firmware.fixed_point import FixedPointTable, output_to_uT, to_fixed_inputs
 from magstack.firmware.float_applier import ApplyFlag, apply_float
@@ -31,7 +32,7 @@ def calibrate_session(table, s: Session, applier: str = "float", extrapolate: bo
     cur = merge_currents(s.t_s, s.session, s.currents_A, table.currents)   # refit's rule (issue 23 seam 3)
     if applier == "fixed":
         fx = FixedPointTable.from_table(table)
-        need_t = bool({"temperature_gain", "temperature_offset"} & set(table.terms))
+        need_t = bool(set(TEMPERATURE_TERMS) & set(table.terms))
         c = np.column_stack([cur[k] for k in table.currents]) if table.currents else None
         bi, ti, ci, bad = to_fixed_inputs(s.dut_uT, s.temp_c if need_t else None, c)
         q, flags = fx.apply_block(bi, ti, ci)

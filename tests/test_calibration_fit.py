@@ -26,7 +26,8 @@ def _model(terms, currents=(), sessions=(), n=N):
 
 
 def test_cal_terms_come_from_the_effect_catalogue():
-    assert set(CAL_TERMS) == {e.cal_term for e in EFFECTS.values() if e.cal_term}
+    assert set(CAL_TERMS) == {t for e in EFFECTS.values() if e.cal_term for t in (e.cal_term, *e.cal_terms_extra)}
+    assert EFFECTS["temperature_gain"].cal_terms_extra == ("temperature_gain2",)
     assert resolve_terms("eq3") == ("gain_matrix", "temperature_gain", "offset", "temperature_offset")
     with pytest.raises(FitError, match="valid:"):
         resolve_terms("eq3", ["bogus"])

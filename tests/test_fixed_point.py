@@ -18,8 +18,13 @@ from magstack.firmware.float_applier import ApplyFlag, apply_float
 EQ4 = ("gain_matrix", "temperature_gain", "offset", "temperature_offset", "currents")
 
 
-def _table(S, K_S, O, K_O, D=(), field=100.0, temps=(-40.0, 85.0), currents_range=(-5.0, 5.0), t0=25.0):
-    return CalTable(device_id="dev", terms=EQ4 if D else EQ4[:4], S=S, K_S=K_S, O=O, K_O=K_O,
+def _table(S, K_S, O, K_O, D=(), field=100.0, temps=(-40.0, 85.0), currents_range=(-5.0, 5.0), t0=25.0,
+           K_S2=None):
+    terms = EQ4 if D else EQ4[:4]
+    if K_S2 is not None:
+        terms = terms[:2] + ("temperature_gain2",) + terms[2:]
+    return CalTable(device_id="dev", terms=terms, S=S, K_S=K_S, O=O, K_O=K_O,
+                    K_S2=np.zeros(3) if K_S2 is None else K_S2,
                     D=tuple((f"i{k}", d) for k, d in enumerate(D)), t0_c=t0, validity_temp_c=temps,
                     validity_field_uT=field,
                     validity_currents_A=tuple((f"i{k}", currents_range) for k in range(len(D))))
@@ -35,6 +40,16 @@ def test_q_formats_are_pinned():
     assert f.K_O[0] == 100 * 2 ** 16
     assert f.D[0] == (2 ** 20, 0, 0)
     assert f.t0_cdeg == 2500
+    assert f.K_S2 == (0, 0, 0)
+    assert fp.K_S2_FRAC == 40
+    f2 = fp.FixedPointTable.from_table(_table(np.eye(3), np.zeros((3, 3)), np.zeros(3), np.zeros(3),
+                                              K_S2=[7.3e-6, -1e-6, 0.0]))
+    assert f2.K_S2 == (round(7.3e-6 * 2 ** 40), round(-1e-6 * 2 ** 40), 0)
+    # 1 uT on x at 10 degC above t0 with K_S2 = 2**-20 /degC^2: gain 1 + 100 * 2**-20 exactly
+    f3 = fp.FixedPointTable.from_table(_table(np.eye(3), np.zeros((3, 3)), np.zeros(3), np.zeros(3),
+                                              K_S2=[2.0 ** -20, 0.0, 0.0]))
+    out, _ = f3.apply_sample((1000, 0, 0), 3500)
+    assert out[0] == fp.rshift_round((2 ** 27 + fp.rdiv(fp.rdiv(2 ** 20 * 1000, 100) * 1000, 819200)) * 1000, 19)
     # identity table: 12345 nT in -> 12345 * 256 out, exactly
     ident = fp.FixedPointTable.from_table(_table(np.eye(3), np.zeros((3, 3)), np.zeros(3), np.zeros(3)))
     out, status = ident.apply_sample((12345, -7, 0), 2500)
@@ -70,7 +85,8 @@ def _random_valid_table(data):
     nD = data.draw(st.integers(0, 2))
     D = [data.draw(st.lists(fl(-200, 200), min_size=3, max_size=3)) for _ in range(nD)]
     t0 = data.draw(st.integers(-2000, 6000)) / 100
-    return _table(S, K, O, KO, D, t0=t0)
+    K2 = data.draw(st.one_of(st.none(), st.lists(fl(-1e-4, 1e-4), min_size=3, max_size=3)))
+    return _table(S, K, O, KO, D, t0=t0, K_S2=K2)
 
 
 @settings(max_examples=150, deadline=None)
@@ -121,6 +137,14 @@ def test_property_overflowing_tables_are_refused(scale, field, offset):
         q, status = f.apply_block(corner * sign, np.array([2500]))
         assert status[0] & ApplyFlag.SATURATED
         assert np.all(q == (fp.INT32_MAX if sign > 0 else fp.INT32_MIN))   # saturated, never wrapped
+
+
+def test_second_order_tempco_beyond_its_fixed_point_limit_is_refused():
+    with pytest.raises(CalTableInvalid, match="K_S2"):
+        fp.FixedPointTable.from_table(_table(np.eye(3), np.zeros((3, 3)), np.zeros(3), np.zeros(3),
+                                             K_S2=[3e-4, 0.0, 0.0]))
+    res = validate(_table(np.eye(3), np.zeros((3, 3)), np.zeros(3), np.zeros(3), K_S2=[3e-4, 0.0, 0.0]))
+    assert not res.ok and any("K_S2" in p for p in res.problems)
 
 
 def test_saturates_never_wraps_and_clips_inputs():

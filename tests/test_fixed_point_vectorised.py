@@ -60,6 +60,21 @@ def test_bit_identical_to_the_frozen_applier(case):
     assert np.array_equal(s_new, s_old)
 
 
+I28 = st.integers(-fp.K_S2_INT_LIMIT, fp.K_S2_INT_LIMIT)
+
+
+@settings(max_examples=200, deadline=None)
+@given(case=_cases(), k2=st.tuples(I28, I28, I28))
+def test_second_order_tempco_block_equals_sample(case, k2):
+    """With K_S2 (which the frozen applier lacks) the block path equals the per-sample integer path."""
+    table, b, t, c = case
+    table = fp.FixedPointTable(**{**table.__dict__, "K_S2": k2})
+    q, s = table.apply_block(b, t, c)
+    for k in range(b.shape[0]):
+        out, st_k = table.apply_sample(tuple(int(x) for x in b[k]), int(t[k]), tuple(int(x) for x in c[k]))
+        assert out == tuple(int(x) for x in q[k]) and st_k == s[k]
+
+
 def test_bit_identical_on_the_shipped_vector_shapes():
     rng = np.random.default_rng(0)
     S = ((2 ** 27, 1234, -999), (-5, 2 ** 27 + 77, 3), (0, 1, 2 ** 27 - 4))

@@ -173,7 +173,8 @@ def model_prior(model: CalModel, chip, s_hint: np.ndarray | None = None) -> Prio
     """Diagonal prior of ``model``'s coefficients from a chip's :class:`~magstack.drivers.cal_priors.CalPriors`.
 
     ``s_hint`` (3, 3): the gain matrix the sensitivity tempco is relative to (K_S[i,j] mean =
-    k_s_rel x S[i,j] on the diagonal pattern of the part: ``k_s_rel * s_hint``); identity when None.
+    k_s_rel x S[i,j] on the diagonal pattern of the part: ``k_s_rel * s_hint``; K_S2[i] mean =
+    k_s2_rel x S[i,i]); identity when None.
     """
     p = model.n_columns
     mean = np.zeros((3, p))
@@ -190,6 +191,10 @@ def model_prior(model: CalModel, chip, s_hint: np.ndarray | None = None) -> Prio
                 # relative tempco: the sensitivity of input axis j scales row i of S's column j
                 pv = chip.k_s_rel_per_c if i == j else chip.k_s_offdiag_per_c
                 m = chip.k_s_rel_per_c.mean * S[i, j]
+            elif col.term == "temperature_gain2":
+                # relative like K_S: K_S2[i] ~ k_s2_rel S[i,i] (only the on-axis column is used)
+                pv = chip.k_s2_rel_per_c2
+                m = pv.mean * S[i, i]
             elif col.term in _PRIOR_FIELD:
                 pv = getattr(chip, _PRIOR_FIELD[col.term])
                 m = pv.mean

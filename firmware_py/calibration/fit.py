@@ -23,6 +23,7 @@ import numpy as np
 
 from magstack.data.dictionary import usable
 from magstack.drivers.cal_priors import priors_for
+from magstack.firmware.cal_terms import TEMPERATURE_TERMS
 from magstack.firmware.calibration.degeneracy import GROUP_CORR, VIF_LIMIT
 from magstack.firmware.calibration.estimator import (
     Posterior,
@@ -134,7 +135,7 @@ class FitData:
         for name in currents:
             if name not in self.currents_A:
                 raise FitError(f"data has no current {name!r} (have {sorted(self.currents_A)})")
-        temp = bool({"temperature_gain", "temperature_offset"} & set(terms))
+        temp = bool(set(TEMPERATURE_TERMS) & set(terms))
         ok = np.empty(len(self), dtype=bool)
         for a in range(0, len(self), BLOCK_ROWS):
             sl = slice(a, a + BLOCK_ROWS)
@@ -599,7 +600,7 @@ def first_solve(R: np.ndarray, n: int, model: CalModel, cov: Coverage, options: 
     gated = [(h.axis, h.column) for h in explain if h.rule in GATE_RULES]
     prior = build_prior(model, options)
     post = gate_solve(R, n, model, prior, gated, options=options)
-    if options.use_priors and options.prior is None and "temperature_gain" in model.terms:
+    if options.use_priors and options.prior is None and {"temperature_gain", "temperature_gain2"} & set(model.terms):
         # the sensitivity tempco is relative: centre K_S on the fitted gain
         prior = build_prior(model, options, s_hint=model.unpack(post.theta)["S"])
         post = gate_solve(R, n, model, prior, gated, options=options)

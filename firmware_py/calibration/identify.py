@@ -82,7 +82,7 @@ def identify(model: CalModel, R: np.ndarray, cov, options) -> list[HeldParam]:
     for c, col in enumerate(model.columns):
         reason = None
         rule = "temperature"
-        if col.term == "temperature_gain":
+        if col.term in ("temperature_gain", "temperature_gain2"):
             span = cov.temp_span_with_field(col.index)
             if span < options.min_temp_span_c:
                 reason = (f"temperature spans only {span:.2f} degC while |B_{AXES[col.index]}| >= "

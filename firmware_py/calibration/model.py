@@ -4,6 +4,9 @@ Eq. 3/4 of belsten (B_meas is the predictor, the reference field the target)::
 
     B_act = (S + K_S dT) B_meas + O + K_O dT + sum_k D_k I_k  [+ optional terms]
 
+The optional ``temperature_gain2`` term adds the sensitivity tempco's second order on each axis,
+``K_S2,i dT^2 B_meas,i`` (a bridge's sensitivity s0 / (1 + a dT) is linear in dT to first order only).
+
 with ``dT = T - t0_c`` (degC). The model is linear in its parameters: every output axis
 ``i`` is ``B_act,i = X[:, cols_i] @ theta_i`` with one shared design matrix ``X`` whose
 columns are named features; ``cols_i`` selects the columns axis ``i`` uses (on-axis
@@ -19,7 +22,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from magstack.firmware.cal_terms import CAL_TERMS, FLIGHT_TERMS, FLOAT_ONLY_TERMS, GROUND_ONLY_TERMS, JOINT_TERMS
+from magstack.firmware.cal_terms import (
+    CAL_TERMS,
+    FLIGHT_TERMS,
+    FLOAT_ONLY_TERMS,
+    GROUND_ONLY_TERMS,
+    JOINT_TERMS,
+    TEMPERATURE_TERMS,
+)
 from magstack.firmware.errors import FitError
 
 AXES = ("x", "y", "z")
@@ -112,6 +122,8 @@ class CalModel:
                 cols += [Column(f"B_{a}", term, "S", j, "1") for j, a in enumerate(AXES)]
             elif term == "temperature_gain":
                 cols += [Column(f"B_{a}*dT", term, "K_S", j, "1/degC") for j, a in enumerate(AXES)]
+            elif term == "temperature_gain2":
+                cols += [Column(f"B_{a}*dT^2", term, "K_S2", j, "1/degC^2", on(j)) for j, a in enumerate(AXES)]
             elif term == "offset":
                 cols.append(Column("1", term, "O", None, "uT"))
             elif term == "temperature_offset":
@@ -164,7 +176,7 @@ class CalModel:
         currents_A {name: (N,) A}, session (N,) ints, t_s (N,) s (sorted within a session)."""
         b = np.asarray(b_meas_uT, dtype=float).reshape(-1, 3)
         n = b.shape[0]
-        need_t = {"temperature_gain", "temperature_offset"} & set(self.terms)
+        need_t = set(TEMPERATURE_TERMS) & set(self.terms)
         if need_t and temp_c is None:
             raise FitError(f"terms {sorted(need_t)} need temperature")
         dT = (np.asarray(temp_c, dtype=float).reshape(n) - self.t0_c) if temp_c is not None else None
@@ -176,6 +188,8 @@ class CalModel:
                 X[:, c] = b[:, j]
             elif t == "temperature_gain":
                 X[:, c] = b[:, j] * dT
+            elif t == "temperature_gain2":
+                X[:, c] = b[:, j] * dT * dT
             elif t == "offset":
                 X[:, c] = 1.0
             elif t == "temperature_offset":
@@ -209,18 +223,19 @@ class CalModel:
     def unpack(self, theta: np.ndarray) -> dict[str, np.ndarray | dict]:
         """Named parameter arrays from (3, p) coefficients (unused entries read 0).
 
-        Keys: S (3,3), K_S (3,3), O (3,), K_O (3,), D {name: (3,)}, c3 (3,), P (3,3: columns
+        Keys: S (3,3), K_S (3,3), K_S2 (3,), O (3,), K_O (3,), D {name: (3,)}, c3 (3,), P (3,3: columns
         xy, xz, yz), tau (3,3), dO {session: (3,)}, r (3,).
         """
         th = np.where(self.axis_mask(), np.asarray(theta, dtype=float), 0.0)
-        out: dict = {"S": np.zeros((3, 3)), "K_S": np.zeros((3, 3)), "O": np.zeros(3), "K_O": np.zeros(3),
+        out: dict = {"S": np.zeros((3, 3)), "K_S": np.zeros((3, 3)), "K_S2": np.zeros(3), "O": np.zeros(3),
+                     "K_O": np.zeros(3),
                      "D": {}, "c3": np.zeros(3), "P": np.zeros((3, 3)), "tau": np.zeros((3, 3)),
                      "dO": {}, "r": np.zeros(3)}
         for c, col in enumerate(self.columns):
             if col.param in ("S", "K_S", "P", "tau"):
                 out[col.param][:, col.index] = th[:, c]
-            elif col.param == "c3":
-                out["c3"][col.index] = th[col.index, c]
+            elif col.param in ("c3", "K_S2"):
+                out[col.param][col.index] = th[col.index, c]
             elif col.param in ("O", "K_O", "r"):
                 out[col.param] = th[:, c].copy()
             elif col.term == "currents":

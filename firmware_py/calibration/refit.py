@@ -126,6 +126,8 @@ def theta_from_table(model: CalModel, table: cal_table.CalTable) -> np.ndarray:
             th[:, c] = table.S[:, col.index]
         elif col.term == "temperature_gain":
             th[:, c] = table.K_S[:, col.index]
+        elif col.term == "temperature_gain2":
+            th[col.index, c] = table.K_S2[col.index]
         elif col.term == "offset":
             th[:, c] = table.O
         elif col.term == "temperature_offset":

@@ -20,6 +20,7 @@ import dataclasses
 import numpy as np
 
 from magstack.firmware.blas import single_thread
+from magstack.firmware.cal_terms import TEMPERATURE_TERMS
 from magstack.firmware.calibration.fit import (
     Coverage,
     FitOptions,
@@ -70,7 +71,7 @@ class StreamingFit:
         cur = {k: np.asarray((currents_A or {})[k], dtype=float).reshape(n) for k in self.model.currents
                if k in (currents_A or {})}
         ok = np.all(np.isfinite(b), axis=1) & np.all(np.isfinite(y), axis=1)
-        if {"temperature_gain", "temperature_offset"} & set(self.model.terms):
+        if set(TEMPERATURE_TERMS) & set(self.model.terms):
             ok &= np.isfinite(temp)
         for k in self.model.currents:
             if k not in cur:
@@ -129,7 +130,7 @@ class StreamingFit:
         gated = [(h.axis, h.column) for h in explain if h.rule in GATE_RULES]
         prior = build_prior(self.model, opts)
         post = gate_solve(self._R, self.n_used, self.model, prior, gated, kappa, opts)
-        if opts.use_priors and opts.prior is None and "temperature_gain" in self.model.terms:
+        if opts.use_priors and opts.prior is None and {"temperature_gain", "temperature_gain2"} & set(self.model.terms):
             prior = build_prior(self.model, opts, s_hint=self.model.unpack(post.theta)["S"])
             post = gate_solve(self._R, self.n_used, self.model, prior, gated, kappa, opts)
         held = prior_determined(post, explain)
