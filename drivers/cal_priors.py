@@ -47,7 +47,9 @@ class CalPriors:
     the diagonal of K_S relative to the fitted S (1/degC: K_S[i,i] ~ k_s_rel S[i,i]), ``k_s_offdiag_per_c``
     K_S[i,j] (1/degC), ``k_o_uT_per_c`` K_O (uT/degC), ``current_uT_per_A`` D (uT/A), ``cubic_per_uT2`` c3,
     ``cross_products_per_uT`` P, ``k_s2_rel_per_c2`` the on-axis second-order sensitivity tempco relative to
-    the fitted S (1/degC^2: K_S2[i] ~ k_s2_rel S[i,i]), and the nuisance terms (``time_skew_s``, ``session_offset_uT``,
+    the fitted S (1/degC^2: K_S2[i] ~ k_s2_rel S[i,i]), ``k_s3_rel_per_c3`` its third order (1/degC^3; no table
+    term: it bounds, with the priors of the other terms a model leaves out, how far a table may extrapolate
+    in temperature), and the nuisance terms (``time_skew_s``, ``session_offset_uT``,
     ``drift_uT_per_s``). ``operating_temp_c`` and ``field_range_uT`` bound a table's validity box.
     """
 
@@ -69,6 +71,8 @@ class CalPriors:
     source: str
     k_s2_rel_per_c2: PriorValue = PriorValue(0.0, 1e-6, "[I] temperature-compensated part: the linear tempco is "
                                                         "small, its square smaller (1e-6 /degC^2 = 100 ppm at 10 degC)")
+    k_s3_rel_per_c3: PriorValue = PriorValue(0.0, 1e-8, "[I] temperature-compensated part: third order of the "
+                                                        "sensitivity tempco (1e-8 /degC^3 = 10 ppm at 10 degC)")
 
 
 # Nuisance terms of bench sessions: loose on every part (the data decide them whenever they can).
@@ -87,11 +91,16 @@ _HMC1053 = CalPriors(
     k_s_rel_per_c=PriorValue(2.7e-3, 0.6e-3, "[F2:SEC-1053] sensitivity tempco -2700 ppm/degC typ, range "
                                              "-3000..-2400 [U] (hardware-facts 5.1): sd widened for [U]"),
     k_s_offdiag_per_c=PriorValue(0.0, 0.3e-3, "[I] tempco x cross-axis coupling (0.1 x 2.7e-3)"),
-    k_o_uT_per_c=PriorValue(0.0, 0.006, "[F2:SEC-1053] bridge offset tempco +-10 ppm/degC with set/reset; read "
-                                        "as ppm of the 600 uT full scale [I]: 6 nT/degC"),
+    k_o_uT_per_c=PriorValue(0.0, 0.02, "[I] the bridge's own offset tempco is +-10 ppm/degC with set/reset "
+                                       "[F2:SEC-1053] (6 nT/degC read as ppm of the 600 uT full scale); the board's "
+                                       "set/reset asymmetry and electronics add to it: the AERO-VISTA board's fitted "
+                                       "K_O was +36 nT/degC on x [B Table 7] (from a one-field thermal run, where K_O "
+                                       "and K_S are one column [B sec. 3.3]). sd 20 nT/degC"),
     current_uT_per_A=_CURRENT,
     cubic_per_uT2=PriorValue(0.0, 1e-7, "[F2:SEC-1053] linearity 0.1 %FS over +-1 G: 0.1 uT at 100 uT"),
-    cross_products_per_uT=PriorValue(0.0, 1e-4, "[I] same order as the linearity error"),
+    cross_products_per_uT=PriorValue(0.0, 1e-5, "[I] the first-order cross-axis term (+-3 %FS for a 1 G cross "
+                                                "field [F2:SEC-1053]: 3e-4 /uT) cancels in the set/reset "
+                                                "difference (hardware-facts 5.4); a 3 % pulse asymmetry leaves 1e-5"),
     time_skew_s=_SKEW, session_offset_uT=_SESSION, drift_uT_per_s=_DRIFT,
     operating_temp_c=(-40.0, 125.0),       # [F:HMC1055]
     field_range_uT=600.0,                  # [F:HMC1055] +-6 G
@@ -99,6 +108,8 @@ _HMC1053 = CalPriors(
     k_s2_rel_per_c2=PriorValue(7.3e-6, 7.3e-6, "[I] second order of the -2700 ppm/degC sensitivity tempco "
                                                "[F2:SEC-1053]: alpha^2 = 7.3e-6 for s0 (1 + alpha dT); sd reaches the "
                                                "s0 / (1 + alpha dT) form (0) at 1 sd and 2 alpha^2 (3000 ppm) at 1 sd"),
+    k_s3_rel_per_c3=PriorValue(0.0, 2.7e-8, "[I] third order of the sensitivity tempco: |alpha|^3 with alpha up to "
+                                            "-3000 ppm/degC [F2:SEC-1053] (1/(1 + alpha dT) = ... - alpha^3 dT^3)"),
 )
 
 
@@ -155,7 +166,8 @@ GENERIC = CalPriors(
     time_skew_s=_SKEW, session_offset_uT=_SESSION, drift_uT_per_s=_DRIFT,
     operating_temp_c=(-40.0, 85.0), field_range_uT=1000.0,
     source="generic wide priors (no chip table)",
-    k_s2_rel_per_c2=PriorValue(0.0, 1e-5, "[I] generic: the square of a 3000 ppm/degC tempco is 9e-6 /degC^2"))
+    k_s2_rel_per_c2=PriorValue(0.0, 1e-5, "[I] generic: the square of a 3000 ppm/degC tempco is 9e-6 /degC^2"),
+    k_s3_rel_per_c3=PriorValue(0.0, 3e-8, "[I] generic: the cube of a 3000 ppm/degC tempco is 2.7e-8 /degC^3"))
 
 #: Chip name -> priors.
 PRIORS = MappingProxyType({p.chip: p for p in (_HMC1053, _LSM303DLHC, _HMC5983, _LIS3MDL)})

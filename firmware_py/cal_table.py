@@ -89,6 +89,8 @@ class CalTable:
     t0_c: float = 25.0
     validity_temp_c: tuple[float, float] | None = None
     validity_field_uT: float = 100.0
+    validity_field_axes_uT: tuple[float, float, float] | None = None   # per input axis (None: field_uT on each)
+    validity_field_norm_uT: float | None = None                         # |B| limit (None: none beyond the axes')
     validity_currents_A: tuple[tuple[str, tuple[float, float]], ...] = ()
     model_name: str = "eq3"
     table_name: str = TABLE_NAME
@@ -112,6 +114,15 @@ class CalTable:
                                                               for k, (a, b) in self.validity_currents_A))
         if self.validity_temp_c is not None:
             object.__setattr__(self, "validity_temp_c", tuple(float(x) for x in self.validity_temp_c))
+        if self.validity_field_axes_uT is not None:
+            object.__setattr__(self, "validity_field_axes_uT", tuple(float(x) for x in self.validity_field_axes_uT))
+
+    @property
+    def field_limits_uT(self) -> tuple[float, float, float]:
+        """The validity field limit of each input axis, ``|B_j| <= F_j`` (uT)."""
+        if self.validity_field_axes_uT is not None:
+            return self.validity_field_axes_uT
+        return (self.validity_field_uT,) * 3
 
     @property
     def currents(self) -> tuple[str, ...]:
@@ -143,6 +154,10 @@ class CalTable:
             "parameters": params,
             "validity": {"temp_c": None if self.validity_temp_c is None else list(self.validity_temp_c),
                          "field_uT": self.validity_field_uT,
+                         **({} if self.validity_field_axes_uT is None else
+                            {"field_axes_uT": list(self.validity_field_axes_uT)}),
+                         **({} if self.validity_field_norm_uT is None else
+                            {"field_norm_uT": self.validity_field_norm_uT}),
                          "currents_A": {k: list(v) for k, v in self.validity_currents_A}},
             "fit": json_safe(dict(self.fit_stats)),
         }
@@ -236,6 +251,8 @@ def table_from_document(doc: Any, source: str = "<table>") -> CalTable:
             device_id=str(doc["device_id"]), terms=terms, t0_c=float(model["t0_c"]),
             validity_temp_c=None if vt is None else (float(vt[0]), float(vt[1])),
             validity_field_uT=float(v["field_uT"]),
+            validity_field_axes_uT=None if v.get("field_axes_uT") is None else tuple(v["field_axes_uT"]),
+            validity_field_norm_uT=None if v.get("field_norm_uT") is None else float(v["field_norm_uT"]),
             validity_currents_A=tuple((k, (float(a), float(b))) for k, (a, b) in v.get("currents_A", {}).items()),
             model_name=str(model.get("name", "")), table_name=str(doc.get("table_name", "")),
             description=str(doc.get("description", "")), created_utc=str(doc.get("created_utc", "")),
@@ -333,6 +350,13 @@ def validate(table: CalTable) -> ValidationResult:
         pr.append("table has temperature terms but no validity temperature range")
     if not 0 < table.validity_field_uT <= BOUNDS["field_uT"]:
         pr.append(f"validity field_uT {table.validity_field_uT} not in (0, {BOUNDS['field_uT']}]")
+    if table.validity_field_axes_uT is not None:
+        fa = table.validity_field_axes_uT
+        if not all(math.isfinite(f) and 0 <= f <= table.validity_field_uT for f in fa):
+            pr.append(f"validity field_axes_uT {list(fa)} not each in [0, field_uT = {table.validity_field_uT}]")
+    fn = table.validity_field_norm_uT
+    if fn is not None and not (math.isfinite(fn) and 0 < fn <= BOUNDS["field_uT"] * math.sqrt(3)):
+        pr.append(f"validity field_norm_uT {fn} not in (0, {BOUNDS['field_uT'] * math.sqrt(3):.6g}]")
     for k, (a, b) in table.validity_currents_A:
         if not (-BOUNDS["current_A"] <= a <= b <= BOUNDS["current_A"]):
             pr.append(f"validity current {k} [{a}, {b}] A not an interval within +-{BOUNDS['current_A']}")
@@ -395,69 +419,113 @@ def worst_case_output_uT(table: CalTable) -> float:
 #: A validity box narrower than this (degC) or with a lower field limit (uT, per axis) draws a warning.
 NARROW_TEMP_C = 10.0
 NARROW_FIELD_uT = 50.0
-#: The field limit is also capped at this multiple of the largest field the fit saw: the posterior does
-#: not contain the part's nonlinearity.
+#: The field limit is also capped at this multiple of the largest field the fit saw on each axis.
 FIELD_EXTRAPOLATION = 2.0
-#: Default validity bound: this multiple of the fit's noise floor (vector norm).
-VALIDITY_NOISE_FACTOR = 2.0
+#: The data's own field region: this quantile of the rows' |B_j| per axis, and ``DATA_NORM_QUANTILE`` of their
+#: |B| (the magnitude most rows share: excursions along one axis, such as a hysteresis screen, would otherwise
+#: admit every axis at that field at once, a combination no row had); the region grows beyond it where the bound
+#: allows.
+DATA_FIELD_QUANTILE = 0.95
+DATA_NORM_QUANTILE = 0.75
+#: Default validity: the region is where the predictive vector sd stays within this multiple of its RMS over
+#: the fit data, or within ``VALIDITY_SD_HEADROOM`` x its largest value over the data's own region (temperature
+#: range x per-axis field extents x largest |B|) when that is higher, but never above ``VALIDITY_SD_CAP`` x the
+#: RMS: where the data cannot pin the table to that, the region is narrower than the data. The bound, ``2 x``
+#: that sd, is the vector error the table promises inside its region.
+VALIDITY_SD_FACTOR = 1.5
+VALIDITY_SD_HEADROOM = 1.2
+VALIDITY_SD_CAP = 5.0
 
 
 def posterior_block(result) -> dict | None:
-    """The table's ``posterior`` block from a FitResult: per axis the flight parameters and their
-    posterior covariance (ground-only terms marginalised: their rows and columns dropped). None when the
-    fit has no posterior or a flight parameter is undetermined (no prior, ``--no-priors``)."""
+    """The table's ``posterior`` block from a FitResult: per axis the flight parameters and the parameters of the
+    catalogue terms the model leaves out (``left_out``, value 0 in the table), their covariance (per-parameter
+    inflation applied, the left-out terms' data-capped prior beyond what the fitted terms absorb; ground-only
+    terms marginalised: their rows and columns dropped), the noise and the discrepancy
+    (:mod:`magstack.firmware.cal_uncertainty`). None when the fit has no posterior or a flight parameter is
+    undetermined (no prior, ``--no-priors``)."""
     post = getattr(result, "posterior", None)
     if post is None:
         return None
+    unc = getattr(result, "uncertainty", None)
     m = result.model
     mask = m.axis_mask()
     block: dict[str, Any] = {}
+    left: list[str] = []
     for i, a in enumerate(("x", "y", "z")):
         cols = [c for c, col in enumerate(m.columns) if mask[i, c] and col.term in _TERM_PARAMS]
-        C = post.cov[i][np.ix_(cols, cols)]
-        if not np.all(np.isfinite(C)):
+        if not np.all(np.isfinite(post.cov[i][np.ix_(cols, cols)])):
             return None
-        block[a] = {"names": [m.param_name(i, c) for c in cols], "cov": (0.5 * (C + C.T)).tolist()}
+        names = [m.param_name(i, c) for c in cols]
+        if unc is None:
+            C = post.cov[i][np.ix_(cols, cols)]
+        else:
+            lo, C = unc.axis_block(i, cols)
+            names += lo
+            left += lo
+        block[a] = {"names": names, "cov": (0.5 * (C + C.T)).tolist()}
     block["sigma_uT"] = [float(x) for x in post.sigma_uT]
+    if unc is not None:
+        block["left_out"] = left
+        block["noise_uT"] = [float(x) for x in unc.noise_uT]
+        if unc.discrepancy is not None:
+            block["discrepancy"] = dict(unc.discrepancy)
     return block
 
 
-def _validity_from_posterior(result, block: dict, bound_uT: float, part_temp_c, part_field_uT: float,
-                             currents: dict) -> tuple[tuple[float, float] | None, float, list[str]]:
-    """(temperature interval, field limit, notes) where the posterior sd stays below ``bound_uT``."""
-    from magstack.firmware.cal_uncertainty import field_limit_uT, validity_box
+def typical_sd_uT(result, pred) -> float:
+    """RMS over the fit rows of the predictive vector sd (uT): from the held-out bins' design moments when the
+    fit has them, else at the data's centre temperature over fields of the data's RMS magnitude."""
+    unc = getattr(result, "uncertainty", None)
+    cov = result.coverage
+    if unc is not None and unc.typical_sd_uT is not None and math.isfinite(unc.typical_sd_uT):
+        return float(unc.typical_sd_uT)
+    centre = 0.5 * (cov.temp_min_c + cov.temp_max_c) if math.isfinite(cov.temp_min_c) else result.model.t0_c
+    F = np.where(np.isfinite(cov.field_max_uT), cov.field_max_uT, 0.0)
+    return pred.worst_vector_sd_uT(centre, F, cov.norm_max_uT / math.sqrt(3.0))
+
+
+def _validity_from_posterior(result, block: dict, validity_sd_uT: float | None, part_temp_c, part_field_uT: float,
+                             currents: dict):
+    """(temperature interval, per-axis field limits, field-magnitude limit, bound, sd limit, notes) where twice the
+    predictive vector sd stays within the bound (:func:`magstack.firmware.cal_uncertainty.validity_region`)."""
+    from magstack.firmware.cal_uncertainty import Predictive, validity_region
 
     m, cov = result.model, result.coverage
-    notes = []
+    pred = Predictive(block, m.t0_c)
     tlo, thi = BOUNDS["temp_c"]
     lim = (max(tlo, part_temp_c[0]), min(thi, part_temp_c[1]))
-    data_field = float(np.max(cov.field_max_uT)) if np.all(np.isfinite(cov.field_max_uT)) else 0.0
-    f_cap = min(part_field_uT, BOUNDS["field_uT"], max(1.0, math.ceil(FIELD_EXTRAPOLATION * data_field)))
+    max_F = np.where(np.isfinite(cov.field_max_uT), cov.field_max_uT, 0.0)
+    data_F, _ = cov.field_quantile_uT(DATA_FIELD_QUANTILE)
+    _, data_R = cov.field_quantile_uT(DATA_NORM_QUANTILE)
+    f_cap = min(part_field_uT, BOUNDS["field_uT"])
+    caps = np.minimum(f_cap, np.maximum(1.0, np.ceil(FIELD_EXTRAPOLATION * max_F)))
+    norm_cap = min(f_cap, max(1.0, math.ceil(FIELD_EXTRAPOLATION * cov.norm_max_uT)))
     has_t = math.isfinite(cov.temp_min_c)
-    centre = 0.5 * (cov.temp_min_c + cov.temp_max_c) if has_t else m.t0_c
-    field = field_limit_uT(block, m.t0_c, bound_uT, centre, f_cap, currents)
-    if field < math.ceil(data_field):
-        notes.append(f"posterior sd exceeds the bound {bound_uT * 1e3:.0f} nT at {field:g} uT, inside the fitted "
-                     f"field: the field limit is the data's {math.ceil(data_field):g} uT")
-        field = float(max(1.0, math.ceil(data_field)))
     data_t = ((math.floor(cov.temp_min_c * 100) / 100, math.ceil(cov.temp_max_c * 100) / 100) if has_t else None)
-    if not (set(TEMPERATURE_TERMS) & set(m.terms)):
-        notes.append("no temperature terms: the posterior says nothing about temperature; validity temperature = "
-                     "the data's range")
-        return data_t, field, notes
-    # the temperature interval at the field magnitude the fit saw (within the field limit)
-    seen = float(np.max(cov.field_max_uT)) if np.all(np.isfinite(cov.field_max_uT)) else field
-    box, at_c = validity_box(block, m.t0_c, bound_uT, lim, min(field, max(seen, 1.0)), centre, currents)
-    if box is None:
-        notes.append(f"posterior sd at the data's centre ({at_c * 1e3:.0f} nT) exceeds the bound "
-                     f"{bound_uT * 1e3:.0f} nT: validity temperature = the data's range")
-        return data_t, field, notes
-    if data_t is not None and (box[0] > data_t[0] or box[1] < data_t[1]):
-        # never narrower than where the fit had data (there the calibration was tested)
-        notes.append(f"posterior sd exceeds the bound inside the data's own range ({box[0]:g}..{box[1]:g} degC): "
-                     f"validity keeps the data's {data_t[0]:g}..{data_t[1]:g} degC")
-        box = (min(box[0], data_t[0]), max(box[1], data_t[1]))
-    return box, field, notes
+    centre = m.t0_c
+    data_region = (np.minimum(data_F, caps), min(data_R, norm_cap))
+    max_region = (np.minimum(np.maximum(max_F, data_F), caps), min(max(cov.norm_max_uT, data_R), norm_cap))
+    if data_t is not None:      # the data's best-pinned temperature (over its own fields): where the region starts
+        grid = np.linspace(data_t[0], data_t[1], 41)
+        centre = float(grid[int(np.argmin([pred.worst_vector_sd_uT(t, *data_region, currents) for t in grid]))])
+    if validity_sd_uT is not None:
+        sd = validity_sd_uT
+    else:
+        typical = typical_sd_uT(result, pred)
+        temps = np.linspace(data_t[0], data_t[1], 21) if data_t is not None else [centre]
+        in_data = pred.worst_over_region_uT(temps, *max_region, currents)
+        sd = min(max(VALIDITY_SD_FACTOR * typical, VALIDITY_SD_HEADROOM * in_data), VALIDITY_SD_CAP * typical)
+    bound = 2.0 * sd
+    t_box, F, R, notes = validity_region(pred, bound, centre_c=centre, data_temp_c=data_t, data_field_uT=data_F,
+                                         data_norm_uT=data_R, temp_limits_c=lim, field_caps_uT=caps,
+                                         norm_cap_uT=norm_cap, currents_A=currents,
+                                         has_temperature=bool(set(TEMPERATURE_TERMS) & set(m.terms)),
+                                         data_field_max_uT=max_F, data_norm_max_uT=cov.norm_max_uT)
+    if not pred.complete:
+        notes.append("the fit gave no noise or discrepancy estimate (no held-out folds): the predictive sd is the "
+                     "parameter part only")
+    return t_box, F, R, bound, sd, notes
 
 
 def table_from_fit(result, device_id: str, *, description: str = "", created_utc: str = "",
@@ -466,14 +534,16 @@ def table_from_fit(result, device_id: str, *, description: str = "", created_utc
                    validity_sd_uT: float | None = None) -> CalTable:
     """A table from a :class:`magstack.firmware.calibration.FitResult`.
 
-    With a posterior (the MAP fit) the table carries its covariance (block ``posterior``) and the validity
-    box is where the posterior sd of the calibrated field (an upper bound of the worst case over the box,
-    :mod:`magstack.firmware.cal_uncertainty`) stays below ``validity_sd_uT`` (default 2x the fit's noise
-    floor, else 2x its in-sample RMSE), clipped to the part's operating range (the chip's priors) and to
-    ``FIELD_EXTRAPOLATION`` x the largest field the fit saw. Without one, validity is what the fit data
-    covered (temperature range, max |B| component). Given values override; currents: the data's ranges.
-    The decisions are in ``fit_stats["validity"]``."""
+    With a posterior (the MAP fit) the table carries its predictive parts (block ``posterior``) and the validity
+    box is where twice the predictive vector sd stays within the bound ``2 x validity_sd_uT`` (default: 1.5x the
+    sd's RMS over the fit data): a temperature interval and a field limit per input axis, clipped to the part's
+    operating range (the chip's priors) and to ``FIELD_EXTRAPOLATION`` x each axis's largest field in the data
+    (:mod:`magstack.firmware.cal_uncertainty`). :class:`~magstack.firmware.errors.NoValidityRegion` when even the
+    data's centre exceeds the bound. Without a posterior, validity is what the fit data covered (temperature
+    range, max |B| component). Given values override; currents: the data's ranges. The decisions are in
+    ``fit_stats["validity"]``."""
     from magstack.drivers.cal_priors import priors_for
+    from magstack.firmware.errors import NoValidityRegion
 
     m = result.model
     p = m.unpack(result.theta)
@@ -484,24 +554,28 @@ def table_from_fit(result, device_id: str, *, description: str = "", created_utc
     block = posterior_block(result)
     stats = result.stats()
     vinfo: dict[str, Any] = {"rule": "data range"}
+    field_axes = field_norm = None
     if block is not None:
-        nf = np.asarray(result.noise_floor_uT, dtype=float)
-        base = float(np.linalg.norm(nf)) if np.all(np.isfinite(nf)) else float(np.linalg.norm(result.rmse_uT))
-        bound = float(validity_sd_uT) if validity_sd_uT is not None else VALIDITY_NOISE_FACTOR * base
         part = priors_for(getattr(result, "chip", None))
-        t_box, f_box, notes = _validity_from_posterior(result, block, bound, part.operating_temp_c,
-                                                       part.field_range_uT, vc)
+        t_box, F, R, bound, sd, notes = _validity_from_posterior(result, block, validity_sd_uT,
+                                                                 part.operating_temp_c, part.field_range_uT, vc)
         block["bound_uT"] = bound
         block["prior"] = getattr(result, "prior_name", "") or ""
+        nf = np.asarray(result.noise_floor_uT, dtype=float)
         if np.all(np.isfinite(nf)):
             block["noise_floor_uT"] = [float(x) for x in nf]
-        vinfo = {"rule": "posterior sd <= bound", "bound_uT": bound, "part": part.chip,
-                 "part_temp_c": list(part.operating_temp_c), "part_field_uT": part.field_range_uT,
+        vinfo = {"rule": "2 x predictive vector sd <= bound", "bound_uT": bound, "sd_limit_uT": sd,
+                 "part": part.chip, "part_temp_c": list(part.operating_temp_c), "part_field_uT": part.field_range_uT,
                  "notes": notes}
+        if F is None and validity_temp_c is None and validity_field_uT is None:
+            raise NoValidityRegion("no validity region: " + "; ".join(notes) + " (a larger --validity-sd, more "
+                                   "data, or a model with the missing terms)")
         if validity_temp_c is None:
             validity_temp_c = t_box
-        if validity_field_uT is None:
-            validity_field_uT = f_box
+        if validity_field_uT is None and F is not None:
+            field_axes = tuple(float(x) for x in F)
+            validity_field_uT = float(max(F))
+            field_norm = R
     if validity_temp_c is None and math.isfinite(cov.temp_min_c):
         validity_temp_c = (math.floor(cov.temp_min_c * 100) / 100, math.ceil(cov.temp_max_c * 100) / 100)
     if validity_field_uT is None:
@@ -510,8 +584,12 @@ def table_from_fit(result, device_id: str, *, description: str = "", created_utc
     if validity_temp_c is not None and validity_temp_c[1] - validity_temp_c[0] < NARROW_TEMP_C:
         warn.append(f"validity temperature {validity_temp_c[0]:g}..{validity_temp_c[1]:g} degC is narrower than "
                     f"{NARROW_TEMP_C:g} degC: samples outside it will not be calibrated")
-    if validity_field_uT < NARROW_FIELD_uT:
-        warn.append(f"validity field {validity_field_uT:g} uT per axis is below {NARROW_FIELD_uT:g} uT")
+    if field_norm is not None and field_norm < NARROW_FIELD_uT:
+        warn.append(f"validity |B| <= {field_norm:g} uT is below {NARROW_FIELD_uT:g} uT")
+    narrow = [a for a, f in zip("xyz", field_axes or (validity_field_uT,) * 3, strict=True) if f < NARROW_FIELD_uT]
+    if narrow:
+        warn.append(f"validity field per axis {list(field_axes or (validity_field_uT,) * 3)} uT is below "
+                    f"{NARROW_FIELD_uT:g} uT on {', '.join(narrow)}: samples beyond it will not be calibrated")
     vinfo["warnings"] = warn
     stats["validity"] = vinfo
     ground = {}
@@ -524,10 +602,11 @@ def table_from_fit(result, device_id: str, *, description: str = "", created_utc
         ground["drift_t_ref_s"] = m.t_ref_s
     # terms without table parameters (the bench mount: fitted as a nuisance, reported in fit_stats)
     terms = tuple(t for t in m.terms if t != "mount_rotation")
-    return CalTable(device_id=device_id, terms=terms, S=p["S"], K_S=p["K_S"], K_S2=p["K_S2"], O=p["O"], K_O=p["K_O"],
-                    D=tuple((k, p["D"][k]) for k in m.currents), c3=p["c3"], P=p["P"], t0_c=m.t0_c,
+    return CalTable(device_id=device_id, terms=terms, S=p["S"], K_S=p["K_S"], K_S2=p["K_S2"], O=p["O"],
+                    K_O=p["K_O"], D=tuple((k, p["D"][k]) for k in m.currents), c3=p["c3"], P=p["P"], t0_c=m.t0_c,
                     validity_temp_c=validity_temp_c,
-                    validity_field_uT=validity_field_uT,
+                    validity_field_uT=validity_field_uT, validity_field_axes_uT=field_axes,
+                    validity_field_norm_uT=field_norm,
                     validity_currents_A=tuple((k, vc[k]) for k in m.currents), model_name=m.name,
                     description=description, created_utc=created_utc or _now_utc(),
                     fit_stats=stats, ground_only=ground, posterior=block)

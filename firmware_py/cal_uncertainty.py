@@ -1,30 +1,37 @@
-"""Posterior uncertainty of a calibration table: per-sample sd and the validity box it implies.
+"""Predictive uncertainty of a calibration table and the validity region it implies.
 
-A table may carry the posterior covariance of its flight parameters (block ``posterior`` of the table
-file, :mod:`magstack.firmware.cal_table`): per output axis the parameter names (``S[x,y]``, ``K_S[x,y]``,
-``O[x]``, ``K_O[x]``, ``D_k[x]``, ``c3[x]``, ``P[x,xy]``) and their covariance ``C_i``. For an input
-(field ``b`` uT, temperature, currents) the calibrated axis ``i`` is ``f_i(b, T, I)^T theta_i`` with the
-features ``f_i`` named by the parameters, so its posterior predictive variance (parameter part) is
-``f_i^T C_i f_i`` (uT^2). The sensor's own noise is not included: it is the noise floor, reported
-beside it.
+A table may carry a ``posterior`` block (:mod:`magstack.firmware.cal_table`) with what is needed to say how
+wrong a calibrated sample can be. For an input (DUT field ``b`` uT, temperature ``T``, currents ``I``) the
+calibrated axis ``i`` is ``f_i(b, T, I)^T theta_i``; the variance of its error against the true field is the
+sum of three parts, each per axis (uT^2):
 
-* :func:`predictive_sd_uT` (N, 3) per axis and :func:`norm_sd_uT` (N,), the sd of ``|B_cal|``
-  (``sqrt(sum_i u_i^2 sd_i^2)`` with ``u = B/|B|``; the vector sd below 1 uT, where the direction is
-  undefined).
-* :func:`validity_box`: the temperature interval (and field limit) over which an upper bound of the
-  worst-case vector sd stays below a bound, clipped to the part's operating range. Every feature is
-  evaluated over fields of magnitude F (1000 directions), the nonlinear and current features bounded by
-  the triangle inequality (|I| <= the current limits), ``C_i = L_i L_i^T``. The
-  field limit is the largest F for which the bound holds at the data's centre temperature; the temperature
-  interval is where it holds at the field magnitude the fit saw (not at the corners of the box, where a
-  high field and a far temperature meet). The table stores the box; the fit, ``apply`` and the flight
-  corrector all use it.
+* **parameters** ``f_i^T C_i f_i``: the posterior covariance ``C_i`` of the table's flight parameters, its
+  per-parameter inflation for slowly correlated residuals already applied by the fit, extended by the catalogue
+  terms the model *leaves out* (``left_out`` names such as ``K_S2[x]``, ``K_S3[x]``, ``c3[x]``, ``P[x,xy]``:
+  value 0 in the table, covariance = their prior, capped by what the data would have shown, projected past what
+  the fitted terms absorb: :mod:`magstack.firmware.calibration.predictive`). Inside the data that part is
+  small; beyond it, it is what grows with distance (the physics decides).
+* **discrepancy** ``delta_i^2(b, T)``: what held-out residuals showed the model misses beyond noise and
+  parameters (slow drift, unmodelled structure), ``d0 + dB (|b|/field_ref)^2 + dT ((T - T_c)/temp_ref)^2``
+  with ``|b|`` and ``T`` clamped to the fit data's range (the data say nothing beyond it).
+* **noise** ``n_i^2``: the sensor's white noise on one sample (the fit's noise floor).
 
-On board, evaluating ``f^T C f`` per sample costs k^2 + k multiply-adds per axis (k = 8 parameters per
-axis for Eq. 3: about 220 per sample): optional, not done by the fixed-point applier (docs/cal-table.md).
+:class:`Predictive` evaluates them; ``apply`` writes the per-axis total (``cal_sigma_x_nT`` ...), its vector
+root-sum-square ``cal_sigma_nT`` and the parameter part ``cal_param_sd_nT``. A table without the newer keys
+(``noise_uT``, ``discrepancy``, ``left_out``) gives the parameter part alone, as it says.
+
+**Validity region** (:func:`validity_region`): a temperature interval and a field limit per input axis
+(``|b_j| <= F_j``), where twice the predictive vector sd ``2 sqrt(sum_i sd_i^2)`` stays within the table's
+``bound_uT`` (a vector error exceeded with ~1 % probability for an honest Gaussian sd, chi-square with 3 dof).
+The parameter part is a convex quadratic in ``b`` (its features are affine in ``b`` at fixed ``T``; the
+nonlinear and current features are bounded by the triangle inequality) and the discrepancy grows with
+``|b|``, so the worst case over a field box is at one of its 8 corners; temperature is searched on a grid.
+On board, evaluating ``f^T C f`` costs k^2 + k multiply-adds per axis (k ~ 10): optional, not done by the
+fixed-point applier (docs/cal-table.md).
 """
 from __future__ import annotations
 
+import itertools
 import math
 import re
 from collections.abc import Mapping, Sequence
@@ -32,11 +39,14 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 AXES = ("x", "y", "z")
-_NAME = re.compile(r"^(S|K_S2|K_S|O|K_O|c3|P|D_[A-Za-z0-9_]+)\[([xyz])(?:,(x|y|z|xy|xz|yz))?\]$")
+_NAME = re.compile(r"^(S|K_S3|K_S2|K_S|O|K_O|c3|P|D_[A-Za-z0-9_]+)\[([xyz])(?:,(x|y|z|xy|xz|yz))?\]$")
+#: Parameters whose feature is affine in the field at a fixed temperature.
+LINEAR_PARAMS = ("S", "K_S", "K_S2", "K_S3", "O", "K_O")
+_PAIRS = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2)}
 
 
 def parse_name(name: str) -> tuple[str, int, str | None]:
-    """``'K_S[x,y]'`` -> ("K_S", 0, "y"); ValueError for a name that is not a flight parameter."""
+    """``'K_S[x,y]'`` -> ("K_S", 0, "y"); ValueError for a name that is not a calibration parameter."""
     m = _NAME.match(name)
     if not m:
         raise ValueError(f"not a flight parameter name: {name!r}")
@@ -58,6 +68,8 @@ def features(names: Sequence[str], b_uT: np.ndarray, dT: np.ndarray,
             out[:, k] = b[:, AXES.index(j)] * dT
         elif p == "K_S2":
             out[:, k] = b[:, i] * dT * dT
+        elif p == "K_S3":
+            out[:, k] = b[:, i] * dT * dT * dT
         elif p == "O":
             out[:, k] = 1.0
         elif p == "K_O":
@@ -65,7 +77,7 @@ def features(names: Sequence[str], b_uT: np.ndarray, dT: np.ndarray,
         elif p == "c3":
             out[:, k] = b[:, i] ** 3
         elif p == "P":
-            a, c = ({"xy": (0, 1), "xz": (0, 2), "yz": (1, 2)})[j]
+            a, c = _PAIRS[j]
             out[:, k] = b[:, a] * b[:, c]
         else:
             cur = (currents_A or {}).get(p[2:])
@@ -75,21 +87,158 @@ def features(names: Sequence[str], b_uT: np.ndarray, dT: np.ndarray,
     return out
 
 
-def predictive_sd_uT(posterior: Mapping, t0_c: float, b_uT, temp_c, currents_A=None) -> np.ndarray:
-    """(N, 3) posterior sd of each calibrated axis (uT); NaN where an input is missing.
+def _chol(C: np.ndarray) -> np.ndarray:
+    C = 0.5 * (C + C.T)
+    w, V = np.linalg.eigh(C)
+    return V * np.sqrt(np.maximum(w, 0.0))          # L with L L^T = C (PSD, no jitter needed)
 
-    ``posterior``: the table's block ``{"x": {"names": [...], "cov": [[...]]}, "y": ..., "z": ...}``."""
-    b = np.asarray(b_uT, dtype=float).reshape(-1, 3)
-    n = b.shape[0]
-    t = np.full(n, t0_c) if temp_c is None else np.asarray(temp_c, dtype=float).reshape(n)
-    out = np.empty((n, 3))
-    with np.errstate(invalid="ignore"):
-        for i, a in enumerate(AXES):
-            blk = posterior[a]
-            F = features(blk["names"], b, t - t0_c, currents_A)
-            C = np.asarray(blk["cov"], dtype=float)
-            out[:, i] = np.sqrt(np.maximum(np.einsum("nk,kl,nl->n", F, C, F), 0.0))
-    return out
+
+class Predictive:
+    """The predictive variance of a table's calibrated samples, from its ``posterior`` block.
+
+    ``posterior``: ``{"x": {"names", "cov"}, "y": ..., "z": ..., "noise_uT": [3], "discrepancy": {...}}``;
+    ``t0_c`` the table's temperature reference (degC)."""
+
+    def __init__(self, posterior: Mapping, t0_c: float) -> None:
+        self.t0_c = float(t0_c)
+        self.names = [list(posterior[a]["names"]) for a in AXES]
+        self.cov = [0.5 * (np.asarray(posterior[a]["cov"], dtype=float) + np.asarray(posterior[a]["cov"]).T)
+                    for a in AXES]
+        self.L = [_chol(C) for C in self.cov]
+        self.noise_uT = np.asarray(posterior.get("noise_uT", (0.0, 0.0, 0.0)), dtype=float).reshape(3)
+        self.disc = dict(posterior["discrepancy"]) if posterior.get("discrepancy") else None
+        self.complete = "noise_uT" in posterior and self.disc is not None
+
+    # ------------------------------------------------------------------ parts, per row
+    def param_var_uT2(self, b_uT, temp_c, currents_A=None) -> np.ndarray:
+        """(N, 3) parameter part (left-out terms included), uT^2; NaN where an input is missing."""
+        b = np.asarray(b_uT, dtype=float).reshape(-1, 3)
+        n = b.shape[0]
+        t = np.full(n, self.t0_c) if temp_c is None else np.asarray(temp_c, dtype=float).reshape(n)
+        out = np.empty((n, 3))
+        with np.errstate(invalid="ignore"):
+            for i in range(3):
+                F = features(self.names[i], b, t - self.t0_c, currents_A)
+                out[:, i] = np.maximum(np.einsum("nk,kl,nl->n", F, self.cov[i], F), 0.0)
+            return out
+
+    def disc_var_uT2(self, b_uT, temp_c) -> np.ndarray:
+        """(N, 3) discrepancy part, uT^2 (0 when the table has none)."""
+        b = np.asarray(b_uT, dtype=float).reshape(-1, 3)
+        n = b.shape[0]
+        if self.disc is None:
+            return np.zeros((n, 3))
+        d = self.disc
+        fmax = float(d["field_max_uT"])
+        mag = np.minimum(np.linalg.norm(b, axis=1), fmax) / float(d["field_ref_uT"])
+        lo, hi = d["temp_range_c"]
+        tc = float(d["temp_centre_c"])
+        t = np.full(n, tc) if temp_c is None else np.asarray(temp_c, dtype=float).reshape(n)
+        u = (np.clip(np.where(np.isfinite(t), t, tc), lo, hi) - tc) / float(d["temp_ref_c"])
+        return (np.asarray(d["d0_uT2"])[None, :] + np.asarray(d["dB_uT2"])[None, :] * (mag * mag)[:, None]
+                + np.asarray(d["dT_uT2"])[None, :] * (u * u)[:, None])
+
+    def sd_axes_uT(self, b_uT, temp_c, currents_A=None) -> np.ndarray:
+        """(N, 3) total predictive sd per axis (parameters + discrepancy + noise), uT."""
+        v = self.param_var_uT2(b_uT, temp_c, currents_A) + self.disc_var_uT2(b_uT, temp_c) + self.noise_uT ** 2
+        return np.sqrt(v)
+
+    # ------------------------------------------------------------------ worst case over a field region
+    def worst_vector_sd_uT(self, temp_c: float, field_axes_uT: Sequence[float], field_norm_uT: float = math.inf,
+                           currents_A: Mapping[str, tuple[float, float]] | None = None) -> float:
+        """The largest predictive vector sd ``sqrt(sum_i sd_i^2)`` (uT) over fields ``|b_j| <= F_j``,
+        ``|b| <= R`` at temperature ``temp_c``, currents inside their intervals (see the module docstring)."""
+        pts = region_points(field_axes_uT, field_norm_uT)
+        m = pts.shape[0]
+        t = np.full(m, temp_c)
+        tot = self.disc_var_uT2(pts, t).sum(axis=1) + float(np.sum(self.noise_uT ** 2))
+        dT = t - self.t0_c
+        for i in range(3):
+            names, L = self.names[i], self.L[i]
+            lin = [k for k, nm in enumerate(names) if parse_name(nm)[0] in LINEAR_PARAMS]
+            v = features([names[k] for k in lin], pts, dT) @ L[lin]
+            extra = np.zeros(m)
+            for k, nm in enumerate(names):
+                p, ax, j = parse_name(nm)
+                if p == "c3":
+                    extra += np.abs(pts[:, ax]) ** 3 * float(np.linalg.norm(L[k]))
+                elif p == "P":
+                    a, c = _PAIRS[j]
+                    extra += np.abs(pts[:, a] * pts[:, c]) * float(np.linalg.norm(L[k]))
+                elif p.startswith("D_"):
+                    lo, hi = (currents_A or {}).get(p[2:], (0.0, 0.0))
+                    extra += max(abs(lo), abs(hi)) * float(np.linalg.norm(L[k]))
+            tot = tot + (np.linalg.norm(v, axis=1) + extra) ** 2
+        return float(np.sqrt(tot.max()))
+
+    def worst_point(self, temps_c: Sequence[float], field_axes_uT: Sequence[float], field_norm_uT: float = math.inf,
+                    currents_A: Mapping[str, tuple[float, float]] | None = None) -> tuple[float, np.ndarray]:
+        """``(temperature, field (3,))`` where the worst predictive vector sd over the region lies."""
+        best = (-1.0, float(temps_c[0]), np.zeros(3))
+        for t in temps_c:
+            pts = region_points(field_axes_uT, field_norm_uT)
+            v = np.sum(self.sd_axes_uT(pts, np.full(pts.shape[0], t),
+                                       {k: np.full(pts.shape[0], max(abs(lo), abs(hi)))
+                                        for k, (lo, hi) in (currents_A or {}).items()}) ** 2, axis=1)
+            k = int(np.argmax(v))
+            if v[k] > best[0]:
+                best = (float(v[k]), float(t), pts[k])
+        return best[1], best[2]
+
+    def parts_nT(self, b_uT: Sequence[float], temp_c: float, currents_A: Mapping[str, float] | None = None,
+                 top: int = 4) -> list[tuple[str, float]]:
+        """The largest parts of the predictive vector variance at one input, as sd in nT: noise, discrepancy and
+        each parameter's share ``f_k (C f)_k`` (a parameter's share can be negative: correlations)."""
+        b = np.asarray(b_uT, dtype=float).reshape(1, 3)
+        cur = {k: np.array([v]) for k, v in (currents_A or {}).items()}
+        out = [("noise", float(np.sum(self.noise_uT ** 2))),
+               ("discrepancy", float(self.disc_var_uT2(b, [temp_c]).sum()))]
+        share: dict[str, float] = {}
+        for i in range(3):
+            F = features(self.names[i], b, np.array([temp_c - self.t0_c]), cur)[0]
+            for nm, v in zip(self.names[i], F * (self.cov[i] @ F), strict=True):
+                share[nm] = share.get(nm, 0.0) + float(v)
+        out += sorted(share.items(), key=lambda kv: -abs(kv[1]))
+        out = sorted(out, key=lambda kv: -abs(kv[1]))[:top]
+        return [(k, float(np.sign(v) * np.sqrt(abs(v)) * 1e3)) for k, v in out]
+
+    def worst_over_region_uT(self, temps_c: Sequence[float], field_axes_uT: Sequence[float],
+                             field_norm_uT: float = math.inf,
+                             currents_A: Mapping[str, tuple[float, float]] | None = None) -> float:
+        return max(self.worst_vector_sd_uT(t, field_axes_uT, field_norm_uT, currents_A) for t in temps_c)
+
+
+def _sphere(n: int) -> np.ndarray:
+    """(n, 3) unit vectors spread evenly (Fibonacci sphere), both hemispheres."""
+    k = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * k / n
+    phi = np.pi * (1.0 + 5 ** 0.5) * k
+    rho = np.sqrt(1.0 - z * z)
+    return np.column_stack([rho * np.cos(phi), rho * np.sin(phi), z])
+
+
+_DIRS = _sphere(192)
+_CORNERS = np.array(list(itertools.product((-1.0, 1.0), repeat=3)))
+
+
+def region_points(field_axes_uT: Sequence[float], field_norm_uT: float = math.inf) -> np.ndarray:
+    """Points where the worst case over ``{|b_j| <= F_j, |b| <= R}`` lies: the box's corners pulled onto the
+    ball where they stick out, and 192 directions on the sphere of radius R clipped to the box. Every feature's
+    contribution is convex in ``b``, so its maximum over this convex region is at an extreme point: exactly a
+    corner when the ball does not cut the box, else on the sphere, found to about 1 % by the directions."""
+    F = np.maximum(np.asarray(field_axes_uT, dtype=float).reshape(3), 0.0)
+    c = _CORNERS * F
+    R = float(field_norm_uT)
+    if not math.isfinite(R) or R >= float(np.linalg.norm(F)):
+        return c
+    nc = np.linalg.norm(c, axis=1)
+    c = c * np.minimum(1.0, R / np.where(nc > 0, nc, 1.0))[:, None]
+    return np.vstack([c, np.clip(R * _DIRS, -F, F)])
+
+
+def predictive_sd_uT(posterior: Mapping, t0_c: float, b_uT, temp_c, currents_A=None) -> np.ndarray:
+    """(N, 3) total predictive sd of each calibrated axis (uT); NaN where an input is missing."""
+    return Predictive(posterior, t0_c).sd_axes_uT(b_uT, temp_c, currents_A)
 
 
 def norm_sd_uT(sd_axes_uT: np.ndarray, b_cal_uT: np.ndarray) -> np.ndarray:
@@ -104,109 +253,122 @@ def norm_sd_uT(sd_axes_uT: np.ndarray, b_cal_uT: np.ndarray) -> np.ndarray:
     return np.where(mag >= 1.0, along, vec)
 
 
-def _chol(C: np.ndarray) -> np.ndarray:
-    C = 0.5 * (C + C.T)
-    w, V = np.linalg.eigh(C)
-    return V * np.sqrt(np.maximum(w, 0.0))          # L with L L^T = C (PSD, no jitter needed)
+# ---------------------------------------------------------------------- the validity region
+#: Temperature grid step of the validity search (degC).
+TEMP_STEP_C = 0.25
 
 
-def _sphere(n: int = 1000) -> np.ndarray:
-    """(n, 3) unit vectors spread evenly (Fibonacci sphere), both hemispheres."""
-    k = np.arange(n) + 0.5
-    z = 1.0 - 2.0 * k / n
-    phi = np.pi * (1.0 + 5 ** 0.5) * k
-    rho = np.sqrt(1.0 - z * z)
-    return np.column_stack([rho * np.cos(phi), rho * np.sin(phi), z])
+def _ok(pred: Predictive, lo: float, hi: float, F, R: float, sd_max: float, currents) -> bool:
+    n = max(2, int(math.ceil((hi - lo) / TEMP_STEP_C)) + 1)
+    return pred.worst_over_region_uT(np.linspace(lo, hi, n), F, R, currents) <= sd_max
 
 
-_DIRS = _sphere()
-
-
-def worst_sd_bound_uT(posterior: Mapping, t0_c: float, temp_c: float, field_uT: float,
-                      currents_A: Mapping[str, tuple[float, float]] | None = None) -> float:
-    """The largest vector sd ``sqrt(sum_i sd_i^2)`` (uT) over fields of magnitude ``field_uT`` (1000
-    directions; the maximum of a convex quadratic over the ball lies on its surface), temperature
-    ``temp_c``, currents inside their intervals; the cubic, cross-product and current features are bounded
-    by the triangle inequality (see the module docstring)."""
-    r = float(field_uT)
-    dT = temp_c - t0_c
-    b = r * _DIRS
-    tot = np.zeros(b.shape[0])
-    for a in AXES:
-        blk = posterior[a]
-        names = blk["names"]
-        L = _chol(np.asarray(blk["cov"], dtype=float))
-        lin_names = [k for k, nm in enumerate(names) if parse_name(nm)[0] in ("S", "K_S", "K_S2", "O", "K_O")]
-        F = features([names[k] for k in lin_names], b, np.full(b.shape[0], dT))
-        v = F @ L[lin_names]                         # L^T f for the linear features, per direction
-        extra = 0.0
-        for k, nm in enumerate(names):
-            p = parse_name(nm)[0]
-            if p == "c3":
-                extra += r ** 3 * float(np.linalg.norm(L[k]))
-            elif p == "P":
-                extra += r ** 2 * float(np.linalg.norm(L[k]))
-            elif p.startswith("D_"):
-                lo, hi = (currents_A or {}).get(p[2:], (0.0, 0.0))
-                extra += max(abs(lo), abs(hi)) * float(np.linalg.norm(L[k]))
-        tot += (np.linalg.norm(v, axis=1) + extra) ** 2
-    return float(np.sqrt(tot.max()))
-
-
-def validity_box(posterior: Mapping, t0_c: float, bound_uT: float, temp_limits_c: tuple[float, float],
-                 field_uT: float, centre_c: float, currents_A: Mapping[str, tuple[float, float]] | None = None,
-                 step_c: float = 0.05) -> tuple[tuple[float, float] | None, float]:
-    """``(temperature interval or None, worst bound at its centre)``: the interval around ``centre_c``
-    (the fit data's mean temperature) where :func:`worst_sd_bound_uT` stays <= ``bound_uT`` at field
-    ``field_uT``, inside ``temp_limits_c``, on a ``step_c`` grid (ends rounded inwards to 0.01 degC).
-    None when even the centre exceeds the bound.
-
-    Each end is the last grid point before the first one over the bound, walking out from the centre. The
-    bound is quasi-convex in temperature (per axis the linear features are affine in ``dT``, so each
-    axis's term is the square of a norm of an affine function plus a constant; their sum is convex, its
-    maximum over directions too), so "over the bound" switches once along each walk: the end is found by
-    bisection over the walk's grid points (~12 evaluations instead of one per 0.05 degC step)."""
-    lo_lim, hi_lim = temp_limits_c
-    c = min(max(centre_c, lo_lim), hi_lim)
-    at_c = worst_sd_bound_uT(posterior, t0_c, c, field_uT, currents_A)
-    if at_c > bound_uT:
-        return None, at_c
-
-    def over(t: float) -> bool:
-        return worst_sd_bound_uT(posterior, t0_c, t, field_uT, currents_A) > bound_uT
-
-    def edge(direction: int) -> float:
-        walk = [c]                              # the grid points by repeated steps from the centre
-        while True:
-            nxt = walk[-1] + direction * step_c
-            if (direction > 0 and nxt > hi_lim) or (direction < 0 and nxt < lo_lim):
-                break
-            walk.append(nxt)
-        if len(walk) == 1 or not over(walk[-1]):
-            return hi_lim if direction > 0 else lo_lim
-        inside, outside = 0, len(walk) - 1      # walk[inside] within the bound, walk[outside] over it
-        while outside - inside > 1:
-            mid = (inside + outside) // 2
-            if over(walk[mid]):
-                outside = mid
-            else:
-                inside = mid
-        return walk[inside]
-    lo, hi = edge(-1), edge(+1)
-    return (math.ceil(lo * 100 - 1e-9) / 100, math.floor(hi * 100 + 1e-9) / 100), at_c
-
-
-def field_limit_uT(posterior: Mapping, t0_c: float, bound_uT: float, centre_c: float, f_max_uT: float,
-                   currents_A: Mapping[str, tuple[float, float]] | None = None) -> float:
-    """Largest per-axis field F <= ``f_max_uT`` (whole uT) whose worst-case bound at ``centre_c`` is
-    <= ``bound_uT`` (0 when none)."""
-    if worst_sd_bound_uT(posterior, t0_c, centre_c, f_max_uT, currents_A) <= bound_uT:
-        return float(f_max_uT)
-    lo, hi = 0.0, float(f_max_uT)
-    for _ in range(40):
+def _bisect(ok, lo: float, hi: float, tol: float) -> float:
+    """The largest x in [lo, hi] with ok(x), given ok(lo) (ok monotone: true then false)."""
+    if ok(hi):
+        return hi
+    while hi - lo > tol:
         mid = 0.5 * (lo + hi)
-        if worst_sd_bound_uT(posterior, t0_c, centre_c, mid, currents_A) <= bound_uT:
+        if ok(mid):
             lo = mid
         else:
             hi = mid
-    return float(math.floor(lo))
+    return lo
+
+
+def validity_region(pred: Predictive, bound_uT: float, *, centre_c: float, data_temp_c: tuple[float, float] | None,
+                    data_field_uT: Sequence[float], data_norm_uT: float, temp_limits_c: tuple[float, float],
+                    field_caps_uT: Sequence[float], norm_cap_uT: float,
+                    currents_A: Mapping[str, tuple[float, float]] | None = None, has_temperature: bool = True,
+                    data_field_max_uT: Sequence[float] | None = None, data_norm_max_uT: float | None = None
+                    ) -> tuple[tuple[float, float] | None, np.ndarray | None, float | None, list[str]]:
+    """``(temperature interval, field limit per input axis (3,), field-magnitude limit, notes)``: a region
+    ``T in [lo, hi]``, ``|b_j| <= F_j``, ``|b| <= R`` where twice the worst predictive vector sd stays within
+    ``bound_uT``; ``(None, None, None, notes)`` when no region around the data's centre does.
+
+    The region starts from the data's own (temperature range, per-axis field extents and |b| the rows typically
+    had: ``data_field_uT``, ``data_norm_uT``; the largest they had: ``data_field_max_uT``, ``data_norm_max_uT``):
+    the largest fields when the bound holds there, else as far towards them as it does (one scale between the
+    two); then it grows, first in every direction at once by one scale (the temperature interval towards
+    ``temp_limits_c``, each axis's field limit towards ``field_caps_uT``, the magnitude limit towards
+    ``norm_cap_uT``: temperature and field share the budget), then with what is left one direction at a time
+    (temperature on a ``TEMP_STEP_C`` tolerance, fields to 0.5 uT; whole uT, never below the data's rounded up to
+    0.01 uT). An axis the data did not pin stays near its data extent. Where the bound fails inside
+    the data, the region first narrows its temperature interval towards the centre (the data's fields kept), and
+    only when the data's fields fail at the centre temperature itself its fields towards zero: narrower than the
+    data, said in ``notes``.
+    Without temperature terms the interval is the data's range (the table says nothing about temperature
+    beyond it)."""
+    sd_max = 0.5 * bound_uT
+    notes: list[str] = []
+    extremes = {k: max(abs(lo), abs(hi)) for k, (lo, hi) in (currents_A or {}).items()}
+    tlo_lim, thi_lim = temp_limits_c
+    c = min(max(centre_c, tlo_lim), thi_lim)
+    dlo, dhi = data_temp_c if data_temp_c is not None else (c, c)
+    dlo, dhi = max(dlo, tlo_lim), min(dhi, thi_lim)
+    caps = np.maximum(np.asarray(field_caps_uT, dtype=float).reshape(3), 0.0)
+    Fd = np.minimum(np.maximum(np.asarray(data_field_uT, dtype=float).reshape(3), 0.0), caps)
+    Rd = min(max(float(data_norm_uT), 0.0), float(norm_cap_uT))
+    Fm = Fd if data_field_max_uT is None else np.maximum(np.minimum(np.asarray(data_field_max_uT, dtype=float)
+                                                                     .reshape(3), caps), Fd)
+    Rm = Rd if data_norm_max_uT is None else max(min(float(data_norm_max_uT), float(norm_cap_uT)), Rd)
+    at_c = pred.worst_vector_sd_uT(c, np.zeros(3), 0.0, currents_A)
+    if at_c > sd_max:
+        notes.append(f"predictive sd at the data's centre ({at_c * 1e3:.0f} nT, zero field) exceeds the sd limit "
+                     f"{sd_max * 1e3:.0f} nT (half the bound {bound_uT * 1e3:.0f} nT): no validity region; largest "
+                     "parts there, nT: "
+                     + ", ".join(f"{k} {v:.0f}" for k, v in pred.parts_nT(np.zeros(3), c, extremes)))
+        return None, None, None, notes
+    if _ok(pred, dlo, dhi, Fm, Rm, sd_max, currents_A):
+        Fd, Rd = Fm, Rm
+    elif _ok(pred, dlo, dhi, Fd, Rd, sd_max, currents_A):     # towards the largest fields the data had
+        u = _bisect(lambda u: _ok(pred, dlo, dhi, Fd + u * (Fm - Fd), Rd + u * (Rm - Rd), sd_max, currents_A),
+                    0.0, 1.0, 0.01)
+        Fd, Rd = Fd + u * (Fm - Fd), Rd + u * (Rm - Rd)
+    else:
+        t_w, b_w = pred.worst_point(np.linspace(dlo, dhi, 21), Fd, Rd, currents_A)
+        if _ok(pred, c, c, Fd, Rd, sd_max, currents_A):     # the data's fields hold at the centre: narrow T only
+            s = _bisect(lambda s: _ok(pred, c + s * (dlo - c), c + s * (dhi - c), Fd, Rd, sd_max, currents_A),
+                        0.0, 1.0, 1e-3)
+            what = f"{s:.0%} of its temperature half-width, its fields kept"
+            dlo, dhi = c + s * (dlo - c), c + s * (dhi - c)
+        else:                                                 # fields too, towards zero field at the centre
+            s = _bisect(lambda s: _ok(pred, c, c, s * Fd, s * Rd, sd_max, currents_A), 0.0, 1.0, 1e-3)
+            what = f"its centre temperature only, {s:.0%} of its fields"
+            dlo, dhi, Fd, Rd = c, c, s * Fd, s * Rd
+        parts = ", ".join(f"{k} {v:.0f}" for k, v in pred.parts_nT(b_w, t_w, extremes))
+        notes.append(f"the predictive sd exceeds the sd limit {sd_max * 1e3:.0f} nT (half the bound) inside the fit "
+                     f"data's own range: the region is "
+                     f"narrower than the data ({what}); the largest parts of the sd at its worst point "
+                     f"({t_w:.1f} degC, B = {np.round(b_w, 1).tolist()} uT), nT: {parts}")
+    lo, hi, F, R = dlo, dhi, Fd.copy(), Rd
+    if not has_temperature:
+        notes.append("no temperature terms: the validity temperature is the data's range")
+    t_span = (tlo_lim - dlo, thi_lim - dhi) if has_temperature else (0.0, 0.0)
+    F_cap = np.maximum(np.minimum(caps, float(norm_cap_uT)), Fd)
+    R_cap = max(float(norm_cap_uT), Rd)
+
+    def scaled(u: float) -> tuple[float, float, np.ndarray, float]:
+        return dlo + u * t_span[0], dhi + u * t_span[1], Fd + u * (F_cap - Fd), Rd + u * (R_cap - Rd)
+
+    u = _bisect(lambda u: _ok(pred, *scaled(u), sd_max, currents_A), 0.0, 1.0, 1e-3)   # every direction at once
+    lo, hi, F, R = scaled(u)
+    if has_temperature:                                        # then what is left, one direction at a time
+        lo = lo + _bisect(lambda v: _ok(pred, lo + v * (tlo_lim - lo), hi, F, R, sd_max, currents_A), 0.0, 1.0,
+                          TEMP_STEP_C / max(lo - tlo_lim, 1e-9)) * (tlo_lim - lo)
+        hi = hi + _bisect(lambda v: _ok(pred, lo, hi + v * (thi_lim - hi), F, R, sd_max, currents_A), 0.0, 1.0,
+                          TEMP_STEP_C / max(thi_lim - hi, 1e-9)) * (thi_lim - hi)
+    for j in range(3):
+        def grow(x: float, j: int = j) -> bool:
+            trial = F.copy()
+            trial[j] = x
+            return _ok(pred, lo, hi, trial, R, sd_max, currents_A)
+        F[j] = _bisect(grow, F[j], F_cap[j], 0.5)
+    R = _bisect(lambda r: _ok(pred, lo, hi, F, r, sd_max, currents_A), R, max(R, min(R_cap, float(np.linalg.norm(F)))),
+                0.5)
+    if has_temperature:
+        lo, hi = math.ceil(min(lo, dlo) * 100 - 1e-9) / 100, math.floor(max(hi, dhi) * 100 + 1e-9) / 100
+    F = np.maximum(np.floor(F + 1e-9), np.ceil(Fd * 100 - 1e-9) / 100)
+    R = max(math.floor(R + 1e-9), math.ceil(Rd * 100 - 1e-9) / 100)
+    temp = (lo, hi) if has_temperature or data_temp_c is not None else None
+    return temp, F, float(R), notes

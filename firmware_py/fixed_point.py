@@ -50,6 +50,8 @@ OUT_FRAC = 8
 ACC_FRAC = 27
 INT32_MIN, INT32_MAX = -(2 ** 31), 2 ** 31 - 1
 B_LIMIT_nT = 2 ** 24
+#: Largest field-magnitude limit: |B| of clipped inputs is below sqrt(3) 2**24 nT (squares sum < 2**49.6).
+B_NORM_LIMIT_nT = 29_058_990
 T_LIMIT_cdeg = 2 ** 15
 I_LIMIT_mA = 2 ** 20
 MAX_CURRENTS = 4
@@ -105,6 +107,13 @@ class FixedPointTable:
     temp_range_cdeg: tuple[int, int] | None  # validity (None: table has no temperature terms)
     current_ranges_mA: tuple[tuple[int, int], ...]
     K_S2: tuple[int, int, int] = (0, 0, 0)   # on-axis second-order sensitivity tempco
+    field_limits_nT: tuple[int, int, int] | None = None   # validity per input axis (None: field_limit_nT on each)
+    field_norm_nT: int | None = None         # validity: Bx^2 + By^2 + Bz^2 <= this^2 (None: no magnitude limit)
+
+    @property
+    def axis_limits_nT(self) -> tuple[int, int, int]:
+        """``|B_j| <= this[j]`` is inside the validity box."""
+        return self.field_limits_nT if self.field_limits_nT is not None else (self.field_limit_nT,) * 3
 
     @classmethod
     def from_table(cls, table) -> FixedPointTable:
@@ -139,7 +148,11 @@ class FixedPointTable:
             tr = (int(np.floor(lo * 100)), int(np.ceil(hi * 100)))
         return cls(S, K, O, KO, D, int(t0), int(np.floor(table.validity_field_uT * 1e3)), tr,
                    tuple((int(np.floor(lo * 1e3)), int(np.ceil(hi * 1e3))) for _, (lo, hi)
-                         in table.validity_currents_A), K_S2=K2)
+                         in table.validity_currents_A), K_S2=K2,
+                   field_limits_nT=None if table.validity_field_axes_uT is None else tuple(
+                       int(np.floor(f * 1e3)) for f in table.validity_field_axes_uT),
+                   field_norm_nT=None if table.validity_field_norm_uT is None else min(
+                       int(np.floor(table.validity_field_norm_uT * 1e3)), B_NORM_LIMIT_nT))
 
     # ----------------------------------------------------------- per sample (flight path)
     @property
@@ -152,12 +165,15 @@ class FixedPointTable:
         ``temp_cdeg`` is required (no default: a silent 0 degC would bias every temperature term)."""
         status = 0
         b = []
-        for v in b_nT:
+        lim = self.axis_limits_nT
+        for j, v in enumerate(b_nT):
             c, hit = _clip(int(v), B_LIMIT_nT)
             status |= ApplyFlag.SATURATED if hit else 0
-            if abs(c) > self.field_limit_nT:
+            if abs(c) > lim[j]:
                 status |= ApplyFlag.OUT_OF_VALIDITY
             b.append(c)
+        if self.field_norm_nT is not None and b[0] * b[0] + b[1] * b[1] + b[2] * b[2] > self.field_norm_nT ** 2:
+            status |= ApplyFlag.OUT_OF_VALIDITY
         t, hit = _clip(int(temp_cdeg), T_LIMIT_cdeg)
         status |= ApplyFlag.SATURATED if hit else 0
         if self.temp_range_cdeg is not None and not self.temp_range_cdeg[0] <= t <= self.temp_range_cdeg[1]:
@@ -225,9 +241,12 @@ class FixedPointTable:
         cc = np.clip(ccol, -I_LIMIT_mA, I_LIMIT_mA)
         sat = tc != t
         oov = np.zeros(n, bool)
+        lim = self.axis_limits_nT
         for j in range(3):
             sat |= bc[j] != bcol[j]
-            oov |= np.abs(bc[j]) > self.field_limit_nT
+            oov |= np.abs(bc[j]) > lim[j]
+        if self.field_norm_nT is not None:
+            oov |= bc[0] * bc[0] + bc[1] * bc[1] + bc[2] * bc[2] > np.int64(self.field_norm_nT) ** 2
         for k, (lo, hi) in enumerate(self.current_ranges_mA):
             sat |= cc[k] != ccol[k]
             oov |= (cc[k] < lo) | (cc[k] > hi)

@@ -74,7 +74,9 @@ def apply_float(table, b_meas_uT, temp_c=None, currents_A: Mapping[str, np.ndarr
 def outside_validity(table, b_uT: np.ndarray, temp_c, currents_A: Mapping[str, np.ndarray]) -> np.ndarray:
     """(N,) bool: row outside the table's validity box (NaN compares as outside)."""
     with np.errstate(invalid="ignore"):
-        bad = ~np.all(np.abs(b_uT) <= table.validity_field_uT, axis=1)
+        bad = ~np.all(np.abs(b_uT) <= np.asarray(table.field_limits_uT)[None, :], axis=1)
+        if table.validity_field_norm_uT is not None:
+            bad |= ~(np.einsum("ij,ij->i", b_uT, b_uT) <= table.validity_field_norm_uT ** 2)
         if temp_c is not None and table.validity_temp_c is not None:
             lo, hi = table.validity_temp_c
             bad |= ~((temp_c >= lo) & (temp_c <= hi))

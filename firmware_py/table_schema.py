@@ -175,10 +175,13 @@ def _interval(where: _Path, path: str, x: Any) -> list[float]:
 TOP_REQUIRED = {"schema", "schema_version", "device_id", "model", "parameters", "validity", "crc32"}
 TOP_OPTIONAL = {"table_name", "description", "created_utc", "fit", "posterior"}
 POSTERIOR_REQUIRED = {"x", "y", "z"}
-POSTERIOR_OPTIONAL = {"sigma_uT", "bound_uT", "noise_floor_uT", "prior"}
+POSTERIOR_OPTIONAL = {"sigma_uT", "bound_uT", "noise_floor_uT", "prior", "left_out", "noise_uT", "discrepancy"}
+DISCREPANCY_VECTORS = ("d0_uT2", "dB_uT2", "dT_uT2")
+DISCREPANCY_SCALARS = ("field_ref_uT", "temp_ref_c", "temp_centre_c", "field_max_uT")
 MODEL_REQUIRED = {"terms", "currents", "t0_c"}
 MODEL_OPTIONAL = {"name"}
 VALIDITY_REQUIRED = {"temp_c", "field_uT", "currents_A"}
+VALIDITY_OPTIONAL = {"field_axes_uT", "field_norm_uT"}
 
 
 def check_document(doc: dict, source: str, *, term_params: dict[str, str], units: dict[str, str],
@@ -230,10 +233,14 @@ def check_document(doc: dict, source: str, *, term_params: dict[str, str], units
             raise w.error(f"parameters.{name}.unit", f"{p['unit']!r}, expected {units[name]!r}")
         _check_value(w, f"parameters.{name}.value", PARAMETER_SHAPES[name], p["value"], currents)
 
-    v = _object(w, "validity", doc["validity"], VALIDITY_REQUIRED)
+    v = _object(w, "validity", doc["validity"], VALIDITY_REQUIRED, VALIDITY_OPTIONAL)
     if v["temp_c"] is not None:
         _interval(w, "validity.temp_c", v["temp_c"])
     _number(w, "validity.field_uT", v["field_uT"])
+    if "field_axes_uT" in v:
+        _vector(w, "validity.field_axes_uT", v["field_axes_uT"])
+    if "field_norm_uT" in v:
+        _number(w, "validity.field_norm_uT", v["field_norm_uT"])
     ca = _object(w, "validity.currents_A", v["currents_A"], set(currents))
     for name in currents:
         _interval(w, f"validity.currents_A.{name}", ca[name])
@@ -248,11 +255,38 @@ MAX_POSTERIOR_PARAMS = 64
 
 def check_posterior(w: _Path, post: Any, *, declared_params: set[str], currents: list[str]) -> None:
     """The optional posterior block: per axis the flight parameter names and their covariance (square,
-    symmetric to 1e-9 relative, positive semi-definite); names must belong to declared parameters."""
+    symmetric to 1e-9 relative, positive semi-definite); names must belong to declared parameters or be listed in
+    ``left_out`` (parameters of terms the model leaves out, value 0); ``noise_uT`` and the ``discrepancy`` model
+    (:mod:`magstack.firmware.cal_uncertainty`) non-negative."""
     obj = _object(w, "posterior", post, POSTERIOR_REQUIRED, POSTERIOR_OPTIONAL)
-    for key in ("sigma_uT", "noise_floor_uT"):
+    for key in ("sigma_uT", "noise_floor_uT", "noise_uT"):
         if key in obj:
-            _vector(w, f"posterior.{key}", obj[key])
+            vals = _vector(w, f"posterior.{key}", obj[key])
+            if key == "noise_uT" and min(vals) < 0:
+                raise w.error(f"posterior.{key}", "must be >= 0")
+    left = obj.get("left_out", [])
+    if not isinstance(left, list) or not all(isinstance(x, str) for x in left) or len(set(left)) != len(left):
+        raise w.error("posterior.left_out", "must be a list of distinct parameter names")
+    for k, nm in enumerate(left):
+        try:
+            parse_name(nm)
+        except ValueError as exc:
+            raise w.error(f"posterior.left_out[{k}]", str(exc)) from None
+    if "discrepancy" in obj:
+        d = _object(w, "posterior.discrepancy", obj["discrepancy"],
+                    set(DISCREPANCY_VECTORS) | set(DISCREPANCY_SCALARS) | {"temp_range_c"}, {"held_out_rows"})
+        for key in DISCREPANCY_VECTORS:
+            if min(_vector(w, f"posterior.discrepancy.{key}", d[key])) < 0:
+                raise w.error(f"posterior.discrepancy.{key}", "must be >= 0")
+        for key in DISCREPANCY_SCALARS:
+            x = _number(w, f"posterior.discrepancy.{key}", d[key])
+            if key != "temp_centre_c" and not x >= 0:
+                raise w.error(f"posterior.discrepancy.{key}", "must be >= 0")
+        if d["field_ref_uT"] <= 0 or d["temp_ref_c"] <= 0:
+            raise w.error("posterior.discrepancy", "field_ref_uT and temp_ref_c must be > 0")
+        lo, hi = _interval(w, "posterior.discrepancy.temp_range_c", d["temp_range_c"])
+        if lo > hi:
+            raise w.error("posterior.discrepancy.temp_range_c", "must be an interval lo <= hi")
     if "bound_uT" in obj:
         _number(w, "posterior.bound_uT", obj["bound_uT"])
     if "prior" in obj:
@@ -270,7 +304,11 @@ def check_posterior(w: _Path, post: Any, *, declared_params: set[str], currents:
             except ValueError as exc:
                 raise w.error(f"{path}.names[{k}]", str(exc)) from None
             base = "D" if par.startswith("D_") else par
-            if base not in declared_params or (base == "D" and par[2:] not in currents) or "xyz"[i] != axis:
+            if "xyz"[i] != axis:
+                raise w.error(f"{path}.names[{k}]", f"{nm} is not a parameter of output axis {axis}")
+            if nm in left:
+                continue
+            if base not in declared_params or (base == "D" and par[2:] not in currents):
                 raise w.error(f"{path}.names[{k}]", f"{nm} is not a parameter of output axis {axis} of this table")
         cov = blk["cov"]
         k = len(names)

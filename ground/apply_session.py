@@ -3,9 +3,11 @@
 Every row is kept: rows that cannot be calibrated hold NaN and carry the applier's flag bits,
 shifted to the dictionary's APPLY_* bits (``FLAG_SHIFT``) so flags already in the file survive. Rows
 outside the table's validity box are flagged and, like the flight corrector, get no calibrated value
-(NaN) unless ``extrapolate`` is asked for. A table with a posterior block adds the column
-``cal_sigma_nT``: the posterior sd of the calibrated field's magnitude per row
-(:mod:`magstack.firmware.cal_uncertainty`).
+(NaN) unless ``extrapolate`` is asked for. A table with a posterior block adds per row the predictive sd of the
+calibrated sample against the true field (:mod:`magstack.firmware.cal_uncertainty`): ``cal_sigma_x_nT``,
+``cal_sigma_y_nT``, ``cal_sigma_z_nT`` per axis (parameters + discrepancy + noise), ``cal_sigma_nT`` their
+root-sum-square (the sd of the vector error, the figure to read), and ``cal_param_sd_nT`` the parameter part alone
+(what averaging many samples would leave; vector).
 """
 from __future__ import annotations
 
@@ -45,11 +47,15 @@ def calibrate_session(table, s: Session, applier: str = "float", extrapolate: bo
         out[(flags & int(ApplyFlag.OUT_OF_VALIDITY)) != 0] = np.nan
     extra = dict(s.extra)
     if table.posterior is not None:
-        from magstack.firmware.cal_uncertainty import norm_sd_uT, predictive_sd_uT
-        sd = predictive_sd_uT(table.posterior, table.t0_c, s.dut_uT, s.temp_c, cur)
-        sig = norm_sd_uT(sd, out) * 1e3
-        sig[~np.all(np.isfinite(out), axis=1)] = np.nan
-        extra["cal_sigma_nT"] = sig
+        from magstack.firmware.cal_uncertainty import Predictive
+        pred = Predictive(table.posterior, table.t0_c)
+        par = pred.param_var_uT2(s.dut_uT, s.temp_c, cur)
+        sd = np.sqrt(par + pred.disc_var_uT2(s.dut_uT, s.temp_c) + pred.noise_uT ** 2) * 1e3
+        gone = ~np.all(np.isfinite(out), axis=1)
+        for i, a in enumerate("xyz"):
+            extra[f"cal_sigma_{a}_nT"] = np.where(gone, np.nan, sd[:, i])
+        extra["cal_sigma_nT"] = np.where(gone, np.nan, np.sqrt(np.sum(sd ** 2, axis=1)))
+        extra["cal_param_sd_nT"] = np.where(gone, np.nan, np.sqrt(np.sum(par, axis=1)) * 1e3)
     old = s.flag if s.flag is not None else np.zeros(len(s), np.int64)
     meta = dict(s.metadata)
     meta.update({"calibrated": "true", "dut_field": "calibrated", "cal_device_id": table.device_id,

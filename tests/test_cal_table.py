@@ -205,10 +205,19 @@ def test_table_from_fit_carries_model_validity_and_stats(tmp_path):
     m = CalModel(terms, ("heater",), (1, 2), 25.0, 1.6e9 + 1999 * 0.25 / 2)
     th = random_theta(m, rng)
     d = make_data(m, th, 2000, rng)
-    r = fit(d, "eq3", ["session_offset"], ["heater"], options=FitOptions(holdout=False))
-    t = ct.table_from_fit(r, "dev1")
+    r = fit(d, "eq3", ["session_offset"], ["heater"], options=FitOptions(holdout=False, chip="hmc1053"))
+    # a bound wide enough for the data's own region: the region holds the data and says so
+    t = ct.table_from_fit(r, "dev1", validity_sd_uT=1.0)
     assert t.validity_temp_c[0] <= d.temp_c.min() and t.validity_temp_c[1] >= d.temp_c.max()
-    assert t.validity_field_uT >= np.abs(d.b_meas_uT).max()
+    assert min(t.field_limits_uT) >= np.abs(d.b_meas_uT).max()
+    assert t.validity_field_norm_uT >= np.linalg.norm(d.b_meas_uT, axis=1).max()
+    # by default (5x the RMS over the rows at most) the corners of the data's own region that no row reached
+    # (every axis near +-60 uT at once: B_x B_y up to 3600 uT^2, the rows' at most 2431) are beyond what the
+    # table can defend: the region is narrower than the data, and the fit says so
+    g = ct.table_from_fit(r, "dev1")
+    assert any("narrower than the data" in n for n in g.fit_stats["validity"]["notes"])
+    assert (g.validity_temp_c[1] - g.validity_temp_c[0] < d.temp_c.max() - d.temp_c.min()
+            or g.validity_field_norm_uT < np.linalg.norm(d.b_meas_uT, axis=1).max())
     assert "session_offset_uT" in t.ground_only
     p = ct.save_table(t, tmp_path / "c.json")
     u = ct.load_table(p)

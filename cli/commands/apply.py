@@ -93,8 +93,8 @@ def run(args: argparse.Namespace) -> CommandResult:
     if sig is not None and np.isfinite(sig).any():
         q = np.nanpercentile(sig, [50, 95])
         sig_stats = {"median": float(q[0]), "p95": float(q[1]), "max": float(np.nanmax(sig))}
-        lines.append(f"cal_sigma_nT (posterior sd of |B_cal|): median {q[0]:.1f}, 95 % {q[1]:.1f}, "
-                     f"max {sig_stats['max']:.1f} nT")
+        lines.append(f"cal_sigma_nT (predictive sd of the calibrated vector: parameters + discrepancy + noise): "
+                     f"median {q[0]:.1f}, 95 % {q[1]:.1f}, max {sig_stats['max']:.1f} nT")
     score = scores(out, args.exclude_steps)
     lines += score.pop("lines")
     data = {"out": str(args.out), "rows": len(out), "applier": args.applier,

@@ -16,7 +16,7 @@ from magstack.firmware.cal_table import save_table, table_from_fit, validate
 from magstack.firmware.calibration import FitData, FitOptions, fit
 from magstack.firmware.calibration.model import CAL_TERMS, MODELS
 from magstack.firmware.calibration.reference import reference_range
-from magstack.firmware.errors import CalTableInvalid, FitError
+from magstack.firmware.errors import CalTableInvalid, FitError, NoValidityRegion
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +54,10 @@ def register(subparsers) -> None:
                         "temperature terms")
     p.add_argument("--terms", nargs="*", default=[], metavar="TERM",
                    help=f"extra terms (comma or space separated): {', '.join(CAL_TERMS)}")
+    p.add_argument("--tempco2", choices=("auto", "off"), default="auto",
+                   help="auto (default): on a temperature span of 10 degC or more with field present, also fit the "
+                        "second-order sensitivity tempco (temperature_gain2) and keep it when its held-out improvement "
+                        "is significant; off: never add it (--terms temperature_gain2 forces it)")
     p.add_argument("--currents", default="", metavar="NAME,...", help="current columns to fit (D_k terms)")
     p.add_argument("--robust", action="store_true", help="Huber IRLS instead of plain least squares")
     t_lo, t_hi = TABLE_BOUNDS["temp_c"]
@@ -99,8 +103,9 @@ def register(subparsers) -> None:
                    help="part whose datasheet priors apply (default: the session's dut_chip; unknown = wide "
                         "generic priors, named in the report)")
     p.add_argument("--validity-sd", type=finite_float(0, 1e6, lo_open=True, unit="nT"), default=None, metavar="NT",
-                   help="validity bound on the posterior sd of the calibrated field, nT (default: 2x the fit's "
-                        "noise floor)")
+                   help="largest predictive sd of the calibrated field vector inside the table's validity region, nT; "
+                        "the table promises errors below twice it there (default: 1.5x its RMS over the data, up to "
+                        "its largest value over the data's own region, at most 5x the RMS)")
     p.add_argument("--out", required=True, metavar="cal.json", type=nonempty_path, help="calibration table to write")
     p.set_defaults(func=run)
 
@@ -171,7 +176,8 @@ def run(args: argparse.Namespace) -> CommandResult:
                           holdout=not args.no_holdout, block_s=args.block_s, exclude_ref_steps_uT=args.exclude_steps,
                           max_vif=args.max_vif, ref_range_uT=ref_range, include_saturated=args.include_saturated,
                           mount_frame=args.mount_frame, use_priors=not args.no_priors,
-                          chip=args.chip or session.metadata.get("dut_chip"), priors=prior_overrides(args.prior))
+                          chip=args.chip or session.metadata.get("dut_chip"), priors=prior_overrides(args.prior),
+                          second_order_tempco=args.tempco2)
         weak = field_coverage_notes(session.ref_uT, args.field_present)
         for w in weak:
             log.warning("fit: %s", w)
@@ -194,10 +200,14 @@ def run(args: argparse.Namespace) -> CommandResult:
             log.info("fit: held %s = %s: %s", h["param"], h["value"], h["reason"])
         st.next()
         report = result.report()
-        table = table_from_fit(result, device_id, description=args.description or
-                               f"fit of {', '.join(str(p) for p in args.sessions)}",
-                               validity_temp_c=args.validity_temp, validity_field_uT=args.validity_field,
-                               validity_sd_uT=None if args.validity_sd is None else args.validity_sd / 1e3)
+        try:
+            table = table_from_fit(result, device_id, description=args.description or
+                                   f"fit of {', '.join(str(p) for p in args.sessions)}",
+                                   validity_temp_c=args.validity_temp, validity_field_uT=args.validity_field,
+                                   validity_sd_uT=None if args.validity_sd is None else args.validity_sd / 1e3)
+        except NoValidityRegion:
+            say(report)   # the parameters and what the prior decided say why; the error itself stays one line
+            raise
         v = validate(table)
         if not v.ok:   # never replace a file (perhaps a good table) with one the board would refuse
             say(report)   # the report explains why; the error itself stays one line

@@ -6,6 +6,11 @@ time. Blocks of ``2L`` rows are pairs of blocks of ``L`` rows, so the block mean
 by pairwise averaging as the rows arrive; per level only the count, sum and sum of squares of the
 complete block means are kept, plus at most one pending (odd) block mean per level. A session's last,
 incomplete blocks are dropped, as in the one-shot definition (:func:`.estimator.autocorr_inflation`).
+
+Beside the spread, each level (and the rows themselves) keeps the sum of squared differences of *adjacent* block
+means within a session (an Allan-type statistic, :meth:`BlockingInflation.adjacent_levels`): it sees a slow
+random walk from short blocks on, which the spread about the mean does only once blocks span the session
+(:mod:`.predictive` turns it into white and random-walk levels).
 """
 from __future__ import annotations
 
@@ -29,6 +34,9 @@ class BlockingInflation:
         self._s1: list[np.ndarray] = []
         self._s2: list[np.ndarray] = []
         self._carry: list[np.ndarray | None] = []
+        self._last: list[np.ndarray | None] = []    # per level (0 = rows): the session's last complete item
+        self._dcount: list[int] = []
+        self._d2: list[np.ndarray] = []
         self._session = None
 
     def add(self, resid_uT, session) -> None:
@@ -45,6 +53,8 @@ class BlockingInflation:
             if self._session is None or s[a] != self._session:
                 self._session = s[a]
                 self._carry = []
+                self._last = []
+            self._adjacent(0, r[:, a:b])
             self._climb(r[:, a:b])
 
     def _climb(self, items: np.ndarray) -> None:
@@ -59,6 +69,7 @@ class BlockingInflation:
             self._carry[j] = items[:, -1:].copy() if items.shape[1] % 2 else None
             items = 0.5 * (items[:, 0:2 * k:2] + items[:, 1:2 * k:2])
             if k:
+                self._adjacent(j + 1, items)
                 if j == len(self._count):
                     self._count.append(0)
                     self._s1.append(np.zeros(3))
@@ -67,6 +78,25 @@ class BlockingInflation:
                 self._s1[j] += items.sum(axis=1)
                 self._s2[j] += np.einsum("ij,ij->i", items, items)
             j += 1
+
+    def _adjacent(self, level: int, items: np.ndarray) -> None:
+        """Squared differences of adjacent items (3, k) of ``level`` (means of 2**level rows), this session."""
+        while len(self._last) <= level:
+            self._last.append(None)
+        while len(self._dcount) <= level:
+            self._dcount.append(0)
+            self._d2.append(np.zeros(3))
+        prev = self._last[level]
+        x = items if prev is None else np.hstack([prev, items])
+        if x.shape[1] > 1:
+            d = np.diff(x, axis=1)
+            self._dcount[level] += d.shape[1]
+            self._d2[level] += np.einsum("ij,ij->i", d, d)
+        self._last[level] = items[:, -1:].copy()
+
+    def adjacent_levels(self) -> list[tuple[int, int, np.ndarray]]:
+        """``[(L rows per block, number of adjacent pairs, mean squared difference (3,) uT^2)]``, L = 1, 2, 4..."""
+        return [(2 ** j, k, self._d2[j] / k) for j, k in enumerate(self._dcount) if k]
 
     def kappa(self, min_blocks: int = 16, cap: float = 1e4) -> np.ndarray:
         """(3,) ``kappa >= 1``: the largest ``kappa(L)`` over the ``L`` that leave at least ``min_blocks``

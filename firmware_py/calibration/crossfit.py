@@ -39,7 +39,16 @@ from magstack.firmware.calibration.fit import (
     raw_cond,
     time_block_fold,
 )
+from magstack.firmware.calibration.heldout_test import BlockSSE
 from magstack.firmware.calibration.model import CalModel
+from magstack.firmware.calibration.predictive import (
+    Accumulated,
+    HeldOutBins,
+    LeftOutMoments,
+    SlowNoiseGrams,
+    left_out_features,
+    left_out_terms,
+)
 from magstack.firmware.calibration.residual_figures import ResidualFigures
 from magstack.firmware.errors import FitError
 
@@ -134,6 +143,8 @@ class CrossFit:
     holdout_sessions_uT: np.ndarray | None = None
     holdout_per_session_uT: dict[int, np.ndarray] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    acc: Accumulated | None = None       # what the passes collected for the predictive parts
+    block_sse: BlockSSE | None = None    # the time-block folds' squared held-out residuals per time block
 
 
 class _Rows:
@@ -180,8 +191,10 @@ def _cross_fit(d: FitData, model: CalModel, options: FitOptions) -> CrossFit:
         f.first = _run(f, lambda f=f: first_solve(f.R, f.n, f.model, f.coverage, options))
         f.post = f.first.post if f.first is not None else None
     in_order = ordered(d)
+    rw = SlowNoiseGrams(model.n_columns, _time_span(fits[0].coverage))
+    levels: list = []
     if options.autocorr:
-        _autocorr(d, rows, piece, fits, pcs.xy_sum, options, in_order)
+        levels = _autocorr(d, rows, piece, fits, pcs.xy_sum, options, in_order, rw)
     for f in fits:
         if f.error is None:
             f.held = _run(f, lambda f=f: held_or_refuse(f.post, f.first.explain, options)) or []
@@ -190,10 +203,21 @@ def _cross_fit(d: FitData, model: CalModel, options: FitOptions) -> CrossFit:
         raise FitError(full.error)
     figures = ResidualFigures(d.b_meas_uT, d.b_ref_uT, d.t_s, d.session, options.noise_lag_s,
                               steps=options.exclude_ref_steps_uT is None) if in_order else None
-    resid = _final_pass(d, rows, piece, fits, figures)
+    from magstack.drivers.cal_priors import priors_for
+
+    terms = left_out_terms(model, priors_for(options.chip), np.diag(model.unpack(full.post.theta)["S"]))
+    p = model.n_columns
+    bins = HeldOutBins.for_coverage(full.coverage, p) if options.holdout else None
+    moments = LeftOutMoments(p, len(terms))
+    block_sse = BlockSSE() if options.holdout else None
+    resid = _final_pass(d, rows, piece, fits, figures, terms, moments, bins, block_sse)
     out = CrossFit(CoreFit(None, full.post.theta.copy(), np.where(model.axis_mask(), full.post.sd, np.nan),
                            full.held, np.vstack([full.post.cond, raw_cond(full.R, model)]), full.coverage, None,
                            full.post), resid, figures)
+    Rx = full.R[:, :p]
+    taus, ou, rwg, dt = rw.result()
+    out.acc = Accumulated(Rx.T @ Rx, taus, ou + [rwg], levels, dt, terms, moments, bins)
+    out.block_sse = block_sse
     if options.holdout:
         _figures(out, fits)
     return out
@@ -216,6 +240,11 @@ class _PieceOf:
         if self.n_folds == 1:
             return k
         return k * self.n_folds + time_block_fold(self.d.t_s[idx], self.t0_s[k], self.options)
+
+    def time_block(self, idx) -> tuple[np.ndarray, np.ndarray]:
+        """(session index, time-block number from the session's start) of rows ``idx``."""
+        k = np.searchsorted(self.sessions, self.d.session[idx])
+        return k, np.floor((self.d.t_s[idx] - self.t0_s[k]) / self.options.block_s).astype(np.int64)
 
 
 def ordered(d: FitData) -> bool:
@@ -293,11 +322,18 @@ def _run(f: _Fit, step):
         return None
 
 
-def _autocorr(d, rows, piece, fits, xy_sum, options, ordered: bool) -> None:
-    """Pass 2: residuals of every fit's training rows in (session, time) order -> kappa -> the final solve."""
+def _time_span(cov: Coverage) -> float:
+    """The data's time span (s), for the slow-noise model's correlation times."""
+    return float(cov.t_max_s - cov.t_min_s) if np.isfinite(cov.t_max_s - cov.t_min_s) else 0.0
+
+
+def _autocorr(d, rows, piece, fits, xy_sum, options, ordered: bool, rw: SlowNoiseGrams) -> list:
+    """Pass 2: residuals of every fit's training rows in (session, time) order -> kappa -> the final solve.
+    The full fit's rows also feed ``rw`` (its random-walk Gram matrix); returns the adjacent block-mean
+    differences of the full fit's residuals (:meth:`.blocking.BlockingInflation.adjacent_levels`)."""
     live = [f for f in fits if f.error is None]
     if not live:
-        return
+        return []
     p = fits[0].T.shape[0]
     theta = np.hstack([f.theta_full_basis() for f in live])              # (p, 3 F)
     center = []                              # each fit's mean training residual, from the column sums
@@ -314,6 +350,8 @@ def _autocorr(d, rows, piece, fits, xy_sum, options, ordered: bool) -> None:
         np.subtract(Y.T[None], r, out=r)
         r -= center
         pc, sess = piece[idx], s[idx]
+        if live[0] is fits[0]:
+            rw.add(X if d.weights is None else X * d.weights[idx][:, None], t[idx], sess)
         for j, f in enumerate(live):
             use = f.train[pc]
             if use.all():
@@ -325,16 +363,23 @@ def _autocorr(d, rows, piece, fits, xy_sum, options, ordered: bool) -> None:
         post = _run(f, lambda f=f, acc=acc: gate_solve(f.R, f.n, f.model, f.first.prior, f.first.gated,
                                                        acc.kappa(), options))
         f.post = post if post is not None else f.post
+    return accs[0].adjacent_levels() if live[0] is fits[0] else []
 
 
-def _final_pass(d, rows, piece, fits, figures: ResidualFigures | None) -> np.ndarray | None:
+def _final_pass(d, rows, piece, fits, figures: ResidualFigures | None, terms=(),
+                moments: LeftOutMoments | None = None, bins: HeldOutBins | None = None,
+                block_sse: BlockSSE | None = None) -> np.ndarray | None:
     """Pass 3: the full fit's residuals, into ``figures`` (then replayed while it needs them again) or else
-    returned whole (N, 3); each fold's squared held-out residuals."""
+    returned whole (N, 3); each fold's squared held-out residuals. Also the moments of the design and the
+    left-out features ``terms`` (into ``moments``), the time-block folds' held-out residuals binned (into
+    ``bins``) and summed per time block (into ``block_sse``)."""
     full = fits[0]
     folds = [f for f in fits[1:] if f.error is None]
+    scale = {id(f): full.n / f.n for f in folds}
     theta = full.theta_full_basis()
     theta_f = np.hstack([f.theta_full_basis() for f in folds]) if folds else None   # (p, 3 F)
     resid = None if figures is not None else np.empty((len(d), 3))
+    t0 = full.model.t0_c
     for sl in rows.chunks(None):
         X, Y = rows.block(sl)
         r = _resid(X, Y, theta)
@@ -342,6 +387,9 @@ def _final_pass(d, rows, piece, fits, figures: ResidualFigures | None) -> np.nda
             figures.add(sl.start, r)
         else:
             resid[sl] = r.T
+        if moments is not None and len(terms):
+            moments.add(X, left_out_features(terms, d.b_meas_uT[sl], d.temp_c[sl] - t0),
+                        None if d.weights is None else d.weights[sl])
         if not folds:
             continue
         P = (theta_f.T @ X.T).reshape(-1, 3, X.shape[0])                      # fold, axis, row
@@ -357,6 +405,12 @@ def _final_pass(d, rows, piece, fits, figures: ResidualFigures | None) -> np.nda
                 rf = np.take(Y.T, keep, axis=1) - np.take(P[j], keep, axis=1)
             f.sq += np.einsum("ij,ij->i", rf, rf)
             f.cnt += keep.size
+            if f.kind == "blocks" and (bins is not None or block_sse is not None):
+                rows_k = sl.start + keep
+                if bins is not None:
+                    bins.add(np.take(X, keep, axis=0), rf, d.b_meas_uT[rows_k], d.temp_c[rows_k], scale[id(f)])
+                if block_sse is not None:
+                    block_sse.add(*piece.time_block(rows_k), np.einsum("ij,ij->j", rf, rf))
     while figures is not None:
         figures.end_pass()
         if not figures.pending:

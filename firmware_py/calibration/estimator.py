@@ -128,6 +128,9 @@ class Posterior:
     n: int
     undetermined: list[tuple[int, int]] = field(default_factory=list)
     gated: list[tuple[int, int]] = field(default_factory=list)    # prior only (data not used for them)
+    #: per axis the (p, p) map of the design whose information the estimate used (None: the identity; see
+    #: :func:`magstack.firmware.calibration.fit.weak_direction_maps`)
+    design_maps: list[np.ndarray] | None = None
 
     @property
     def sd(self) -> np.ndarray:

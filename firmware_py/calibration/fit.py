@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from magstack.data.dictionary import usable
+from magstack.data.io import json_safe
 from magstack.drivers.cal_priors import priors_for
 from magstack.firmware.cal_terms import TEMPERATURE_TERMS
 from magstack.firmware.calibration.degeneracy import GROUP_CORR, VIF_LIMIT
@@ -34,6 +35,7 @@ from magstack.firmware.calibration.estimator import (
     model_prior,
     names_of,
 )
+from magstack.firmware.calibration.heldout_test import BlockSSE, paired_block_test
 from magstack.firmware.calibration.identify import (
     CORE_TERMS,
     GATE_RULES,
@@ -44,6 +46,16 @@ from magstack.firmware.calibration.identify import (
 from magstack.firmware.calibration.linalg import RANK_RTOL, qr_r
 from magstack.firmware.calibration.model import AXES, MODELS, CalModel, resolve_terms
 from magstack.firmware.calibration.mount import MountSolution, solve_mount
+from magstack.firmware.calibration.predictive import (
+    Accumulated,
+    HeldOutBins,
+    LeftOutMoments,
+    SlowNoiseGrams,
+    Uncertainty,
+    assemble,
+    left_out_features,
+    left_out_terms,
+)
 from magstack.firmware.calibration.reference import SATURATION_MARGIN, saturated_rows
 from magstack.firmware.calibration.session_map import compare, comparison_lines
 from magstack.firmware.calibration.steps import (
@@ -64,6 +76,8 @@ __all__ = ["FitData", "FitOptions", "FitResult", "Coverage", "HeldParam", "StepD
            "RANK_RTOL", "CORE_TERMS", "STEP_RATIO", "STEP_SHARE", "STEP_NOISE_FACTOR"]
 
 
+#: Bins (1 uT each) of the coverage's field histograms.
+FIELD_HIST_BINS = 2048
 #: Rows per block where a pass over the rows works block by block (the cross-fit's passes, the row checks).
 BLOCK_ROWS = 65536
 
@@ -168,8 +182,10 @@ class FitOptions:
     value (fixed, sd 0) or ``(mean, sd)`` (sd ``inf`` = flat); ``use_priors`` False = no priors at all (the
     unregularised least squares; undetermined directions get the minimum-norm value and are named).
     ``autocorr``: inflate the data variance by the residual autocorrelation (:func:`.estimator.autocorr_inflation`).
-    ``validity_sd_uT``: bound on the posterior sd of the calibrated field that defines a table's validity box
-    (None: 2x the fit's noise floor).
+    ``validity_sd_uT``: the largest predictive vector sd of the calibrated field inside a table's validity region
+    (None: :data:`magstack.firmware.cal_table.VALIDITY_SD_FACTOR` x its RMS over the data, see there).
+    ``second_order_tempco``: "auto" tries ``temperature_gain2`` on wide temperature spans and adopts it on
+    held-out evidence (:func:`fit`); "off" never adds it (``terms`` can still name it).
 
     ``on_unidentifiable``: "hold" (the prior decides what the data cannot) or "refuse" (FitError naming the
     parameters the prior determined). The coverage rules below no longer set values: they explain *why* a
@@ -198,6 +214,7 @@ class FitOptions:
     use_priors: bool = True
     autocorr: bool = True
     validity_sd_uT: float | None = None
+    second_order_tempco: str = "auto"
     holdout: bool = True
     block_s: float = 60.0
     n_folds: int = 5
@@ -218,6 +235,8 @@ class FitOptions:
                 raise FitError(f"{name} must be finite and > 0, got {v!r}")
         if self.exclude_ref_steps_uT is not None and not self.exclude_ref_steps_uT > 0:
             raise FitError("exclude_ref_steps_uT must be > 0 or None")
+        if self.second_order_tempco not in ("auto", "off"):
+            raise FitError(f"second_order_tempco must be 'auto' or 'off', got {self.second_order_tempco!r}")
         if self.n_folds < 2:
             raise FitError("n_folds must be >= 2")
         if not self.max_vif > 1:
@@ -245,6 +264,9 @@ class Coverage:
     temp_max_c: float = -np.inf
     temp_with_field_c: np.ndarray = field(default_factory=lambda: np.array([[np.inf, -np.inf]] * 3))
     field_max_uT: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    norm_max_uT: float = 0.0                   # largest |B| of a row
+    #: rows per 1 uT bin of |B_x|, |B_y|, |B_z| and |B| (last bin: at or beyond FIELD_HIST_BINS - 1 uT)
+    field_hist: np.ndarray = field(default_factory=lambda: np.zeros((4, FIELD_HIST_BINS), dtype=np.int64))
     currents_A: dict[str, list[float]] = field(default_factory=dict)
     sessions: set = field(default_factory=set)
     t_min_s: float = np.inf
@@ -269,6 +291,13 @@ class Coverage:
                 self.temp_with_field_c[j, 0] = min(self.temp_with_field_c[j, 0], float(t[sel].min()))
                 self.temp_with_field_c[j, 1] = max(self.temp_with_field_c[j, 1], float(t[sel].max()))
         self.field_max_uT = np.maximum(self.field_max_uT, mag.max(axis=1))
+        nrm = np.einsum("ij,ij->j", mag, mag)
+        if np.isfinite(nrm).any():
+            self.norm_max_uT = max(self.norm_max_uT, float(np.sqrt(np.nanmax(nrm))))
+        top = FIELD_HIST_BINS - 1
+        for k, v in enumerate((mag[0], mag[1], mag[2], np.sqrt(nrm))):
+            v = v[np.isfinite(v)]
+            self.field_hist[k] += np.bincount(np.minimum(v, top).astype(np.int64), minlength=FIELD_HIST_BINS)
         for k, v in (currents_A or {}).items():
             lo, hi = self.currents_A.get(k, [np.inf, -np.inf])
             self.currents_A[k] = [min(lo, float(np.min(v))), max(hi, float(np.max(v)))]
@@ -288,12 +317,27 @@ class Coverage:
                                                   np.maximum(self.temp_with_field_c[:, 1],
                                                              other.temp_with_field_c[:, 1])])
         self.field_max_uT = np.maximum(self.field_max_uT, other.field_max_uT)
+        self.norm_max_uT = max(self.norm_max_uT, other.norm_max_uT)
+        self.field_hist = self.field_hist + other.field_hist
         for k, (lo, hi) in other.currents_A.items():
             lo0, hi0 = self.currents_A.get(k, [np.inf, -np.inf])
             self.currents_A[k] = [min(lo0, lo), max(hi0, hi)]
         self.sessions |= other.sessions
         self.t_min_s, self.t_max_s = min(self.t_min_s, other.t_min_s), max(self.t_max_s, other.t_max_s)
         return self
+
+    def field_quantile_uT(self, q: float) -> tuple[np.ndarray, float]:
+        """``(per-axis |B_j| (3,), |B|)`` below which a fraction ``q`` of the rows lie (upper edge of the 1 uT
+        bin, never above the largest value seen)."""
+        out = []
+        for k in range(4):
+            c = np.cumsum(self.field_hist[k])
+            if c[-1] == 0:
+                out.append(0.0)
+                continue
+            out.append(float(np.searchsorted(c, q * c[-1]) + 1))
+        lim = np.minimum(np.array(out[:3]), self.field_max_uT)
+        return lim, min(out[3], self.norm_max_uT)
 
     def temp_span_with_field(self, j: int) -> float:
         lo, hi = self.temp_with_field_c[j]
@@ -334,6 +378,8 @@ class FitResult:
     mount: MountSolution | None = None                 # per-session mount rotations (nuisance)
     comparison: dict = field(default_factory=dict)     # mount rotation vs a general per-session map
     posterior: Posterior | None = None                 # the MAP estimate (covariance, prior, data share)
+    uncertainty: Uncertainty | None = None             # predictive parts: inflation, left-out terms, discrepancy
+    term_choice: dict = field(default_factory=dict)    # an optional term tried by held-out evidence
     prior_name: str = ""                               # which priors were used
     chip: str | None = None                            # the part (its operating range bounds the validity)
 
@@ -371,6 +417,8 @@ class FitResult:
             **({"parameters": self.parameter_rows(),
                 "sigma_uT": lst(self.posterior.sigma_uT), "autocorr_inflation": lst(self.posterior.kappa)}
                if self.posterior is not None else {}),
+            **({"predictive": self.uncertainty.stats()} if self.uncertainty is not None else {}),
+            **({"term_choice": json_safe(self.term_choice)} if self.term_choice else {}),
             "n_excluded_steps": self.n_excluded_steps,
             "ref_range_uT": self.ref_range_uT, "saturated_rows": self.n_saturated,
             "saturated_rows_excluded": bool(self.saturated_excluded and self.n_saturated),
@@ -682,27 +730,25 @@ def gate_solve(R: np.ndarray, n: int, model: CalModel, prior: Prior, gated: Sequ
        otherwise "determines" the K_S / K_O split from second-order effects (a -2700 ppm/degC sensitivity
        makes the DUT's own reading drift, and the linear model's curvature error picks K_O: 4 uT off at zero
        field on the HMC1053 preset)."""
-    from magstack.firmware.calibration.identify import degenerate_sets
 
     options = options or FitOptions(holdout=False)
     fixed = prior
     for i, c in gated:
         fixed = fixed.with_values(i, c, float(prior.mean[i, c]), 0.0, prior.source[i][c])
-    sets = degenerate_sets(model, R, options, exclude=set(gated)) if options.use_priors else []
-    if not sets:
+    maps = weak_direction_maps(R, model, gated, options)
+    if maps is None:
         post = map_solve(R, n, model, fixed, kappa)
     else:
+        p = model.n_columns
         posts = []
         for i in range(3):
             Ri = R.copy()
-            for ax, g, act in sets:
-                if ax == i:
-                    cols = [act[a] for a in g.members] + ([act[g.partner]] if g.partner is not None else [])
-                    Ri[:, cols] = _without_weak_directions(R, model, cols, options.max_vif)
+            Ri[:, :p] = R[:, :p] @ maps[i]
             posts.append(map_solve(Ri, n, model, fixed, kappa))
         post = _pick_axes(posts)
     post.prior = prior
     post.gated = list(gated)
+    post.design_maps = maps
     for i, c in gated:
         post.cov[i, c, :] = 0.0
         post.cov[i, :, c] = 0.0
@@ -710,25 +756,54 @@ def gate_solve(R: np.ndarray, n: int, model: CalModel, prior: Prior, gated: Sequ
     return post
 
 
-def _without_weak_directions(R: np.ndarray, model: CalModel, cols: list[int], max_vif: float) -> np.ndarray:
-    """``R[:, cols]`` with its information along the group's weak directions removed: SVD of the columns
-    (offset projected out, unit-norm), directions with ``s^2 < s_max^2 / max_vif`` dropped."""
+def weak_direction_maps(R: np.ndarray, model: CalModel, gated: Sequence[tuple[int, int]],
+                        options: FitOptions) -> list[np.ndarray] | None:
+    """Per output axis the (p, p) map ``M_i`` of the design columns whose information the estimator uses
+    (``X M_i``): identity, except within each degenerate group where the group's weak directions are removed
+    (:func:`_weak_map`). None when no axis has a degenerate group (every map the identity)."""
+    from magstack.firmware.calibration.identify import degenerate_sets
+
+    sets = degenerate_sets(model, R, options, exclude=set(gated)) if options.use_priors else []
+    if not sets:
+        return None
+    p = model.n_columns
+    off = [c for c, col in enumerate(model.columns) if col.term == "offset"]
+    maps = [np.eye(p) for _ in range(3)]
+    for ax, g, act in sets:
+        cols = list(dict.fromkeys([act[a] for a in g.members] + ([act[g.partner]] if g.partner is not None else [])))
+        Mg, on_offset = _weak_map(R, model, cols, options.max_vif)
+        M = maps[ax]
+        M[:, cols] = 0.0
+        M[np.ix_(cols, cols)] = Mg
+        if off:
+            M[off[0], cols] = on_offset
+    return maps
+
+
+def _weak_map(R: np.ndarray, model: CalModel, cols: list[int], max_vif: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(M (k, k), a (k,))`` with ``R[:, cols] @ M + outer(R[:, offset], a)`` = the group's columns with their
+    information along its weak directions removed: SVD of the columns with the offset projected out and unit
+    norm, directions with ``s^2 < s_max^2 / max_vif`` dropped from that fluctuating part only (each column's
+    projection on the offset, its level, is kept: removing it would leave the offset to make up for it)."""
     off = [c for c, col in enumerate(model.columns) if col.term == "offset"]
     A = R[:, cols]
+    k = len(cols)
     scale = np.linalg.norm(A, axis=0)
     scale[scale == 0] = 1.0
+    level = np.zeros(k)
     B = A.copy()
     if off:
         o = R[:, off[0]]
         oo = float(o @ o)
         if oo > 0:
-            B = B - np.outer(o, (o @ B) / oo)
+            level = (o @ A) / oo
+            B = B - np.outer(o, level)
     _, sv, Vt = np.linalg.svd(B / scale, full_matrices=False)
     weak = Vt[sv ** 2 < sv[0] ** 2 / max_vif]
     if weak.size == 0:
-        return A
-    As = A / scale
-    return (As - (As @ weak.T) @ weak) * scale
+        return np.eye(k), np.zeros(k)
+    P = (weak.T @ weak) * scale[None, :] / scale[:, None]
+    return np.eye(k) - P, level @ P
 
 
 def raw_cond(R: np.ndarray, model: CalModel) -> np.ndarray:
@@ -759,10 +834,41 @@ def frame_reference(data: FitData, mount: MountSolution | None) -> np.ndarray:
     return data.b_ref_uT if mount is None else mount.rotate_to_frame(data.b_ref_uT, data.session)
 
 
+#: Temperature span (degC, with field present on some axis) from which ``fit`` tries the second-order
+#: sensitivity tempco (``temperature_gain2``) beside the model it was given.
+TEMPCO2_SPAN_C = 10.0
+
+
 def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, currents: Sequence[str] = (),
         t0_c: float = 25.0, options: FitOptions | None = None) -> FitResult:
-    """Fit the calibration model to paired data; see the module docstring."""
+    """Fit the calibration model to paired data; see the module docstring.
+
+    With ``options.second_order_tempco == "auto"``, a model with ``temperature_gain`` but not
+    ``temperature_gain2``, held-out folds and a temperature span of at least ``TEMPCO2_SPAN_C`` degC with field
+    present, the model with the second-order tempco is fitted too and adopted when its held-out improvement is
+    significant (:func:`.heldout_test.paired_block_test`); ``result.term_choice`` says what was compared."""
     options = options or FitOptions()
+    res, sse = _fit_model(data, model, terms, currents, t0_c, options)
+    terms_now = set(res.model.terms)
+    span = max(res.coverage.temp_span_with_field(j) for j in range(3))
+    if (options.second_order_tempco != "auto" or "temperature_gain" not in terms_now
+            or "temperature_gain2" in terms_now or sse is None or span < TEMPCO2_SPAN_C):
+        return res
+    cand, sse2 = _fit_model(data, model, list(terms or []) + ["temperature_gain2"], currents, t0_c, options)
+    test = paired_block_test(sse.sse, sse2.sse) if sse2 is not None else None
+    chosen = cand if test is not None and test.significant else res
+    chosen.term_choice = {"candidate": "temperature_gain2", "adopted": chosen is cand,
+                          "holdout_blocks_base_uT": res.holdout_blocks_uT, "holdout_blocks_candidate_uT":
+                          cand.holdout_blocks_uT, **({} if test is None else dataclasses.asdict(test))}
+    chosen.notes.append(
+        f"second-order sensitivity tempco (temperature_gain2, {span:.1f} degC with field): "
+        + ("adopted" if chosen is cand else "not adopted") + (f": {test.describe()}" if test is not None else ""))
+    return chosen
+
+
+def _fit_model(data: FitData, model: str, terms: Sequence[str] | None, currents: Sequence[str], t0_c: float,
+               options: FitOptions) -> tuple[FitResult, BlockSSE | None]:
+    """One model's fit, with the time-block folds' held-out squared residuals per block (None without folds)."""
     all_terms = resolve_terms(model, terms, currents)
     name = model if all_terms == MODELS.get(model) else f"{model}+" + "+".join(
         t for t in all_terms if t not in MODELS[model])
@@ -831,20 +937,50 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
                                  else "INCLUDED as requested (--include-saturated)")))
     if options.exclude_ref_steps_uT is None:
         res.steps = diagnose_steps(resid, d.b_ref_uT, d.session) if figures is None else figures.steps
+    acc = cross.acc if cross is not None else None
+    block_sse = cross.block_sse if cross is not None else None
     if options.holdout and cross is not None:
         res.holdout_blocks_uT, res.holdout_sessions_uT = cross.holdout_blocks_uT, cross.holdout_sessions_uT
         res.holdout_per_session_uT = cross.holdout_per_session_uT
         res.notes += cross.notes
-    elif options.holdout:
-        res.holdout_blocks_uT = _holdout_blocks(d, all_terms, currents, t0_c, name, options, res.notes)
-        res.holdout_sessions_uT, res.holdout_per_session_uT = _holdout_sessions(
-            d, all_terms, currents, t0_c, name, options, res.notes, [h.name for h in held])
+    elif options.holdout or cross is None:
+        acc = _accumulate_whole(d, cm, core, resid, options)
+        if options.holdout:
+            block_sse = BlockSSE()
+            res.holdout_blocks_uT = _holdout_blocks(d, all_terms, currents, t0_c, name, options, res.notes,
+                                                    acc.bins, core.X, len(d), block_sse)
+            res.holdout_sessions_uT, res.holdout_per_session_uT = _holdout_sessions(
+                d, all_terms, currents, t0_c, name, options, res.notes, [h.name for h in held])
+    if acc is not None and core.posterior is not None and mount is None:
+        res.uncertainty = assemble(core.posterior, acc, np.asarray(floor, dtype=float), cov, options.autocorr)
     if mount is not None and len(np.unique(d.session)) > 1:
         res.comparison = compare(X, d.b_ref_uT, d.b_meas_uT, d.session, d.weights, cm, held, mount,
                                  d.b_ref_uT - _rotate_from_frame(cm.predict(theta, X), d.session, mount),
                                  options, block_folds(d, options) if options.holdout else None,
                                  res.holdout_blocks_uT)
-    return res
+    return res, block_sse
+
+
+def _accumulate_whole(d: FitData, model: CalModel, core: CoreFit, resid: np.ndarray,
+                      options: FitOptions) -> Accumulated:
+    """The predictive accumulators from whole arrays (the refit path; :mod:`.crossfit` streams them); the
+    held-out bins are filled by :func:`_holdout_blocks`."""
+    from magstack.firmware.calibration.blocking import BlockingInflation
+
+    X = core.X
+    w = np.ones(len(d)) if d.weights is None else d.weights
+    order = np.lexsort((d.t_s, d.session))
+    rw = SlowNoiseGrams(model.n_columns, float(np.nanmax(d.t_s) - np.nanmin(d.t_s)) if len(d) else 0.0)
+    rw.add((X * w[:, None])[order], d.t_s[order], d.session[order])
+    bl = BlockingInflation()
+    r = np.asarray(resid, dtype=float)
+    bl.add((r[order] - r.mean(axis=0)).T, d.session[order])
+    terms = left_out_terms(model, priors_for(options.chip), np.diag(model.unpack(core.theta)["S"]))
+    moments = LeftOutMoments(model.n_columns, len(terms))
+    moments.add(X, left_out_features(terms, d.b_meas_uT, d.temp_c - model.t0_c), d.weights)
+    bins = HeldOutBins.for_coverage(core.coverage, model.n_columns) if options.holdout else None
+    taus, ou, rwg, dt = rw.result()
+    return Accumulated((X * w[:, None]).T @ X, taus, ou + [rwg], bl.adjacent_levels(), dt, terms, moments, bins)
 
 
 def _rotate_from_frame(b_uT: np.ndarray, session: np.ndarray, mount: MountSolution) -> np.ndarray:
@@ -886,8 +1022,14 @@ def time_block_fold(t_s: np.ndarray, t_first_s, options: FitOptions) -> np.ndarr
     return np.floor((t_s - t_first_s) / options.block_s).astype(np.int64) % options.n_folds
 
 
-def _holdout_blocks(d: FitData, terms, currents, t0_c, name, options, notes) -> np.ndarray | None:
+def _holdout_blocks(d: FitData, terms, currents, t0_c, name, options, notes, bins: HeldOutBins | None = None,
+                    X_full: np.ndarray | None = None, n_full: int = 0,
+                    block_sse: BlockSSE | None = None) -> np.ndarray | None:
     fold = block_folds(d, options)
+    sessions = np.unique(d.session)
+    k_sess = np.searchsorted(sessions, d.session)
+    t_first = np.array([d.t_s[d.session == s].min() for s in sessions])
+    blk = np.floor((d.t_s - t_first[k_sess]) / options.block_s).astype(np.int64)
     sq, cnt = np.zeros(3), 0
     for f in np.unique(fold):
         test = fold == f
@@ -900,6 +1042,10 @@ def _holdout_blocks(d: FitData, terms, currents, t0_c, name, options, notes) -> 
             continue
         sq += np.sum(r ** 2, axis=0)
         cnt += r.shape[0]
+        if bins is not None and X_full is not None:
+            bins.add(X_full[test], r.T, d.b_meas_uT[test], d.temp_c[test], n_full / max(int((~test).sum()), 1))
+        if block_sse is not None:
+            block_sse.add(k_sess[test], blk[test], np.sum(r ** 2, axis=1))
     if cnt == 0:
         notes.append("held-out by time blocks: no fold could be fitted")
         return None

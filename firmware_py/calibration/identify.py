@@ -38,27 +38,39 @@ def independent_field_rms(model: CalModel, R: np.ndarray, cov, min_rms_uT: float
     component not explained (least squares) by a constant and the axes accepted before it, and is
     accepted when that is at least ``min_rms_uT``. A single-axis sweep thus determines its own axis
     even though the DUT's cross-axis coupling makes the other channels scaled copies of it: only
-    those copies are reported as not excited on their own."""
+    those copies are reported as not excited on their own.
+
+    The same is taken of the reference field (``R`` of ``[X | Y]``: its last three columns) and each axis gets
+    the smaller of the two: a gain needs the true field to vary along its axis, not only the DUT's reading (a
+    one-field thermal run moves the DUT's reading by its tempco while the reference stays put; the gain is
+    then the offset's partner, not something the data can tell)."""
     cols = {c.index: k for k, c in enumerate(model.columns) if c.term == "gain_matrix"}
     off = [k for k, c in enumerate(model.columns) if c.term == "offset"]
     n = max(cov.sum_w, 1e-300)
+    p = model.n_columns
 
-    def orth_rms(j: int, others: list[int]) -> float:
-        A = R[:, [cols[k] for k in others] + off]
-        v = R[:, cols[j]]
-        if A.shape[1] == 0:
-            return float(np.linalg.norm(v) / np.sqrt(n))
-        coef, *_ = np.linalg.lstsq(A, v, rcond=None)
-        return float(np.linalg.norm(v - A @ coef) / np.sqrt(n))
+    def excitation(col_of) -> np.ndarray:
+        def orth_rms(j: int, others: list[int]) -> float:
+            A = R[:, [col_of[k] for k in others] + off]
+            v = R[:, col_of[j]]
+            if A.shape[1] == 0:
+                return float(np.linalg.norm(v) / np.sqrt(n))
+            coef, *_ = np.linalg.lstsq(A, v, rcond=None)
+            return float(np.linalg.norm(v - A @ coef) / np.sqrt(n))
 
-    own = [orth_rms(j, []) for j in range(3)]
-    out = np.zeros(3)
-    accepted: list[int] = []
-    for j in sorted(range(3), key=lambda k: -own[k]):
-        out[j] = orth_rms(j, accepted)
-        if out[j] >= min_rms_uT:
-            accepted.append(j)
-    return out
+        own = [orth_rms(j, []) for j in range(3)]
+        out = np.zeros(3)
+        accepted: list[int] = []
+        for j in sorted(range(3), key=lambda k: -own[k]):
+            out[j] = orth_rms(j, accepted)
+            if out[j] >= min_rms_uT:
+                accepted.append(j)
+        return out
+
+    dut = excitation(cols)
+    if R.shape[1] < p + 3:
+        return dut
+    return np.minimum(dut, excitation({j: p + j for j in range(3)}))
 
 
 def identify(model: CalModel, R: np.ndarray, cov, options) -> list[HeldParam]:

@@ -55,6 +55,7 @@ from magstack.firmware.calibration.estimator import Prior, model_prior
 from magstack.firmware.calibration.fit import FitOptions, FitResult
 from magstack.firmware.calibration.housekeeping import MAX_GAP_S, interpolate_currents
 from magstack.firmware.calibration.model import FLIGHT_TERMS, FLOAT_ONLY_TERMS, CalModel, resolve_terms
+from magstack.firmware.calibration.predictive import from_holdout
 from magstack.firmware.calibration.streaming import StreamingFit
 from magstack.firmware.errors import FitError
 from magstack.firmware.reference import frames, geomag
@@ -583,6 +584,8 @@ def refit(paths: Sequence[str], active: cal_table.CalTable | None = None, option
     hold = first.hold
     h_cand = holdout_rms(hold.R, res.theta, plan.model, hold.n_used)
     h_act = holdout_rms(hold.R, plan.theta_active, plan.model, hold.n_used)
+    if res.posterior is not None:
+        res.uncertainty = from_holdout(res.posterior, hold.R, hold.n_used, res.coverage)
     table = cal_table.table_from_fit(res, device, description=f"on-orbit refit (attitude, IGRF-14) vs {active_name}")
     stats_doc = dict(table.fit_stats)
     stats_doc.update({"refit_method": "attitude", "holdout_rms_candidate_uT": h_cand.tolist(),
