@@ -196,9 +196,11 @@ class SessionWriter:
         self._buf: list[tuple[float, ...]] = []
         self._crc = 0
         self.rows_written = 0
+        self._size = 0                      # bytes of whole writes in the file (a failed write is cut back to it)
         try:
-            # exclusive: never truncate the .part left by an earlier, killed session
-            self._fh = open(self.part_path, "xb")
+            # exclusive: never truncate the .part left by an earlier, killed session; unbuffered: each block is
+            # one write, so a failed one can be cut back off the file (no partial row stays in it)
+            self._fh = open(self.part_path, "xb", buffering=0)
         except FileExistsError:
             raise SessionFileError(f"{self.part_path} exists (left by an interrupted session?): "
                                    "read, rename or remove it first") from None
@@ -207,10 +209,22 @@ class SessionWriter:
         self._sync()
 
     def _write(self, data: bytes) -> None:
+        """Write ``data`` whole, or cut what was written of it back off the file and raise FileWriteError."""
+        view, done = memoryview(data), 0
         try:
-            self._fh.write(data)
+            while done < len(data):
+                n = self._fh.write(view[done:])
+                if not n:
+                    raise OSError(28, "No space left on device (nothing written)")
+                done += n
         except OSError as exc:
+            if done:
+                try:
+                    os.ftruncate(self._fh.fileno(), self._size)
+                except OSError:
+                    pass
             raise write_error(self.part_path, exc) from exc
+        self._size += len(data)
 
     def _sync(self) -> None:
         try:

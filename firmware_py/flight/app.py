@@ -31,7 +31,7 @@ from magstack.firmware.errors import CalTableInvalid, FlightConfigError
 from magstack.firmware.flight.ccsds import attach_ccsds
 from magstack.firmware.flight.channel import ChannelLimits, MagChannel
 from magstack.firmware.flight.commands import Command, CommandSpool
-from magstack.firmware.flight.config import FlightConfig, SensorConfig
+from magstack.firmware.flight.config import FlightConfig, SensorConfig, check_directories
 from magstack.firmware.flight.events import EventFileSink, EventId, EventLog
 from magstack.firmware.flight.executive import Executive, RateGroup
 from magstack.firmware.flight.intake import UnsafeInput, inside_roots
@@ -127,6 +127,7 @@ class FlightApp:
         self.virtual = virtual
         self.simulate = simulate
         self.telemetry_dir = Path(telemetry_dir) if telemetry_dir is not None else cfg.telemetry_dir
+        check_directories(cfg, self.telemetry_dir)
         self.telemetry_dir.mkdir(parents=True, exist_ok=True)
         self.run_id = run_id if run_id is not None else self._next_run_id()
         self.writer = WriteBehind(cfg.write_queue, on_error=self._write_failed) if write_behind else None
@@ -173,7 +174,11 @@ class FlightApp:
                 raise FlightConfigError(f"{cfg.path}: flight.command_dir: {exc}") from None
             self.spool.recover()
             self.executive.group(COMMAND_GROUP).boundary.insert(0, self.spool.poll)
-        self.ccsds = attach_ccsds(self)     # [ccsds]: packet stream + telecommands (None without the table)
+        try:
+            self.ccsds = attach_ccsds(self)     # [ccsds]: packet stream + telecommands (None without the table)
+        except BaseException:
+            self.close()
+            raise
 
     # ------------------------------------------------------------------ construction
     def _next_run_id(self) -> int:
@@ -269,6 +274,10 @@ class FlightApp:
                 msg = self._move(slot, cmd.args["group"])
             elif cmd.name == "start_refit":
                 msg = self._start_refit(slot, cmd.args["files"])
+            elif cmd.name == "resync_tc":
+                if self.ccsds is None:
+                    raise ValueError("this configuration takes no telecommands (no [ccsds] table)")
+                msg = self.ccsds.resync(int(cmd.args["source_id"]), int(cmd.args["seq"]))
             elif cmd.name == "stop_refit":
                 job = self.refits.get(slot.sensor.name)
                 if job is None or not job.thread.is_alive():
@@ -363,6 +372,7 @@ class FlightApp:
                 "write_queue": None if self.writer is None else self.writer.stats(),
                 "commands": None if self.spool is None else {"accepted": self.spool.accepted,
                                                              "rejected": self.spool.rejected},
+                "packets": None if getattr(self, "ccsds", None) is None else self.ccsds.counters(),
                 "degraded": self.degraded_reasons()}
 
     def degraded_reasons(self) -> list[str]:
@@ -384,6 +394,8 @@ class FlightApp:
         lost = (0 if sink is None else sink.lost) + self.events.sink_errors     # dropped ones: the reason above
         if lost:
             out.append(f"{lost} events could not be written to the event log")
+        if getattr(self, "ccsds", None) is not None:
+            out += self.ccsds.degraded_reasons()
         return out
 
     def wait_refits(self, timeout_s: float | None = None) -> None:
