@@ -28,6 +28,7 @@ import logging
 import math
 import os
 import re
+import stat
 import zlib
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -383,28 +384,59 @@ def _parse_float(cell: str, lineno: int, col: str, path: object) -> float:
     return v
 
 
-def read_text_file(path: str | os.PathLike, kind: str) -> str:
-    """UTF-8 text of ``path`` (a leading byte-order mark is dropped); a missing, unreadable or binary
-    file raises SessionFileError naming it."""
+#: Largest session, ADCS or import file read whole (about 8 million rows of a bench session); readers that
+#: stream in blocks (telemetry for refit and diagnose, packet streams) have their own, larger limits.
+MAX_FILE_BYTES = 1 << 30
+
+
+def open_regular(path: str | os.PathLike, kind: str, max_bytes: int = MAX_FILE_BYTES):
+    """A binary file object of the regular file ``path`` of at most ``max_bytes``, checked before a byte is
+    read: ``stat`` first (a FIFO, a device such as /dev/zero or a directory is refused without opening it),
+    opened ``O_NONBLOCK`` (a FIFO swapped in afterwards cannot block) and checked again on the descriptor.
+    SessionFileError naming the file otherwise ("no such <kind>", "cannot read ...")."""
+    def check(st: os.stat_result) -> None:
+        if not stat.S_ISREG(st.st_mode):
+            raise SessionFileError(f"{path}: cannot read: not a regular file (a {kind} must be one; a directory, "
+                                   "FIFO or device is refused)")
+        if st.st_size > max_bytes:
+            raise SessionFileError(f"{path}: cannot read: {st.st_size} bytes, more than the {max_bytes} a {kind} "
+                                   "may have")
     try:
-        return Path(path).read_text(encoding="utf-8-sig")
+        check(os.stat(path))
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
     except FileNotFoundError:
         raise SessionFileError(f"{path}: no such {kind}") from None
+    except OSError as exc:
+        raise SessionFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    try:
+        check(os.fstat(fd))
+        return open(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def read_text_file(path: str | os.PathLike, kind: str) -> str:
+    """UTF-8 text of ``path`` (a leading byte-order mark is dropped); a missing, unreadable, non-regular,
+    oversized or binary file raises SessionFileError naming it."""
+    raw = read_file_bytes(path, kind)
+    try:
+        return raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise SessionFileError(f"{path}: not a text {kind} ({exc})") from None
-    except OSError as exc:
-        raise SessionFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
 
 
-def read_file_bytes(path: str | os.PathLike, kind: str) -> bytes:
-    """Bytes of ``path`` without a leading UTF-8 byte-order mark; a missing or unreadable file raises
-    SessionFileError naming it."""
+def read_file_bytes(path: str | os.PathLike, kind: str, max_bytes: int = MAX_FILE_BYTES) -> bytes:
+    """Bytes of ``path`` without a leading UTF-8 byte-order mark (:func:`open_regular`: a regular file of at
+    most ``max_bytes``, read in blocks and never beyond the limit); SessionFileError naming it otherwise."""
+    fh = open_regular(path, kind, max_bytes)
     try:
-        raw = Path(path).read_bytes()
-    except FileNotFoundError:
-        raise SessionFileError(f"{path}: no such {kind}") from None
+        with fh:
+            raw = fh.read(max_bytes + 1)
     except OSError as exc:
         raise SessionFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    if len(raw) > max_bytes:
+        raise SessionFileError(f"{path}: cannot read: grew beyond the {max_bytes} bytes a {kind} may have")
     return raw[len(_BOM):] if raw.startswith(_BOM) else raw
 
 
@@ -668,9 +700,10 @@ def row_line(s: Session, k: int) -> int | None:
     """File line number of row ``k`` of a session read from ``s.source`` (None when unknown)."""
     if not s.source or not os.path.isfile(s.source):
         return None
-    raw = Path(s.source).read_bytes()
-    if raw.startswith(_BOM):
-        raw = raw[len(_BOM):]
+    try:
+        raw = read_file_bytes(s.source, "session file")
+    except SessionFileError:
+        return None
     lines = raw.split(b"\n")
     h = 0
     while h < len(lines) and lines[h].startswith(b"#"):

@@ -12,8 +12,8 @@ from hypothesis import strategies as st
 
 from magstack.cli.main import main
 from magstack.data.dictionary import APP_APID, CHANNEL_FIELDS, FIELD_LSB_UT, TM_PACKET
-from magstack.data.packets import PacketError, TmEncoder, cuc_bytes, cuc_seconds, decode_tm, from_raw, pack_tc
 from magstack.data.errors import SessionFileError
+from magstack.data.packets import PacketError, TmEncoder, cuc_bytes, cuc_seconds, decode_tm, from_raw, pack_tc
 from magstack.data.session import read_session
 from magstack.ground.tm_decode import DecodeReport, decode_files, iter_packets
 from tests.test_flight_run_cli import _sim_config
