@@ -279,9 +279,12 @@ class CcsdsLink:
         self.cfg = cfg
         self.app = app
         path = app.telemetry_dir / f"packets-{app.run_id:04d}.bin" if cfg.packets else None
+        # fsync by time on the system clock (a power cut loses at most a second of packets); in virtual time
+        # every sync_every packets only (a simulated day would otherwise wait for 86,400 fsyncs)
         clk = next(iter(app.clocks.values()))
+        now = None if getattr(app, "virtual", False) else clk.monotonic_s
         self.stream = PacketStream(apid_map(app.cfg), path=path, udp=cfg.tm_udp, on_error=self._error,
-                                   writer=getattr(app, "writer", None), now=clk.monotonic_s, run_id=app.run_id)
+                                   writer=getattr(app, "writer", None), now=now, run_id=app.run_id)
         self.receiver = None
         if cfg.tc_udp is not None or cfg.tc_dir is not None:
             state = app.cfg.command_dir / STATE_NAME if app.cfg.command_dir is not None else None
