@@ -4,9 +4,9 @@
 
 Re-runs the categories of a hostile operator and a failing disk, each trial with a known right answer:
 
-* ``udp_tc``: malformed, corrupt, replayed, out-of-window, unauthorised (a sender bound to 127.0.0.2) and
-  valid telecommands over UDP loopback, each under its counter; then a bounded flood of junk datagrams,
-  every one counted;
+* ``udp_tc``: malformed, corrupt, replayed, out-of-window, unauthorised (a receiver that allows only another
+  host) and valid telecommands over UDP on 127.0.0.1, each under its counter; then a bounded flood of junk
+  datagrams, every one counted;
 * ``tc_dir`` / ``command_dir``: symlinks, FIFOs, directories, sparse 6 GiB files, files others may write,
   files of another user (as root), hostile tables and paths dropped where the application takes orders;
 * ``config``: hostile numbers and directory clashes in flight.toml;
@@ -176,8 +176,11 @@ def receiver(d: Path, **cfg):
 
 # ------------------------------------------------------------------------------------- categories
 def cat_udp_tc(c: Campaign, d: Path, rng: np.random.Generator, scale: float) -> None:
-    port = free_port()
+    port, other = free_port(), free_port()
     rx, stream, dispatched = receiver(d, tc_udp=("127.0.0.1", port))
+    (d / "other").mkdir()
+    # a receiver whose only allowed host is not this one (TEST-NET-1): everything sent from 127.0.0.1 is foreign
+    rx2, stream2, _ = receiver(d / "other", tc_udp=("127.0.0.1", other), tc_hosts=("192.0.2.1",))
     good = tc("activate_table", "mag", seq=5)
     flipped = bytearray(good)
     flipped[-1] ^= 0x40
@@ -185,7 +188,7 @@ def cat_udp_tc(c: Campaign, d: Path, rng: np.random.Generator, scale: float) -> 
              ("truncated", good[:-3], "127.0.0.1", "malformed"), ("trailing byte", good + b"\0", "127.0.0.1",
                                                                    "malformed"),
              ("wrong apid", tc("activate_table", "mag", seq=6, apid=0x123), "127.0.0.1", "wrong_apid"),
-             ("foreign host", tc("activate_table", "mag", seq=7), "127.0.0.2", "unauthorised"),
+             ("foreign host", tc("activate_table", "mag", seq=7), "foreign", "unauthorised"),
              ("foreign source id", tc("activate_table", "mag", seq=8, source=9), "127.0.0.1", "unauthorised"),
              ("replay", good, "127.0.0.1", "replayed"),
              ("far ahead", tc("dump_counters", seq=9000), "127.0.0.1", "out_of_window"),
@@ -195,10 +198,9 @@ def cat_udp_tc(c: Campaign, d: Path, rng: np.random.Generator, scale: float) -> 
              ("service not provided", pack_tc(3, 5, b"", seq_count=9, source_id=1), "127.0.0.1", "invalid"),
              ("ping", tc("ping", seq=10), "127.0.0.1", "accepted")]
 
-    def send(data: bytes, host: str) -> None:
+    def send(data: bytes, to: str) -> None:
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-            s.bind((host, 0))
-            s.sendto(data, ("127.0.0.1", port))
+            s.sendto(data, ("127.0.0.1", other if to == "foreign" else port))
 
     def take(n_before: int, want: int) -> None:
         for _ in range(400):
@@ -210,11 +212,16 @@ def cat_udp_tc(c: Campaign, d: Path, rng: np.random.Generator, scale: float) -> 
 
     for name, data, host, counter in cases:
         def t(data=data, host=host, counter=counter) -> str:
-            before = dict(vars(rx.counters))
+            r = rx2 if host == "foreign" else rx
+            before = dict(vars(r.counters))
             n = len(dispatched)
             send(data, host)
-            take(sum(before.values()), 1)
-            after = vars(rx.counters)
+            for _ in range(400):
+                r.poll()
+                if sum(vars(r.counters).values()) > sum(before.values()):
+                    break
+                time.sleep(0.005)
+            after = vars(r.counters)
             moved = [k for k in after if after[k] != before[k]]
             expect(moved == [counter], f"counted under {moved}, want {counter}")
             expect((len(dispatched) > n) == (counter == "accepted" and data[7] == 8),
@@ -234,8 +241,8 @@ def cat_udp_tc(c: Campaign, d: Path, rng: np.random.Generator, scale: float) -> 
         expect(rx.counters.accepted == accepted, "junk accepted")
         return "refused"
     c.trial("udp_tc", f"flood of {flood} junk datagrams", t_flood)
-    rx.close()
-    stream.close()
+    for x in (rx, stream, rx2, stream2):
+        x.close()
 
 
 def cat_tc_dir(c: Campaign, d: Path) -> None:
@@ -348,7 +355,15 @@ def cat_config(c: Campaign, d: Path) -> None:
         p = d / "any" / "flight.toml"
         p.parent.mkdir()
         p.write_text(base.replace('# tc_udp = "127.0.0.1:50511"', f'tc_udp = "0.0.0.0:{free_port()}"'))
-        code, _, err = run_cli(["run", "--config", str(p), "--duration", "1", "--out", str(p.parent / "tlm")])
+        bind = socket.socket.bind
+
+        def loopback_only(self, addr):      # the campaign never listens beyond 127.0.0.1
+            return bind(self, ("127.0.0.1", addr[1]) if addr[0] == "0.0.0.0" else addr)
+        socket.socket.bind = loopback_only
+        try:
+            code, _, err = run_cli(["run", "--config", str(p), "--duration", "1", "--out", str(p.parent / "tlm")])
+        finally:
+            socket.socket.bind = bind
         expect(code == 0 and "every network interface" in err, f"exit {code}, no warning: {err[-200:]!r}")
         return "correct"
     c.trial("config", "tc_udp on 0.0.0.0 (warned)", t_any)

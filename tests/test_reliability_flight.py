@@ -106,6 +106,30 @@ def test_run_refuses_an_open_telecommand_directory(tmp_path, capsys):
     assert "ccsds.tc_dir" in err and "writable by group or others" in err and "Traceback" not in err
 
 
+def test_tables_and_refit_inputs_go_through_the_same_intake_rule(tmp_path):
+    from magstack.firmware.flight.app import FlightApp
+    from magstack.firmware.flight.config import load_config
+
+    cfg = sim_config(tmp_path)
+    (tmp_path / "tables" / "open.json").write_bytes((tmp_path / "tables" / "hmc1053.json").read_bytes())
+    (tmp_path / "tables" / "open.json").chmod(0o666)
+    (tmp_path / "open-tlm.csv").write_text("t_s\n")
+    (tmp_path / "open-tlm.csv").chmod(0o666)
+    cmd = tmp_path / "commands"
+    cmd.mkdir(mode=0o700)
+    (cmd / "01.json").write_text(json.dumps({"cmd": "load_table", "channel": "hmc1053", "path": "tables/open.json"}))
+    (cmd / "02.json").write_text(json.dumps({"cmd": "start_refit", "channel": "hmc1053", "files": "open-tlm.csv"}))
+    app = FlightApp(load_config(cfg), virtual=True, simulate=True, telemetry_dir=tmp_path / "tlm", run_id=1)
+    try:
+        app.run(2.0)
+    finally:
+        app.close()
+    for name in ("01.json", "02.json"):
+        res = json.loads((cmd / "done" / f"{name}.result.json").read_text())
+        assert res["ok"] is False and "writable by group or others" in res["message"], res
+    assert app.events.count(EventId.REFIT_STARTED) == 0 and app.slots["hmc1053"].store.load_count == 1  # config's
+
+
 def test_tm_command_writes_packet_files_the_receiver_accepts_under_any_umask(tmp_path, capsys):
     cfg = sim_config(tmp_path)
     old = os.umask(0)
@@ -286,11 +310,14 @@ def test_tm_command_refuses_what_the_receiver_refuses(tmp_path, capsys):
     assert not list((tmp_path / "telecommands").glob("*.tc")) if (tmp_path / "telecommands").exists() else True
 
 
-def test_listening_on_every_interface_is_warned_about(tmp_path, capsys):
+def test_listening_on_every_interface_is_warned_about(tmp_path, capsys, monkeypatch):
     probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     probe.bind(("127.0.0.1", 0))
     port = probe.getsockname()[1]
     probe.close()
+    bind = socket.socket.bind
+    monkeypatch.setattr(socket.socket, "bind",          # the test never listens beyond the loopback
+                        lambda self, addr: bind(self, ("127.0.0.1", addr[1]) if addr[0] == "0.0.0.0" else addr))
     cfg = sim_config(tmp_path)
     cfg.write_text(cfg.read_text().replace('# tc_udp = "127.0.0.1:50511"', f'tc_udp = "0.0.0.0:{port}"'))
     assert main(["run", "--config", str(cfg), "--duration", "1", "--out", str(tmp_path / "tlm")]) == 0

@@ -34,7 +34,7 @@ from magstack.firmware.flight.commands import Command, CommandSpool
 from magstack.firmware.flight.config import FlightConfig, SensorConfig, check_directories
 from magstack.firmware.flight.events import EventFileSink, EventId, EventLog
 from magstack.firmware.flight.executive import Executive, RateGroup
-from magstack.firmware.flight.intake import UnsafeInput, inside_roots
+from magstack.firmware.flight.intake import MAX_REFIT_INPUT_BYTES, UnsafeInput, check_file, inside_roots
 from magstack.firmware.flight.tables import FlightTableStore
 from magstack.firmware.flight.telemetry import ChannelTelemetry
 from magstack.firmware.flight.writer import WriteBehind
@@ -104,6 +104,7 @@ class RefitJob:
             self.result = {"ok": True, **res.to_dict()}
             if res.proposed and res.candidate is not None:
                 path = save_table(res.candidate, self.out_dir / f"{stamp}-candidate.json")
+                os.chmod(path, 0o644)        # loadable under the intake rule whatever the umask
                 self.result["candidate_path"] = str(path)
                 msg = f"candidate {path.name} proposed"
             else:
@@ -333,9 +334,8 @@ class FlightApp:
         if not matches:
             raise ValueError(f"no telemetry files match {pattern!r}")
         files = [str(inside_roots(f, roots, base)) for f in matches]      # UnsafeInput: outside the roots
-        odd = [f for f in files if not os.path.isfile(f)]
-        if odd:
-            raise ValueError(f"{odd[0]}: not a regular file ({len(odd)} of {len(files)} matches)")
+        for f in files:
+            check_file(f, MAX_REFIT_INPUT_BYTES)     # the intake rule (type, size, owner, mode): UnsafeInput
         job = RefitJob(name, files, slot.store.active, slot.sensor.device_id, self.telemetry_dir / "refit",
                        self.events, lambda: self._now(slot))
         self.refits[name] = job

@@ -28,6 +28,8 @@ from pathlib import Path
 
 #: Owners whose files are trusted besides the application's own user (root can write anything anyway).
 TRUSTED_UIDS = (0,)
+#: Largest refit input (telemetry read in blocks by the refit worker).
+MAX_REFIT_INPUT_BYTES = 64 << 30
 
 
 class UnsafeInput(ValueError):
@@ -83,8 +85,8 @@ def _open_checked(path: str | os.PathLike, max_bytes: int, own_only: bool) -> tu
                 raise UnsafeInput(f"{path}: refused: owned by uid {st.st_uid}, the application runs as uid "
                                   f"{os.geteuid()}", "owner")
             if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
-                raise UnsafeInput(f"{path}: refused: writable by group or others (mode {st.st_mode & 0o777:04o})",
-                                  "owner")
+                raise UnsafeInput(f"{path}: refused: writable by group or others (mode {st.st_mode & 0o777:04o}; "
+                                  f"chmod go-w)", "owner")
     except BaseException:
         os.close(fd)
         raise
