@@ -67,8 +67,10 @@ MAX_STREAM_BYTES = 4 << 30
 BLOCK_BYTES = 4 << 20
 #: A count more than this far ahead of the previous one on the same APID is a break (see the module doc).
 MAX_GAP = 64
-#: Rows held per (run id, APID) while waiting for an identification; older ones beyond are refused.
+#: Rows held per (run id, APID) while waiting for an identification, and in all: older ones beyond are
+#: refused (counted), so a stream without identifications cannot fill memory.
 MAX_PENDING_ROWS = 200_000
+MAX_PENDING_TOTAL = 1_000_000
 #: Rows per block written to a session file.
 WRITE_ROWS = 8192
 #: Names in an output directory that belong to the flight application, never replaced by a decode.
@@ -314,6 +316,7 @@ class Attributor:
         self.state: dict[tuple[int, int], _ApidState] = {}
         self.outputs: dict[tuple[Identity, int], _Output] = {}
         self._names: Counter = Counter()
+        self._held = 0                        # rows held over all (run id, APID)
 
     def _commit(self, ident: Identity, apid: int, rows: list[tuple]) -> None:
         if not rows:
@@ -330,9 +333,19 @@ class Attributor:
     def _refuse(self, segments: list[list[tuple]]) -> None:
         self.report.unattributed += sum(len(s) for s in segments)
 
+    def _drop_oldest(self, st: _ApidState) -> None:
+        st.held -= 1
+        self._held -= 1
+        self.report.unattributed += 1
+        st.pending[0].pop(0)
+        if not st.pending[0]:
+            st.pending.pop(0)
+
     def identify(self, apid: int, ident: Identity) -> None:
         st = self.state.setdefault((ident.run_id, apid), _ApidState())
-        segs, st.pending, st.held = st.pending, [], 0
+        segs, st.pending = st.pending, []
+        self._held -= st.held
+        st.held = 0
         if st.current is None:
             self._refuse(segs[:-1])
             if segs:
@@ -358,17 +371,19 @@ class Attributor:
             st.pending.append([])
         st.pending[-1].append(row)
         st.held += 1
+        self._held += 1
         while st.held > MAX_PENDING_ROWS:
-            st.held -= 1
-            self.report.unattributed += 1
-            st.pending[0].pop(0)
-            if not st.pending[0]:
-                st.pending.pop(0)
+            self._drop_oldest(st)
+        if self._held > MAX_PENDING_TOTAL:
+            biggest = max(self.state.values(), key=lambda x: x.held)
+            while self._held > MAX_PENDING_TOTAL:
+                self._drop_oldest(biggest)
 
     def finish(self) -> list[Path]:
         for st in self.state.values():
             self._refuse(st.pending)
-            st.pending = []
+            st.pending, st.held = [], 0
+        self._held = 0
         for out in self.outputs.values():
             out.close()
         self.report.runs = sorted({k[0].run_id for k in self.outputs})
