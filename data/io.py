@@ -189,24 +189,26 @@ def open_bounded(path: str | os.PathLike, max_bytes: int, what: str = "file"):
     is read: ``stat`` first (a FIFO, device or directory is refused without opening it), opened with
     ``O_NONBLOCK`` (a FIFO swapped in after the check cannot block) and checked again on the descriptor,
     at most ``max_bytes`` long (a 6 GiB sparse file costs one ``stat``). :class:`InputDataError` naming the
-    file otherwise. The caller reads at most ``max_bytes`` (a file that grows meanwhile is its to refuse)."""
+    file otherwise ("cannot read: no such <what>", "cannot read: not a regular file ..."). The caller reads
+    at most ``max_bytes`` (a file that grows meanwhile is its to refuse)."""
     p = Path(path)
+
+    def check(st: os.stat_result) -> None:
+        if not stat_mod.S_ISREG(st.st_mode):
+            raise InputDataError(f"{p}: cannot read: not a regular file (a {what} must be one; a directory, FIFO "
+                                 "or device is refused)")
+        if st.st_size > max_bytes:
+            raise InputDataError(f"{p}: cannot read: {st.st_size} bytes, more than the {max_bytes} a {what} may "
+                                 "have")
     try:
-        st = os.stat(p)
-    except OSError as exc:
-        raise InputDataError(f"{p}: cannot read {what} ({exc.strerror or exc})") from None
-    if not stat_mod.S_ISREG(st.st_mode):
-        raise InputDataError(f"{p}: not a regular file (a {what} must be one)")
-    if st.st_size > max_bytes:
-        raise InputDataError(f"{p}: {st.st_size} bytes, more than the {max_bytes} a {what} may have")
-    try:
+        check(os.stat(p))
         fd = os.open(p, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+    except FileNotFoundError:
+        raise InputDataError(f"{p}: cannot read: no such {what}") from None
     except OSError as exc:
         raise InputDataError(f"{p}: cannot read {what} ({exc.strerror or exc})") from None
     try:
-        st = os.fstat(fd)
-        if not stat_mod.S_ISREG(st.st_mode) or st.st_size > max_bytes:
-            raise InputDataError(f"{p}: not a regular file of at most {max_bytes} bytes (a {what} must be one)")
+        check(os.fstat(fd))
         return open(fd, "rb")
     except BaseException:
         os.close(fd)
@@ -214,29 +216,18 @@ def open_bounded(path: str | os.PathLike, max_bytes: int, what: str = "file"):
 
 
 def read_bytes_bounded(path: str | os.PathLike, max_bytes: int, what: str = "file") -> bytes:
-    """The bytes of a small regular file, every bound checked before it can hurt: ``stat`` first (a FIFO,
-    device or directory is refused), opened with ``O_NONBLOCK`` (a FIFO swapped in after the check cannot
-    block), at most ``max_bytes`` (on the size and again while reading: ``/dev/zero`` never fills memory).
-    :class:`InputDataError` naming the file otherwise."""
+    """The bytes of a regular file of at most ``max_bytes`` (:func:`open_bounded`; read in one bounded read,
+    never beyond the limit: ``/dev/zero`` never fills memory). :class:`InputDataError` naming the file
+    otherwise."""
     p = Path(path)
+    fh = open_bounded(p, max_bytes, what)
     try:
-        st = os.stat(p)
-    except OSError as exc:
-        raise InputDataError(f"{p}: cannot read {what} ({exc.strerror or exc})") from None
-    if not stat_mod.S_ISREG(st.st_mode):
-        raise InputDataError(f"{p}: not a regular file (a {what} must be one)")
-    if st.st_size > max_bytes:
-        raise InputDataError(f"{p}: {st.st_size} bytes, more than the {max_bytes} a {what} may have")
-    try:
-        fd = os.open(p, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
-        with open(fd, "rb") as fh:
-            if not stat_mod.S_ISREG(os.fstat(fh.fileno()).st_mode):
-                raise InputDataError(f"{p}: not a regular file (a {what} must be one)")
+        with fh:
             raw = fh.read(max_bytes + 1)
     except OSError as exc:
         raise InputDataError(f"{p}: cannot read {what} ({exc.strerror or exc})") from None
     if len(raw) > max_bytes:
-        raise InputDataError(f"{p}: more than the {max_bytes} bytes a {what} may have")
+        raise InputDataError(f"{p}: cannot read: grew beyond the {max_bytes} bytes a {what} may have")
     return raw
 
 

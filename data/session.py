@@ -28,7 +28,6 @@ import logging
 import math
 import os
 import re
-import stat
 import zlib
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -37,8 +36,9 @@ from pathlib import Path
 import numpy as np
 
 from magstack.data.errors import SessionFileError
-from magstack.data.io import fsync_dir, write_error
+from magstack.data.io import fsync_dir, open_bounded, read_bytes_bounded, write_error
 from magstack.drivers.errors import ConfigurationError
+from magstack.errors import InputDataError
 
 _log = logging.getLogger(__name__)
 
@@ -390,30 +390,13 @@ MAX_FILE_BYTES = 1 << 30
 
 
 def open_regular(path: str | os.PathLike, kind: str, max_bytes: int = MAX_FILE_BYTES):
-    """A binary file object of the regular file ``path`` of at most ``max_bytes``, checked before a byte is
-    read: ``stat`` first (a FIFO, a device such as /dev/zero or a directory is refused without opening it),
-    opened ``O_NONBLOCK`` (a FIFO swapped in afterwards cannot block) and checked again on the descriptor.
-    SessionFileError naming the file otherwise ("no such <kind>", "cannot read ...")."""
-    def check(st: os.stat_result) -> None:
-        if not stat.S_ISREG(st.st_mode):
-            raise SessionFileError(f"{path}: cannot read: not a regular file (a {kind} must be one; a directory, "
-                                   "FIFO or device is refused)")
-        if st.st_size > max_bytes:
-            raise SessionFileError(f"{path}: cannot read: {st.st_size} bytes, more than the {max_bytes} a {kind} "
-                                   "may have")
+    """A binary file object of the regular file ``path`` of at most ``max_bytes``
+    (:func:`magstack.data.io.open_bounded`: a FIFO, a device such as /dev/zero or a directory is refused
+    without being read, a FIFO swapped in never blocks); SessionFileError naming the file otherwise."""
     try:
-        check(os.stat(path))
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
-    except FileNotFoundError:
-        raise SessionFileError(f"{path}: no such {kind}") from None
-    except OSError as exc:
-        raise SessionFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    try:
-        check(os.fstat(fd))
-        return open(fd, "rb")
-    except BaseException:
-        os.close(fd)
-        raise
+        return open_bounded(path, max_bytes, kind)
+    except InputDataError as exc:
+        raise SessionFileError(str(exc)) from None
 
 
 def read_text_file(path: str | os.PathLike, kind: str) -> str:
@@ -427,16 +410,13 @@ def read_text_file(path: str | os.PathLike, kind: str) -> str:
 
 
 def read_file_bytes(path: str | os.PathLike, kind: str, max_bytes: int = MAX_FILE_BYTES) -> bytes:
-    """Bytes of ``path`` without a leading UTF-8 byte-order mark (:func:`open_regular`: a regular file of at
-    most ``max_bytes``, read in blocks and never beyond the limit); SessionFileError naming it otherwise."""
-    fh = open_regular(path, kind, max_bytes)
+    """Bytes of ``path`` without a leading UTF-8 byte-order mark (:func:`magstack.data.io.read_bytes_bounded`:
+    a regular file of at most ``max_bytes``, never read beyond the limit); SessionFileError naming it
+    otherwise."""
     try:
-        with fh:
-            raw = fh.read(max_bytes + 1)
-    except OSError as exc:
-        raise SessionFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    if len(raw) > max_bytes:
-        raise SessionFileError(f"{path}: cannot read: grew beyond the {max_bytes} bytes a {kind} may have")
+        raw = read_bytes_bounded(path, max_bytes, kind)
+    except InputDataError as exc:
+        raise SessionFileError(str(exc)) from None
     return raw[len(_BOM):] if raw.startswith(_BOM) else raw
 
 
