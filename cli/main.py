@@ -174,6 +174,9 @@ def _main(argv: list[str] | None) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 141
+    except MemoryError:
+        # an input larger than this machine can hold (the readers' size limits keep /dev/zero and the like out)
+        return _error(args, json_target, "out of memory: the input is too large for this machine", EXIT_DEVICE)
     except OSError as exc:
         # a file-system problem outside the typed tree (missing output directory, permissions)
         where = f" ({exc.filename})" if exc.filename else ""

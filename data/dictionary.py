@@ -144,6 +144,9 @@ EVENTS: tuple[EventDef, ...] = (
              "the write-behind queue was full: records, packets or event lines dropped (counted)"),
     EventDef("TC_REJECTED", 0x0410, _S.WARNING_LO,
              "a telecommand packet was malformed, corrupt, replayed or unauthorised: counted, not executed"),
+    EventDef("TC_STATE_ERROR", 0x0411, _S.WARNING_HI,
+             "the telecommand receiver's saved sequence counts could not be written or read"),
+    EventDef("TC_RESYNC", 0x0412, _S.ACTIVITY_HI, "a source's expected telecommand sequence count was set"),
 )
 
 # ----------------------------------------------------------------------------------------------- commands
@@ -151,12 +154,29 @@ EVENTS: tuple[EventDef, ...] = (
 
 @dataclass(frozen=True)
 class ArgDef:
-    """A command argument: a UTF-8 string of 1..max_len bytes (length-prefixed in a telecommand)."""
+    """A command argument: a UTF-8 string of 1..max_len bytes (length-prefixed in a telecommand); ``kind``
+    "uint": decimal digits of an integer in 0..max_value."""
 
     name: str
     meaning: str
     max_len: int = 255
     unit: str = ""
+    kind: str = "text"
+    max_value: int | None = None
+
+
+def arg_problem(a: ArgDef, value: object) -> str:
+    """Why ``value`` is not a valid ``a`` ("" when it is): the one argument check of the command directory,
+    the telecommand receiver and ``magstack tm command``."""
+    if not isinstance(value, str) or not value:
+        return f"argument {a.name!r} must be a non-empty string"
+    n = len(value.encode("utf-8", "surrogatepass"))
+    if n > a.max_len:
+        return f"argument {a.name!r} is {n} bytes, longer than {a.max_len}"
+    if a.kind == "uint":
+        if not (value.isascii() and value.isdigit()) or (a.max_value is not None and int(value) > a.max_value):
+            return f"argument {a.name!r} must be an integer in 0..{a.max_value}, got {value[:20]!r}"
+    return ""
 
 
 @dataclass(frozen=True)
@@ -180,6 +200,11 @@ COMMANDS: tuple[CommandDef, ...] = (
     CommandDef("start_refit", 0x06, (_CH, ArgDef("files", "glob of telemetry files, relative to the config", 255)),
                "_start_refit", "start the on-orbit batch refit in a background worker"),
     CommandDef("stop_refit", 0x07, (_CH,), "_execute", "cancel a running refit at its next block"),
+    CommandDef("resync_tc", 0x08, (ArgDef("source_id", "PUS source id whose count is set", 5, kind="uint",
+                                          max_value=65535),
+                                   ArgDef("seq", "the sequence count it sends next", 5, kind="uint",
+                                          max_value=(1 << 14) - 1)),
+               "_execute", "set the telecommand receiver's expected sequence count of a source (resynchronise)"),
 )
 COMMAND = {c.name: c for c in COMMANDS}
 COMMAND_BY_OPCODE = {c.opcode: c for c in COMMANDS}
@@ -250,6 +275,8 @@ CHANNEL_FIELDS: tuple[FieldDef, ...] = (
     FieldDef("flag", "uint", 16, "", 1.0, "flag", None, "flag bits (FLAG_BITS)"),
     FieldDef("table_crc32", "uint", 32, "", 1.0, "table_crc32", 0, "CRC-32 of the table used; 0 = none"),
     FieldDef("error_count", "uint", 32, "", 1.0, "error_count", None, "channel's total faults so far"),
+    FieldDef("run_id", "uint", 32, "", 1.0, "session", None,
+             "the flight run (apid_map names this APID within this run)"),
 )
 _STR = "string"
 GROUP_HK_FIELDS: tuple[FieldDef, ...] = (
@@ -265,7 +292,8 @@ APP_HK_FIELDS: tuple[FieldDef, ...] = (
     FieldDef("tc_malformed", "uint", 32, meaning="truncated, bad length or undecodable"),
     FieldDef("tc_bad_crc", "uint", 32, meaning="packet error control (CRC-16) wrong"),
     FieldDef("tc_wrong_apid", "uint", 32, meaning="not addressed to this application"),
-    FieldDef("tc_replayed", "uint", 32, meaning="sequence count not newer than the last accepted"),
+    FieldDef("tc_replayed", "uint", 32, meaning="sequence count in the window behind the expected one (a replay)"),
+    FieldDef("tc_out_of_window", "uint", 32, meaning="sequence count outside both windows (resync_tc sets it)"),
     FieldDef("tc_unauthorised", "uint", 32, meaning="source address or PUS source id not configured"),
     FieldDef("tc_invalid", "uint", 32, meaning="unknown service, function id or bad arguments"),
     FieldDef("tm_send_errors", "uint", 32, meaning="packets the stream could not write or send"),
@@ -292,7 +320,8 @@ TM_PACKETS: tuple[PacketDef, ...] = (
     PacketDef("channel", 3, 25, "channel", CHANNEL_FIELDS, "one magnetometer record per cycle"),
     PacketDef("group_hk", 3, 25, "group", GROUP_HK_FIELDS, "rate-group housekeeping every hk_period_s"),
     PacketDef("app_hk", 3, 25, "app", APP_HK_FIELDS, "telecommand counters every hk_period_s"),
-    PacketDef("apid_map", 3, 128, "app", ID_FIELDS, "names each channel/group APID (at start, every hk_period_s)"),
+    PacketDef("apid_map", 3, 128, "app", ID_FIELDS,
+              "names each channel/group APID of a run (before the run's first packet, then every hk_period_s)"),
     PacketDef("event", 5, 0, "app", EVENT_FIELDS, "every event; subtype 1..4 from the severity"),
     PacketDef("accept_ok", 1, 1, "app", _REQ, "telecommand accepted"),
     PacketDef("accept_fail", 1, 2, "app", _REQ + _FAIL, "telecommand refused"),
@@ -314,6 +343,7 @@ class TcFailure(IntEnum):
     UNKNOWN_COMMAND = 6
     BAD_ARGUMENT = 7
     EXECUTION_FAILED = 8
+    OUT_OF_WINDOW = 9
 
 
 #: APIDs: telecommands, events, reports and app housekeeping on APP_APID; channel i on CHANNEL_APID0 + i;

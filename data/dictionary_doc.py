@@ -50,6 +50,10 @@ def dictionary_markdown() -> str:
     out += [f"| 0x{e.id:04x} | {e.name} | {e.severity.name} | {e.text} |" for e in sorted(EVENTS, key=lambda e: e.id)]
     out += ["", "Commands (telecommand 8,1: function id uint16, then each argument as u8 length + UTF-8):", "",
             "| function id | name | arguments | handler | meaning |", "|---|---|---|---|---|"]
-    out += [f"| 0x{c.opcode:04x} | {c.name} | {', '.join(f'{a.name} (<= {a.max_len} B)' for a in c.args)} | "
+    out += [f"| 0x{c.opcode:04x} | {c.name} | {', '.join(_arg_text(a) for a in c.args)} | "
             f"{c.handler} | {c.meaning} |" for c in COMMANDS]
     return "\n".join(out) + "\n"
+
+
+def _arg_text(a) -> str:
+    return f"{a.name} (integer 0..{a.max_value})" if a.kind == "uint" else f"{a.name} (<= {a.max_len} B)"

@@ -17,6 +17,9 @@
   input nor another output of the same command, and its directory exists.
 * :func:`open_exclusive` - create a temporary output exclusively (``O_EXCL``, a symlink in its
   place is refused, never followed).
+* :func:`open_bounded` / :func:`read_bytes_bounded` - open (to stream) or read a regular file of bounded
+  size: a FIFO, device or directory, or a file beyond the limit, is one :class:`~magstack.errors.InputDataError`
+  before a byte is read.
 * :func:`read_json_bounded` - read a small JSON document from a regular file with bounds checked
   before and while reading (size, nesting depth, integer digits): hostile input is one
   :class:`~magstack.errors.InputDataError`, never a hang, a MemoryError or a RecursionError.
@@ -58,18 +61,20 @@ def fsync_dir(directory: str | os.PathLike) -> None:
         os.close(fd)
 
 
-def atomic_write_text(path: str | os.PathLike, text: str, *, encoding: str = "utf-8") -> Path:
+def atomic_write_text(path: str | os.PathLike, text: str, *, encoding: str = "utf-8",
+                      perm: int | None = None) -> Path:
     """Write ``text`` to ``path`` atomically and durably; returns ``Path(path)``.
 
     The text goes to ``.<name>.tmp-<pid>`` beside ``path``, is flushed and fsynced, renamed onto
     ``path`` (``os.replace``) and the directory is fsynced. On any failure the temporary file is
     removed and ``path`` is untouched; write errors name the file (:class:`FileWriteError`).
+    ``perm``: the file's mode whatever the umask (e.g. ``0o600``); default: 0666 less the umask.
     """
     p = Path(path)
     tmp = p.with_name(f".{p.name}.tmp-{os.getpid()}")
     created = False
     try:
-        with open_exclusive(tmp, "w", encoding=encoding, newline="") as fh:
+        with open_exclusive(tmp, "w", perm=perm, encoding=encoding, newline="") as fh:
             created = True
             fh.write(text)
             fh.flush()
@@ -117,15 +122,18 @@ def staged_directory(path: str | os.PathLike) -> Iterator[Path]:
         shutil.rmtree(stage, ignore_errors=True)
 
 
-def open_exclusive(path: str | os.PathLike, mode: str = "w", **kwargs: Any):
+def open_exclusive(path: str | os.PathLike, mode: str = "w", *, perm: int | None = None, **kwargs: Any):
     """Open a new file for writing, created exclusively (``O_CREAT | O_EXCL | O_NOFOLLOW``).
 
     A file or a symlink already at ``path`` is never truncated nor followed: ``FileExistsError``.
-    ``mode`` is ``"w"`` (text, kwargs go to :func:`open`) or ``"wb"``.
+    ``mode`` is ``"w"`` (text, kwargs go to :func:`open`) or ``"wb"``; ``perm`` the file's mode whatever
+    the umask (default: 0666 less the umask).
     """
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
-    fd = os.open(path, flags, 0o666)
+    fd = os.open(path, flags, 0o666 if perm is None else perm)
     try:
+        if perm is not None:
+            os.fchmod(fd, perm)
         return open(fd, mode, **kwargs)
     except BaseException:
         os.close(fd)
@@ -176,30 +184,50 @@ JSON_MAX_DEPTH = 32
 JSON_MAX_INT_DIGITS = 30
 
 
-def read_bytes_bounded(path: str | os.PathLike, max_bytes: int, what: str = "file") -> bytes:
-    """The bytes of a small regular file, every bound checked before it can hurt: ``stat`` first (a FIFO,
-    device or directory is refused), opened with ``O_NONBLOCK`` (a FIFO swapped in after the check cannot
-    block), at most ``max_bytes`` (on the size and again while reading: ``/dev/zero`` never fills memory).
-    :class:`InputDataError` naming the file otherwise."""
+def open_bounded(path: str | os.PathLike, max_bytes: int, what: str = "file"):
+    """A binary file object of the regular file ``path`` to read in blocks, every bound checked before a byte
+    is read: ``stat`` first (a FIFO, device or directory is refused without opening it), opened with
+    ``O_NONBLOCK`` (a FIFO swapped in after the check cannot block) and checked again on the descriptor,
+    at most ``max_bytes`` long (a 6 GiB sparse file costs one ``stat``). :class:`InputDataError` naming the
+    file otherwise ("cannot read: no such <what>", "cannot read: not a regular file ..."). The caller reads
+    at most ``max_bytes`` (a file that grows meanwhile is its to refuse)."""
     p = Path(path)
+
+    def check(st: os.stat_result) -> None:
+        if not stat_mod.S_ISREG(st.st_mode):
+            raise InputDataError(f"{p}: cannot read: not a regular file (a {what} must be one; a directory, FIFO "
+                                 "or device is refused)")
+        if st.st_size > max_bytes:
+            raise InputDataError(f"{p}: cannot read: {st.st_size} bytes, more than the {max_bytes} a {what} may "
+                                 "have")
     try:
-        st = os.stat(p)
+        check(os.stat(p))
+        fd = os.open(p, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+    except FileNotFoundError:
+        raise InputDataError(f"{p}: cannot read: no such {what}") from None
     except OSError as exc:
         raise InputDataError(f"{p}: cannot read {what} ({exc.strerror or exc})") from None
-    if not stat_mod.S_ISREG(st.st_mode):
-        raise InputDataError(f"{p}: not a regular file (a {what} must be one)")
-    if st.st_size > max_bytes:
-        raise InputDataError(f"{p}: {st.st_size} bytes, more than the {max_bytes} a {what} may have")
     try:
-        fd = os.open(p, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
-        with open(fd, "rb") as fh:
-            if not stat_mod.S_ISREG(os.fstat(fh.fileno()).st_mode):
-                raise InputDataError(f"{p}: not a regular file (a {what} must be one)")
+        check(os.fstat(fd))
+        return open(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def read_bytes_bounded(path: str | os.PathLike, max_bytes: int, what: str = "file") -> bytes:
+    """The bytes of a regular file of at most ``max_bytes`` (:func:`open_bounded`; read in one bounded read,
+    never beyond the limit: ``/dev/zero`` never fills memory). :class:`InputDataError` naming the file
+    otherwise."""
+    p = Path(path)
+    fh = open_bounded(p, max_bytes, what)
+    try:
+        with fh:
             raw = fh.read(max_bytes + 1)
     except OSError as exc:
         raise InputDataError(f"{p}: cannot read {what} ({exc.strerror or exc})") from None
     if len(raw) > max_bytes:
-        raise InputDataError(f"{p}: more than the {max_bytes} bytes a {what} may have")
+        raise InputDataError(f"{p}: cannot read: grew beyond the {max_bytes} bytes a {what} may have")
     return raw
 
 

@@ -36,8 +36,9 @@ from pathlib import Path
 import numpy as np
 
 from magstack.data.errors import SessionFileError
-from magstack.data.io import fsync_dir, write_error
+from magstack.data.io import fsync_dir, open_bounded, read_bytes_bounded, write_error
 from magstack.drivers.errors import ConfigurationError
+from magstack.errors import InputDataError
 
 _log = logging.getLogger(__name__)
 
@@ -196,9 +197,11 @@ class SessionWriter:
         self._buf: list[tuple[float, ...]] = []
         self._crc = 0
         self.rows_written = 0
+        self._size = 0                      # bytes of whole writes in the file (a failed write is cut back to it)
         try:
-            # exclusive: never truncate the .part left by an earlier, killed session
-            self._fh = open(self.part_path, "xb")
+            # exclusive: never truncate the .part left by an earlier, killed session; unbuffered: each block is
+            # one write, so a failed one can be cut back off the file (no partial row stays in it)
+            self._fh = open(self.part_path, "xb", buffering=0)
         except FileExistsError:
             raise SessionFileError(f"{self.part_path} exists (left by an interrupted session?): "
                                    "read, rename or remove it first") from None
@@ -207,10 +210,22 @@ class SessionWriter:
         self._sync()
 
     def _write(self, data: bytes) -> None:
+        """Write ``data`` whole, or cut what was written of it back off the file and raise FileWriteError."""
+        view, done = memoryview(data), 0
         try:
-            self._fh.write(data)
+            while done < len(data):
+                n = self._fh.write(view[done:])
+                if not n:
+                    raise OSError(28, "No space left on device (nothing written)")
+                done += n
         except OSError as exc:
+            if done:
+                try:
+                    os.ftruncate(self._fh.fileno(), self._size)
+                except OSError:
+                    pass
             raise write_error(self.part_path, exc) from exc
+        self._size += len(data)
 
     def _sync(self) -> None:
         try:
@@ -369,28 +384,39 @@ def _parse_float(cell: str, lineno: int, col: str, path: object) -> float:
     return v
 
 
-def read_text_file(path: str | os.PathLike, kind: str) -> str:
-    """UTF-8 text of ``path`` (a leading byte-order mark is dropped); a missing, unreadable or binary
-    file raises SessionFileError naming it."""
+#: Largest session, ADCS or import file read whole (about 8 million rows of a bench session); readers that
+#: stream in blocks (telemetry for refit and diagnose, packet streams) have their own, larger limits.
+MAX_FILE_BYTES = 1 << 30
+
+
+def open_regular(path: str | os.PathLike, kind: str, max_bytes: int = MAX_FILE_BYTES):
+    """A binary file object of the regular file ``path`` of at most ``max_bytes``
+    (:func:`magstack.data.io.open_bounded`: a FIFO, a device such as /dev/zero or a directory is refused
+    without being read, a FIFO swapped in never blocks); SessionFileError naming the file otherwise."""
     try:
-        return Path(path).read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise SessionFileError(f"{path}: no such {kind}") from None
+        return open_bounded(path, max_bytes, kind)
+    except InputDataError as exc:
+        raise SessionFileError(str(exc)) from None
+
+
+def read_text_file(path: str | os.PathLike, kind: str) -> str:
+    """UTF-8 text of ``path`` (a leading byte-order mark is dropped); a missing, unreadable, non-regular,
+    oversized or binary file raises SessionFileError naming it."""
+    raw = read_file_bytes(path, kind)
+    try:
+        return raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise SessionFileError(f"{path}: not a text {kind} ({exc})") from None
-    except OSError as exc:
-        raise SessionFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
 
 
-def read_file_bytes(path: str | os.PathLike, kind: str) -> bytes:
-    """Bytes of ``path`` without a leading UTF-8 byte-order mark; a missing or unreadable file raises
-    SessionFileError naming it."""
+def read_file_bytes(path: str | os.PathLike, kind: str, max_bytes: int = MAX_FILE_BYTES) -> bytes:
+    """Bytes of ``path`` without a leading UTF-8 byte-order mark (:func:`magstack.data.io.read_bytes_bounded`:
+    a regular file of at most ``max_bytes``, never read beyond the limit); SessionFileError naming it
+    otherwise."""
     try:
-        raw = Path(path).read_bytes()
-    except FileNotFoundError:
-        raise SessionFileError(f"{path}: no such {kind}") from None
-    except OSError as exc:
-        raise SessionFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
+        raw = read_bytes_bounded(path, max_bytes, kind)
+    except InputDataError as exc:
+        raise SessionFileError(str(exc)) from None
     return raw[len(_BOM):] if raw.startswith(_BOM) else raw
 
 
@@ -654,9 +680,10 @@ def row_line(s: Session, k: int) -> int | None:
     """File line number of row ``k`` of a session read from ``s.source`` (None when unknown)."""
     if not s.source or not os.path.isfile(s.source):
         return None
-    raw = Path(s.source).read_bytes()
-    if raw.startswith(_BOM):
-        raw = raw[len(_BOM):]
+    try:
+        raw = read_file_bytes(s.source, "session file")
+    except SessionFileError:
+        return None
     lines = raw.split(b"\n")
     h = 0
     while h < len(lines) and lines[h].startswith(b"#"):

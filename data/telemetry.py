@@ -99,31 +99,50 @@ class TelemetryHeader:
         return all(c in self.columns for c in REF_COLUMNS)
 
 
+#: Largest telemetry file streamed (read in blocks: memory does not grow with it).
+MAX_TELEMETRY_BYTES = 64 << 30
+#: Metadata lines and the header row must end within this many bytes.
+MAX_HEADER_BYTES = 1 << 20
+
+
+def _open(path: str | os.PathLike):
+    """The telemetry file, opened under the bounds (:func:`magstack.data.session.open_regular`)."""
+    return _session.open_regular(path, "telemetry file", MAX_TELEMETRY_BYTES)
+
+
 def read_header(path: str | os.PathLike) -> TelemetryHeader:
-    """Metadata and column names; SessionFileError if a required column is missing."""
+    """Metadata and column names; SessionFileError if a required column is missing, or the file is not a
+    regular file (a FIFO or /dev/zero never blocks nor fills memory: at most ``MAX_HEADER_BYTES`` are read)."""
     name = str(path)
     meta: dict[str, str] = {}
+    with _open(path) as fh:
+        try:
+            head = fh.read(MAX_HEADER_BYTES)
+        except OSError as exc:
+            raise SessionFileError(f"{name}: cannot read ({exc.strerror or exc})") from None
+    if head.startswith(b"\xef\xbb\xbf"):                 # a byte-order mark is accepted, as by read_session
+        head = head[3:]
+    lines = head.split(b"\n")
+    complete = lines if len(head) < MAX_HEADER_BYTES else lines[:-1]     # the last piece may be cut by the limit
+    cols = None
+    lineno = 0
     try:
-        with open(path, encoding="utf-8-sig") as fh:   # a byte-order mark is accepted, as by read_session
-            lineno = 0
-            for line in fh:
-                lineno += 1
-                if line.startswith("#"):
-                    body = line[1:].strip()
-                    if ":" in body:
-                        k, v = body.split(":", 1)
-                        meta[k.strip()] = v.strip()
-                    continue
-                cols = tuple(c.strip() for c in line.rstrip("\n").split(","))
-                break
-            else:
-                raise SessionFileError(f"{name}: no header row (file empty or truncated)")
-    except FileNotFoundError:
-        raise SessionFileError(f"{name}: no such telemetry file") from None
+        for raw in complete:
+            lineno += 1
+            line = raw.decode("utf-8")
+            if line.startswith("#"):
+                body = line[1:].strip()
+                if ":" in body:
+                    k, v = body.split(":", 1)
+                    meta[k.strip()] = v.strip()
+                continue
+            cols = tuple(c.strip() for c in line.rstrip("\r").split(","))
+            break
     except UnicodeDecodeError as exc:
         raise SessionFileError(f"{name}: not a text telemetry file ({exc})") from None
-    except OSError as exc:
-        raise SessionFileError(f"{name}: cannot read ({exc.strerror or exc})") from None
+    if cols is None or (cols == ("",) and lineno == len(complete)):
+        where = f"within the first {MAX_HEADER_BYTES} bytes " if len(head) >= MAX_HEADER_BYTES else ""
+        raise SessionFileError(f"{name}: no header row {where}(file empty or truncated)")
     if meta.get(_session.FORMAT_KEY) not in (None, _session.FORMAT_VERSION):
         raise SessionFileError(f"{name}: unsupported session format version {meta[_session.FORMAT_KEY]!r}")
     missing = [c for c in TELEMETRY_REQUIRED if c not in cols]
@@ -136,7 +155,9 @@ def read_header(path: str | os.PathLike) -> TelemetryHeader:
 
 def _locate_bad_cell(path: str, header: TelemetryHeader, first_row: int, n_rows: int) -> SessionFileError:
     """Slow scan of rows first_row .. first_row + n_rows for the first bad cell (exact line and column)."""
-    with open(path, encoding="utf-8-sig") as fh:
+    import io
+
+    with io.TextIOWrapper(_open(path), encoding="utf-8-sig", errors="replace") as fh:
         lineno, row = 0, -1
         for line in fh:
             lineno += 1
@@ -163,24 +184,25 @@ def iter_telemetry(path: str | os.PathLike, block_rows: int = BLOCK_ROWS) -> Ite
     hdr = read_header(path)
     name = str(path)
     cols = hdr.columns
-    try:
-        reader = pd.read_csv(name, skiprows=hdr.header_line, header=None, names=list(cols), comment="#",
-                             chunksize=int(block_rows), dtype=np.float64, na_values=["", "nan", "NaN"],
-                             keep_default_na=False, skip_blank_lines=True, engine="c")
-        first = 0
-        for chunk in reader:
-            a = chunk.to_numpy(dtype=np.float64, copy=False)
-            if a.shape[1] != len(cols):
-                raise _locate_bad_cell(name, hdr, first, a.shape[0])
-            if np.isinf(a).any():
-                r, c = np.argwhere(np.isinf(a))[0]
-                raise _locate_bad_cell(name, hdr, first + int(r), 1)
-            yield _block(hdr, first, a)
-            first += a.shape[0]
-    except (ValueError, pd.errors.ParserError) as exc:
-        if isinstance(exc, SessionFileError):
-            raise
-        raise _locate_bad_cell(name, hdr, 0, 2 ** 62) from None
+    with _open(path) as fh:               # a FIFO swapped in after read_header is refused, never read
+        try:
+            reader = pd.read_csv(fh, skiprows=hdr.header_line, header=None, names=list(cols), comment="#",
+                                 chunksize=int(block_rows), dtype=np.float64, na_values=["", "nan", "NaN"],
+                                 keep_default_na=False, skip_blank_lines=True, engine="c")
+            first = 0
+            for chunk in reader:
+                a = chunk.to_numpy(dtype=np.float64, copy=False)
+                if a.shape[1] != len(cols):
+                    raise _locate_bad_cell(name, hdr, first, a.shape[0])
+                if np.isinf(a).any():
+                    r, c = np.argwhere(np.isinf(a))[0]
+                    raise _locate_bad_cell(name, hdr, first + int(r), 1)
+                yield _block(hdr, first, a)
+                first += a.shape[0]
+        except (ValueError, pd.errors.ParserError) as exc:
+            if isinstance(exc, SessionFileError):
+                raise
+            raise _locate_bad_cell(name, hdr, 0, 2 ** 62) from None
 
 
 def _block(hdr: TelemetryHeader, first: int, a: np.ndarray) -> TelemetryBlock:
@@ -221,23 +243,37 @@ ADCS_REQUIRED = ("t_s", *POS_COLUMNS, *QUAT_COLUMNS)
 NO_ADCS_FLAG = FLAG["NO_ADCS"].value
 
 
+#: ADCS positions must lie between these distances from the Earth's centre (km): not inside the Earth (the
+#: WGS84 polar radius, 6356.752 km, less 10 km for the deepest ocean floor) and not beyond the Earth's Hill
+#: sphere (about 1.5 million km: nothing farther orbits the Earth).
+ADCS_MIN_RADIUS_KM = 6346.0
+ADCS_MAX_RADIUS_KM = 1.5e6
+#: A quaternion whose norm is off 1 by more than this is refused (scalar last? not a rotation); within it,
+#: it is normalised (a logged 1.0009 is rounding, and is written as a unit quaternion).
+QUAT_NORM_TOL = 1e-3
+
+
 @dataclass
 class AdcsTrack:
     """Time-ordered ADCS samples of one file: ``t_s`` (N,), ``pos_ecef_km`` (N, 3), ``q_body_eci`` (N, 4)
-    scalar first; ``dropped`` rows had an empty or non-finite cell (no fix) and are not in the arrays."""
+    scalar first, unit norm; ``dropped`` rows had an empty or non-finite cell (no fix) and are not in the
+    arrays (``dropped_lines``: the file lines of the first few)."""
 
     path: str
     t_s: np.ndarray
     pos_ecef_km: np.ndarray
     q_body_eci: np.ndarray
     dropped: int = 0
+    dropped_lines: tuple[int, ...] = ()
 
 
 def read_adcs(path: str | os.PathLike) -> AdcsTrack:
     """An ADCS file: ``#`` metadata lines, a header with :data:`ADCS_REQUIRED` (other columns ignored),
-    rows in time order. Bad cells, a missing column, time going backwards or repeating, or a
-    quaternion that is not unit (norm off by more than 1e-3: scalar last?) raise SessionFileError
-    naming file and line."""
+    rows in time order. Bad cells, a missing column, time going backwards or repeating, a position inside
+    the Earth or beyond any Earth orbit (:data:`ADCS_MIN_RADIUS_KM`, :data:`ADCS_MAX_RADIUS_KM`), or a
+    quaternion that is not unit (norm off by more than :data:`QUAT_NORM_TOL`: scalar last?) raise
+    SessionFileError naming file and line. Quaternions within the tolerance are normalised. Rows with an
+    empty or non-finite cell are skipped and counted (``dropped``, ``dropped_lines``)."""
     name = str(path)
     raw = _session.read_file_bytes(path, "ADCS file")
     pos, lineno = 0, 1
@@ -275,11 +311,22 @@ def read_adcs(path: str | os.PathLike) -> AdcsTrack:
         raise SessionFileError(f"{name}: line {line_of(k)}: t_s {t[k]!r} does not increase "
                                f"(previous row {t[k - 1]!r}); ADCS rows must be in time order without repeats")
     ok = np.all(np.isfinite(a), axis=1)
-    q = a[:, 4:8]
-    with np.errstate(invalid="ignore"):
-        bad_q = ok & (np.abs(np.linalg.norm(q, axis=1) - 1.0) > 1e-3)
+    with np.errstate(invalid="ignore", over="ignore"):
+        r_km = np.linalg.norm(a[:, 1:4], axis=1)
+        q = a[:, 4:8]
+        qn = np.linalg.norm(q, axis=1)
+    far = ok & ~((r_km >= ADCS_MIN_RADIUS_KM) & (r_km <= ADCS_MAX_RADIUS_KM))
+    if far.any():
+        k = int(np.flatnonzero(far)[0])
+        where = "inside the Earth" if r_km[k] < ADCS_MIN_RADIUS_KM else "beyond any Earth orbit"
+        raise SessionFileError(f"{name}: line {line_of(k)}: position {r_km[k]:.6g} km from the Earth's centre is "
+                               f"{where} (allowed {ADCS_MIN_RADIUS_KM:g}..{ADCS_MAX_RADIUS_KM:g} km; columns "
+                               f"pos_ecef_x/y/z_km, Earth-fixed, km); {int(far.sum())} such rows")
+    bad_q = ok & (np.abs(qn - 1.0) > QUAT_NORM_TOL)
     if bad_q.any():
         k = int(np.flatnonzero(bad_q)[0])
-        raise SessionFileError(f"{name}: line {line_of(k)}: quaternion norm {np.linalg.norm(q[k]):.6f} is not 1 "
-                               "(columns q_body_eci_w,x,y,z, scalar first)")
-    return AdcsTrack(name, t[ok].copy(), a[ok, 1:4].copy(), q[ok].copy(), int((~ok).sum()))
+        raise SessionFileError(f"{name}: line {line_of(k)}: quaternion norm {qn[k]:.6f} is not 1 within "
+                               f"{QUAT_NORM_TOL:g} (columns q_body_eci_w,x,y,z, scalar first)")
+    skipped = np.flatnonzero(~ok)
+    return AdcsTrack(name, t[ok].copy(), a[ok, 1:4].copy(), q[ok] / qn[ok, None], int(skipped.size),
+                     tuple(line_of(int(k)) for k in skipped[:5]))

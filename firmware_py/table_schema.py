@@ -251,19 +251,33 @@ def check_document(doc: dict, source: str, *, term_params: dict[str, str], units
 
 #: Largest posterior block per axis (parameters): Eq. 3 + currents + cubic + cross products.
 MAX_POSTERIOR_PARAMS = 64
+#: Largest |covariance entry| accepted, in the parameters' own units squared (a posterior sd of 1e6 of any
+#: parameter's unit is no calibration); beyond it products overflow and the block says nothing.
+MAX_POSTERIOR_ABS = 1e12
+#: Largest ``sigma_uT`` / ``bound_uT`` / ``noise_floor_uT`` (uT): beyond any field a magnetometer measures.
+MAX_POSTERIOR_UT = 1e5
+#: Symmetry and positive semi-definiteness are judged entry by entry against the entries' own scale,
+#: sqrt(C_ii C_jj), never against the largest entry of the matrix: with this relative tolerance.
+POSTERIOR_TOL = 1e-9
 
 
 def check_posterior(w: _Path, post: Any, *, declared_params: set[str], currents: list[str]) -> None:
-    """The optional posterior block: per axis the flight parameter names and their covariance (square,
-    symmetric to 1e-9 relative, positive semi-definite); names must belong to declared parameters or be listed in
-    ``left_out`` (parameters of terms the model leaves out, value 0); ``noise_uT`` and the ``discrepancy`` model
-    (:mod:`magstack.firmware.cal_uncertainty`) non-negative."""
+    """The optional posterior block: per axis the flight parameter names and their covariance; names must belong
+    to declared parameters or be listed in ``left_out`` (parameters of terms the model leaves out, value 0);
+    ``sigma_uT``, ``noise_floor_uT``, ``noise_uT`` and the ``discrepancy`` model
+    (:mod:`magstack.firmware.cal_uncertainty`) non-negative, ``bound_uT`` positive.
+
+    The covariance must be a covariance whatever its scale: every entry finite and at most
+    ``MAX_POSTERIOR_ABS``; every variance (diagonal) >= 0; symmetric, |C_ij - C_ji| <= tol sqrt(C_ii C_jj);
+    and positive semi-definite, judged on the correlation matrix C_ij / sqrt(C_ii C_jj) (scale-free: one huge
+    entry cannot hide a negative variance or an asymmetry elsewhere); a zero variance needs a zero row. Each
+    failure is one CalTableInvalid naming the entry, never a numerical exception."""
     obj = _object(w, "posterior", post, POSTERIOR_REQUIRED, POSTERIOR_OPTIONAL)
     for key in ("sigma_uT", "noise_floor_uT", "noise_uT"):
         if key in obj:
-            vals = _vector(w, f"posterior.{key}", obj[key])
-            if key == "noise_uT" and min(vals) < 0:
-                raise w.error(f"posterior.{key}", "must be >= 0")
+            for i, v in enumerate(_vector(w, f"posterior.{key}", obj[key])):
+                if not 0.0 <= v <= MAX_POSTERIOR_UT:
+                    raise w.error(f"posterior.{key}[{i}]", f"{v!r} uT is not in [0, {MAX_POSTERIOR_UT:g}]")
     left = obj.get("left_out", [])
     if not isinstance(left, list) or not all(isinstance(x, str) for x in left) or len(set(left)) != len(left):
         raise w.error("posterior.left_out", "must be a list of distinct parameter names")
@@ -276,19 +290,23 @@ def check_posterior(w: _Path, post: Any, *, declared_params: set[str], currents:
         d = _object(w, "posterior.discrepancy", obj["discrepancy"],
                     set(DISCREPANCY_VECTORS) | set(DISCREPANCY_SCALARS) | {"temp_range_c"}, {"held_out_rows"})
         for key in DISCREPANCY_VECTORS:
-            if min(_vector(w, f"posterior.discrepancy.{key}", d[key])) < 0:
-                raise w.error(f"posterior.discrepancy.{key}", "must be >= 0")
+            for i, v in enumerate(_vector(w, f"posterior.discrepancy.{key}", d[key])):
+                if not 0.0 <= v <= MAX_POSTERIOR_UT ** 2:
+                    raise w.error(f"posterior.discrepancy.{key}[{i}]", f"{v!r} uT^2 is not in [0, "
+                                                                       f"{MAX_POSTERIOR_UT ** 2:g}]")
         for key in DISCREPANCY_SCALARS:
             x = _number(w, f"posterior.discrepancy.{key}", d[key])
-            if key != "temp_centre_c" and not x >= 0:
-                raise w.error(f"posterior.discrepancy.{key}", "must be >= 0")
+            if key != "temp_centre_c" and not 0.0 <= x <= 1e6:
+                raise w.error(f"posterior.discrepancy.{key}", f"{x!r} is not in [0, 1e6]")
         if d["field_ref_uT"] <= 0 or d["temp_ref_c"] <= 0:
             raise w.error("posterior.discrepancy", "field_ref_uT and temp_ref_c must be > 0")
         lo, hi = _interval(w, "posterior.discrepancy.temp_range_c", d["temp_range_c"])
         if lo > hi:
             raise w.error("posterior.discrepancy.temp_range_c", "must be an interval lo <= hi")
     if "bound_uT" in obj:
-        _number(w, "posterior.bound_uT", obj["bound_uT"])
+        b = _number(w, "posterior.bound_uT", obj["bound_uT"])
+        if not 0.0 < b <= MAX_POSTERIOR_UT:
+            raise w.error("posterior.bound_uT", f"{b!r} uT is not in (0, {MAX_POSTERIOR_UT:g}]")
     if "prior" in obj:
         _string(w, "posterior.prior", obj["prior"])
     for axis in ("x", "y", "z"):
@@ -315,12 +333,42 @@ def check_posterior(w: _Path, post: Any, *, declared_params: set[str], currents:
         if not isinstance(cov, list) or len(cov) != k:
             raise w.error(f"{path}.cov", f"must be a {k}x{k} matrix")
         rows = [_vector(w, f"{path}.cov[{r}]", row, k) for r, row in enumerate(cov)]
-        C = np.array(rows, dtype=float)
-        scale = max(float(np.max(np.abs(C))), 1e-300)
-        if np.max(np.abs(C - C.T)) > 1e-9 * scale:
-            raise w.error(f"{path}.cov", "is not symmetric")
-        if np.linalg.eigvalsh(0.5 * (C + C.T)).min() < -1e-9 * scale:
-            raise w.error(f"{path}.cov", "is not positive semi-definite")
+        _check_covariance(w, f"{path}.cov", np.array(rows, dtype=float))
+
+
+def _check_covariance(w: _Path, path: str, C: np.ndarray) -> None:
+    big = np.argwhere(np.abs(C) > MAX_POSTERIOR_ABS)
+    if big.size:
+        i, j = big[0]
+        raise w.error(f"{path}[{i}][{j}]", f"{C[i, j]:g} is beyond any posterior covariance "
+                                           f"(|entry| <= {MAX_POSTERIOR_ABS:g})")
+    d = np.diag(C)
+    neg = np.flatnonzero(d < 0)
+    if neg.size:
+        i = neg[0]
+        raise w.error(f"{path}[{i}][{i}]", f"negative variance {d[i]:g}")
+    s = np.sqrt(d)
+    scale = np.outer(s, s)                     # each entry's own scale (no overflow: entries are bounded)
+    asym = np.argwhere(np.abs(C - C.T) > POSTERIOR_TOL * scale)
+    if asym.size:
+        i, j = asym[0]
+        raise w.error(path, f"is not symmetric: [{i}][{j}] = {C[i, j]:g}, [{j}][{i}] = {C[j, i]:g}")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        R = np.where(scale > 0, 0.5 * (C + C.T) / scale, 0.0)
+    beyond = np.argwhere((np.abs(R) > 1.0 + POSTERIOR_TOL) | ((scale == 0) & (C != 0)))
+    if beyond.size:
+        i, j = beyond[0]
+        raise w.error(path, f"is not positive semi-definite: [{i}][{j}] = {C[i, j]:g} exceeds sqrt(C_ii C_jj) = "
+                            f"{scale[i, j]:g}")
+    live = s > 0
+    if live.sum() > 1:
+        try:
+            low = float(np.linalg.eigvalsh(R[np.ix_(live, live)]).min())
+        except np.linalg.LinAlgError:
+            raise w.error(path, "eigenvalues cannot be computed (not a covariance)") from None
+        if low < -POSTERIOR_TOL * live.sum():
+            raise w.error(path, f"is not positive semi-definite (smallest eigenvalue of the correlation matrix "
+                                f"{low:.3g})")
 
 
 _SHAPES: dict[str, Callable[..., Any]] = {"3x3": _matrix, "3": _vector}

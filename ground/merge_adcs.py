@@ -68,7 +68,8 @@ def combine(tracks: Sequence[AdcsTrack]) -> AdcsTrack:
     if rep.size:
         raise SessionFileError(f"ADCS files {[a.path for a in tracks]} overlap: time {t[rep[0]]!r} s is in two of them")
     return AdcsTrack(";".join(a.path for a in tracks), t, np.vstack([a.pos_ecef_km for a in tracks])[order],
-                     np.vstack([a.q_body_eci for a in tracks])[order], sum(a.dropped for a in tracks))
+                     np.vstack([a.q_body_eci for a in tracks])[order], sum(a.dropped for a in tracks),
+                     tuple(x for a in tracks for x in a.dropped_lines)[:5])
 
 
 def adcs_at(track: AdcsTrack, t_s: np.ndarray, method: str = "interpolate", tolerance_s: float = TOLERANCE_S
@@ -127,7 +128,7 @@ def merge_session(s: Session, track: AdcsTrack, method: str = "interpolate",
     meta = dict(s.metadata)
     legend = meta.get("flag_bits", "")
     meta.update({"adcs_files": track.path, "adcs_method": method, "adcs_tolerance_s": f"{tolerance_s:g}",
-                 "adcs_rows_without": str(int((~ok).sum())),
+                 "adcs_rows_without": str(int((~ok).sum())), "adcs_samples_skipped": str(track.dropped),
                  "flag_bits": (legend + " " if legend else "") + f"{NO_ADCS_FLAG}=no_adcs"})
     return Session(s.t_s, s.ref_uT, s.dut_uT, s.temp_c, s.session, dict(s.currents_A), meta, flag,
                    list(s.warnings), extra, s.source), ok

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 from magstack.cli.main import main
 from magstack.data.dictionary import APP_APID, CHANNEL_FIELDS, FIELD_LSB_UT, TM_PACKET
+from magstack.data.errors import SessionFileError
 from magstack.data.packets import PacketError, TmEncoder, cuc_bytes, cuc_seconds, decode_tm, from_raw, pack_tc
 from magstack.data.session import read_session
 from magstack.ground.tm_decode import DecodeReport, decode_files, iter_packets
@@ -174,8 +175,13 @@ def test_decode_of_a_file_without_packets_is_bad_input(tmp_path, capsys):
     (tmp_path / "x.bin").write_bytes(b"not packets at all")
     assert main(["tm", "decode", str(tmp_path / "x.bin"), "--out", str(tmp_path / "d")]) == 3
     assert "no valid packet" in capsys.readouterr().err
-    rep = decode_files([tmp_path / "x.bin"], tmp_path / "d2")
+    assert not (tmp_path / "d").exists()                        # a failed decode writes nothing
+    rep = DecodeReport()
+    assert list(iter_packets(b"not packets at all", rep)) == []
     assert rep.bad_length == 1 and rep.skipped_bytes == 18
+    with pytest.raises(SessionFileError, match="no valid packet"):
+        decode_files([tmp_path / "x.bin"], tmp_path / "d2")
+    assert not (tmp_path / "d2").exists()
 
 
 def test_a_packet_that_cannot_be_sent_is_counted_and_reported_not_raised():

@@ -42,11 +42,13 @@ def test_space_packet_parser_reproduces_every_field_of_a_10_minute_run(tmp_path,
     capsys.readouterr()
 
     defn = spp.load_xtce(tmp_path / "tm.xml")
-    rows, hk, events = defaultdict(list), defaultdict(list), []
+    rows, hk, events, first = defaultdict(list), defaultdict(list), [], []
     with open(tmp_path / "tlm/packets-0001.bin", "rb") as fh:
         for raw in spp.ccsds_generator(fh):
             p = defn.parse_bytes(raw)
             keys = list(p)
+            if len(first) < 4:
+                first.append(p)
             t = _raw(p["CUC_COARSE"]) + _raw(p["CUC_FINE"]) / 2 ** (8 * CUC.fine_octets)
             chan = next((k[len("CHANNEL_"):-len("_raw_x")] for k in keys if k.startswith("CHANNEL_") and
                          k.endswith("_raw_x")), None)
@@ -58,6 +60,9 @@ def test_space_packet_parser_reproduces_every_field_of_a_10_minute_run(tmp_path,
             elif "EVENT_event_id" in p:
                 events.append((_raw(p["EVENT_event_id"]), p["EVENT_source"], p["EVENT_message"]))
     assert set(rows) == {"hmc1053", "lis3mdl"} and len(rows["lis3mdl"]) == 6000 and len(rows["hmc1053"]) == 600
+    # the run's identification comes first: run id and the APID -> channel map, before any channel packet
+    assert [(_raw(p["APID_MAP_run_id"]), p["APID_MAP_name"]) for p in first] == [
+        (1, "hmc1053"), (1, "lis3mdl"), (1, "slow"), (1, "fast")]
 
     for chan, got in rows.items():
         s = read_session(tmp_path / "dec" / f"{chan}-0001-0001.csv")
@@ -66,7 +71,7 @@ def test_space_packet_parser_reproduces_every_field_of_a_10_minute_run(tmp_path,
         # time: CUC coarse + fine, bit for bit (the file's 6 decimals resolve 2**-16 s)
         assert np.array_equal(np.round(s.t_s * 2 ** 16), np.round(got[:, 0] * 2 ** 16))
         cols = {"dut_x_uT": s.dut_uT[:, 0], "dut_y_uT": s.dut_uT[:, 1], "dut_z_uT": s.dut_uT[:, 2],
-                "temp_c": s.temp_c, "flag": s.flag.astype(float), **s.extra}
+                "temp_c": s.temp_c, "flag": s.flag.astype(float), "session": s.session.astype(float), **s.extra}
         for k, f in enumerate(CHANNEL_FIELDS, start=1):
             col = cols[f.column]
             want = np.where(np.isnan(col), f.absent if f.absent is not None else np.nan, np.round(col / f.lsb))

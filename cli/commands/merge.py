@@ -3,12 +3,14 @@ into flight telemetry, written as refit input (:mod:`magstack.ground.merge_adcs`
 from __future__ import annotations
 
 import argparse
+import logging
 
 from magstack.cli.options import finite_float, nonempty_path
 from magstack.cli.output import CommandResult
 from magstack.data.telemetry import NO_ADCS_FLAG
 from magstack.ground.merge_adcs import METHODS, TOLERANCE_S, merge_files
 
+log = logging.getLogger(__name__)
 #: Gaps printed in the text report (all of them are in --json).
 SHOWN_GAPS = 10
 
@@ -34,9 +36,14 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> CommandResult:
     reports, track = merge_files(args.telemetry, args.adcs, args.out, args.method, args.tolerance)
-    lines = [f"ADCS: {track.t_s.size} samples from {len(args.adcs)} file(s)"
-             + (f", {track.dropped} rows without a value skipped" if track.dropped else "")
+    lines = [f"ADCS: {track.t_s.size} samples from {len(args.adcs)} file(s), {track.dropped} samples with an empty "
+             f"or non-finite cell skipped"
+             + (f" (lines {', '.join(map(str, track.dropped_lines))}{' ...' if track.dropped > 5 else ''})"
+                if track.dropped else "")
              + f"; {args.method}, tolerance {args.tolerance:g} s"]
+    if track.dropped:
+        log.warning("merge: %d ADCS samples with an empty or non-finite cell skipped (first at line %d)",
+                    track.dropped, track.dropped_lines[0])
     for r in reports:
         lines.append(f"wrote {r.out}: {r.rows} rows, {r.merged} with ADCS, {r.flagged} without "
                      f"(flag {NO_ADCS_FLAG}) in {len(r.gaps)} gap(s)")
@@ -45,7 +52,8 @@ def run(args: argparse.Namespace) -> CommandResult:
         if len(r.gaps) > SHOWN_GAPS:
             lines.append(f"  ... {len(r.gaps) - SHOWN_GAPS} shorter gaps (all in --json)")
     data = {"method": args.method, "tolerance_s": args.tolerance, "adcs_samples": int(track.t_s.size),
-            "adcs_rows_skipped": track.dropped, "no_adcs_flag": NO_ADCS_FLAG,
+            "adcs_rows_skipped": track.dropped, "adcs_skipped_lines": list(track.dropped_lines),
+            "no_adcs_flag": NO_ADCS_FLAG,
             "files": [{"telemetry": r.telemetry, "out": r.out, "rows": r.rows, "merged": r.merged,
                        "without_adcs": r.flagged,
                        "gaps": [{"t_first_s": g.t_first_s, "t_last_s": g.t_last_s, "rows": g.rows} for g in r.gaps]}

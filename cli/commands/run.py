@@ -90,10 +90,14 @@ def run(args: argparse.Namespace) -> CommandResult:
     with graceful_stop() as stop:
         app = FlightApp(cfg, virtual=virtual, simulate=simulate, telemetry_dir=args.out, chip_options=options,
                         stop=stop)
+        close_error = ""
         try:
             app.run(args.duration)
         finally:
-            app.close()
+            try:
+                app.close()
+            except Exception as exc:  # noqa: BLE001 - the summary and counters must still be written and shown
+                close_error = f"closing the run's files failed: {type(exc).__name__}: {exc}"
             try:
                 summary = app.write_summary(Path(app.telemetry_dir) / f"summary-{app.run_id:04d}.json")
             except OSError as exc:          # the disk is still full: the counters are printed below anyway
@@ -119,11 +123,16 @@ def run(args: argparse.Namespace) -> CommandResult:
         lines.append(f"  {name:<12} {c['cycles']} cycles: {c['samples_ok']} good, {cal} calibrated, "
                      f"{c['error_count']} faults{' (DEGRADED)' if c['degraded'] else ''}; table {table}"
                      + (f"; {lost} telemetry rows lost" if lost else ""))
+    pk = counters.get("packets")
+    if pk is not None:
+        lines.append(f"  packets      {pk['written']} written ({pk['bytes']} bytes), {pk['send_errors']} could not be "
+                     f"written or sent" + (f", {pk['sync_errors']} fsyncs failed" if pk["sync_errors"] else ""))
     wq = counters["write_queue"]
     if wq is not None:
         lines.append(f"  write queue  {wq['written']} items written behind the rate groups, at most {wq['max_depth']} "
                      f"waiting, {sum(wq['dropped'].values())} dropped for a full queue")
-    degraded = counters["degraded"]
+    degraded = counters["degraded"] + ([close_error] if close_error else [])
+    counters["degraded"] = degraded
     lines += [f"  DEGRADED: {why}" for why in degraded]
     data = {"run_id": app.run_id, "telemetry_dir": str(app.telemetry_dir),
             "summary": None if summary is None else str(summary), "virtual_time": virtual, "simulated": simulate,

@@ -31,10 +31,10 @@ from magstack.firmware.errors import CalTableInvalid, FlightConfigError
 from magstack.firmware.flight.ccsds import attach_ccsds
 from magstack.firmware.flight.channel import ChannelLimits, MagChannel
 from magstack.firmware.flight.commands import Command, CommandSpool
-from magstack.firmware.flight.config import FlightConfig, SensorConfig
+from magstack.firmware.flight.config import FlightConfig, SensorConfig, check_directories
 from magstack.firmware.flight.events import EventFileSink, EventId, EventLog
 from magstack.firmware.flight.executive import Executive, RateGroup
-from magstack.firmware.flight.intake import UnsafeInput, inside_roots
+from magstack.firmware.flight.intake import MAX_REFIT_INPUT_BYTES, UnsafeInput, check_file, inside_roots
 from magstack.firmware.flight.tables import FlightTableStore
 from magstack.firmware.flight.telemetry import ChannelTelemetry
 from magstack.firmware.flight.writer import WriteBehind
@@ -104,6 +104,7 @@ class RefitJob:
             self.result = {"ok": True, **res.to_dict()}
             if res.proposed and res.candidate is not None:
                 path = save_table(res.candidate, self.out_dir / f"{stamp}-candidate.json")
+                os.chmod(path, 0o644)        # loadable under the intake rule whatever the umask
                 self.result["candidate_path"] = str(path)
                 msg = f"candidate {path.name} proposed"
             else:
@@ -127,6 +128,7 @@ class FlightApp:
         self.virtual = virtual
         self.simulate = simulate
         self.telemetry_dir = Path(telemetry_dir) if telemetry_dir is not None else cfg.telemetry_dir
+        check_directories(cfg, self.telemetry_dir)
         self.telemetry_dir.mkdir(parents=True, exist_ok=True)
         self.run_id = run_id if run_id is not None else self._next_run_id()
         self.writer = WriteBehind(cfg.write_queue, on_error=self._write_failed) if write_behind else None
@@ -173,7 +175,11 @@ class FlightApp:
                 raise FlightConfigError(f"{cfg.path}: flight.command_dir: {exc}") from None
             self.spool.recover()
             self.executive.group(COMMAND_GROUP).boundary.insert(0, self.spool.poll)
-        self.ccsds = attach_ccsds(self)     # [ccsds]: packet stream + telecommands (None without the table)
+        try:
+            self.ccsds = attach_ccsds(self)     # [ccsds]: packet stream + telecommands (None without the table)
+        except BaseException:
+            self.close()
+            raise
 
     # ------------------------------------------------------------------ construction
     def _next_run_id(self) -> int:
@@ -269,6 +275,10 @@ class FlightApp:
                 msg = self._move(slot, cmd.args["group"])
             elif cmd.name == "start_refit":
                 msg = self._start_refit(slot, cmd.args["files"])
+            elif cmd.name == "resync_tc":
+                if self.ccsds is None:
+                    raise ValueError("this configuration takes no telecommands (no [ccsds] table)")
+                msg = self.ccsds.resync(int(cmd.args["source_id"]), int(cmd.args["seq"]))
             elif cmd.name == "stop_refit":
                 job = self.refits.get(slot.sensor.name)
                 if job is None or not job.thread.is_alive():
@@ -324,9 +334,8 @@ class FlightApp:
         if not matches:
             raise ValueError(f"no telemetry files match {pattern!r}")
         files = [str(inside_roots(f, roots, base)) for f in matches]      # UnsafeInput: outside the roots
-        odd = [f for f in files if not os.path.isfile(f)]
-        if odd:
-            raise ValueError(f"{odd[0]}: not a regular file ({len(odd)} of {len(files)} matches)")
+        for f in files:
+            check_file(f, MAX_REFIT_INPUT_BYTES)     # the intake rule (type, size, owner, mode): UnsafeInput
         job = RefitJob(name, files, slot.store.active, slot.sensor.device_id, self.telemetry_dir / "refit",
                        self.events, lambda: self._now(slot))
         self.refits[name] = job
@@ -363,6 +372,7 @@ class FlightApp:
                 "write_queue": None if self.writer is None else self.writer.stats(),
                 "commands": None if self.spool is None else {"accepted": self.spool.accepted,
                                                              "rejected": self.spool.rejected},
+                "packets": None if getattr(self, "ccsds", None) is None else self.ccsds.counters(),
                 "degraded": self.degraded_reasons()}
 
     def degraded_reasons(self) -> list[str]:
@@ -384,6 +394,8 @@ class FlightApp:
         lost = (0 if sink is None else sink.lost) + self.events.sink_errors     # dropped ones: the reason above
         if lost:
             out.append(f"{lost} events could not be written to the event log")
+        if getattr(self, "ccsds", None) is not None:
+            out += self.ccsds.degraded_reasons()
         return out
 
     def wait_refits(self, timeout_s: float | None = None) -> None:

@@ -9,7 +9,10 @@ only pack); with ``csv = false`` the session CSVs are not written. Telecommands
 (:mod:`.telecommands`) are polled at the fastest group's boundary, like the command directory.
 
 A packet that cannot be written or sent is counted (``tm_send_errors``) with a rate-limited
-``TLM_WRITE_ERROR`` event; the flight loop never stops for it.
+``TLM_WRITE_ERROR`` event; the flight loop never stops for it, and the run's summary and degraded reasons
+carry the count. Every channel packet carries its run id, and the run's ``apid_map`` packets (run id,
+APID -> channel, device id, chip) are the first packets of the run and are repeated every ``hk_period_s``,
+so a decoder can attribute every channel packet to a channel and a run (:mod:`magstack.ground.tm_decode`).
 """
 from __future__ import annotations
 
@@ -24,7 +27,9 @@ from typing import Any
 
 from magstack.data.dictionary import APP_APID, EVENT_SUBTYPE, TM_PACKET, Severity
 from magstack.data.packets import ApidMap, TmEncoder
+from magstack.firmware.errors import FlightConfigError
 from magstack.firmware.flight.events import Event, EventId
+from magstack.firmware.flight.intake import UnsafeInput
 from magstack.firmware.flight.writer import WriteBehind
 
 DEFAULT_TM_PORT, DEFAULT_TC_PORT = 50510, 50511
@@ -93,32 +98,77 @@ def apid_map(cfg) -> ApidMap:
 
 
 class PacketStream:
-    """Encodes and emits TM packets to a file and/or a UDP address; never raises on a write."""
+    """Encodes and emits TM packets to a file and/or a UDP address; never raises on a write, nor on close.
+
+    The file is written without a user-space buffer: each packet is one ``write`` on an ``O_APPEND``
+    descriptor as soon as the writer takes it, so a process killed at any moment loses only the packets
+    still waiting in the write-behind queue (:mod:`.writer`), never a buffer of written ones. It is fsynced
+    (for a power cut) every ``sync_s`` seconds of ``now`` (the application's clock) and every
+    ``sync_every`` packets. A write that fails or is cut short (disk full) is cut back off the file (no
+    partial packet stays in it) and counted (``send_errors``); the next packet tries again."""
 
     def __init__(self, apids: ApidMap, *, path: Path | None, udp: tuple[str, int] | None,
                  on_error: Callable[[str], None] | None = None, sync_every: int = 200,
-                 writer: WriteBehind | None = None) -> None:
+                 writer: WriteBehind | None = None, now: Callable[[], float] | None = None,
+                 sync_s: float = 1.0, run_id: int = 0) -> None:
         self.apids = apids
         self.writer = writer                        # None: written and sent by the caller (synchronous)
         self.encoder = TmEncoder()
         self.path = path
-        self._fh = open(path, "ab") if path is not None else None
+        self.run_id = int(run_id)
+        self._fd: int | None = None
+        self._size = 0
+        if path is not None:
+            self._fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
+            self._size = os.fstat(self._fd).st_size
         self._udp = udp
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM) if udp is not None else None
         self.on_error = on_error
         self.sync_every = max(1, sync_every)
+        self.sync_s = float(sync_s)
+        self._now = now
+        self._synced_at: float | None = None
+        self._unsynced = 0
         self.sent = 0
         self.bytes = 0
-        self.send_errors = 0
+        self.send_errors = 0                        # packets that could not be written or sent
+        self.sync_errors = 0                        # fsyncs that failed (written data may not be durable)
         self._lock = threading.Lock()
+
+    def _file_write(self, data: bytes) -> None:
+        """One packet onto the file, whole or not at all (OSError when not)."""
+        if self._fd is None:
+            raise ValueError("packet file closed")
+        try:
+            n = os.write(self._fd, data)
+            if n != len(data):
+                raise OSError(28, f"short write ({n} of {len(data)} bytes)")
+        except OSError:
+            try:
+                os.ftruncate(self._fd, self._size)      # no partial packet stays in the file
+            except OSError:
+                pass
+            raise
+        self._size += len(data)
+        self._unsynced += 1
+        t = self._now() if self._now is not None else None
+        if self._synced_at is None and t is not None:
+            self._synced_at = t
+        if self._unsynced >= self.sync_every or (t is not None and t - self._synced_at >= self.sync_s):
+            self._sync(t)
+
+    def _sync(self, t: float | None) -> None:
+        self._unsynced = 0
+        self._synced_at = t
+        try:
+            os.fsync(self._fd)
+        except OSError:
+            self.sync_errors += 1
 
     def _write(self, data: bytes) -> str:
         try:
-            if self._fh is not None:
-                self._fh.write(data)
-                if (self.sent + 1) % self.sync_every == 0:
-                    self._fh.flush()
-                    os.fsync(self._fh.fileno())
+            if self.path is not None:
+                self._file_write(data)
             if self._sock is not None:
                 self._sock.sendto(data, self._udp)
         except (OSError, ValueError) as exc:     # ValueError: written after close
@@ -159,7 +209,8 @@ class PacketStream:
         cal = rec.cal_uT or (None, None, None)
         self.emit("channel", self.apids.channel(rec.channel), rec.t_s, {
             "raw_x": raw[0], "raw_y": raw[1], "raw_z": raw[2], "cal_x": cal[0], "cal_y": cal[1], "cal_z": cal[2],
-            "temp": rec.temp_c, "flag": rec.flags, "table_crc32": rec.table_crc32, "error_count": rec.error_count})
+            "temp": rec.temp_c, "flag": rec.flags, "table_crc32": rec.table_crc32, "error_count": rec.error_count,
+            "run_id": self.run_id})
 
     def event(self, ev: Event) -> None:
         sev = Severity(ev.severity)
@@ -181,15 +232,23 @@ class PacketStream:
             self.emit("apid_map", APP_APID, t_s, {"apid": self.apids.group(g), "kind": 2, "run_id": run_id,
                                                   "name": g, "device_id": "", "chip": ""})
 
+    def stats(self) -> dict:
+        return {"path": None if self.path is None else str(self.path), "written": self.sent, "bytes": self.bytes,
+                "send_errors": self.send_errors, "sync_errors": self.sync_errors}
+
     def close(self) -> None:
+        """fsync and close (a failure is counted in ``sync_errors``, never raised); safe to call twice."""
         with self._lock:
-            if self._fh is not None and not self._fh.closed:
+            fd, self._fd = self._fd, None
+            if fd is not None:
                 try:
-                    self._fh.flush()
-                    os.fsync(self._fh.fileno())
+                    os.fsync(fd)
                 except OSError:
-                    self.send_errors += 1
-                self._fh.close()
+                    self.sync_errors += 1
+                try:
+                    os.close(fd)
+                except OSError:
+                    self.sync_errors += 1
             if self._sock is not None:
                 self._sock.close()
 
@@ -215,16 +274,26 @@ class CcsdsLink:
     """What :func:`attach_ccsds` built: the packet stream, the telecommand receiver, the HK schedule."""
 
     def __init__(self, app, cfg: CcsdsConfig) -> None:
-        from magstack.firmware.flight.telecommands import TelecommandReceiver
+        from magstack.firmware.flight.telecommands import STATE_NAME, TelecommandReceiver
 
         self.cfg = cfg
         self.app = app
         path = app.telemetry_dir / f"packets-{app.run_id:04d}.bin" if cfg.packets else None
+        # fsync by time on the system clock (a power cut loses at most a second of packets); in virtual time
+        # every sync_every packets only (a simulated day would otherwise wait for 86,400 fsyncs)
+        clk = next(iter(app.clocks.values()))
+        now = None if getattr(app, "virtual", False) else clk.monotonic_s
         self.stream = PacketStream(apid_map(app.cfg), path=path, udp=cfg.tm_udp, on_error=self._error,
-                                   writer=getattr(app, "writer", None))
+                                   writer=getattr(app, "writer", None), now=now, run_id=app.run_id)
         self.receiver = None
         if cfg.tc_udp is not None or cfg.tc_dir is not None:
-            self.receiver = TelecommandReceiver(cfg, app.events, self.stream, self._submit, self._now)
+            state = app.cfg.command_dir / STATE_NAME if app.cfg.command_dir is not None else None
+            try:
+                self.receiver = TelecommandReceiver(cfg, app.events, self.stream, self._submit, self._now,
+                                                    state_path=state)
+            except UnsafeInput as exc:
+                self.stream.close()
+                raise FlightConfigError(f"{app.cfg.path}: ccsds.tc_dir: {exc}") from None
         self._next_hk: dict[str, float] = {}
 
     def _submit(self, cmd) -> None:
@@ -258,6 +327,28 @@ class CcsdsLink:
         c = self.receiver.counters.to_dict() if self.receiver is not None else {}
         return {**c, "tm_send_errors": self.stream.send_errors}
 
+    def resync(self, source_id: int, seq: int) -> str:
+        """The ``resync_tc`` command (ValueError without a telecommand input)."""
+        if self.receiver is None:
+            raise ValueError("this configuration takes no telecommands ([ccsds] tc_udp / tc_dir)")
+        return self.receiver.resync(source_id, seq)
+
+    def counters(self) -> dict:
+        """The packet stream's and the telecommand receiver's counters (the run's summary)."""
+        rx = self.receiver
+        return {**self.stream.stats(),
+                "telecommands": None if rx is None else {**rx.counters.to_dict(), "state_errors": rx.state_errors,
+                                                         "expected_seq": {str(k): v for k, v in
+                                                                          sorted(rx.expected().items())}}}
+
+    def degraded_reasons(self) -> list[str]:
+        out = []
+        if self.stream.send_errors:
+            out.append(f"{self.stream.send_errors} packets could not be written or sent")
+        if self.stream.sync_errors:
+            out.append(f"{self.stream.sync_errors} fsyncs of the packet file failed (packets may not be durable)")
+        return out
+
     def close(self) -> None:
         if self.receiver is not None:
             self.receiver.close()
@@ -272,6 +363,8 @@ def attach_ccsds(app) -> CcsdsLink | None:
     if cfg is None:
         return None
     link = CcsdsLink(app, cfg)
+    # the run's identification (run id, APID -> channel, device, chip) precedes every other packet of the run
+    link.stream.apid_announcements(link._now(), app.run_id, app.cfg.sensors)
     for slot in app.slots.values():
         slot.channel.sink = _tee(slot.channel.sink if cfg.csv else None, link.stream.record)
     for ev in list(app.events.recent):          # events of the start-up (table activation) come first

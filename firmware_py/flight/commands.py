@@ -28,7 +28,9 @@ Commands (``"cmd"`` key), each naming its ``"channel"`` where it applies:
   candidate table (written only if valid and better than the active table on held-out rows) and a
   result file go to ``<telemetry_dir>/refit/``; events ``REFIT_STARTED`` / ``REFIT_FINISHED`` /
   ``REFIT_FAILED``. The candidate is not activated: ``load_table`` + ``activate_table`` take it from there;
-* ``stop_refit {channel}`` - cancel a running refit (it stops at its next block).
+* ``stop_refit {channel}`` - cancel a running refit (it stops at its next block);
+* ``resync_tc {source_id, seq}`` - set the telecommand receiver's expected sequence count of a PUS source
+  (:mod:`.telecommands`).
 
 A command for a channel is queued to the rate group that runs the channel and executed by that
 group between two of its cycles, never while a read is under way.
@@ -43,7 +45,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from magstack.data.dictionary import COMMAND as COMMAND_BY_NAME
 from magstack.data.dictionary import COMMANDS as COMMAND_DEFS
+from magstack.data.dictionary import arg_problem
 from magstack.firmware.flight.events import EventId, EventLog
 from magstack.firmware.flight.intake import UnsafeInput, check_private_dir, read_bounded
 
@@ -89,9 +93,10 @@ def parse_command(raw: bytes, source: str) -> Command:
         raise CommandRejected(f"{name}: missing {missing}, unknown {unknown}" if missing and unknown else
                               f"{name}: missing argument(s) {missing}" if missing else
                               f"{name}: unknown argument(s) {unknown}")
-    for k, v in args.items():
-        if not isinstance(v, str) or not v:
-            raise CommandRejected(f"{name}: {k} must be a non-empty string")
+    for a in COMMAND_BY_NAME[name].args:
+        why = arg_problem(a, args[a.name])
+        if why:
+            raise CommandRejected(f"{name}: {why}")
     return Command(name, args, source)
 
 
@@ -154,8 +159,7 @@ class CommandSpool:
                 continue
             taken += 1
             try:
-                cmd = parse_command(read_bounded(self.directory / "processing" / name, MAX_COMMAND_BYTES,
-                                                 own_only=True), name)
+                cmd = parse_command(read_bounded(self.directory / "processing" / name, MAX_COMMAND_BYTES), name)
             except (CommandRejected, UnsafeInput) as exc:
                 self.finish(name, ok=False, message=str(exc))
                 continue

@@ -255,6 +255,24 @@ def parse_config(doc: dict, path: Path) -> FlightConfig:
                              integer=True)))
 
 
+def check_directories(cfg: FlightConfig, telemetry_dir: Path | None = None) -> None:
+    """The telemetry, command and telecommand directories must be three different directories (the command
+    spool would take the telemetry directory's files as orders, results and packets would mix);
+    FlightConfigError otherwise. ``telemetry_dir``: the one the run uses (``--out``), default the config's."""
+    import os
+
+    dirs = {"flight.telemetry_dir": telemetry_dir if telemetry_dir is not None else cfg.telemetry_dir,
+            "flight.command_dir": cfg.command_dir, "ccsds.tc_dir": getattr(cfg.ccsds, "tc_dir", None)}
+    seen: dict[str, str] = {}
+    for key, d in dirs.items():
+        if d is None:
+            continue
+        real = os.path.realpath(d)
+        if real in seen:
+            raise FlightConfigError(f"{cfg.path}: {key}: {d} is also {seen[real]}: use different directories")
+        seen[real] = key
+
+
 def load_config(path: str | Path) -> FlightConfig:
     """Read and validate ``path``; FlightConfigError names the file and key on any problem."""
     p = Path(path)
@@ -271,7 +289,9 @@ def load_config(path: str | Path) -> FlightConfig:
     except (ValueError, RecursionError, MemoryError) as exc:   # a 5,000-digit integer, deep nesting
         raise FlightConfigError(f"{p}: not a usable TOML document ({type(exc).__name__}: {str(exc)[:120]})") from None
     try:
-        return parse_config(doc, p)
+        cfg = parse_config(doc, p)
+        check_directories(cfg)
+        return cfg
     except FlightConfigError:
         raise
     except (ArithmeticError, ValueError, TypeError, RecursionError) as exc:   # e.g. int too large for a float
