@@ -47,6 +47,7 @@ def _sim_options(program_name: str, duration_s: float, seed: int):
     """Per-sensor simulator options: one truth source for the run, a simulated bench per timeline."""
     import magstack.sim.orbit_truth  # noqa: F401  (registers the orbit_* programs)
     from magstack.sim.coil_programs import PROGRAMS, program
+    from magstack.sim.gridded_orbit import GriddedOrbitTruth
     from magstack.sim.i2c_bench import default_bench
 
     if program_name not in PROGRAMS:
@@ -62,7 +63,7 @@ def _sim_options(program_name: str, duration_s: float, seed: int):
             return base
         epoch0 = round(clock.epoch_s() - clock.monotonic_s(), 3)     # a system clock: calls microseconds apart
         if epoch0 not in anchored:
-            anchored[epoch0] = base.at_epoch(epoch0)
+            anchored[epoch0] = GriddedOrbitTruth(base.at_epoch(epoch0))    # interpolated: one sample at a time
         return anchored[epoch0]
 
     def options(sensor, clock) -> dict:
