@@ -49,6 +49,7 @@ def _sim_options(program_name: str, duration_s: float, seed: int):
     from magstack.sim.coil_programs import PROGRAMS, program
     from magstack.sim.gridded_orbit import GriddedOrbitTruth
     from magstack.sim.i2c_bench import default_bench
+    from magstack.sim.truth_memo import TruthMemo
 
     if program_name not in PROGRAMS:
         raise ConfigurationError(f"--sim-program: unknown program {program_name!r}; valid: {', '.join(PROGRAMS)}")
@@ -56,11 +57,13 @@ def _sim_options(program_name: str, duration_s: float, seed: int):
     benches: dict[int, object] = {}
     anchored: dict[float, object] = {}
 
+    memo = None if hasattr(base, "at_epoch") else TruthMemo(base)     # a coil programme: evaluated ahead
+
     def truth_for(clock):
         """The truth on the clock's time line: an orbit programme (``at_epoch``) starts at the clock's epoch of
         monotonic 0, so the field the sensors see belongs to the position and attitude at the telemetry's ``t_s``."""
-        if not hasattr(base, "at_epoch"):
-            return base
+        if memo is not None:
+            return memo
         epoch0 = round(clock.epoch_s() - clock.monotonic_s(), 3)     # a system clock: calls microseconds apart
         if epoch0 not in anchored:
             anchored[epoch0] = GriddedOrbitTruth(base.at_epoch(epoch0))    # interpolated: one sample at a time
