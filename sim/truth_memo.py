@@ -32,6 +32,10 @@ class TruthMemo:
         # field_uT, temp_c, series methods, duration_s ...: the wrapped source's
         return getattr(self.truth, name)
 
+    def known(self, t_s: float) -> bool:
+        """True when the values at ``t_s`` are held (evaluated ahead, or asked for before)."""
+        return t_s in self._rows
+
     def prefetch(self, ts: list[float]) -> None:
         """Evaluate the instants ``ts`` (non-decreasing) in one call and keep their values."""
         todo = [t for t in ts if t not in self._rows]
@@ -40,9 +44,12 @@ class TruthMemo:
         got = sample_truth_floats(self.truth, todo)
         if got is None:                      # non-finite truth: evaluated (and refused) when asked for
             return
+        self._keep(todo, got)
+
+    def _keep(self, ts: list[float], got) -> None:
         bs, temps, cur, sessions = got
         keys = list(cur)
-        for i, t in enumerate(todo):
+        for i, t in enumerate(ts):
             self._rows[t] = (bs[i], temps[i], tuple(cur[k][i] for k in keys), sessions[i], keys)
         if len(self._rows) > self.capacity:
             for t in list(self._rows)[:len(self._rows) // 2]:
@@ -53,7 +60,10 @@ class TruthMemo:
         hit = [rows.get(t) for t in ts]
         if any(h is None for h in hit):
             self.misses += 1
-            return sample_truth_floats(self.truth, ts)
+            got = sample_truth_floats(self.truth, ts)
+            if got is not None:             # kept too: the same instant's temperature is often asked next
+                self._keep(ts, got)
+            return got
         self.hits += 1
         keys = hit[0][4]
         return ([list(h[0]) for h in hit], [h[1] for h in hit],
