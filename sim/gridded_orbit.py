@@ -51,6 +51,12 @@ class GriddedOrbitTruth:
         self._tgrid = orbit._tgrid.tolist()
         self._temp = orbit._temp.tolist()
 
+    def __getattr__(self, name: str):
+        # what telemetry carries and the programme's parameters (epoch_unix_s, pos_ecef_series_km, ...)
+        if name == "orbit":
+            raise AttributeError(name)
+        return getattr(self.orbit, name)
+
     def at_epoch(self, epoch_unix_s: float) -> GriddedOrbitTruth:
         return GriddedOrbitTruth(self.orbit.at_epoch(epoch_unix_s), self.step_s, self.nodes * self.step_s)
 

@@ -31,6 +31,9 @@ def register(subparsers) -> None:
                               description=__doc__.split("\n\n", 1)[1] if __doc__ else None)
     p.add_argument("--config", metavar="flight.toml", help="flight configuration (see --example-config)")
     p.add_argument("--example-config", action="store_true", help="print the shipped example flight.toml and exit")
+    p.add_argument("--init", metavar="DIR", type=Path, default=None,
+                   help="write DIR/flight.toml (the example) and the table it names, DIR/tables/hmc1053.json (a "
+                        "simulated bench fit of the part), then exit: a configuration that runs as it stands")
     p.add_argument("--sim", action="store_true", help="simulated sensors instead of the configured buses")
     p.add_argument("--duration", type=finite_float(0.0, 366 * 86400.0, lo_open=True, unit="s"), default=None,
                    metavar="S", help="stop after S seconds (virtual time with --sim)")
@@ -81,6 +84,14 @@ def _sim_options(program_name: str, duration_s: float, seed: int):
 
 
 def run(args: argparse.Namespace) -> CommandResult:
+    if args.init is not None:
+        from magstack.cli.flight_init import init_board
+
+        made = init_board(args.init)
+        return CommandResult("run", {"init": made}, [f"wrote {made['config']} and {made['table']} (crc32 "
+                                                     f"{made['table_crc32']}, fitted to {made['bench_session']})",
+                                                     f"next: magstack run --config {made['config']} --sim "
+                                                     "--duration 600"])
     if args.example_config:
         return CommandResult("run", {"example_config": example_config_text()}, [example_config_text().rstrip()])
     if not args.config:
@@ -129,6 +140,9 @@ def run(args: argparse.Namespace) -> CommandResult:
                      f"waiting, {sum(wq['dropped'].values())} dropped for a full queue")
     degraded = counters["degraded"]
     lines += [f"  DEGRADED: {why}" for why in degraded]
+    if any("cannot read" in s.table_rejected for s in app.slots.values()):
+        lines.append("  (magstack run --init DIR writes the example configuration with its table: a simulated "
+                     "bench fit)")
     data = {"run_id": app.run_id, "telemetry_dir": str(app.telemetry_dir),
             "summary": None if summary is None else str(summary), "virtual_time": virtual, "simulated": simulate,
             "stopped_by": stop.signal_name, **counters}
