@@ -16,7 +16,6 @@ configuration is written last, so a failed fit leaves no configuration naming a 
 """
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 from magstack.data.io import atomic_write_text
@@ -31,18 +30,17 @@ FIT = ["fit", "--device-id", "hmc1053:sn1", "--model", "eq3", "--no-holdout"]
 
 
 def _command(argv: list[str]):
-    """Run one magstack command (its own parser and checks) and return its CommandResult."""
-    from magstack.cli.commands import fit, simulate
+    """Run one magstack command (its own parser and checks, no output) and return its CommandResult."""
+    from magstack.cli import output
+    from magstack.cli.main import build_parser
 
-    parser = argparse.ArgumentParser(prog="magstack")
-    sub = parser.add_subparsers(dest="command")
-    simulate.register(sub)
-    fit.register(sub)
-    args = parser.parse_args(argv)
-    for k, v in (("json", None), ("verbose", 0), ("quiet", True)):
-        if not hasattr(args, k):
-            setattr(args, k, v)
-    return args.func(args)
+    args = build_parser(load=argv[0]).parse_args([*argv, "-q"])
+    before = dict(output._state)
+    output.set_json_mode(True, True)    # the command's own text stays quiet: --init reports what it wrote
+    try:
+        return args.func(args)
+    finally:
+        output.set_json_mode(before["json"], before["quiet"])
 
 
 def init_board(directory: str | Path) -> dict:

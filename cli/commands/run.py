@@ -43,6 +43,11 @@ def register(subparsers) -> None:
                    help="with --sim: coil program giving the simulated field (default rotation; see magstack "
                         "simulate --help); an orbit_* programme starts at the run's clock epoch")
     p.add_argument("--seed", type=int_range(0, 2**32 - 1), default=0, help="with --sim: simulation seed (default 0)")
+    p.add_argument("--scenario", metavar="ground.toml", type=Path, default=None,
+                   help="with --sim --duration: ground actions (magstack command lines) at virtual times, run with "
+                        "the flight standing still (docs/flight.md)")
+    p.add_argument("--example-scenario", action="store_true",
+                   help="print the example scenario (the end-to-end scenario of docs/ccsds.md) and exit")
     p.set_defaults(func=run)
 
 
@@ -92,6 +97,10 @@ def run(args: argparse.Namespace) -> CommandResult:
                                                      f"{made['table_crc32']}, fitted to {made['bench_session']})",
                                                      f"next: magstack run --config {made['config']} --sim "
                                                      "--duration 600"])
+    if args.example_scenario:
+        from magstack.cli.scenario import example_scenario_text
+
+        return CommandResult("run", {"example_scenario": example_scenario_text()}, [example_scenario_text().rstrip()])
     if args.example_config:
         return CommandResult("run", {"example_config": example_config_text()}, [example_config_text().rstrip()])
     if not args.config:
@@ -100,13 +109,25 @@ def run(args: argparse.Namespace) -> CommandResult:
     simulate = args.sim or cfg.simulated
     virtual = simulate and args.duration is not None
     options = _sim_options(args.sim_program, args.duration or 3600.0, args.seed) if simulate else None
+    scenario = None
+    if args.scenario is not None:
+        if not virtual:
+            raise ConfigurationError("--scenario needs virtual time: --sim and --duration")
+        from magstack.cli.scenario import load_scenario
+
+        scenario = load_scenario(args.scenario, args.duration)
     from magstack.firmware.flight.app import FlightApp  # imported here: --example-config needs none of it
 
     with graceful_stop() as stop:
         app = FlightApp(cfg, virtual=virtual, simulate=simulate, telemetry_dir=args.out, chip_options=options,
                         stop=stop)
         try:
-            app.run(args.duration)
+            if scenario is None:
+                app.run(args.duration)
+            else:
+                from magstack.cli.scenario import pauses
+
+                app.run(args.duration, pauses=pauses(scenario, app.stop))
         finally:
             app.close()
             try:
@@ -139,12 +160,18 @@ def run(args: argparse.Namespace) -> CommandResult:
         lines.append(f"  write queue  {wq['written']} items written behind the rate groups, at most {wq['max_depth']} "
                      f"waiting, {sum(wq['dropped'].values())} dropped for a full queue")
     degraded = counters["degraded"]
+    if scenario is not None:
+        lines += [f"  ground at {d['t_s']:g} s: {d['run']}: exit {d['exit_code']}" for d in scenario.done]
+        if scenario.failed:
+            degraded = [*degraded, scenario.failed]
     lines += [f"  DEGRADED: {why}" for why in degraded]
     if any("cannot read" in s.table_rejected for s in app.slots.values()):
         lines.append("  (magstack run --init DIR writes the example configuration with its table: a simulated "
                      "bench fit)")
     data = {"run_id": app.run_id, "telemetry_dir": str(app.telemetry_dir),
             "summary": None if summary is None else str(summary), "virtual_time": virtual, "simulated": simulate,
-            "stopped_by": stop.signal_name, **counters}
+            "stopped_by": stop.signal_name, **counters, "degraded": degraded}
+    if scenario is not None:
+        data["scenario"] = {"file": str(scenario.path), "actions": scenario.done, "failed": scenario.failed or None}
     code = EXIT_FOR_SIGNAL.get(stop.signal_name, 130) if stop.signal_name else EXIT_DEGRADED if degraded else 0
     return CommandResult("run", data, lines, code)

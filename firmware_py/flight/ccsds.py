@@ -181,6 +181,12 @@ class PacketStream:
             self.emit("apid_map", APP_APID, t_s, {"apid": self.apids.group(g), "kind": 2, "run_id": run_id,
                                                   "name": g, "device_id": "", "chip": ""})
 
+    def flush(self) -> None:
+        """Hand the file's buffered packets to the OS (no fsync): a reader of the file sees whole packets."""
+        with self._lock:
+            if self._fh is not None and not self._fh.closed:
+                self._fh.flush()
+
     def close(self) -> None:
         with self._lock:
             if self._fh is not None and not self._fh.closed:
