@@ -2,8 +2,9 @@
 
 On the Raspberry Pi it opens the configured buses and runs until Ctrl-C / SIGTERM (or ``--duration``).
 With ``--sim`` (or a config whose buses are all ``sim``) the sensors are simulated: with
-``--duration`` in virtual time (a simulated day takes minutes at most), without it in real time.
-``--example-config`` prints the shipped example configuration.
+``--duration`` in virtual time (a simulated day of the example board: 186 s CPU, docs/benchmarks.md
+run-sim-day), without it in real time. ``--init DIR`` writes the example configuration and the table it names;
+``--example-config`` prints the configuration; ``--scenario`` runs ground actions at virtual times.
 
 Events of severity WARNING_HI and worse (a table rejected, a channel degraded, telemetry that cannot be
 written, ...) are shown on stderr while the application runs (rate-limited). Exit status: 0 the run
