@@ -44,7 +44,8 @@ def main() -> None:
                                            "--sim-program", a.program, "--duration", f"{dur:g}",
                                            "--out", str(Path(d) / name), "-q"], cwd=d))
     print(f"magstack run --sim --sim-program {a.program} (example board of run --init)")
-    print(f"{'run':<9} {'virtual s':>10} {'CPU s':>9} {'wall s':>9} {'x real time (CPU)':>18} {'CPU ms per virtual s':>21}")
+    print(f"{'run':<9} {'virtual s':>10} {'CPU s':>9} {'wall s':>9} {'x real time (CPU)':>18} "
+          f"{'CPU ms per virtual s':>21}")
     for name, (dur, cpu, wall) in rows.items():
         print(f"{name:<9} {dur:>10g} {cpu:>9.1f} {wall:>9.1f} {dur / cpu:>18.0f} {1e3 * cpu / dur:>21.2f}")
     (db, cb, _), (dm, cm, _) = rows["baseline"], rows["measured"]
