@@ -172,6 +172,7 @@ def test_commands_encoded_from_the_xtce_are_the_bytes_tm_command_builds(tmp_path
         x.encode("activate_table", {"CCSDS_SEQ_COUNT": 1, "PUS_SOURCE_ID": 1, "channel": "c" * 65})
 
 
+@pytest.mark.slow
 def test_the_receiver_of_a_running_magstack_run_accepts_every_command_encoded_from_the_xtce(tmp_path, capsys):
     cfg, doc = _document(tmp_path, capsys)
     x = XtceCommands(doc)
