@@ -15,6 +15,7 @@ import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
+from fastcrc import crc16
 from spacepackets.ecss.tc import PusTc, generate_crc
 from spacepackets.ecss.tm import PusTm
 
@@ -31,6 +32,10 @@ from magstack.data.dictionary import (
 )
 
 SEQ_MODULO = 1 << 14
+#: Primary header (packet id, sequence control, length) + PUS-C TM data field header up to the time field.
+_TM_HEADER = struct.Struct(">HHHBBBHH")
+_CRC = struct.Struct(">H")
+_PUS_C = 2
 PRIMARY_HEADER_BYTES = 6
 TM_SECONDARY_BYTES = 7 + CUC.size        # PUS-C TM data field header with the CUC timestamp
 TC_SECONDARY_BYTES = 5
@@ -181,12 +186,16 @@ class TmEncoder:
 
     def pack(self, packet: PacketDef, apid: int, t_s: float, values: Mapping[str, object],
              subtype: int | None = None) -> bytes:
+        """The packet's bytes: those ``spacepackets.ecss.tm.PusTm(...).pack()`` gives for the same fields (a PUS-C
+        TM, destination id 0, time reference status 0; ``tests/test_ccsds_packets.py`` compares the two), laid
+        out here with ``struct`` because it runs for every telemetry record."""
         n = self.seq.get(apid, 0)
         self.seq[apid] = (n + 1) % SEQ_MODULO
-        tm = PusTm(service=packet.service, message_subtype=packet.subtype if subtype is None else subtype,
-                   timestamp=cuc_bytes(t_s), source_data=encode_fields(packet.fields, values), apid=apid,
-                   seq_count=n, message_counter=n)
-        return bytes(tm.pack())
+        body = encode_fields(packet.fields, values)
+        total = PRIMARY_HEADER_BYTES + TM_SECONDARY_BYTES + len(body) + CRC_BYTES
+        head = _TM_HEADER.pack(0x0800 | apid, 0xC000 | n, total - 7, _PUS_C << 4, packet.service,
+                               packet.subtype if subtype is None else subtype, n, 0) + cuc_bytes(t_s) + body
+        return head + _CRC.pack(crc16.ibm_3740(head))
 
 
 @dataclass(frozen=True)

@@ -250,7 +250,7 @@ class SessionWriter:
             row += (float(int(flag or 0)),)
         if len(row) != self._ncols:
             raise ValueError(f"row has {len(row)} values for {self._ncols} columns (ref_uT, dut_uT need 3 each)")
-        _check_block(np.asarray(row, dtype=float)[None, :], self._int_cols)
+        _check_row(row, self._int_cols)
         self._buf.append(row)
         if len(self._buf) >= self.block_rows:
             self.flush()
@@ -337,6 +337,18 @@ def _check_block(table: np.ndarray, int_cols: Sequence[int]) -> None:
     for c in int_cols:
         v = table[:, c]
         if not np.all((np.abs(v) <= 2.0 ** 53) & (v == np.round(v))):
+            raise ValueError("session and flag values must be integers within +-2**53")
+
+
+def _check_row(row: tuple[float, ...], int_cols: Sequence[int]) -> None:
+    """:func:`_check_block` of one row of floats, without building an array (the same checks and messages)."""
+    isinf = math.isinf
+    for x in row:
+        if isinf(x):
+            raise ValueError(f"cannot write an infinite value ({x}) to a session file")
+    for c in int_cols:
+        v = row[c]
+        if not (abs(v) <= 2.0 ** 53 and v == round(v)):
             raise ValueError("session and flag values must be integers within +-2**53")
 
 

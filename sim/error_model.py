@@ -173,6 +173,14 @@ class ErrorModel:
         self._last_t = t
         return np.array(y)
 
+    def prefetch(self, t_s: list[float], truth: Any) -> None:
+        """Hand the truth instants that samples at ``t_s`` will need to a memoising truth source (one
+        vectorised evaluation instead of one per sample); nothing for any other source."""
+        ahead = getattr(truth, "prefetch", None)
+        if ahead is not None:
+            skew = self._skew
+            ahead(t_s if skew is None else [x for t in t_s for x in skew.instants_one(t)])
+
     def sense_series(self, t_s: np.ndarray, truth: Any) -> np.ndarray:
         """Samples (N,3) uT at the non-decreasing instants ``t_s`` (N,); continues the model state."""
         t = np.asarray(t_s, dtype=float).reshape(-1)

@@ -70,8 +70,15 @@ def sample_truth_floats(truth: Any, ts: list[float]):
     """:func:`sample_truth` at a few instants as plain floats: (b rows, temps, currents, sessions).
 
     Calls the truth source exactly as :func:`sample_truth` does (series methods when present, in
-    the same order); returns None when any value is non-finite (the caller then raises).
+    the same order); returns None when any value is non-finite (the caller then raises). A source with its
+    own ``sample_floats(ts)`` (a gridded orbit truth) answers directly.
     """
+    fast = getattr(truth, "sample_floats", None)
+    if fast is not None:
+        got = fast(ts)
+        ok = all(math.isfinite(v) for row in got[0] for v in row) and all(math.isfinite(v) for v in got[1]) \
+            and all(math.isfinite(v) for vs in got[2].values() for v in vs)
+        return got if ok else None
     if (hasattr(truth, "field_series_uT") or hasattr(truth, "temp_series_c")
             or hasattr(truth, "currents_series_A") or hasattr(truth, "session_series")):
         try:

@@ -29,6 +29,9 @@ from magstack.firmware.effects import EFFECT_NAMES
 from magstack.sim.gpio import SimOutputLine
 from magstack.sim.i2c_register_model import IdealSensor  # noqa: F401  (re-exported: the noise-free bridge)
 
+#: Bridge samples per field vector of the front end (X, Y, Z after SET, then after RESET).
+CONVERSIONS_PER_VECTOR = 6
+
 #: Effects the ADC model does itself (sequential skew, quantisation, clipping): off in the default sensor.
 ADC_SIDE_EFFECTS = ("time_skew", "quantization", "saturation")
 
@@ -115,6 +118,7 @@ class HMC1053Bridge:
         self.strap_line = SimOutputLine("SR", self._on_strap, initial=not self.set_on_rising_edge)
         self._last_t: float | None = None
         self.sense_calls = 0
+        self._recent: list[float] = []     # instants of the last CONVERSIONS_PER_VECTOR bridge samples
 
     def _on_strap(self, level: bool) -> None:
         if level == self.set_on_rising_edge:
@@ -144,6 +148,7 @@ class HMC1053Bridge:
             t = t_s if self._last_t is None or t_s >= self._last_t else self._last_t
             self._last_t = t
             self.sense_calls += 1
+            self._prefetch(t)
             b_uT = self.sensor.sense(t, self.truth)[axis]
             v = self.polarity * self._v_per_uT[axis] * b_uT + self.bridge_offset_V(axis, t)
             return sign * float(v)
@@ -155,6 +160,22 @@ class HMC1053Bridge:
 
     def temp_c(self, t_s: float) -> float:
         return float(self.truth.temp_c(t_s))
+
+    def _prefetch(self, t: float) -> None:
+        """With a memoising truth (:class:`~magstack.sim.truth_memo.TruthMemo`): at an instant it does not hold
+        (the first conversion of a vector), evaluate this vector's conversions in one call, predicted as this
+        instant plus the previous vector's offsets (the front end's timing repeats; a wrong guess costs one
+        evaluation, never a wrong value)."""
+        known = getattr(self.truth, "known", None)
+        ahead = getattr(self.sensor, "prefetch", None)
+        if known is None or ahead is None:
+            return
+        recent = self._recent
+        if not known(t) and len(recent) == CONVERSIONS_PER_VECTOR:
+            ahead([t] + [t + (r - recent[0]) for r in recent[1:]], self.truth)
+        recent.append(t)
+        if len(recent) > CONVERSIONS_PER_VECTOR:
+            del recent[0]
 
 
 

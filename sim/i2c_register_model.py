@@ -262,6 +262,10 @@ class RegisterFileModel:
         return bytes(out)
 
 
+#: Conversion instants evaluated per prefetch of a memoising truth source.
+PREFETCH = 256
+
+
 class MagnetometerModel(RegisterFileModel):
     """A register file plus a lazily evaluated conversion schedule in virtual time.
 
@@ -280,6 +284,7 @@ class MagnetometerModel(RegisterFileModel):
         self._single_pending = False
         self.unread = False          # a converted set has not been fully read yet
         self.conversions = 0
+        self._prefetched_s = -math.inf   # conversion instants up to here were handed to the truth's prefetch
         super().__init__(regs, name=name, address=address, lints=lints)
 
     # to override
@@ -331,7 +336,22 @@ class MagnetometerModel(RegisterFileModel):
         k = math.floor((now - self._next_conv_s) / period)
         t_c = self._next_conv_s + k * period
         self._next_conv_s = t_c + period
+        if t_c > self._prefetched_s:
+            self._prefetch(t_c, period)
         self._convert(t_c, skipped=k)
+
+    def _prefetch(self, t_c: float, period: float) -> None:
+        """Let a memoising truth (:class:`~magstack.sim.truth_memo.TruthMemo`) evaluate the next conversion
+        instants in one call: ``t_c``, ``t_c + period``, ... by the same float additions as the schedule."""
+        ahead = getattr(self.sensor, "prefetch", None)
+        if ahead is None or not hasattr(self.truth, "prefetch"):
+            self._prefetched_s = math.inf
+            return
+        ts = [t_c]
+        for _ in range(PREFETCH - 1):
+            ts.append(ts[-1] + period)
+        ahead(ts, self.truth)
+        self._prefetched_s = ts[-2]
 
     def _convert(self, t_c: float, skipped: int = 0) -> None:
         b = np.asarray(self.sensor.sense(t_c, self.truth), dtype=float)

@@ -51,9 +51,10 @@ def files(tmp_path_factory):
     assert main(["simulate", "--program", "orbit_tumbling", "--seconds", "3600", "--rate-hz", "1", "--sessions", "1",
                  "--t0", "1780272000", "--effects", "gain,offset,noise", "--out", str(f["tlm"]), "-q"]) == 0
     from magstack.firmware.flight.config import example_config_text
+    from tests.netutil import own_tc_port
 
-    text = example_config_text().replace("spi0.0,start=6,reset=13,drdy=19,sr=5", "sim").replace('bus = "1"',
-                                                                                                 'bus = "sim"')
+    text = own_tc_port(example_config_text()).replace("spi0.0,start=6,reset=13,drdy=19,sr=5", "sim").replace(
+        'bus = "1"', 'bus = "sim"')
     text = text.replace('table = "tables/hmc1053.json"', "")
     (d / "flight.toml").write_text(text)
     # refit telemetry split into magnetometer rows and an ADCS file (merge); a packet stream (tm decode)

@@ -15,13 +15,14 @@ import pytest
 from magstack.cli.main import main
 from magstack.data.session import read_session
 from magstack.firmware import cal_table as ct
+from tests.netutil import own_tc_port
 
 
 def _sim_config(tmp_path: Path, *, table: bool = True) -> Path:
     from magstack.firmware.flight.config import example_config_text
 
-    text = example_config_text().replace("spi0.0,start=6,reset=13,drdy=19,sr=5", "sim").replace('bus = "1"',
-                                                                                                 'bus = "sim"')
+    text = own_tc_port(example_config_text()).replace("spi0.0,start=6,reset=13,drdy=19,sr=5", "sim").replace(
+        'bus = "1"', 'bus = "sim"')
     if table:
         (tmp_path / "tables").mkdir()
         ct.save_table(ct.CalTable(device_id="hmc1053:sn1", terms=("gain_matrix", "offset"), S=np.eye(3),

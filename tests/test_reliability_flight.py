@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import socket
 import stat
 import struct
@@ -319,7 +320,9 @@ def test_listening_on_every_interface_is_warned_about(tmp_path, capsys, monkeypa
     monkeypatch.setattr(socket.socket, "bind",          # the test never listens beyond the loopback
                         lambda self, addr: bind(self, ("127.0.0.1", addr[1]) if addr[0] == "0.0.0.0" else addr))
     cfg = sim_config(tmp_path)
-    cfg.write_text(cfg.read_text().replace('# tc_udp = "127.0.0.1:50511"', f'tc_udp = "0.0.0.0:{port}"'))
+    text, n = re.subn(r'^#? ?tc_udp = "127\.0\.0\.1:\d+"', f'tc_udp = "0.0.0.0:{port}"', cfg.read_text(), flags=re.M)
+    assert n == 1
+    cfg.write_text(text)
     assert main(["run", "--config", str(cfg), "--duration", "1", "--out", str(tmp_path / "tlm")]) == 0
     assert "listens on every network interface" in capsys.readouterr().err
 

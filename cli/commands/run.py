@@ -2,8 +2,9 @@
 
 On the Raspberry Pi it opens the configured buses and runs until Ctrl-C / SIGTERM (or ``--duration``).
 With ``--sim`` (or a config whose buses are all ``sim``) the sensors are simulated: with
-``--duration`` in virtual time (a simulated day takes minutes at most), without it in real time.
-``--example-config`` prints the shipped example configuration.
+``--duration`` in virtual time (a simulated day of the example board: 186 s CPU, docs/benchmarks.md
+run-sim-day), without it in real time. ``--init DIR`` writes the example configuration and the table it names;
+``--example-config`` prints the configuration; ``--scenario`` runs ground actions at virtual times.
 
 Events of severity WARNING_HI and worse (a table rejected, a channel degraded, telemetry that cannot be
 written, ...) are shown on stderr while the application runs (rate-limited). Exit status: 0 the run
@@ -31,6 +32,9 @@ def register(subparsers) -> None:
                               description=__doc__.split("\n\n", 1)[1] if __doc__ else None)
     p.add_argument("--config", metavar="flight.toml", help="flight configuration (see --example-config)")
     p.add_argument("--example-config", action="store_true", help="print the shipped example flight.toml and exit")
+    p.add_argument("--init", metavar="DIR", type=Path, default=None,
+                   help="write DIR/flight.toml (the example) and the table it names, DIR/tables/hmc1053.json (a "
+                        "simulated bench fit of the part), then exit: a configuration that runs as it stands")
     p.add_argument("--sim", action="store_true", help="simulated sensors instead of the configured buses")
     p.add_argument("--duration", type=finite_float(0.0, 366 * 86400.0, lo_open=True, unit="s"), default=None,
                    metavar="S", help="stop after S seconds (virtual time with --sim)")
@@ -40,6 +44,11 @@ def register(subparsers) -> None:
                    help="with --sim: coil program giving the simulated field (default rotation; see magstack "
                         "simulate --help); an orbit_* programme starts at the run's clock epoch")
     p.add_argument("--seed", type=int_range(0, 2**32 - 1), default=0, help="with --sim: simulation seed (default 0)")
+    p.add_argument("--scenario", metavar="ground.toml", type=Path, default=None,
+                   help="with --sim --duration: ground actions (magstack command lines) at virtual times, run with "
+                        "the flight standing still (docs/flight.md)")
+    p.add_argument("--example-scenario", action="store_true",
+                   help="print the example scenario (the end-to-end scenario of docs/ccsds.md) and exit")
     p.set_defaults(func=run)
 
 
@@ -47,7 +56,9 @@ def _sim_options(program_name: str, duration_s: float, seed: int):
     """Per-sensor simulator options: one truth source for the run, a simulated bench per timeline."""
     import magstack.sim.orbit_truth  # noqa: F401  (registers the orbit_* programs)
     from magstack.sim.coil_programs import PROGRAMS, program
+    from magstack.sim.gridded_orbit import GriddedOrbitTruth
     from magstack.sim.i2c_bench import default_bench
+    from magstack.sim.truth_memo import TruthMemo
 
     if program_name not in PROGRAMS:
         raise ConfigurationError(f"--sim-program: unknown program {program_name!r}; valid: {', '.join(PROGRAMS)}")
@@ -55,14 +66,16 @@ def _sim_options(program_name: str, duration_s: float, seed: int):
     benches: dict[int, object] = {}
     anchored: dict[float, object] = {}
 
+    memo = None if hasattr(base, "at_epoch") else TruthMemo(base)     # a coil programme: evaluated ahead
+
     def truth_for(clock):
         """The truth on the clock's time line: an orbit programme (``at_epoch``) starts at the clock's epoch of
         monotonic 0, so the field the sensors see belongs to the position and attitude at the telemetry's ``t_s``."""
-        if not hasattr(base, "at_epoch"):
-            return base
+        if memo is not None:
+            return memo
         epoch0 = round(clock.epoch_s() - clock.monotonic_s(), 3)     # a system clock: calls microseconds apart
         if epoch0 not in anchored:
-            anchored[epoch0] = base.at_epoch(epoch0)
+            anchored[epoch0] = GriddedOrbitTruth(base.at_epoch(epoch0))    # interpolated: one sample at a time
         return anchored[epoch0]
 
     def options(sensor, clock) -> dict:
@@ -77,6 +90,18 @@ def _sim_options(program_name: str, duration_s: float, seed: int):
 
 
 def run(args: argparse.Namespace) -> CommandResult:
+    if args.init is not None:
+        from magstack.cli.flight_init import init_board
+
+        made = init_board(args.init)
+        return CommandResult("run", {"init": made}, [f"wrote {made['config']} and {made['table']} (crc32 "
+                                                     f"{made['table_crc32']}, fitted to {made['bench_session']})",
+                                                     f"next: magstack run --config {made['config']} --sim "
+                                                     "--duration 600"])
+    if args.example_scenario:
+        from magstack.cli.scenario import example_scenario_text
+
+        return CommandResult("run", {"example_scenario": example_scenario_text()}, [example_scenario_text().rstrip()])
     if args.example_config:
         return CommandResult("run", {"example_config": example_config_text()}, [example_config_text().rstrip()])
     if not args.config:
@@ -85,6 +110,13 @@ def run(args: argparse.Namespace) -> CommandResult:
     simulate = args.sim or cfg.simulated
     virtual = simulate and args.duration is not None
     options = _sim_options(args.sim_program, args.duration or 3600.0, args.seed) if simulate else None
+    scenario = None
+    if args.scenario is not None:
+        if not virtual:
+            raise ConfigurationError("--scenario needs virtual time: --sim and --duration")
+        from magstack.cli.scenario import load_scenario
+
+        scenario = load_scenario(args.scenario, args.duration)
     from magstack.firmware.flight.app import FlightApp  # imported here: --example-config needs none of it
 
     with graceful_stop() as stop:
@@ -92,7 +124,12 @@ def run(args: argparse.Namespace) -> CommandResult:
                         stop=stop)
         close_error = ""
         try:
-            app.run(args.duration)
+            if scenario is None:
+                app.run(args.duration)
+            else:
+                from magstack.cli.scenario import pauses
+
+                app.run(args.duration, pauses=pauses(scenario, app.stop))
         finally:
             try:
                 app.close()
@@ -132,10 +169,19 @@ def run(args: argparse.Namespace) -> CommandResult:
         lines.append(f"  write queue  {wq['written']} items written behind the rate groups, at most {wq['max_depth']} "
                      f"waiting, {sum(wq['dropped'].values())} dropped for a full queue")
     degraded = counters["degraded"] + ([close_error] if close_error else [])
+    if scenario is not None:
+        lines += [f"  ground at {d['t_s']:g} s: {d['run']}: exit {d['exit_code']}" for d in scenario.done]
+        if scenario.failed:
+            degraded = [*degraded, scenario.failed]
     counters["degraded"] = degraded
     lines += [f"  DEGRADED: {why}" for why in degraded]
+    if any("cannot read" in s.table_rejected for s in app.slots.values()):
+        lines.append("  (magstack run --init DIR writes the example configuration with its table: a simulated "
+                     "bench fit)")
     data = {"run_id": app.run_id, "telemetry_dir": str(app.telemetry_dir),
             "summary": None if summary is None else str(summary), "virtual_time": virtual, "simulated": simulate,
-            "stopped_by": stop.signal_name, **counters}
+            "stopped_by": stop.signal_name, **counters, "degraded": degraded}
+    if scenario is not None:
+        data["scenario"] = {"file": str(scenario.path), "actions": scenario.done, "failed": scenario.failed or None}
     code = EXIT_FOR_SIGNAL.get(stop.signal_name, 130) if stop.signal_name else EXIT_DEGRADED if degraded else 0
     return CommandResult("run", data, lines, code)

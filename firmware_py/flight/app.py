@@ -343,12 +343,16 @@ class FlightApp:
         return f"refit started over {len(files)} file(s)"
 
     # ------------------------------------------------------------------ running
-    def run(self, duration_s: float | None = None) -> None:
+    def run(self, duration_s: float | None = None, pauses=()) -> None:
+        """Run for ``duration_s`` (virtual time: required); ``pauses``: ``(t_s, action)`` called with the
+        application standing still at ``t_s`` after the start (virtual time only, :meth:`Executive.run_virtual`),
+        after everything written so far has reached the files (:meth:`flush_outputs`)."""
         if self.virtual:
             if duration_s is None or not math.isfinite(duration_s):
                 raise ValueError("virtual time needs a finite duration")
             drain = None if self.writer is None else (lambda _g: self.writer.drain())
-            self.executive.run_virtual(duration_s, on_slot=drain)   # writes in the idle slot after each slot
+            pauses = [(t, (lambda a=a: (self.flush_outputs(), a()))) for t, a in pauses]
+            self.executive.run_virtual(duration_s, on_slot=drain, pauses=pauses)   # writes in the idle slot
             if self.writer is not None:
                 self.writer.drain()
         else:
@@ -358,6 +362,14 @@ class FlightApp:
 
     def stop(self) -> None:
         self.executive.stop()
+
+    def flush_outputs(self) -> None:
+        """Write what is queued and hand the packet file's buffer to the OS (not fsynced), so a reader of the
+        telemetry directory sees every packet so far; the session files keep their own blocks."""
+        if self.writer is not None:
+            self.writer.drain()
+        if self.ccsds is not None:
+            self.ccsds.stream.flush()
 
     def counters(self) -> dict:
         sink = getattr(self, "_event_sink", None)

@@ -236,6 +236,10 @@ class PacketStream:
         return {"path": None if self.path is None else str(self.path), "written": self.sent, "bytes": self.bytes,
                 "send_errors": self.send_errors, "sync_errors": self.sync_errors}
 
+    def flush(self) -> None:
+        """Nothing to hand over: every packet is one unbuffered write, so a reader of the file sees whole
+        packets as soon as they are written (kept for the callers that hand a ground step a consistent file)."""
+
     def close(self) -> None:
         """fsync and close (a failure is counted in ``sync_errors``, never raised); safe to call twice."""
         with self._lock:

@@ -169,26 +169,39 @@ class Executive:
         return self._stop.is_set()
 
     # ------------------------------------------------------------------ simulation
-    def run_virtual(self, duration_s: float, *, on_slot: Callable[[RateGroup], None] | None = None) -> None:
+    def run_virtual(self, duration_s: float, *, on_slot: Callable[[RateGroup], None] | None = None,
+                    pauses: Sequence[tuple[float, Callable[[], None]]] = ()) -> None:
         """Discrete-event run over the groups' virtual clocks until each has reached ``duration_s``
-        past its start (or :meth:`stop`). Each group's clock must be a VirtualClock of its own."""
+        past its start (or :meth:`stop`). Each group's clock must be a VirtualClock of its own.
+
+        ``pauses``: ``(t_s, action)`` pairs, ``t_s`` seconds after the start of this run: each action is called
+        once every slot before ``t_s`` has run and before any slot at or after it (the whole application
+        stands still meanwhile); the ones at ``duration_s`` after the last slot."""
         clocks = [g.clock for g in self.groups]
         if len({id(c) for c in clocks}) != len(clocks):
             raise ValueError("in virtual time every rate group needs a clock of its own")
         t_end = {g.name: g.clock.monotonic_s() + duration_s for g in self.groups}
-        self.events.emit(self.epoch_of(min(c.monotonic_s() for c in clocks)), EventId.EXEC_STARTED, "executive",
+        t0 = min(c.monotonic_s() for c in clocks)
+        todo = sorted(pauses, key=lambda p: p[0])
+        self.events.emit(self.epoch_of(t0), EventId.EXEC_STARTED, "executive",
                          f"{len(self.groups)} rate groups, virtual time, {duration_s:g} s")
         while not self._stop.is_set():
             live = [g for g in self.groups if _slot_time(g) < t_end[g.name] - 1e-6 * g.period_s]
             if not live:
                 break
             g = min(live, key=lambda x: (_slot_time(x), -x.rate_hz))
+            while todo and todo[0][0] <= _slot_time(g) - t0 and not self._stop.is_set():
+                todo.pop(0)[1]()
+            if self._stop.is_set():
+                break
             wait = g.due_in_s()
             if wait > 0:
                 g.clock.sleep_s(wait)
             g.run_once(self.events, self.epoch_of)
             if on_slot is not None:
                 on_slot(g)
+        while todo and todo[0][0] <= duration_s and not self._stop.is_set():
+            todo.pop(0)[1]()
         self.events.emit(self.epoch_of(max(c.monotonic_s() for c in clocks)), EventId.EXEC_STOPPED, "executive",
                          "stopped" if self._stop.is_set() else "duration reached")
 
