@@ -59,9 +59,14 @@ def fsync_dir(directory: str | os.PathLike) -> None:
 
 
 def atomic_write_text(path: str | os.PathLike, text: str, *, encoding: str = "utf-8") -> Path:
-    """Write ``text`` to ``path`` atomically and durably; returns ``Path(path)``.
+    """Write ``text`` to ``path`` atomically and durably (:func:`atomic_write_bytes`); returns ``Path(path)``."""
+    return atomic_write_bytes(path, text.encode(encoding))
 
-    The text goes to ``.<name>.tmp-<pid>`` beside ``path``, is flushed and fsynced, renamed onto
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically and durably; returns ``Path(path)``.
+
+    The bytes go to ``.<name>.tmp-<pid>`` beside ``path``, are flushed and fsynced, renamed onto
     ``path`` (``os.replace``) and the directory is fsynced. On any failure the temporary file is
     removed and ``path`` is untouched; write errors name the file (:class:`FileWriteError`).
     """
@@ -69,9 +74,9 @@ def atomic_write_text(path: str | os.PathLike, text: str, *, encoding: str = "ut
     tmp = p.with_name(f".{p.name}.tmp-{os.getpid()}")
     created = False
     try:
-        with open_exclusive(tmp, "w", encoding=encoding, newline="") as fh:
+        with open_exclusive(tmp, "wb") as fh:
             created = True
-            fh.write(text)
+            fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, p)
