@@ -8,8 +8,8 @@
  *   acc_i = sum_j G_ij * B_j + O_i * 2^19 + rdiv(K_O,i * dTc * 2^11, 100) + sum_k D_k,i * I_k * 2^7
  *   out_i = sat_int32(rshift_round(acc_i, 19))
  *
- * rdiv and rshift_round round half away from zero; they work on the magnitude in unsigned
- * arithmetic (no shift or division of a negative number). The accumulator bound |acc| < 2^61.3
+ * rdiv and rshift_round round half away from zero; they work in unsigned arithmetic (no shift or
+ * division of a negative number). The accumulator bound |acc| < 2^61.3
  * holds for every image the loader accepts (|K_S2| < 2^28, |t0| <= 2^15, the input clips), so no
  * product or sum overflows; only the final int32 conversion can, and it saturates.
  */
@@ -289,25 +289,19 @@ static int64_t rdiv(int64_t a, uint64_t d)
     return a < 0 ? -(int64_t)q : (int64_t)q;
 }
 
-/* a / 2^19 rounded half away from zero */
+/* a / 2^19 rounded half away from zero (|a| < 2^62), without a branch: floor((a + 2^18 - [a < 0]) / 2^19),
+ * the floor taken on a + 2^63 in unsigned arithmetic (2^63 is a multiple of 2^19) */
 static int64_t rshift_round19(int64_t a)
 {
-    uint64_t m = a < 0 ? (uint64_t)0 - (uint64_t)a : (uint64_t)a;
-    uint64_t q = (m + ((uint64_t)1 << 18)) >> 19;
-    return a < 0 ? -(int64_t)q : (int64_t)q;
+    uint64_t u = (uint64_t)a + ((uint64_t)1 << 63) + ((uint64_t)1 << 18) - (uint64_t)(a < 0);
+    return (int64_t)(u >> 19) - ((int64_t)1 << 44);
 }
 
-static int32_t clip(int32_t v, int32_t lim, unsigned *status)
+/* v clipped to [-lim, lim]; sets *hit when it was outside */
+static int32_t clip(int32_t v, int32_t lim, unsigned *hit)
 {
-    if (v > lim) {
-        *status |= MAGSTACK_CAL_SATURATED;
-        return lim;
-    }
-    if (v < -lim) {
-        *status |= MAGSTACK_CAL_SATURATED;
-        return -lim;
-    }
-    return v;
+    *hit |= (unsigned)(v > lim) | (unsigned)(v < -lim);
+    return v > lim ? lim : v < -lim ? -lim : v;
 }
 
 /* the temperature-dependent part of one dTc: the gain matrix (2^-27) and each axis' constant (2^-27 nT) */
@@ -328,85 +322,172 @@ static void make_terms(const magstack_cal_table *t, int64_t dtc, temperature_ter
     }
 }
 
-/* inputs clipped and checked against the validity box; returns dTc */
-static int64_t prepare(const magstack_cal_table *t, const int32_t *b_nT, int32_t temp_cdeg, const int32_t *cur_mA,
-                       int32_t bc[3], int32_t cc[MAGSTACK_CAL_MAX_CURRENTS], unsigned *status)
+/* One sample with the temperature terms of its dTc: the status bits. b_nT, cur_mA as given (clipped here). */
+static unsigned sample(const magstack_cal_table *t, const temperature_terms *tt, const int32_t *b_nT,
+                       int32_t tc, const int32_t *cur_mA, unsigned sat, int32_t out[3])
 {
-    unsigned j, k;
-    int32_t tc;
-    for (j = 0; j < 3u; j++) {
-        bc[j] = clip(b_nT[j], MAGSTACK_CAL_B_LIMIT_NT, status);
-        if (bc[j] > t->field_limit_nT || bc[j] < -t->field_limit_nT) {
-            *status |= MAGSTACK_CAL_OUT_OF_VALIDITY;
-        }
-    }
-    tc = clip(temp_cdeg, MAGSTACK_CAL_T_LIMIT_CDEG, status);
-    if (t->has_temp_range && (tc < t->temp_lo_cdeg || tc > t->temp_hi_cdeg)) {
-        *status |= MAGSTACK_CAL_OUT_OF_VALIDITY;
+    unsigned oov = 0, i, k;
+    int32_t f = t->field_limit_nT;
+    int32_t bx = clip(b_nT[0], MAGSTACK_CAL_B_LIMIT_NT, &sat);
+    int32_t by = clip(b_nT[1], MAGSTACK_CAL_B_LIMIT_NT, &sat);
+    int32_t bz = clip(b_nT[2], MAGSTACK_CAL_B_LIMIT_NT, &sat);
+    int64_t acc[3];
+    oov |= (unsigned)(bx > f) | (unsigned)(bx < -f) | (unsigned)(by > f) | (unsigned)(by < -f) |
+           (unsigned)(bz > f) | (unsigned)(bz < -f);
+    oov |= (unsigned)t->has_temp_range & ((unsigned)(tc < t->temp_lo_cdeg) | (unsigned)(tc > t->temp_hi_cdeg));
+    for (i = 0; i < 3u; i++) {
+        acc[i] = tt->g[i][0] * bx + tt->g[i][1] * by + tt->g[i][2] * bz + tt->c[i];
     }
     for (k = 0; k < t->n_currents; k++) {
-        cc[k] = clip(cur_mA[k], MAGSTACK_CAL_I_LIMIT_MA, status);
-        if (cc[k] < t->current_lo_mA[k] || cc[k] > t->current_hi_mA[k]) {
-            *status |= MAGSTACK_CAL_OUT_OF_VALIDITY;
+        int32_t c = clip(cur_mA[k], MAGSTACK_CAL_I_LIMIT_MA, &sat);
+        oov |= (unsigned)(c < t->current_lo_mA[k]) | (unsigned)(c > t->current_hi_mA[k]);
+        for (i = 0; i < 3u; i++) {
+            acc[i] += (int64_t)t->D[k][i] * c * 128;
         }
     }
-    return (int64_t)tc - (int64_t)t->t0_cdeg;
-}
-
-static void accumulate(const magstack_cal_table *t, const temperature_terms *tt, const int32_t bc[3],
-                       const int32_t cc[MAGSTACK_CAL_MAX_CURRENTS], int32_t out[3], unsigned *status)
-{
-    unsigned i, k;
     for (i = 0; i < 3u; i++) {
-        int64_t acc = tt->g[i][0] * bc[0] + tt->g[i][1] * bc[1] + tt->g[i][2] * bc[2] + tt->c[i];
-        int64_t o;
-        for (k = 0; k < t->n_currents; k++) {
-            acc += (int64_t)t->D[k][i] * cc[k] * 128;
-        }
-        o = rshift_round19(acc);
-        if (o > INT32_MAX) {
-            out[i] = INT32_MAX;
-            *status |= MAGSTACK_CAL_SATURATED;
-        } else if (o < INT32_MIN) {
-            out[i] = INT32_MIN;
-            *status |= MAGSTACK_CAL_SATURATED;
-        } else {
-            out[i] = (int32_t)o;
-        }
+        int64_t o = rshift_round19(acc[i]);
+        sat |= (unsigned)(o > INT32_MAX) | (unsigned)(o < INT32_MIN);
+        out[i] = (int32_t)(o > INT32_MAX ? INT32_MAX : o < INT32_MIN ? INT32_MIN : o);
     }
+    return (sat ? MAGSTACK_CAL_SATURATED : 0u) | (oov ? MAGSTACK_CAL_OUT_OF_VALIDITY : 0u);
 }
 
 unsigned magstack_cal_apply(const magstack_cal_table *table, const int32_t b_nT[3], int32_t temp_cdeg,
                             const int32_t *currents_mA, int32_t out[3])
 {
-    unsigned status = 0;
-    int32_t bc[3], cc[MAGSTACK_CAL_MAX_CURRENTS] = {0, 0, 0, 0};
+    unsigned sat = 0;
+    int32_t tc = clip(temp_cdeg, MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
     temperature_terms tt;
-    int64_t dtc = prepare(table, b_nT, temp_cdeg, currents_mA, bc, cc, &status);
-    make_terms(table, dtc, &tt);
-    accumulate(table, &tt, bc, cc, out, &status);
-    return status;
+    make_terms(table, (int64_t)tc - table->t0_cdeg, &tt);
+    return sample(table, &tt, b_nT, tc, currents_mA, sat, out);
 }
+
+/* ------------------------------------------------------------------ blocks */
+/* Temperature terms kept for this many recent temperatures (direct-mapped on the temperature's low bits) by
+ * magstack_cal_apply_block: a temperature that toggles between a few values costs no recomputation. A power of
+ * two; the cache lives on the stack (about 100 bytes an entry). */
+#ifndef MAGSTACK_CAL_TERMS_CACHE
+#define MAGSTACK_CAL_TERMS_CACHE 8u
+#endif
+
+/* What a run of samples at one temperature shares: the terms, the currents' coefficients (x 2^7) and ranges,
+ * the field limit and the status bits of the temperature itself. */
+typedef struct {
+    const temperature_terms *tt;
+    int64_t d[MAGSTACK_CAL_MAX_CURRENTS][3];
+    int32_t lo[MAGSTACK_CAL_MAX_CURRENTS], hi[MAGSTACK_CAL_MAX_CURRENTS];
+    int32_t field;
+    unsigned base;
+} run_terms;
+
+/* m samples at the temperature of *rt, K currents each: the arithmetic of sample() without a branch, so
+ * that a compiler may keep the coefficients in registers and vectorise over samples. */
+#define OUTSIDE(v, lim) ((uint32_t)(v) + (uint32_t)(lim) > 2u * (uint32_t)(lim)) /* v < -lim or v > lim */
+#define OUTSIDE32(o) ((uint64_t)(o) + 0x80000000u > 0xFFFFFFFFu)                   /* o not an int32 */
+#define CLAMP(v, lo, hi) ((v) > (hi) ? (hi) : (v) < (lo) ? (lo) : (v))
+
+#define RUN_KERNEL(NAME, K)                                                                                       \
+    static void NAME(const run_terms *rt, size_t m, const int32_t *restrict b, const int32_t *restrict cur,    \
+                     int32_t *restrict out, uint8_t *restrict status)                                          \
+    {                                                                                                         \
+        const int64_t g00 = rt->tt->g[0][0], g01 = rt->tt->g[0][1], g02 = rt->tt->g[0][2];                        \
+        const int64_t g10 = rt->tt->g[1][0], g11 = rt->tt->g[1][1], g12 = rt->tt->g[1][2];                        \
+        const int64_t g20 = rt->tt->g[2][0], g21 = rt->tt->g[2][1], g22 = rt->tt->g[2][2];                        \
+        const int64_t c0 = rt->tt->c[0], c1 = rt->tt->c[1], c2 = rt->tt->c[2];                                    \
+        const int32_t f = rt->field, L = MAGSTACK_CAL_B_LIMIT_NT, IL = MAGSTACK_CAL_I_LIMIT_MA;                 \
+        const unsigned base = rt->base;                                                                       \
+        size_t r;                                                                                             \
+        int k;                                                                                                \
+        for (r = 0; r < m; r++) {                                                                             \
+            int32_t x = b[3u * r], y = b[3u * r + 1u], z = b[3u * r + 2u];                                     \
+            unsigned sat = (unsigned)OUTSIDE(x, L) | (unsigned)OUTSIDE(y, L) | (unsigned)OUTSIDE(z, L);       \
+            unsigned oov;                                                                                     \
+            int64_t a0, a1, a2, o0, o1, o2;                                                                   \
+            x = CLAMP(x, -L, L);                                                                              \
+            y = CLAMP(y, -L, L);                                                                              \
+            z = CLAMP(z, -L, L);                                                                              \
+            oov = (unsigned)OUTSIDE(x, f) | (unsigned)OUTSIDE(y, f) | (unsigned)OUTSIDE(z, f);                \
+            a0 = g00 * x + g01 * y + g02 * z + c0;                                                            \
+            a1 = g10 * x + g11 * y + g12 * z + c1;                                                            \
+            a2 = g20 * x + g21 * y + g22 * z + c2;                                                            \
+            for (k = 0; k < (K); k++) {                                                                       \
+                int32_t c = cur[(size_t)(K) * r + (size_t)k];                                                 \
+                sat |= (unsigned)OUTSIDE(c, IL);                                                              \
+                c = CLAMP(c, -IL, IL);                                                                        \
+                oov |= (unsigned)((uint32_t)c - (uint32_t)rt->lo[k] > (uint32_t)rt->hi[k] - (uint32_t)rt->lo[k]); \
+                a0 += rt->d[k][0] * c;                                                                        \
+                a1 += rt->d[k][1] * c;                                                                        \
+                a2 += rt->d[k][2] * c;                                                                        \
+            }                                                                                                 \
+            o0 = rshift_round19(a0);                                                                          \
+            o1 = rshift_round19(a1);                                                                          \
+            o2 = rshift_round19(a2);                                                                          \
+            sat |= (unsigned)OUTSIDE32(o0) | (unsigned)OUTSIDE32(o1) | (unsigned)OUTSIDE32(o2);               \
+            out[3u * r] = (int32_t)CLAMP(o0, INT32_MIN, INT32_MAX);                                           \
+            out[3u * r + 1u] = (int32_t)CLAMP(o1, INT32_MIN, INT32_MAX);                                      \
+            out[3u * r + 2u] = (int32_t)CLAMP(o2, INT32_MIN, INT32_MAX);                                      \
+            status[r] = (uint8_t)(base | (sat << 2) | (oov << 1));                                            \
+        }                                                                                                     \
+    }
+
+RUN_KERNEL(run0, 0)
+RUN_KERNEL(run1, 1)
+RUN_KERNEL(run2, 2)
+RUN_KERNEL(run3, 3)
+RUN_KERNEL(run4, 4)
 
 void magstack_cal_apply_block(const magstack_cal_table *table, size_t n, const int32_t *b_nT,
                               const int32_t *temp_cdeg, const int32_t *currents_mA, int32_t *out,
                               uint8_t *status)
 {
-    size_t r;
-    int32_t bc[3], cc[MAGSTACK_CAL_MAX_CURRENTS] = {0, 0, 0, 0};
-    temperature_terms tt;
-    int64_t last = 0;
-    int have = 0;
-    for (r = 0; r < n; r++) {
-        unsigned st = 0;
-        int64_t dtc = prepare(table, b_nT + 3u * r, temp_cdeg[r],
-                              table->n_currents ? currents_mA + (size_t)table->n_currents * r : NULL, bc, cc, &st);
-        if (!have || dtc != last) {
-            make_terms(table, dtc, &tt);
-            last = dtc;
-            have = 1;
+    run_terms rt;
+    temperature_terms cache[MAGSTACK_CAL_TERMS_CACHE];
+    int32_t tag[MAGSTACK_CAL_TERMS_CACHE];
+    uint32_t valid[MAGSTACK_CAL_TERMS_CACHE];
+    unsigned i, k, nk = table->n_currents;
+    size_t r = 0, end;
+    for (i = 0; i < MAGSTACK_CAL_TERMS_CACHE; i++) {
+        valid[i] = 0;
+        tag[i] = 0;
+    }
+    for (k = 0; k < MAGSTACK_CAL_MAX_CURRENTS; k++) {
+        for (i = 0; i < 3u; i++) {
+            rt.d[k][i] = (int64_t)table->D[k][i] * 128;
         }
-        accumulate(table, &tt, bc, cc, out + 3u * r, &st);
-        status[r] = (uint8_t)st;
+        rt.lo[k] = table->current_lo_mA[k];
+        rt.hi[k] = table->current_hi_mA[k];
+    }
+    rt.field = table->field_limit_nT;
+    while (r < n) {
+        unsigned sat = 0;
+        int32_t tc = clip(temp_cdeg[r], MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
+        unsigned oov = (unsigned)table->has_temp_range &
+                       ((unsigned)(tc < table->temp_lo_cdeg) | (unsigned)(tc > table->temp_hi_cdeg));
+        uint32_t slot = (uint32_t)tc & (MAGSTACK_CAL_TERMS_CACHE - 1u);
+        if (!valid[slot] || tag[slot] != tc) {
+            make_terms(table, (int64_t)tc - table->t0_cdeg, &cache[slot]);
+            tag[slot] = tc;
+            valid[slot] = 1;
+        }
+        rt.tt = &cache[slot];
+        rt.base = (sat ? MAGSTACK_CAL_SATURATED : 0u) | (oov ? MAGSTACK_CAL_OUT_OF_VALIDITY : 0u);
+        for (end = r + 1u; end < n && temp_cdeg[end] == temp_cdeg[r]; end++) {
+        }
+        if (end - r < 8u) {   /* a short run: the scalar path (no vector set-up) */
+            for (; r < end; r++) {
+                status[r] = (uint8_t)sample(table, rt.tt, b_nT + 3u * r, tc, nk ? currents_mA + nk * r : NULL, sat,
+                                            out + 3u * r);
+            }
+            continue;
+        }
+        switch (nk) {
+        case 0: run0(&rt, end - r, b_nT + 3u * r, NULL, out + 3u * r, status + r); break;
+        case 1: run1(&rt, end - r, b_nT + 3u * r, currents_mA + r, out + 3u * r, status + r); break;
+        case 2: run2(&rt, end - r, b_nT + 3u * r, currents_mA + 2u * r, out + 3u * r, status + r); break;
+        case 3: run3(&rt, end - r, b_nT + 3u * r, currents_mA + 3u * r, out + 3u * r, status + r); break;
+        default: run4(&rt, end - r, b_nT + 3u * r, currents_mA + 4u * r, out + 3u * r, status + r); break;
+        }
+        r = end;
     }
 }
