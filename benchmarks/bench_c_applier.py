@@ -10,11 +10,10 @@ need Debian's gcc-arm-linux-gnueabihf and qemu-user, the Cortex-M4 size gcc-arm-
   the host library through ctypes (``magstack_cal_apply_block`` and ``magstack_cal_apply`` on every row), and the
   harness cross-compiled for 32-bit ARM run by qemu-arm (``magstack_cal_apply`` on every row, and the block
   path checked against it inside the harness).
-* ``speed``: samples per second of ``magstack_cal_apply_block`` (ctypes, one call per block) against
-  ``FixedPointTable.apply_block`` (numpy) on the same block, in this process, best of ``--repeat``; two temperature
-  patterns: a slow drift (the temperature changes every 100 samples, as a sensor's does at 25 Hz) and a new
-  temperature every sample (the per-sample worst case of both appliers). ns per sample on emulated ARM from
-  the harness's own clock under qemu-arm.
+* ``speed``: CPU time per sample of ``magstack_cal_apply_block`` (ctypes, one call per block; built with gcc -O2
+  and with -O3 -march=native) against ``FixedPointTable.apply_block`` (numpy) on the same block, in this process,
+  best of ``--repeat``; three temperature patterns (``PATTERNS``). ns per sample on emulated ARM from the
+  harness's own clock under qemu-arm (wall time, so it includes the host's load).
 * ``size``: the library's code size (``size`` of the object file) for the host, 32-bit ARM Linux and Cortex-M4,
   and the table image's size.
 """
@@ -103,68 +102,101 @@ def equality(args, build: Path) -> None:
           f"{bad_block} block-path samples differ from the per-sample path [{time.perf_counter() - t0:.1f} s]")
 
 
-def _stream(n: int, every: int, rng: np.random.Generator):
-    """A sensor stream: |B| <= 100 uT, one current, the temperature new every ``every`` samples."""
+#: Temperature patterns of the speed part: (label, how the temperature of sample r is drawn).
+PATTERNS = ("steady: a +-15 degC swing over the block (a new value every ~170 samples)",
+            "noisy: the same swing with +-0.02 degC noise on every sample",
+            "random: a new temperature every sample, -40..85 degC (worst case)")
+
+
+def _stream(n: int, pattern: int, rng: np.random.Generator):
+    """A sensor stream: |B| <= 100 uT, one current, the temperature by ``pattern`` (index into PATTERNS)."""
     fx, names = cb.random_fixed(rng, realistic=True)
     while len(fx.D) != 1:
         fx, names = cb.random_fixed(rng, realistic=True)
     b = rng.integers(-100_000, 100_001, (n, 3)).astype(np.int32)
-    steps = np.repeat(rng.integers(-3, 4, n // every + 1), every)[:n]
-    t = np.clip(fx.t0_cdeg + np.cumsum(steps), -4000, 8500).astype(np.int32) if every > 1 else \
-        rng.integers(-4000, 8501, n).astype(np.int32)
+    swing = np.round(fx.t0_cdeg + 1500 * np.sin(2 * np.pi * np.arange(n) / n)).astype(np.int64)
+    if pattern == 0:
+        t = swing
+    elif pattern == 1:
+        t = swing + rng.integers(-2, 3, n)
+    else:
+        t = rng.integers(-4000, 8501, n)
     c = rng.integers(-2000, 2001, (n, 1)).astype(np.int32)
-    return fx, names, b, t, c
+    return fx, names, b, np.clip(t, -4000, 8500).astype(np.int32), c
+
+
+def _best_cpu(repeat: int, fn, *a) -> float:
+    """Best-of-``repeat`` CPU seconds (``time.process_time``) of ``fn(*a)``."""
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.process_time()
+        fn(*a)
+        best = min(best, time.process_time() - t0)
+    return best
+
+
+#: The host builds timed: flags, what they are.
+HOST_BUILDS = (("-O2 -DMAGSTACK_CAL_COMPACT", "gcc -O2 -DMAGSTACK_CAL_COMPACT"), ("-O2", "gcc -O2 (generic x86-64)"),
+               ("-O3 -march=native", "gcc -O3 -march=native"))
 
 
 def speed(args, build: Path) -> None:
-    lib = cb.CApplier(cb.build_shared(build))
+    """CPU time (``time.process_time``, best of ``--repeat``) of each applier on the same block in this process."""
+    libs = []
+    for flags, label in HOST_BUILDS:
+        sub = build / flags.replace(" ", "").replace("=", "").replace("-", "_")
+        sub.mkdir(exist_ok=True)
+        libs.append((label, cb.CApplier(cb.compile_c("gcc", [*flags.split(), "-fPIC", "-shared", str(cb.SOURCE)],
+                                                     sub / "libmagstack_cal.so"))))
     rng = np.random.default_rng(7)
     n = args.block
-    print(f"load average {os.getloadavg()[0]:.1f}; block {n} samples; best of {args.repeat}")
+    print(f"load average {os.getloadavg()[0]:.1f}; block {n} samples; CPU time, best of {args.repeat}")
     arm = None
     if cb.tool(cb.ARM_CC) and cb.tool(cb.QEMU_ARM):
         arm = cb.build_harness(build, "harness_arm_bench", cc=cb.ARM_CC, extra=("-static",))
-    for label, every in (("temperature drifting (new every 100 samples)", 100), ("new temperature every sample", 1)):
-        fx, names, b, t, c = _stream(n, every, rng)
-        rc, table = lib.load(cb.image_of(fx, names))
-        assert rc == 0
+    for p, label in enumerate(PATTERNS):
+        fx, names, b, t, c = _stream(n, p, rng)
+        raw = cb.image_of(fx, names)
         b64, t64, c64 = b.astype(np.int64), t.astype(np.int64), c.astype(np.int64)
-        out, st = np.empty((n, 3), np.int32), np.empty(n, np.uint8)
         q, s = fx.apply_block(b64, t64, c64)
-        lib.apply_block_into(table, b, t, c, out, st)
-        assert np.array_equal(out, q) and np.array_equal(st, s)
-        best_py = best_c = float("inf")
-        for _ in range(args.repeat):
-            t0 = time.perf_counter()
-            fx.apply_block(b64, t64, c64)
-            best_py = min(best_py, time.perf_counter() - t0)
-            t0 = time.perf_counter()
+        out, st = np.empty((n, 3), np.int32), np.empty(n, np.uint8)
+
+        py = _best_cpu(args.repeat, fx.apply_block, b64, t64, c64)
+        print(f"{label} ({len(np.unique(t))} distinct temperatures): Python apply_block {py / n * 1e9:.1f} ns per "
+              f"sample ({n / py / 1e6:.1f} M samples/s)")
+        for name, lib in libs:
+            rc, table = lib.load(raw)
+            assert rc == 0
             lib.apply_block_into(table, b, t, c, out, st)
-            best_c = min(best_c, time.perf_counter() - t0)
-        print(f"{label}: Python apply_block {n / best_py / 1e6:.2f} M samples/s ({best_py / n * 1e9:.0f} ns), "
-              f"C {n / best_c / 1e6:.1f} M samples/s ({best_c / n * 1e9:.1f} ns per sample): "
-              f"ratio {best_py / best_c:.1f}x")
+            assert np.array_equal(out, q) and np.array_equal(st, s)
+            ct = _best_cpu(args.repeat, lib.apply_block_into, table, b, t, c, out, st)
+            print(f"  C {name}: {ct / n * 1e9:.2f} ns per sample ({n / ct / 1e6:.0f} M samples/s), "
+                  f"{py / ct:.1f}x Python")
         if arm is not None:
-            m = min(n, 100_000)
-            rec = cb.Record(cb.image_of(fx, names), b[:m], t[:m], np.pad(c[:m], ((0, 0), (0, 3))))
-            ns = min(cb.run_harness([cb.QEMU_ARM, str(arm)], [rec], mode=("bench", "5"))[0][1]
+            m = min(n, 200_000)
+            rec = cb.Record(raw, b[:m], t[:m], np.pad(c[:m], ((0, 0), (0, 3))))
+            ns = min(cb.run_harness([cb.QEMU_ARM, str(arm)], [rec], mode=("bench", "3"))[0][1]
                      for _ in range(args.repeat))
-            print(f"  32-bit ARM under qemu-arm (emulated, on this host): {ns / (5 * m):.1f} ns per sample")
+            print(f"  C on 32-bit ARM (arm-linux-gnueabihf-gcc -O2) emulated by qemu-arm on this host: "
+                  f"{ns / (3 * m):.1f} ns per sample")
 
 
 def size(args, build: Path) -> None:
     print(f"table image: {cal_image.SIZE} bytes (format version {cal_image.VERSION})")
     rows = [("host x86-64, gcc -O2", "gcc", "size", ["-O2"]),
+            ("host x86-64, gcc -O2 -DMAGSTACK_CAL_COMPACT", "gcc", "size", ["-O2", "-DMAGSTACK_CAL_COMPACT"]),
             ("32-bit ARM Linux, arm-linux-gnueabihf-gcc -O2", cb.ARM_CC, "arm-linux-gnueabihf-size", ["-O2"]),
             ("Cortex-M4, arm-none-eabi-gcc -Os -mthumb", cb.M4_CC, "arm-none-eabi-size",
              ["-Os", "-mcpu=cortex-m4", "-mthumb"]),
             ("Cortex-M4, arm-none-eabi-gcc -O2 -mthumb", cb.M4_CC, "arm-none-eabi-size",
-             ["-O2", "-mcpu=cortex-m4", "-mthumb"])]
+             ["-O2", "-mcpu=cortex-m4", "-mthumb"]),
+            ("Cortex-M4, arm-none-eabi-gcc -Os -mthumb -DMAGSTACK_CAL_COMPACT", cb.M4_CC, "arm-none-eabi-size",
+             ["-Os", "-mcpu=cortex-m4", "-mthumb", "-DMAGSTACK_CAL_COMPACT"])]
     for label, cc, sz, flags in rows:
         if cb.tool(cc) is None or cb.tool(sz) is None:
             print(f"{label}: skipped ({cc} not installed)")
             continue
-        obj = cb.compile_c(cc, [*flags, "-c", str(cb.SOURCE)], build / f"{cc}{'_'.join(flags)}.o")
+        obj = cb.compile_c(cc, [*flags, "-c", str(cb.SOURCE)], build / f"{cc}{''.join(flags).replace('=', '')}.o")
         text, data, bss = subprocess.run([sz, str(obj)], capture_output=True, text=True,
                                          check=True).stdout.splitlines()[1].split()[:3]
         undef = subprocess.run([sz.replace("size", "nm"), "-u", str(obj)], capture_output=True, text=True,

@@ -371,6 +371,21 @@ unsigned magstack_cal_apply(const magstack_cal_table *table, const int32_t b_nT[
 #define MAGSTACK_CAL_TERMS_CACHE 8u
 #endif
 
+/* The terms of clipped temperature tc from the cache (computed on a miss). */
+static const temperature_terms *cached_terms(const magstack_cal_table *t, temperature_terms *cache, int32_t *tag,
+                                             uint32_t *valid, int32_t tc)
+{
+    uint32_t slot = (uint32_t)tc & (MAGSTACK_CAL_TERMS_CACHE - 1u);
+    if (!valid[slot] || tag[slot] != tc) {
+        make_terms(t, (int64_t)tc - t->t0_cdeg, &cache[slot]);
+        tag[slot] = tc;
+        valid[slot] = 1;
+    }
+    return &cache[slot];
+}
+
+#ifndef MAGSTACK_CAL_COMPACT /* a kernel per number of currents, vectorisable over runs of one temperature */
+
 /* What a run of samples at one temperature shares: the terms, the currents' coefficients (x 2^7) and ranges,
  * the field limit and the status bits of the temperature itself. */
 typedef struct {
@@ -387,55 +402,72 @@ typedef struct {
 #define OUTSIDE32(o) ((uint64_t)(o) + 0x80000000u > 0xFFFFFFFFu)                   /* o not an int32 */
 #define CLAMP(v, lo, hi) ((v) > (hi) ? (hi) : (v) < (lo) ? (lo) : (v))
 
-#define RUN_KERNEL(NAME, K)                                                                                       \
-    static void NAME(const run_terms *rt, size_t m, const int32_t *restrict b, const int32_t *restrict cur,    \
-                     int32_t *restrict out, uint8_t *restrict status)                                          \
-    {                                                                                                         \
-        const int64_t g00 = rt->tt->g[0][0], g01 = rt->tt->g[0][1], g02 = rt->tt->g[0][2];                        \
-        const int64_t g10 = rt->tt->g[1][0], g11 = rt->tt->g[1][1], g12 = rt->tt->g[1][2];                        \
-        const int64_t g20 = rt->tt->g[2][0], g21 = rt->tt->g[2][1], g22 = rt->tt->g[2][2];                        \
-        const int64_t c0 = rt->tt->c[0], c1 = rt->tt->c[1], c2 = rt->tt->c[2];                                    \
-        const int32_t f = rt->field, L = MAGSTACK_CAL_B_LIMIT_NT, IL = MAGSTACK_CAL_I_LIMIT_MA;                 \
-        const unsigned base = rt->base;                                                                       \
-        size_t r;                                                                                             \
-        int k;                                                                                                \
-        for (r = 0; r < m; r++) {                                                                             \
-            int32_t x = b[3u * r], y = b[3u * r + 1u], z = b[3u * r + 2u];                                     \
-            unsigned sat = (unsigned)OUTSIDE(x, L) | (unsigned)OUTSIDE(y, L) | (unsigned)OUTSIDE(z, L);       \
-            unsigned oov;                                                                                     \
-            int64_t a0, a1, a2, o0, o1, o2;                                                                   \
-            x = CLAMP(x, -L, L);                                                                              \
-            y = CLAMP(y, -L, L);                                                                              \
-            z = CLAMP(z, -L, L);                                                                              \
-            oov = (unsigned)OUTSIDE(x, f) | (unsigned)OUTSIDE(y, f) | (unsigned)OUTSIDE(z, f);                \
-            a0 = g00 * x + g01 * y + g02 * z + c0;                                                            \
-            a1 = g10 * x + g11 * y + g12 * z + c1;                                                            \
-            a2 = g20 * x + g21 * y + g22 * z + c2;                                                            \
-            for (k = 0; k < (K); k++) {                                                                       \
-                int32_t c = cur[(size_t)(K) * r + (size_t)k];                                                 \
-                sat |= (unsigned)OUTSIDE(c, IL);                                                              \
-                c = CLAMP(c, -IL, IL);                                                                        \
-                oov |= (unsigned)((uint32_t)c - (uint32_t)rt->lo[k] > (uint32_t)rt->hi[k] - (uint32_t)rt->lo[k]); \
-                a0 += rt->d[k][0] * c;                                                                        \
-                a1 += rt->d[k][1] * c;                                                                        \
-                a2 += rt->d[k][2] * c;                                                                        \
-            }                                                                                                 \
-            o0 = rshift_round19(a0);                                                                          \
-            o1 = rshift_round19(a1);                                                                          \
-            o2 = rshift_round19(a2);                                                                          \
-            sat |= (unsigned)OUTSIDE32(o0) | (unsigned)OUTSIDE32(o1) | (unsigned)OUTSIDE32(o2);               \
-            out[3u * r] = (int32_t)CLAMP(o0, INT32_MIN, INT32_MAX);                                           \
-            out[3u * r + 1u] = (int32_t)CLAMP(o1, INT32_MIN, INT32_MAX);                                      \
-            out[3u * r + 2u] = (int32_t)CLAMP(o2, INT32_MIN, INT32_MAX);                                      \
-            status[r] = (uint8_t)(base | (sat << 2) | (oov << 1));                                            \
-        }                                                                                                     \
+/* The coefficients of a run, in locals (registers). */
+#define RUN_LOCALS                                                                                                \
+    const int64_t g00 = rt->tt->g[0][0], g01 = rt->tt->g[0][1], g02 = rt->tt->g[0][2];                            \
+    const int64_t g10 = rt->tt->g[1][0], g11 = rt->tt->g[1][1], g12 = rt->tt->g[1][2];                            \
+    const int64_t g20 = rt->tt->g[2][0], g21 = rt->tt->g[2][1], g22 = rt->tt->g[2][2];                            \
+    const int64_t c0 = rt->tt->c[0], c1 = rt->tt->c[1], c2 = rt->tt->c[2];                                        \
+    const int32_t f = rt->field, L = MAGSTACK_CAL_B_LIMIT_NT, IL = MAGSTACK_CAL_I_LIMIT_MA;                         \
+    const unsigned base = rt->base;                                                                               \
+    int k
+
+/* Sample r of a run with K currents: the arithmetic of sample() without a branch. */
+#define RUN_SAMPLE(K, r)                                                                                          \
+    do {                                                                                                          \
+        int32_t x = b[3u * (r)], y = b[3u * (r) + 1u], z = b[3u * (r) + 2u];                                      \
+        unsigned sat = (unsigned)OUTSIDE(x, L) | (unsigned)OUTSIDE(y, L) | (unsigned)OUTSIDE(z, L);               \
+        unsigned oov;                                                                                             \
+        int64_t a0, a1, a2, o0, o1, o2;                                                                           \
+        x = CLAMP(x, -L, L);                                                                                      \
+        y = CLAMP(y, -L, L);                                                                                      \
+        z = CLAMP(z, -L, L);                                                                                      \
+        oov = (unsigned)OUTSIDE(x, f) | (unsigned)OUTSIDE(y, f) | (unsigned)OUTSIDE(z, f);                        \
+        a0 = g00 * x + g01 * y + g02 * z + c0;                                                                    \
+        a1 = g10 * x + g11 * y + g12 * z + c1;                                                                    \
+        a2 = g20 * x + g21 * y + g22 * z + c2;                                                                    \
+        for (k = 0; k < (K); k++) {                                                                               \
+            int32_t c = cur[(size_t)(K) * (r) + (size_t)k];                                                       \
+            sat |= (unsigned)OUTSIDE(c, IL);                                                                      \
+            c = CLAMP(c, -IL, IL);                                                                                \
+            oov |= (unsigned)((uint32_t)c - (uint32_t)rt->lo[k] > (uint32_t)rt->hi[k] - (uint32_t)rt->lo[k]);     \
+            a0 += rt->d[k][0] * c;                                                                                \
+            a1 += rt->d[k][1] * c;                                                                                \
+            a2 += rt->d[k][2] * c;                                                                                \
+        }                                                                                                         \
+        o0 = rshift_round19(a0);                                                                                  \
+        o1 = rshift_round19(a1);                                                                                  \
+        o2 = rshift_round19(a2);                                                                                  \
+        sat |= (unsigned)OUTSIDE32(o0) | (unsigned)OUTSIDE32(o1) | (unsigned)OUTSIDE32(o2);                       \
+        out[3u * (r)] = (int32_t)CLAMP(o0, INT32_MIN, INT32_MAX);                                                 \
+        out[3u * (r) + 1u] = (int32_t)CLAMP(o1, INT32_MIN, INT32_MAX);                                            \
+        out[3u * (r) + 2u] = (int32_t)CLAMP(o2, INT32_MIN, INT32_MAX);                                            \
+        status[r] = (uint8_t)(base | (sat << 2) | (oov << 1));                                                    \
+    } while (0)
+
+/* m samples at the temperature of *rt (a loop a compiler may vectorise), or one sample (no vector set-up). */
+#define RUN_KERNEL(NAME, ONE, K)                                                                                  \
+    static void NAME(const run_terms *rt, size_t m, const int32_t *restrict b, const int32_t *restrict cur,        \
+                     int32_t *restrict out, uint8_t *restrict status)                                              \
+    {                                                                                                             \
+        size_t r;                                                                                                 \
+        RUN_LOCALS;                                                                                               \
+        for (r = 0; r < m; r++) {                                                                                 \
+            RUN_SAMPLE(K, r);                                                                                     \
+        }                                                                                                         \
+    }                                                                                                             \
+    static void ONE(const run_terms *rt, const int32_t *restrict b, const int32_t *restrict cur,                   \
+                    int32_t *restrict out, uint8_t *restrict status)                                               \
+    {                                                                                                             \
+        RUN_LOCALS;                                                                                               \
+        RUN_SAMPLE(K, 0u);                                                                                        \
     }
 
-RUN_KERNEL(run0, 0)
-RUN_KERNEL(run1, 1)
-RUN_KERNEL(run2, 2)
-RUN_KERNEL(run3, 3)
-RUN_KERNEL(run4, 4)
+RUN_KERNEL(run0, one0, 0)
+RUN_KERNEL(run1, one1, 1)
+RUN_KERNEL(run2, one2, 2)
+RUN_KERNEL(run3, one3, 3)
+RUN_KERNEL(run4, one4, 4)
 
 void magstack_cal_apply_block(const magstack_cal_table *table, size_t n, const int32_t *b_nT,
                               const int32_t *temp_cdeg, const int32_t *currents_mA, int32_t *out,
@@ -461,33 +493,61 @@ void magstack_cal_apply_block(const magstack_cal_table *table, size_t n, const i
     rt.field = table->field_limit_nT;
     while (r < n) {
         unsigned sat = 0;
-        int32_t tc = clip(temp_cdeg[r], MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
+        int32_t raw = temp_cdeg[r];
+        int32_t tc = clip(raw, MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
+        const temperature_terms *tt = cached_terms(table, cache, tag, valid, tc);
+        /* a run of one temperature (its first, second, 8th and 16th samples equal) goes to the vector kernel at
+         * once; otherwise one sample */
         unsigned oov = (unsigned)table->has_temp_range &
                        ((unsigned)(tc < table->temp_lo_cdeg) | (unsigned)(tc > table->temp_hi_cdeg));
-        uint32_t slot = (uint32_t)tc & (MAGSTACK_CAL_TERMS_CACHE - 1u);
-        if (!valid[slot] || tag[slot] != tc) {
-            make_terms(table, (int64_t)tc - table->t0_cdeg, &cache[slot]);
-            tag[slot] = tc;
-            valid[slot] = 1;
-        }
-        rt.tt = &cache[slot];
-        rt.base = (sat ? MAGSTACK_CAL_SATURATED : 0u) | (oov ? MAGSTACK_CAL_OUT_OF_VALIDITY : 0u);
-        for (end = r + 1u; end < n && temp_cdeg[end] == temp_cdeg[r]; end++) {
-        }
-        if (end - r < 8u) {   /* a short run: the scalar path (no vector set-up) */
-            for (; r < end; r++) {
-                status[r] = (uint8_t)sample(table, rt.tt, b_nT + 3u * r, tc, nk ? currents_mA + nk * r : NULL, sat,
-                                            out + 3u * r);
+        end = r + 1u;
+        if (r + 16u <= n && ((temp_cdeg[r + 1u] == raw) & (temp_cdeg[r + 7u] == raw) & (temp_cdeg[r + 15u] == raw))) {
+            for (end = r + 2u; end < n && temp_cdeg[end] == raw; end++) {
             }
-            continue;
         }
-        switch (nk) {
-        case 0: run0(&rt, end - r, b_nT + 3u * r, NULL, out + 3u * r, status + r); break;
-        case 1: run1(&rt, end - r, b_nT + 3u * r, currents_mA + r, out + 3u * r, status + r); break;
-        case 2: run2(&rt, end - r, b_nT + 3u * r, currents_mA + 2u * r, out + 3u * r, status + r); break;
-        case 3: run3(&rt, end - r, b_nT + 3u * r, currents_mA + 3u * r, out + 3u * r, status + r); break;
-        default: run4(&rt, end - r, b_nT + 3u * r, currents_mA + 4u * r, out + 3u * r, status + r); break;
+        rt.tt = tt;
+        rt.base = (sat ? MAGSTACK_CAL_SATURATED : 0u) | (oov ? MAGSTACK_CAL_OUT_OF_VALIDITY : 0u);
+        if (end - r == 1u) {
+            switch (nk) {
+            case 0: one0(&rt, b_nT + 3u * r, NULL, out + 3u * r, status + r); break;
+            case 1: one1(&rt, b_nT + 3u * r, currents_mA + r, out + 3u * r, status + r); break;
+            case 2: one2(&rt, b_nT + 3u * r, currents_mA + 2u * r, out + 3u * r, status + r); break;
+            case 3: one3(&rt, b_nT + 3u * r, currents_mA + 3u * r, out + 3u * r, status + r); break;
+            default: one4(&rt, b_nT + 3u * r, currents_mA + 4u * r, out + 3u * r, status + r); break;
+            }
+        } else {
+            switch (nk) {
+            case 0: run0(&rt, end - r, b_nT + 3u * r, NULL, out + 3u * r, status + r); break;
+            case 1: run1(&rt, end - r, b_nT + 3u * r, currents_mA + r, out + 3u * r, status + r); break;
+            case 2: run2(&rt, end - r, b_nT + 3u * r, currents_mA + 2u * r, out + 3u * r, status + r); break;
+            case 3: run3(&rt, end - r, b_nT + 3u * r, currents_mA + 3u * r, out + 3u * r, status + r); break;
+            default: run4(&rt, end - r, b_nT + 3u * r, currents_mA + 4u * r, out + 3u * r, status + r); break;
+            }
         }
         r = end;
     }
 }
+
+#else /* MAGSTACK_CAL_COMPACT: one sample at a time (smallest code) */
+
+void magstack_cal_apply_block(const magstack_cal_table *table, size_t n, const int32_t *b_nT,
+                              const int32_t *temp_cdeg, const int32_t *currents_mA, int32_t *out,
+                              uint8_t *status)
+{
+    temperature_terms cache[MAGSTACK_CAL_TERMS_CACHE];
+    int32_t tag[MAGSTACK_CAL_TERMS_CACHE];
+    uint32_t valid[MAGSTACK_CAL_TERMS_CACHE];
+    size_t r, nk = table->n_currents;
+    unsigned i;
+    for (i = 0; i < MAGSTACK_CAL_TERMS_CACHE; i++) {
+        valid[i] = 0;
+        tag[i] = 0;
+    }
+    for (r = 0; r < n; r++) {
+        unsigned sat = 0;
+        int32_t tc = clip(temp_cdeg[r], MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
+        status[r] = (uint8_t)sample(table, cached_terms(table, cache, tag, valid, tc), b_nT + 3u * r, tc,
+                                    nk ? currents_mA + nk * r : NULL, sat, out + 3u * r);
+    }
+}
+#endif

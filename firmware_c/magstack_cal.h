@@ -10,7 +10,12 @@
  * in nT * 2^8 (Q23.8 nT, int32).
  *
  * No floating point, no heap, no division by a variable, no undefined behaviour for any input and
- * any image the loader accepts. The functions keep no state: a table is read-only once loaded (to
+ * any image the loader accepts.
+ *
+ * Build options (preprocessor): MAGSTACK_CAL_COMPACT gives magstack_cal_apply_block a plain loop over
+ * samples (smallest code; otherwise one branch-free kernel per number of currents, which a compiler can
+ * vectorise over runs of one temperature); MAGSTACK_CAL_TERMS_CACHE (a power of two, default 8) is how
+ * many temperatures' terms magstack_cal_apply_block keeps on its stack (about 100 bytes each). The functions keep no state: a table is read-only once loaded (to
  * replace the active table, load the new image into a second table and swap the pointer between
  * samples).
  */

@@ -136,6 +136,29 @@ def test_roundings_on_a_half_go_away_from_zero(clib):
         _same(fx, [], b, t, np.zeros((6, 0)), *clib.apply_block(table, b, t, np.zeros((6, 0))))
 
 
+@pytest.mark.parametrize("flags", [("-O2", "-DMAGSTACK_CAL_COMPACT"), ("-Os", "-DMAGSTACK_CAL_TERMS_CACHE=1u"),
+                                   ("-O3", "-march=native")])
+def test_other_builds_are_the_same(build_dir, clib, flags):
+    """The compact block path, a one-entry terms cache, and the vectorised kernels of -O3 -march=native."""
+    r = subprocess.run(["gcc", *flags, "-x", "c", "-c", "-o", "/dev/null", "-"], input="int x;\n", capture_output=True,
+                       text=True, timeout=60)
+    if r.returncode != 0:
+        pytest.skip(f"gcc does not take {' '.join(flags)} here")
+    sub = build_dir / "".join(f.strip("-=") for f in flags)
+    sub.mkdir(exist_ok=True)
+    lib = cb.CApplier(cb.compile_c("gcc", [*flags, "-fPIC", "-shared", str(cb.SOURCE)], sub / "lib.so"))
+    for seed in range(40):
+        rng = np.random.default_rng(seed)
+        fx, names = cb.random_fixed(rng)
+        b, t, c = cb.random_samples(rng, 600, fx)
+        t[:300] = np.repeat(t[:300:50], 50)       # long runs of one temperature (the vector kernel)
+        rc, table = lib.load(cb.image_of(fx, names))
+        assert rc == 0
+        _same(fx, names, b, t, c, *lib.apply_block(table, b, t, c))
+        q, st_ = cb.python_reference(fx, b[:1], t[:1], c[:1], per_sample=False)
+        assert lib.apply(table, b[0], int(t[0]), c[0]) == (tuple(q[0].tolist()), int(st_[0]))
+
+
 # ---------------------------------------------------------------------- sanitizers and ARM
 def _batch_check(cmd, batch) -> None:
     records = [cb.Record(cb.image_of(fx, names), b, t, c) for fx, names, b, t, c in batch]
