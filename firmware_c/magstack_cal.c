@@ -396,8 +396,6 @@ typedef struct {
     unsigned base;
 } run_terms;
 
-/* m samples at the temperature of *rt, K currents each: the arithmetic of sample() without a branch, so
- * that a compiler may keep the coefficients in registers and vectorise over samples. */
 #define OUTSIDE(v, lim) ((uint32_t)(v) + (uint32_t)(lim) > 2u * (uint32_t)(lim)) /* v < -lim or v > lim */
 #define OUTSIDE32(o) ((uint64_t)(o) + 0x80000000u > 0xFFFFFFFFu)                   /* o not an int32 */
 #define CLAMP(v, lo, hi) ((v) > (hi) ? (hi) : (v) < (lo) ? (lo) : (v))

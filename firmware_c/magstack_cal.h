@@ -112,7 +112,7 @@ unsigned magstack_cal_apply(const magstack_cal_table *table, const int32_t b_nT[
 
 /* n samples: b_nT[3n], temp_cdeg[n], currents_mA[n * table->n_currents] (row-major; NULL when there are
  * none) -> out[3n], status[n]. The same integers as n calls of magstack_cal_apply; the temperature terms
- * are computed once per run of equal temperatures. */
+ * are computed once per temperature and kept for the last MAGSTACK_CAL_TERMS_CACHE temperatures. */
 void magstack_cal_apply_block(const magstack_cal_table *table, size_t n, const int32_t *b_nT,
                               const int32_t *temp_cdeg, const int32_t *currents_mA, int32_t *out,
                               uint8_t *status);
