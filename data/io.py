@@ -63,9 +63,14 @@ def fsync_dir(directory: str | os.PathLike) -> None:
 
 def atomic_write_text(path: str | os.PathLike, text: str, *, encoding: str = "utf-8",
                       perm: int | None = None) -> Path:
-    """Write ``text`` to ``path`` atomically and durably; returns ``Path(path)``.
+    """Write ``text`` to ``path`` atomically and durably (:func:`atomic_write_bytes`); returns ``Path(path)``."""
+    return atomic_write_bytes(path, text.encode(encoding), perm=perm)
 
-    The text goes to ``.<name>.tmp-<pid>`` beside ``path``, is flushed and fsynced, renamed onto
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes, *, perm: int | None = None) -> Path:
+    """Write ``data`` to ``path`` atomically and durably; returns ``Path(path)``.
+
+    The bytes go to ``.<name>.tmp-<pid>`` beside ``path``, are flushed and fsynced, renamed onto
     ``path`` (``os.replace``) and the directory is fsynced. On any failure the temporary file is
     removed and ``path`` is untouched; write errors name the file (:class:`FileWriteError`).
     ``perm``: the file's mode whatever the umask (e.g. ``0o600``); default: 0666 less the umask.
@@ -74,9 +79,9 @@ def atomic_write_text(path: str | os.PathLike, text: str, *, encoding: str = "ut
     tmp = p.with_name(f".{p.name}.tmp-{os.getpid()}")
     created = False
     try:
-        with open_exclusive(tmp, "w", perm=perm, encoding=encoding, newline="") as fh:
+        with open_exclusive(tmp, "wb", perm=perm) as fh:
             created = True
-            fh.write(text)
+            fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, p)

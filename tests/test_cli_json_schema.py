@@ -91,6 +91,7 @@ def _cases(f, tmp: Path) -> dict[tuple[str, ...], list[str]]:
         ("simulate",): ["simulate", "--program", "steps_x", "--seconds", "20", "--out", str(tmp / "sim.csv")],
         ("table", "show"): ["table", "show", t],
         ("table", "validate"): ["table", "validate", t],
+        ("table", "export"): ["table", "export", t, "--image", str(tmp / "t.mcal")],
         ("validate-diagnosis",): ["validate-diagnosis", "--out", str(tmp / "vd")],
         ("merge",): ["merge", str(f["dir"] / "mag.csv"), "--adcs", str(f["dir"] / "adcs.csv"), "--out",
                      str(tmp / "merged.csv")],

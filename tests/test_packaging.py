@@ -47,7 +47,8 @@ def test_wheel_installs_only_magstack(tmp_path):
     names = zipfile.ZipFile(wheel).namelist()
     for module in ("magstack/drivers/registry.py", "magstack/data/session.py", "magstack/firmware/cal_table.py",
                    "magstack/sim/backends.py", "magstack/ground/alignment.py", "magstack/hil/bench.py",
-                   "magstack/cli/main.py", "magstack/cli/commands/demo.py"):
+                   "magstack/cli/main.py", "magstack/cli/commands/demo.py",
+                   "magstack/firmware/c_applier/magstack_cal.c", "magstack/firmware/c_applier/magstack_cal.h"):
         assert module in names
 
 

@@ -5,7 +5,9 @@ the file with :func:`~magstack.firmware.flight.intake.read_bounded` (regular fil
 ``MAX_TABLE_BYTES``, no symlink, a FIFO never blocks) at a path checked by
 :func:`~magstack.firmware.flight.intake.inside_roots`, and turns *every* failure of parsing or
 validation (huge integers, deep nesting, a foreign device, ...) into
-:class:`~magstack.firmware.errors.CalTableInvalid`: the active table stays in force.
+:class:`~magstack.firmware.errors.CalTableInvalid`: the active table stays in force. A file may hold a
+JSON table or its binary image (:mod:`magstack.firmware.cal_image`, told apart by the image's magic);
+both are validated and activated the same way.
 
 Device ids (docs/flight.md): a table is accepted only by a channel whose ``device_id`` is exactly the
 table's (``magstack fit --device-id hmc1053:sn1`` for ``device_id = "hmc1053:sn1"``); a mismatch names
@@ -17,6 +19,7 @@ import os
 from collections.abc import Sequence
 from pathlib import Path
 
+from magstack.firmware.cal_image import is_image, table_from_image
 from magstack.firmware.cal_table import CalTable, CalTableStore, table_from_document
 from magstack.firmware.errors import CalTableInvalid
 from magstack.firmware.flight.intake import UnsafeInput, inside_roots, read_bounded
@@ -33,11 +36,14 @@ def device_mismatch(table_id: str, channel: str, channel_id: str, source: str) -
 
 
 def read_table(path: str | os.PathLike, roots: Sequence[Path], base: Path) -> CalTable:
-    """Parse a table file inside ``roots``; any failure is :class:`CalTableInvalid` naming the file."""
+    """Parse a table file (JSON or binary image) inside ``roots``; any failure is :class:`CalTableInvalid`
+    naming the file."""
     src = str(path)
     try:
         real = inside_roots(path, roots, base)
         raw = read_bounded(real, MAX_TABLE_BYTES)
+        if is_image(raw):
+            return table_from_image(raw, src)
         return table_from_document(parse_table_json(raw, src), src)
     except CalTableInvalid:
         raise

@@ -1,0 +1,551 @@
+/*
+ * magstack_cal: the on-board calibration applier in C99, integer only (see magstack_cal.h).
+ *
+ * Per sample, with dTc = T - t0 (centi-degC) and an int64 accumulator in units of 2^-27 nT:
+ *
+ *   G_ij  = S_ij + rdiv(K_S,ij * dTc, 12800)
+ *   G_ii += rdiv(rdiv(K_S2,i * dTc, 100) * dTc, 819200)
+ *   acc_i = sum_j G_ij * B_j + O_i * 2^19 + rdiv(K_O,i * dTc * 2^11, 100) + sum_k D_k,i * I_k * 2^7
+ *   out_i = sat_int32(rshift_round(acc_i, 19))
+ *
+ * rdiv and rshift_round round half away from zero; they work in unsigned arithmetic (no shift or
+ * division of a negative number). The accumulator bound |acc| < 2^61.3
+ * holds for every image the loader accepts (|K_S2| < 2^28, |t0| <= 2^15, the input clips), so no
+ * product or sum overflows; only the final int32 conversion can, and it saturates.
+ */
+#include "magstack_cal.h"
+
+/* ------------------------------------------------------------------ image layout (byte offsets) */
+#define OFF_MAGIC 0u
+#define OFF_VERSION 4u
+#define OFF_SIZE 6u
+#define OFF_SOURCE_CRC 8u
+#define OFF_TERMS 12u
+#define OFF_N_CURRENTS 13u
+#define OFF_OPTIONS 14u
+#define OFF_RESERVED 15u
+#define OFF_DEVICE_ID 16u
+#define OFF_T0 48u
+#define OFF_FIELD_LIMIT 52u
+#define OFF_TEMP_LO 56u
+#define OFF_TEMP_HI 60u
+#define OFF_S 64u
+#define OFF_K_S 100u
+#define OFF_K_S2 136u
+#define OFF_O 148u
+#define OFF_K_O 160u
+#define OFF_D 172u
+#define OFF_CURRENT_RANGES 220u
+#define OFF_CURRENT_NAMES 252u
+#define OFF_CRC 316u
+
+#define KNOWN_TERMS 0x3Fu
+#define KNOWN_OPTIONS 0x01u
+
+static uint32_t rd_u16(const uint8_t *p)
+{
+    return (uint32_t)p[0] | ((uint32_t)p[1] << 8);
+}
+
+static uint32_t rd_u32(const uint8_t *p)
+{
+    return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) | ((uint32_t)p[3] << 24);
+}
+
+/* two's complement int32 from its bytes, without an implementation-defined conversion */
+static int32_t rd_i32(const uint8_t *p)
+{
+    uint32_t u = rd_u32(p);
+    if (u <= 0x7FFFFFFFu) {
+        return (int32_t)u;
+    }
+    return -(int32_t)(~u) - 1;
+}
+
+uint32_t magstack_cal_crc32(const uint8_t *data, size_t len)
+{
+    uint32_t c = 0xFFFFFFFFu;
+    size_t i;
+    unsigned k;
+    for (i = 0; i < len; i++) {
+        c ^= data[i];
+        for (k = 0; k < 8u; k++) {
+            c = (c >> 1) ^ (0xEDB88320u & (0u - (c & 1u)));
+        }
+    }
+    return c ^ 0xFFFFFFFFu;
+}
+
+/* printable ASCII (0x20..0x7E), at least one character, then only NUL bytes; copied to out */
+static int text_field(const uint8_t *p, unsigned n, char *out)
+{
+    unsigned i, len = 0;
+    while (len < n && p[len] != 0u) {
+        if (p[len] < 0x20u || p[len] > 0x7Eu) {
+            return 0;
+        }
+        len++;
+    }
+    if (len == 0u) {
+        return 0;
+    }
+    for (i = len; i < n; i++) {
+        if (p[i] != 0u) {
+            return 0;
+        }
+    }
+    for (i = 0; i < len; i++) {
+        out[i] = (char)p[i];
+    }
+    out[len] = '\0';
+    return 1;
+}
+
+static int all_zero(const uint8_t *p, unsigned n)
+{
+    unsigned i;
+    for (i = 0; i < n; i++) {
+        if (p[i] != 0u) {
+            return 0;
+        }
+    }
+    return 1;
+}
+
+static int same_text(const char *a, const char *b)
+{
+    while (*a != '\0' && *a == *b) {
+        a++;
+        b++;
+    }
+    return *a == *b;
+}
+
+static int within(int32_t v, int32_t lim)
+{
+    return v >= -lim && v <= lim;
+}
+
+static int decode(magstack_cal_table *t, const uint8_t *img)
+{
+    unsigned i, j, k;
+    int32_t lim;
+    uint32_t options = img[OFF_OPTIONS];
+    if (img[OFF_RESERVED] != 0u || (options & ~KNOWN_OPTIONS) != 0u) {
+        return MAGSTACK_CAL_E_RESERVED;
+    }
+    t->terms = img[OFF_TERMS];
+    if ((t->terms & ~KNOWN_TERMS) != 0u || (t->terms & MAGSTACK_CAL_TERM_GAIN_MATRIX) == 0u) {
+        return MAGSTACK_CAL_E_TERMS;
+    }
+    if (!text_field(img + OFF_DEVICE_ID, MAGSTACK_CAL_DEVICE_ID_BYTES, t->device_id)) {
+        return MAGSTACK_CAL_E_DEVICE_ID;
+    }
+    t->n_currents = img[OFF_N_CURRENTS];
+    if (t->n_currents > MAGSTACK_CAL_MAX_CURRENTS ||
+        (t->n_currents > 0u && (t->terms & MAGSTACK_CAL_TERM_CURRENTS) == 0u)) {
+        return MAGSTACK_CAL_E_CURRENTS;
+    }
+    t->t0_cdeg = rd_i32(img + OFF_T0);
+    if (!within(t->t0_cdeg, MAGSTACK_CAL_T_LIMIT_CDEG)) {
+        return MAGSTACK_CAL_E_T0;
+    }
+    for (i = 0; i < 3u; i++) {
+        for (j = 0; j < 3u; j++) {
+            t->S[i][j] = rd_i32(img + OFF_S + 4u * (3u * i + j));
+            t->K_S[i][j] = rd_i32(img + OFF_K_S + 4u * (3u * i + j));
+        }
+        t->K_S2[i] = rd_i32(img + OFF_K_S2 + 4u * i);
+        t->O[i] = rd_i32(img + OFF_O + 4u * i);
+        t->K_O[i] = rd_i32(img + OFF_K_O + 4u * i);
+    }
+    for (i = 0; i < 3u; i++) {
+        if (!within(t->K_S2[i], MAGSTACK_CAL_K_S2_LIMIT)) {
+            return MAGSTACK_CAL_E_K_S2;
+        }
+    }
+    /* a coefficient of a term the table does not declare must be zero */
+    for (i = 0; i < 3u; i++) {
+        for (j = 0; j < 3u; j++) {
+            if (t->K_S[i][j] != 0 && (t->terms & MAGSTACK_CAL_TERM_TEMPERATURE_GAIN) == 0u) {
+                return MAGSTACK_CAL_E_TERMS;
+            }
+        }
+        if ((t->K_S2[i] != 0 && (t->terms & MAGSTACK_CAL_TERM_TEMPERATURE_GAIN2) == 0u) ||
+            (t->O[i] != 0 && (t->terms & MAGSTACK_CAL_TERM_OFFSET) == 0u) ||
+            (t->K_O[i] != 0 && (t->terms & MAGSTACK_CAL_TERM_TEMPERATURE_OFFSET) == 0u)) {
+            return MAGSTACK_CAL_E_TERMS;
+        }
+    }
+    t->field_limit_nT = rd_i32(img + OFF_FIELD_LIMIT);
+    t->temp_lo_cdeg = rd_i32(img + OFF_TEMP_LO);
+    t->temp_hi_cdeg = rd_i32(img + OFF_TEMP_HI);
+    t->has_temp_range = (uint8_t)(options & MAGSTACK_CAL_OPT_TEMP_RANGE);
+    if (t->field_limit_nT < 0 || t->field_limit_nT > MAGSTACK_CAL_B_LIMIT_NT) {
+        return MAGSTACK_CAL_E_VALIDITY;
+    }
+    if (t->has_temp_range) {
+        if (!within(t->temp_lo_cdeg, MAGSTACK_CAL_T_LIMIT_CDEG) || !within(t->temp_hi_cdeg, MAGSTACK_CAL_T_LIMIT_CDEG) ||
+            t->temp_lo_cdeg > t->temp_hi_cdeg) {
+            return MAGSTACK_CAL_E_VALIDITY;
+        }
+    } else if (t->temp_lo_cdeg != 0 || t->temp_hi_cdeg != 0) {
+        return MAGSTACK_CAL_E_VALIDITY;
+    }
+    for (k = 0; k < MAGSTACK_CAL_MAX_CURRENTS; k++) {
+        const uint8_t *name = img + OFF_CURRENT_NAMES + MAGSTACK_CAL_CURRENT_NAME_BYTES * k;
+        for (i = 0; i < 3u; i++) {
+            t->D[k][i] = rd_i32(img + OFF_D + 4u * (3u * k + i));
+        }
+        t->current_lo_mA[k] = rd_i32(img + OFF_CURRENT_RANGES + 8u * k);
+        t->current_hi_mA[k] = rd_i32(img + OFF_CURRENT_RANGES + 8u * k + 4u);
+        if (k < t->n_currents) {
+            if (!text_field(name, MAGSTACK_CAL_CURRENT_NAME_BYTES, t->current_names[k])) {
+                return MAGSTACK_CAL_E_CURRENTS;
+            }
+            lim = MAGSTACK_CAL_I_LIMIT_MA;
+            if (!within(t->current_lo_mA[k], lim) || !within(t->current_hi_mA[k], lim) ||
+                t->current_lo_mA[k] > t->current_hi_mA[k]) {
+                return MAGSTACK_CAL_E_VALIDITY;
+            }
+        } else if (!all_zero(name, MAGSTACK_CAL_CURRENT_NAME_BYTES) || t->D[k][0] != 0 || t->D[k][1] != 0 ||
+                   t->D[k][2] != 0 || t->current_lo_mA[k] != 0 || t->current_hi_mA[k] != 0) {
+            return MAGSTACK_CAL_E_CURRENTS;
+        }
+    }
+    for (k = 0; k < t->n_currents; k++) {
+        for (j = k + 1u; j < t->n_currents; j++) {
+            if (same_text(t->current_names[k], t->current_names[j])) {
+                return MAGSTACK_CAL_E_CURRENTS;
+            }
+        }
+    }
+    return MAGSTACK_CAL_OK;
+}
+
+int magstack_cal_load(magstack_cal_table *table, const uint8_t *image, size_t len)
+{
+    static const magstack_cal_table zero;
+    int rc;
+    if (table == NULL || image == NULL) {
+        return MAGSTACK_CAL_E_ARGUMENT;
+    }
+    *table = zero;
+    if (len < 4u) {
+        return MAGSTACK_CAL_E_SIZE;
+    }
+    if (image[OFF_MAGIC] != 'M' || image[OFF_MAGIC + 1u] != 'C' || image[OFF_MAGIC + 2u] != 'A' ||
+        image[OFF_MAGIC + 3u] != 'L') {
+        return MAGSTACK_CAL_E_MAGIC;
+    }
+    if (len < 8u) {
+        return MAGSTACK_CAL_E_SIZE;
+    }
+    if (rd_u16(image + OFF_VERSION) != MAGSTACK_CAL_IMAGE_VERSION) {
+        return MAGSTACK_CAL_E_VERSION;
+    }
+    if (rd_u16(image + OFF_SIZE) != MAGSTACK_CAL_IMAGE_SIZE || len != MAGSTACK_CAL_IMAGE_SIZE) {
+        return MAGSTACK_CAL_E_SIZE;
+    }
+    if (magstack_cal_crc32(image, OFF_CRC) != rd_u32(image + OFF_CRC)) {
+        return MAGSTACK_CAL_E_CRC;
+    }
+    rc = decode(table, image);
+    if (rc != MAGSTACK_CAL_OK) {
+        *table = zero;
+        return rc;
+    }
+    table->image_crc32 = rd_u32(image + OFF_CRC);
+    table->source_crc32 = rd_u32(image + OFF_SOURCE_CRC);
+    return MAGSTACK_CAL_OK;
+}
+
+const char *magstack_cal_result_name(int code)
+{
+    switch (code) {
+    case MAGSTACK_CAL_OK: return "ok";
+    case MAGSTACK_CAL_E_SIZE: return "wrong size";
+    case MAGSTACK_CAL_E_MAGIC: return "not a table image";
+    case MAGSTACK_CAL_E_VERSION: return "unknown format version";
+    case MAGSTACK_CAL_E_CRC: return "CRC-32 mismatch";
+    case MAGSTACK_CAL_E_RESERVED: return "reserved bits set";
+    case MAGSTACK_CAL_E_TERMS: return "bad terms";
+    case MAGSTACK_CAL_E_DEVICE_ID: return "bad device id";
+    case MAGSTACK_CAL_E_CURRENTS: return "bad currents";
+    case MAGSTACK_CAL_E_T0: return "t0 out of range";
+    case MAGSTACK_CAL_E_K_S2: return "K_S2 out of range";
+    case MAGSTACK_CAL_E_VALIDITY: return "validity box out of range";
+    case MAGSTACK_CAL_E_ARGUMENT: return "null argument";
+    default: return "unknown result";
+    }
+}
+
+/* ------------------------------------------------------------------ arithmetic */
+/* a / d rounded half away from zero (d > 0, |a| < 2^63) */
+static int64_t rdiv(int64_t a, uint64_t d)
+{
+    uint64_t m = a < 0 ? (uint64_t)0 - (uint64_t)a : (uint64_t)a;
+    uint64_t q = (m + d / 2u) / d;
+    return a < 0 ? -(int64_t)q : (int64_t)q;
+}
+
+/* a / 2^19 rounded half away from zero (|a| < 2^62), without a branch: floor((a + 2^18 - [a < 0]) / 2^19),
+ * the floor taken on a + 2^63 in unsigned arithmetic (2^63 is a multiple of 2^19) */
+static int64_t rshift_round19(int64_t a)
+{
+    uint64_t u = (uint64_t)a + ((uint64_t)1 << 63) + ((uint64_t)1 << 18) - (uint64_t)(a < 0);
+    return (int64_t)(u >> 19) - ((int64_t)1 << 44);
+}
+
+/* v clipped to [-lim, lim]; sets *hit when it was outside */
+static int32_t clip(int32_t v, int32_t lim, unsigned *hit)
+{
+    *hit |= (unsigned)(v > lim) | (unsigned)(v < -lim);
+    return v > lim ? lim : v < -lim ? -lim : v;
+}
+
+/* the temperature-dependent part of one dTc: the gain matrix (2^-27) and each axis' constant (2^-27 nT) */
+typedef struct {
+    int64_t g[3][3];
+    int64_t c[3];
+} temperature_terms;
+
+static void make_terms(const magstack_cal_table *t, int64_t dtc, temperature_terms *tt)
+{
+    unsigned i, j;
+    for (i = 0; i < 3u; i++) {
+        for (j = 0; j < 3u; j++) {
+            tt->g[i][j] = (int64_t)t->S[i][j] + rdiv((int64_t)t->K_S[i][j] * dtc, 12800u);
+        }
+        tt->g[i][i] += rdiv(rdiv((int64_t)t->K_S2[i] * dtc, 100u) * dtc, 819200u);
+        tt->c[i] = (int64_t)t->O[i] * 524288 + rdiv((int64_t)t->K_O[i] * dtc * 2048, 100u);
+    }
+}
+
+/* One sample with the temperature terms of its dTc: the status bits. b_nT, cur_mA as given (clipped here). */
+static unsigned sample(const magstack_cal_table *t, const temperature_terms *tt, const int32_t *b_nT,
+                       int32_t tc, const int32_t *cur_mA, unsigned sat, int32_t out[3])
+{
+    unsigned oov = 0, i, k;
+    int32_t f = t->field_limit_nT;
+    int32_t bx = clip(b_nT[0], MAGSTACK_CAL_B_LIMIT_NT, &sat);
+    int32_t by = clip(b_nT[1], MAGSTACK_CAL_B_LIMIT_NT, &sat);
+    int32_t bz = clip(b_nT[2], MAGSTACK_CAL_B_LIMIT_NT, &sat);
+    int64_t acc[3];
+    oov |= (unsigned)(bx > f) | (unsigned)(bx < -f) | (unsigned)(by > f) | (unsigned)(by < -f) |
+           (unsigned)(bz > f) | (unsigned)(bz < -f);
+    oov |= (unsigned)t->has_temp_range & ((unsigned)(tc < t->temp_lo_cdeg) | (unsigned)(tc > t->temp_hi_cdeg));
+    for (i = 0; i < 3u; i++) {
+        acc[i] = tt->g[i][0] * bx + tt->g[i][1] * by + tt->g[i][2] * bz + tt->c[i];
+    }
+    for (k = 0; k < t->n_currents; k++) {
+        int32_t c = clip(cur_mA[k], MAGSTACK_CAL_I_LIMIT_MA, &sat);
+        oov |= (unsigned)(c < t->current_lo_mA[k]) | (unsigned)(c > t->current_hi_mA[k]);
+        for (i = 0; i < 3u; i++) {
+            acc[i] += (int64_t)t->D[k][i] * c * 128;
+        }
+    }
+    for (i = 0; i < 3u; i++) {
+        int64_t o = rshift_round19(acc[i]);
+        sat |= (unsigned)(o > INT32_MAX) | (unsigned)(o < INT32_MIN);
+        out[i] = (int32_t)(o > INT32_MAX ? INT32_MAX : o < INT32_MIN ? INT32_MIN : o);
+    }
+    return (sat ? MAGSTACK_CAL_SATURATED : 0u) | (oov ? MAGSTACK_CAL_OUT_OF_VALIDITY : 0u);
+}
+
+unsigned magstack_cal_apply(const magstack_cal_table *table, const int32_t b_nT[3], int32_t temp_cdeg,
+                            const int32_t *currents_mA, int32_t out[3])
+{
+    unsigned sat = 0;
+    int32_t tc = clip(temp_cdeg, MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
+    temperature_terms tt;
+    make_terms(table, (int64_t)tc - table->t0_cdeg, &tt);
+    return sample(table, &tt, b_nT, tc, currents_mA, sat, out);
+}
+
+/* ------------------------------------------------------------------ blocks */
+/* Temperature terms kept for this many recent temperatures (direct-mapped on the temperature's low bits) by
+ * magstack_cal_apply_block: a temperature that toggles between a few values costs no recomputation. A power of
+ * two; the cache lives on the stack (about 100 bytes an entry). */
+#ifndef MAGSTACK_CAL_TERMS_CACHE
+#define MAGSTACK_CAL_TERMS_CACHE 8u
+#endif
+
+/* The terms of clipped temperature tc from the cache (computed on a miss). */
+static const temperature_terms *cached_terms(const magstack_cal_table *t, temperature_terms *cache, int32_t *tag,
+                                             uint32_t *valid, int32_t tc)
+{
+    uint32_t slot = (uint32_t)tc & (MAGSTACK_CAL_TERMS_CACHE - 1u);
+    if (!valid[slot] || tag[slot] != tc) {
+        make_terms(t, (int64_t)tc - t->t0_cdeg, &cache[slot]);
+        tag[slot] = tc;
+        valid[slot] = 1;
+    }
+    return &cache[slot];
+}
+
+#ifndef MAGSTACK_CAL_COMPACT /* a kernel per number of currents, vectorisable over runs of one temperature */
+
+/* What a run of samples at one temperature shares: the terms, the currents' coefficients (x 2^7) and ranges,
+ * the field limit and the status bits of the temperature itself. */
+typedef struct {
+    const temperature_terms *tt;
+    int64_t d[MAGSTACK_CAL_MAX_CURRENTS][3];
+    int32_t lo[MAGSTACK_CAL_MAX_CURRENTS], hi[MAGSTACK_CAL_MAX_CURRENTS];
+    int32_t field;
+    unsigned base;
+} run_terms;
+
+#define OUTSIDE(v, lim) ((uint32_t)(v) + (uint32_t)(lim) > 2u * (uint32_t)(lim)) /* v < -lim or v > lim */
+#define OUTSIDE32(o) ((uint64_t)(o) + 0x80000000u > 0xFFFFFFFFu)                   /* o not an int32 */
+#define CLAMP(v, lo, hi) ((v) > (hi) ? (hi) : (v) < (lo) ? (lo) : (v))
+
+/* The coefficients of a run, in locals (registers). */
+#define RUN_LOCALS                                                                                                \
+    const int64_t g00 = rt->tt->g[0][0], g01 = rt->tt->g[0][1], g02 = rt->tt->g[0][2];                            \
+    const int64_t g10 = rt->tt->g[1][0], g11 = rt->tt->g[1][1], g12 = rt->tt->g[1][2];                            \
+    const int64_t g20 = rt->tt->g[2][0], g21 = rt->tt->g[2][1], g22 = rt->tt->g[2][2];                            \
+    const int64_t c0 = rt->tt->c[0], c1 = rt->tt->c[1], c2 = rt->tt->c[2];                                        \
+    const int32_t f = rt->field, L = MAGSTACK_CAL_B_LIMIT_NT, IL = MAGSTACK_CAL_I_LIMIT_MA;                         \
+    const unsigned base = rt->base;                                                                               \
+    int k
+
+/* Sample r of a run with K currents: the arithmetic of sample() without a branch. */
+#define RUN_SAMPLE(K, r)                                                                                          \
+    do {                                                                                                          \
+        int32_t x = b[3u * (r)], y = b[3u * (r) + 1u], z = b[3u * (r) + 2u];                                      \
+        unsigned sat = (unsigned)OUTSIDE(x, L) | (unsigned)OUTSIDE(y, L) | (unsigned)OUTSIDE(z, L);               \
+        unsigned oov;                                                                                             \
+        int64_t a0, a1, a2, o0, o1, o2;                                                                           \
+        x = CLAMP(x, -L, L);                                                                                      \
+        y = CLAMP(y, -L, L);                                                                                      \
+        z = CLAMP(z, -L, L);                                                                                      \
+        oov = (unsigned)OUTSIDE(x, f) | (unsigned)OUTSIDE(y, f) | (unsigned)OUTSIDE(z, f);                        \
+        a0 = g00 * x + g01 * y + g02 * z + c0;                                                                    \
+        a1 = g10 * x + g11 * y + g12 * z + c1;                                                                    \
+        a2 = g20 * x + g21 * y + g22 * z + c2;                                                                    \
+        for (k = 0; k < (K); k++) {                                                                               \
+            int32_t c = cur[(size_t)(K) * (r) + (size_t)k];                                                       \
+            sat |= (unsigned)OUTSIDE(c, IL);                                                                      \
+            c = CLAMP(c, -IL, IL);                                                                                \
+            oov |= (unsigned)((uint32_t)c - (uint32_t)rt->lo[k] > (uint32_t)rt->hi[k] - (uint32_t)rt->lo[k]);     \
+            a0 += rt->d[k][0] * c;                                                                                \
+            a1 += rt->d[k][1] * c;                                                                                \
+            a2 += rt->d[k][2] * c;                                                                                \
+        }                                                                                                         \
+        o0 = rshift_round19(a0);                                                                                  \
+        o1 = rshift_round19(a1);                                                                                  \
+        o2 = rshift_round19(a2);                                                                                  \
+        sat |= (unsigned)OUTSIDE32(o0) | (unsigned)OUTSIDE32(o1) | (unsigned)OUTSIDE32(o2);                       \
+        out[3u * (r)] = (int32_t)CLAMP(o0, INT32_MIN, INT32_MAX);                                                 \
+        out[3u * (r) + 1u] = (int32_t)CLAMP(o1, INT32_MIN, INT32_MAX);                                            \
+        out[3u * (r) + 2u] = (int32_t)CLAMP(o2, INT32_MIN, INT32_MAX);                                            \
+        status[r] = (uint8_t)(base | (sat << 2) | (oov << 1));                                                    \
+    } while (0)
+
+/* m samples at the temperature of *rt (a loop a compiler may vectorise), or one sample (no vector set-up). */
+#define RUN_KERNEL(NAME, ONE, K)                                                                                  \
+    static void NAME(const run_terms *rt, size_t m, const int32_t *restrict b, const int32_t *restrict cur,        \
+                     int32_t *restrict out, uint8_t *restrict status)                                              \
+    {                                                                                                             \
+        size_t r;                                                                                                 \
+        RUN_LOCALS;                                                                                               \
+        for (r = 0; r < m; r++) {                                                                                 \
+            RUN_SAMPLE(K, r);                                                                                     \
+        }                                                                                                         \
+    }                                                                                                             \
+    static void ONE(const run_terms *rt, const int32_t *restrict b, const int32_t *restrict cur,                   \
+                    int32_t *restrict out, uint8_t *restrict status)                                               \
+    {                                                                                                             \
+        RUN_LOCALS;                                                                                               \
+        RUN_SAMPLE(K, 0u);                                                                                        \
+    }
+
+RUN_KERNEL(run0, one0, 0)
+RUN_KERNEL(run1, one1, 1)
+RUN_KERNEL(run2, one2, 2)
+RUN_KERNEL(run3, one3, 3)
+RUN_KERNEL(run4, one4, 4)
+
+void magstack_cal_apply_block(const magstack_cal_table *table, size_t n, const int32_t *b_nT,
+                              const int32_t *temp_cdeg, const int32_t *currents_mA, int32_t *out,
+                              uint8_t *status)
+{
+    run_terms rt;
+    temperature_terms cache[MAGSTACK_CAL_TERMS_CACHE];
+    int32_t tag[MAGSTACK_CAL_TERMS_CACHE];
+    uint32_t valid[MAGSTACK_CAL_TERMS_CACHE];
+    unsigned i, k, nk = table->n_currents;
+    size_t r = 0, end;
+    for (i = 0; i < MAGSTACK_CAL_TERMS_CACHE; i++) {
+        valid[i] = 0;
+        tag[i] = 0;
+    }
+    for (k = 0; k < MAGSTACK_CAL_MAX_CURRENTS; k++) {
+        for (i = 0; i < 3u; i++) {
+            rt.d[k][i] = (int64_t)table->D[k][i] * 128;
+        }
+        rt.lo[k] = table->current_lo_mA[k];
+        rt.hi[k] = table->current_hi_mA[k];
+    }
+    rt.field = table->field_limit_nT;
+    while (r < n) {
+        unsigned sat = 0;
+        int32_t raw = temp_cdeg[r];
+        int32_t tc = clip(raw, MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
+        const temperature_terms *tt = cached_terms(table, cache, tag, valid, tc);
+        /* a run of one temperature (its first, second, 8th and 16th samples equal) goes to the vector kernel at
+         * once; otherwise one sample */
+        unsigned oov = (unsigned)table->has_temp_range &
+                       ((unsigned)(tc < table->temp_lo_cdeg) | (unsigned)(tc > table->temp_hi_cdeg));
+        end = r + 1u;
+        if (r + 16u <= n && ((temp_cdeg[r + 1u] == raw) & (temp_cdeg[r + 7u] == raw) & (temp_cdeg[r + 15u] == raw))) {
+            for (end = r + 2u; end < n && temp_cdeg[end] == raw; end++) {
+            }
+        }
+        rt.tt = tt;
+        rt.base = (sat ? MAGSTACK_CAL_SATURATED : 0u) | (oov ? MAGSTACK_CAL_OUT_OF_VALIDITY : 0u);
+        if (end - r == 1u) {
+            switch (nk) {
+            case 0: one0(&rt, b_nT + 3u * r, NULL, out + 3u * r, status + r); break;
+            case 1: one1(&rt, b_nT + 3u * r, currents_mA + r, out + 3u * r, status + r); break;
+            case 2: one2(&rt, b_nT + 3u * r, currents_mA + 2u * r, out + 3u * r, status + r); break;
+            case 3: one3(&rt, b_nT + 3u * r, currents_mA + 3u * r, out + 3u * r, status + r); break;
+            default: one4(&rt, b_nT + 3u * r, currents_mA + 4u * r, out + 3u * r, status + r); break;
+            }
+        } else {
+            switch (nk) {
+            case 0: run0(&rt, end - r, b_nT + 3u * r, NULL, out + 3u * r, status + r); break;
+            case 1: run1(&rt, end - r, b_nT + 3u * r, currents_mA + r, out + 3u * r, status + r); break;
+            case 2: run2(&rt, end - r, b_nT + 3u * r, currents_mA + 2u * r, out + 3u * r, status + r); break;
+            case 3: run3(&rt, end - r, b_nT + 3u * r, currents_mA + 3u * r, out + 3u * r, status + r); break;
+            default: run4(&rt, end - r, b_nT + 3u * r, currents_mA + 4u * r, out + 3u * r, status + r); break;
+            }
+        }
+        r = end;
+    }
+}
+
+#else /* MAGSTACK_CAL_COMPACT: one sample at a time (smallest code) */
+
+void magstack_cal_apply_block(const magstack_cal_table *table, size_t n, const int32_t *b_nT,
+                              const int32_t *temp_cdeg, const int32_t *currents_mA, int32_t *out,
+                              uint8_t *status)
+{
+    temperature_terms cache[MAGSTACK_CAL_TERMS_CACHE];
+    int32_t tag[MAGSTACK_CAL_TERMS_CACHE];
+    uint32_t valid[MAGSTACK_CAL_TERMS_CACHE];
+    size_t r, nk = table->n_currents;
+    unsigned i;
+    for (i = 0; i < MAGSTACK_CAL_TERMS_CACHE; i++) {
+        valid[i] = 0;
+        tag[i] = 0;
+    }
+    for (r = 0; r < n; r++) {
+        unsigned sat = 0;
+        int32_t tc = clip(temp_cdeg[r], MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
+        status[r] = (uint8_t)sample(table, cached_terms(table, cache, tag, valid, tc), b_nT + 3u * r, tc,
+                                    nk ? currents_mA + nk * r : NULL, sat, out + 3u * r);
+    }
+}
+#endif

@@ -1,0 +1,344 @@
+"""Build and drive the C applier (``firmware_c/``) for the equality tests and the benchmark.
+
+* :func:`build_shared` compiles ``magstack_cal.c`` into a shared library for :class:`CApplier` (ctypes).
+* :func:`build_harness` compiles ``harness.c`` (stdin records -> stdout results) natively, with
+  sanitizers, or with a cross compiler; :func:`run_harness` feeds it (through ``qemu-arm`` for ARM).
+* :func:`random_case` draws a table image and samples from a seed (extremes included), for the full-count
+  script; the test module draws them with hypothesis.
+"""
+from __future__ import annotations
+
+import ctypes
+import shutil
+import struct
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from hypothesis import strategies as st
+
+from magstack.firmware import cal_image
+from magstack.firmware import fixed_point as fp
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent.parent
+C_DIR = ROOT / "firmware_c"
+SOURCE = C_DIR / "magstack_cal.c"
+HARNESS = HERE / "harness.c"
+#: The compile flags every build uses.
+STRICT = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic")
+SANITIZE = ("-fsanitize=undefined,address", "-fno-sanitize-recover=all", "-fno-omit-frame-pointer")
+ARM_CC = "arm-linux-gnueabihf-gcc"
+M4_CC = "arm-none-eabi-gcc"
+QEMU_ARM = "qemu-arm"
+I32 = np.iinfo(np.int32)
+#: Coefficients that put a rounding exactly on a half with small inputs (B odd, dTc = +-1 ...): S = 2^18 makes
+#: the output B / 2; K_S = 6400 makes rdiv(K_S dTc, 12800) = dTc / 2; K_S2 = 50 makes rdiv(K_S2 dTc, 100) = dTc / 2.
+TIES = {"S": (2 ** 18, -(2 ** 18), 3 * 2 ** 18), "K_S": (6400, -6400, 19200), "K_S2": (50, -50, 150, 409600 * 100)}
+
+
+def tool(name: str) -> str | None:
+    return shutil.which(name)
+
+
+def compile_c(cc: str, args, out: Path, timeout: float = 120) -> Path:
+    """Run the compiler; AssertionError with its output on failure (a warning fails: -Werror)."""
+    cmd = [cc, *STRICT, *args, "-I", str(C_DIR), "-o", str(out)]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+    assert r.returncode == 0, f"{' '.join(cmd)}\n{r.stdout}{r.stderr}"
+    assert not r.stderr.strip(), f"compiler said something: {r.stderr}"
+    return out
+
+
+def build_shared(out_dir: Path, opt: str = "-O2") -> Path:
+    return compile_c("gcc", [opt, "-fPIC", "-shared", str(SOURCE)], out_dir / "libmagstack_cal.so")
+
+
+def build_harness(out_dir: Path, name: str, cc: str = "gcc", extra=(), opt: str = "-O2") -> Path:
+    return compile_c(cc, [opt, *extra, str(SOURCE), str(HARNESS)], out_dir / name)
+
+
+# ---------------------------------------------------------------------- ctypes
+class CTable(ctypes.Structure):
+    """``magstack_cal_table`` (magstack_cal.h)."""
+
+    _fields_ = [("image_crc32", ctypes.c_uint32), ("source_crc32", ctypes.c_uint32), ("terms", ctypes.c_uint8),
+                ("n_currents", ctypes.c_uint8), ("has_temp_range", ctypes.c_uint8),
+                ("device_id", ctypes.c_char * 33), ("current_names", (ctypes.c_char * 17) * 4),
+                ("t0_cdeg", ctypes.c_int32), ("field_limit_nT", ctypes.c_int32), ("temp_lo_cdeg", ctypes.c_int32),
+                ("temp_hi_cdeg", ctypes.c_int32), ("S", (ctypes.c_int32 * 3) * 3), ("K_S", (ctypes.c_int32 * 3) * 3),
+                ("K_S2", ctypes.c_int32 * 3), ("O", ctypes.c_int32 * 3), ("K_O", ctypes.c_int32 * 3),
+                ("D", (ctypes.c_int32 * 3) * 4), ("current_lo_mA", ctypes.c_int32 * 4),
+                ("current_hi_mA", ctypes.c_int32 * 4)]
+
+    def as_fixed(self) -> fp.FixedPointTable:
+        """The decoded integers as a FixedPointTable (to compare with the Python decoder)."""
+        k = self.n_currents
+        return fp.FixedPointTable(
+            S=tuple(tuple(r) for r in self.S), K_S=tuple(tuple(r) for r in self.K_S), O=tuple(self.O),
+            K_O=tuple(self.K_O), D=tuple(tuple(self.D[j]) for j in range(k)), t0_cdeg=self.t0_cdeg,
+            field_limit_nT=self.field_limit_nT,
+            temp_range_cdeg=(self.temp_lo_cdeg, self.temp_hi_cdeg) if self.has_temp_range else None,
+            current_ranges_mA=tuple((self.current_lo_mA[j], self.current_hi_mA[j]) for j in range(k)),
+            K_S2=tuple(self.K_S2))
+
+
+_P32 = ctypes.POINTER(ctypes.c_int32)
+
+
+class CApplier:
+    """The shared library through ctypes."""
+
+    def __init__(self, lib: Path) -> None:
+        self.lib = ctypes.CDLL(str(lib))
+        L = self.lib
+        L.magstack_cal_load.argtypes = [ctypes.POINTER(CTable), ctypes.c_char_p, ctypes.c_size_t]
+        L.magstack_cal_load.restype = ctypes.c_int
+        L.magstack_cal_crc32.argtypes = [ctypes.c_char_p, ctypes.c_size_t]
+        L.magstack_cal_crc32.restype = ctypes.c_uint32
+        L.magstack_cal_result_name.argtypes = [ctypes.c_int]
+        L.magstack_cal_result_name.restype = ctypes.c_char_p
+        L.magstack_cal_apply.argtypes = [ctypes.POINTER(CTable), _P32, ctypes.c_int32, _P32, _P32]
+        L.magstack_cal_apply.restype = ctypes.c_uint
+        L.magstack_cal_apply_block.argtypes = [ctypes.POINTER(CTable), ctypes.c_size_t, _P32, _P32, _P32, _P32,
+                                               ctypes.POINTER(ctypes.c_uint8)]
+        L.magstack_cal_apply_block.restype = None
+
+    def load(self, raw: bytes) -> tuple[int, CTable]:
+        t = CTable()
+        return self.lib.magstack_cal_load(ctypes.byref(t), raw, len(raw)), t
+
+    def apply(self, t: CTable, b, temp: int, cur) -> tuple[tuple[int, int, int], int]:
+        bb = (ctypes.c_int32 * 3)(*b)
+        cc = (ctypes.c_int32 * 4)(*cur)
+        out = (ctypes.c_int32 * 3)()
+        st = self.lib.magstack_cal_apply(ctypes.byref(t), bb, temp, cc, out)
+        return (out[0], out[1], out[2]), st
+
+    def apply_block(self, t: CTable, b: np.ndarray, temp: np.ndarray, cur: np.ndarray):
+        n = b.shape[0]
+        b = np.ascontiguousarray(b, np.int32)
+        temp = np.ascontiguousarray(temp, np.int32)
+        cur = np.ascontiguousarray(np.asarray(cur, np.int32).reshape(n, -1)[:, :t.n_currents])
+        out = np.empty((n, 3), np.int32)
+        status = np.empty(n, np.uint8)
+        self.apply_block_into(t, b, temp, cur, out, status)
+        return out, status
+
+    def apply_block_into(self, t, b, temp, cur, out, status) -> None:
+        """No conversions (the benchmark's timed call): contiguous int32 arrays, uint8 status."""
+        self.lib.magstack_cal_apply_block(ctypes.byref(t), b.shape[0], b.ctypes.data_as(_P32),
+                                          temp.ctypes.data_as(_P32), cur.ctypes.data_as(_P32),
+                                          out.ctypes.data_as(_P32),
+                                          status.ctypes.data_as(ctypes.POINTER(ctypes.c_uint8)))
+
+
+# ---------------------------------------------------------------------- harness protocol
+@dataclass
+class Record:
+    image: bytes
+    b: np.ndarray       # (n, 3) int32
+    temp: np.ndarray    # (n,) int32
+    cur: np.ndarray     # (n, 4) int32 (the table's first k columns are used)
+
+
+def encode(records) -> bytes:
+    parts = []
+    for r in records:
+        rows = np.zeros((r.b.shape[0], 8), "<i4")
+        rows[:, :3], rows[:, 3], rows[:, 4:] = r.b, r.temp, r.cur
+        parts += [struct.pack("<I", len(r.image)), r.image, struct.pack("<I", r.b.shape[0]), rows.tobytes()]
+    return b"".join(parts)
+
+
+def run_harness(cmd: list[str], records, mode=("check",), timeout: float = 600) -> list:
+    """Per record: (loader result, outputs (n,3) int32 or None, status (n,) or None, block mismatches) in
+    "check" mode; (loader result, ns) in "bench" mode."""
+    r = subprocess.run([*cmd, *mode], input=encode(records), capture_output=True, timeout=timeout)
+    assert r.returncode == 0, f"harness exit {r.returncode}: {r.stderr.decode(errors='replace')[-3000:]}"
+    assert not r.stderr, r.stderr.decode(errors="replace")[-3000:]
+    buf, pos, res = r.stdout, 0, []
+    for rec in records:
+        (rc,) = struct.unpack_from("<i", buf, pos)
+        pos += 4
+        if rc != 0:
+            res.append((rc, None, None, 0) if mode[0] == "check" else (rc, None))
+            continue
+        if mode[0] == "bench":
+            (ns,) = struct.unpack_from("<Q", buf, pos)
+            pos += 8
+            res.append((rc, ns))
+            continue
+        n = rec.b.shape[0]
+        a = np.frombuffer(buf, "<i4", 4 * n, pos).reshape(n, 4)
+        pos += 16 * n
+        (differ,) = struct.unpack_from("<I", buf, pos)
+        pos += 4
+        res.append((rc, a[:, :3].astype(np.int64), a[:, 3].view("<u4").astype(np.int64), differ))
+    assert pos == len(buf), "harness output longer than expected"
+    return res
+
+
+def qemu_prefix() -> list[str]:
+    return [QEMU_ARM]
+
+
+# ---------------------------------------------------------------------- cases from a seed
+def _pick(rng: np.random.Generator, size, lo: int, hi: int, edges=()) -> np.ndarray:
+    """Integers in [lo, hi] of mixed scales (full range, small, near the edges), with ``edges`` mixed in."""
+    size = tuple(np.atleast_1d(size))
+    kind = rng.integers(0, 4, size)
+    full = rng.integers(lo, hi, size, endpoint=True)
+    mag = np.minimum(2.0 ** rng.uniform(0, np.log2(max(hi, 1)), size), hi)
+    small = (np.sign(rng.uniform(-1, 1, size)) * mag).astype(np.int64).clip(lo, hi)
+    e = np.array(list(edges) or [lo, hi, 0], np.int64)
+    edge = e[rng.integers(0, e.size, size)]
+    return np.select([kind == 0, kind == 1, kind == 2], [full, small, edge], rng.integers(-3, 4, size).clip(lo, hi))
+
+
+def random_fixed(rng: np.random.Generator, realistic: bool | None = None) -> tuple[fp.FixedPointTable, list[str]]:
+    """A fixed-point table within the image's bounds: any int32 coefficient and the limits (extreme), or a
+    physical AMR calibration (``realistic``: gains near 1, offsets to 500 uT, tempcos, 0-4 currents);
+    drawn at random when None."""
+    if realistic is None:
+        realistic = bool(rng.random() < 0.5)
+    lo, hi = int(I32.min), int(I32.max)
+    k = int(rng.integers(0, fp.MAX_CURRENTS + 1))
+    if realistic:
+        S = np.round((np.eye(3).ravel() * rng.uniform(0.5, 3, 9) + rng.uniform(-0.3, 0.3, 9)) * 2 ** fp.S_FRAC)
+        KS = np.round(rng.uniform(-0.02, 0.02, 9) * 2 ** fp.K_S_FRAC)
+        K2 = np.round(rng.uniform(-2e-4, 2e-4, 3) * 2 ** fp.K_S2_FRAC)
+        O = np.round(rng.uniform(-5e5, 5e5, 3) * 2 ** fp.O_FRAC)
+        KO = np.round(rng.uniform(-5e3, 5e3, 3) * 2 ** fp.K_O_FRAC)
+        D = np.round(rng.uniform(-200, 200, (k, 3)) * 2 ** fp.D_FRAC)
+        t0 = int(rng.integers(-2000, 6000))
+        field = int(rng.integers(50_000, 200_001))
+        a = int(rng.integers(-5500, t0 + 1))
+        tr = (a, int(rng.integers(t0, 12_501)))
+        ranges = tuple((-int(x), int(y)) for x, y in rng.integers(0, 10_001, (k, 2)))
+    else:
+        S = _pick(rng, 9, lo, hi, (lo, hi, 0, 2 ** 27, -(2 ** 27), *TIES["S"]))
+        KS = _pick(rng, 9, lo, hi, (lo, hi, 0, *TIES["K_S"]))
+        K2 = _pick(rng, 3, -fp.K_S2_INT_LIMIT, fp.K_S2_INT_LIMIT, (-fp.K_S2_INT_LIMIT, fp.K_S2_INT_LIMIT, 0,
+                                                                   *TIES["K_S2"]))
+        O, KO = _pick(rng, 3, lo, hi), _pick(rng, 3, lo, hi)
+        D = _pick(rng, (k, 3), lo, hi)
+        t0 = int(_pick(rng, 1, -fp.T_LIMIT_cdeg, fp.T_LIMIT_cdeg)[0])
+        field = int(_pick(rng, 1, 0, fp.B_LIMIT_nT)[0])
+        tr = None
+        if rng.random() < 0.8:
+            a, b = sorted(int(x) for x in _pick(rng, 2, -fp.T_LIMIT_cdeg, fp.T_LIMIT_cdeg))
+            tr = (a, b)
+        ranges = tuple(tuple(sorted(int(x) for x in _pick(rng, 2, -fp.I_LIMIT_mA, fp.I_LIMIT_mA))) for _ in range(k))
+
+    def ints(a) -> tuple[int, ...]:
+        return tuple(int(x) for x in np.asarray(a).ravel())
+
+    fx = fp.FixedPointTable(
+        S=(ints(S[0:3]), ints(S[3:6]), ints(S[6:9])), K_S=(ints(KS[0:3]), ints(KS[3:6]), ints(KS[6:9])),
+        O=ints(O), K_O=ints(KO), D=tuple(ints(r) for r in np.asarray(D).reshape(k, 3)), t0_cdeg=t0,
+        field_limit_nT=field, temp_range_cdeg=tr, current_ranges_mA=ranges, K_S2=ints(K2))
+    return fx, [f"i{j}" for j in range(k)]
+
+
+def image_of(fx: fp.FixedPointTable, names, device_id: str = "dut:1", source_crc32: int = 0) -> bytes:
+    """The image of ``fx`` declaring every flight term (any coefficient may be non-zero)."""
+    terms = [t for t in cal_image.TERM_BITS if t != "currents" or fx.D]
+    return cal_image.pack_fixed(fx, device_id=device_id, terms=terms, current_names=names, source_crc32=source_crc32)
+
+
+def random_samples(rng: np.random.Generator, n: int, fx: fp.FixedPointTable | None = None):
+    """(b (n,3), temp (n,), cur (n,4)) int32. Rows of three kinds: anywhere in int32 (every scale, the clips
+    and the int32 limits), inside ``fx``'s validity box, and on its edges (each limit and one past it).
+    Temperatures come in runs (the C block path computes its temperature terms once per run)."""
+    lo, hi = int(I32.min), int(I32.max)
+    B, T, I = fp.B_LIMIT_nT, fp.T_LIMIT_cdeg, fp.I_LIMIT_mA
+    b = _pick(rng, (n, 3), lo, hi, (lo, hi, B, B + 1, -B, -B - 1, 0))
+    run = np.repeat(_pick(rng, n // 4 + 1, lo, hi, (lo, hi, T, T + 1, -T - 1, 0)), 4)[:n]
+    temp = np.where(rng.random(n) < 0.5, run, _pick(rng, n, -(2 ** 16), 2 ** 16))
+    if fx is not None:   # a few degrees from t0 (the temperature terms' roundings on a half)
+        near = fx.t0_cdeg + np.repeat(rng.integers(-3, 4, n // 4 + 1), 4)[:n]
+        temp = np.where(rng.random(n) < 0.2, near, temp)
+    cur = _pick(rng, (n, 4), lo, hi, (lo, hi, I, I + 1, -I - 1, 0))
+    if fx is not None:
+        kind = rng.integers(0, 3, n)
+        f = fx.field_limit_nT
+        t_lo, t_hi = fx.temp_range_cdeg or (fx.t0_cdeg - 5000, fx.t0_cdeg + 5000)
+        inside = kind == 1
+        b[inside] = rng.integers(-f, f, (int(inside.sum()), 3), endpoint=True)
+        tin = np.repeat(rng.integers(t_lo, t_hi, n // 4 + 1, endpoint=True), 4)[:n]
+        temp = np.where(inside, tin, temp)
+        edge = kind == 2
+        b[edge] = np.array([-f - 1, -f, f, f + 1], np.int64)[rng.integers(0, 4, (int(edge.sum()), 3))]
+        temp = np.where(edge, np.array([t_lo - 1, t_lo, t_hi, t_hi + 1])[rng.integers(0, 4, n)], temp)
+        for j, (a, c) in enumerate(fx.current_ranges_mA):
+            cur[inside, j] = rng.integers(a, c, int(inside.sum()), endpoint=True)
+            cur[edge, j] = np.array([a - 1, a, c, c + 1])[rng.integers(0, 4, int(edge.sum()))]
+    return b.astype(np.int32), temp.astype(np.int32), cur.astype(np.int32)
+
+
+def python_reference(fx: fp.FixedPointTable, b, temp, cur, per_sample: bool = True):
+    """(out (n,3) int64, status (n,) int64) of the Python applier: apply_block, and apply_sample on every
+    row when ``per_sample`` (asserting the two agree)."""
+    k = len(fx.D)
+    q, s = fx.apply_block(b.astype(np.int64), temp.astype(np.int64), cur[:, :k].astype(np.int64))
+    if per_sample:
+        for r in range(b.shape[0]):
+            o, st = fx.apply_sample(tuple(int(x) for x in b[r]), int(temp[r]), tuple(int(x) for x in cur[r, :k]))
+            assert o == tuple(int(x) for x in q[r]) and st == s[r], f"apply_sample != apply_block at row {r}"
+    return q, s
+
+
+_I32 = st.integers(fp.INT32_MIN, fp.INT32_MAX)
+
+
+# ---------------------------------------------------------------------- hypothesis strategies
+def _coeff(edges=()):
+    return st.one_of(_I32, st.sampled_from([fp.INT32_MIN, fp.INT32_MAX, 0, 1, -1, *edges]), st.integers(-999, 999))
+
+
+def _limited(lim: int):
+    return st.one_of(st.integers(-lim, lim), st.sampled_from([-lim, lim, 0]))
+
+
+@st.composite
+def fixed_tables(draw):
+    """A FixedPointTable within the image's bounds: half physical calibrations, half any int32 coefficients
+    with every limit (K_S2 +-(2^28 - 1), t0 +-2^15, field 0..2^24, ranges to the input clips)."""
+    if draw(st.booleans()):
+        return random_fixed(np.random.default_rng(draw(st.integers(0, 2 ** 32 - 1))), realistic=True)
+    k = draw(st.integers(0, fp.MAX_CURRENTS))
+    s_row = st.tuples(_coeff((2 ** 27, -(2 ** 27), *TIES["S"])), _coeff(TIES["S"]), _coeff(TIES["S"]))
+    k_row = st.tuples(*[_coeff(TIES["K_S"])] * 3)
+    interval = st.tuples(_limited(fp.T_LIMIT_cdeg), _limited(fp.T_LIMIT_cdeg)).map(lambda p: tuple(sorted(p)))
+    cur_iv = st.tuples(_limited(fp.I_LIMIT_mA), _limited(fp.I_LIMIT_mA)).map(lambda p: tuple(sorted(p)))
+    fx = fp.FixedPointTable(
+        S=draw(st.tuples(s_row, s_row, s_row)), K_S=draw(st.tuples(k_row, k_row, k_row)),
+        O=draw(st.tuples(_coeff(), _coeff(), _coeff())),
+        K_O=draw(st.tuples(_coeff(), _coeff(), _coeff())),
+        D=tuple(draw(st.tuples(_coeff(), _coeff(), _coeff())) for _ in range(k)),
+        t0_cdeg=draw(_limited(fp.T_LIMIT_cdeg)), field_limit_nT=draw(st.integers(0, fp.B_LIMIT_nT)),
+        temp_range_cdeg=draw(st.one_of(st.none(), interval)),
+        current_ranges_mA=tuple(draw(cur_iv) for _ in range(k)),
+        K_S2=draw(st.tuples(*[st.one_of(_limited(fp.K_S2_INT_LIMIT), st.sampled_from(TIES["K_S2"]))] * 3)))
+    return fx, [f"c{j}" for j in range(k)]
+
+
+_EDGE_B = [fp.INT32_MIN, fp.INT32_MAX, fp.B_LIMIT_nT, fp.B_LIMIT_nT + 1, -fp.B_LIMIT_nT, -fp.B_LIMIT_nT - 1, 0]
+_EDGE_T = [fp.INT32_MIN, fp.INT32_MAX, fp.T_LIMIT_cdeg, fp.T_LIMIT_cdeg + 1, -fp.T_LIMIT_cdeg - 1, 0]
+_EDGE_I = [fp.INT32_MIN, fp.INT32_MAX, fp.I_LIMIT_mA, fp.I_LIMIT_mA + 1, -fp.I_LIMIT_mA - 1, 0]
+_ROW = st.tuples(st.one_of(_I32, st.sampled_from(_EDGE_B)), st.one_of(_I32, st.sampled_from(_EDGE_B)),
+                 st.one_of(_I32, st.sampled_from(_EDGE_B)), st.one_of(_I32, st.sampled_from(_EDGE_T)),
+                 *[st.one_of(_I32, st.sampled_from(_EDGE_I))] * 4)
+
+
+@st.composite
+def cases(draw, n_random: int = 200):
+    """(table, names, b, temp, cur): hypothesis rows (edges) then ``n_random`` rows from
+    :func:`random_samples` (inside, on and beyond the table's validity box)."""
+    fx, names = draw(fixed_tables())
+    rows = np.array(draw(st.lists(_ROW, min_size=1, max_size=12)), np.int64)
+    b, t, c = random_samples(np.random.default_rng(draw(st.integers(0, 2 ** 32 - 1))), n_random, fx)
+    return (fx, names, np.vstack([rows[:, :3], b]).astype(np.int32), np.concatenate([rows[:, 3], t]).astype(np.int32),
+            np.vstack([rows[:, 4:], c]).astype(np.int32))
