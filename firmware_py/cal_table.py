@@ -492,20 +492,22 @@ def _validity_from_posterior(result, block: dict, validity_sd_uT: float | None, 
     from magstack.firmware.cal_uncertainty import Predictive, validity_region
 
     m, cov = result.model, result.coverage
-    pred = Predictive(block, m.t0_c)
+    par = m.unpack(result.theta)
+    pred = Predictive(block, m.t0_c, (par["S"], par["K_S"], par["K_S2"], par["O"], par["K_O"]))
     tlo, thi = BOUNDS["temp_c"]
     lim = (max(tlo, part_temp_c[0]), min(thi, part_temp_c[1]))
-    max_F = np.where(np.isfinite(cov.field_max_uT), cov.field_max_uT, 0.0)
-    data_F, _ = cov.field_quantile_uT(DATA_FIELD_QUANTILE)
-    _, data_R = cov.field_quantile_uT(DATA_NORM_QUANTILE)
+    ref = cov.has_reference          # the region is in the calibrated field: the reference's extents
+    max_F, max_R = cov.field_quantile_uT(1.0, ref)
+    data_F, _ = cov.field_quantile_uT(DATA_FIELD_QUANTILE, ref)
+    _, data_R = cov.field_quantile_uT(DATA_NORM_QUANTILE, ref)
     f_cap = min(part_field_uT, BOUNDS["field_uT"])
     caps = np.minimum(f_cap, np.maximum(1.0, np.ceil(FIELD_EXTRAPOLATION * max_F)))
-    norm_cap = min(f_cap, max(1.0, math.ceil(FIELD_EXTRAPOLATION * cov.norm_max_uT)))
+    norm_cap = min(f_cap, max(1.0, math.ceil(FIELD_EXTRAPOLATION * max_R)))
     has_t = math.isfinite(cov.temp_min_c)
     data_t = ((math.floor(cov.temp_min_c * 100) / 100, math.ceil(cov.temp_max_c * 100) / 100) if has_t else None)
     centre = m.t0_c
     data_region = (np.minimum(data_F, caps), min(data_R, norm_cap))
-    max_region = (np.minimum(np.maximum(max_F, data_F), caps), min(max(cov.norm_max_uT, data_R), norm_cap))
+    max_region = (np.minimum(np.maximum(max_F, data_F), caps), min(max(max_R, data_R), norm_cap))
     if data_t is not None:      # the data's best-pinned temperature (over its own fields): where the region starts
         grid = np.linspace(data_t[0], data_t[1], 41)
         centre = float(grid[int(np.argmin([pred.worst_vector_sd_uT(t, *data_region, currents) for t in grid]))])
@@ -521,7 +523,7 @@ def _validity_from_posterior(result, block: dict, validity_sd_uT: float | None, 
                                          data_norm_uT=data_R, temp_limits_c=lim, field_caps_uT=caps,
                                          norm_cap_uT=norm_cap, currents_A=currents,
                                          has_temperature=bool(set(TEMPERATURE_TERMS) & set(m.terms)),
-                                         data_field_max_uT=max_F, data_norm_max_uT=cov.norm_max_uT)
+                                         data_field_max_uT=max_F, data_norm_max_uT=max_R)
     if not pred.complete:
         notes.append("the fit gave no noise or discrepancy estimate (no held-out folds): the predictive sd is the "
                      "parameter part only")
@@ -579,7 +581,8 @@ def table_from_fit(result, device_id: str, *, description: str = "", created_utc
     if validity_temp_c is None and math.isfinite(cov.temp_min_c):
         validity_temp_c = (math.floor(cov.temp_min_c * 100) / 100, math.ceil(cov.temp_max_c * 100) / 100)
     if validity_field_uT is None:
-        validity_field_uT = float(np.ceil(cov.field_max_uT.max()))
+        validity_field_uT = float(np.ceil((cov.field_quantile_uT(1.0, True)[0] if cov.has_reference
+                                           else cov.field_max_uT).max()))
     warn = []
     if validity_temp_c is not None and validity_temp_c[1] - validity_temp_c[0] < NARROW_TEMP_C:
         warn.append(f"validity temperature {validity_temp_c[0]:g}..{validity_temp_c[1]:g} degC is narrower than "

@@ -20,12 +20,15 @@ sum of three parts, each per axis (uT^2):
 root-sum-square ``cal_sigma_nT`` and the parameter part ``cal_param_sd_nT``. A table without the newer keys
 (``noise_uT``, ``discrepancy``, ``left_out``) gives the parameter part alone, as it says.
 
-**Validity region** (:func:`validity_region`): a temperature interval and a field limit per input axis
-(``|b_j| <= F_j``), where twice the predictive vector sd ``2 sqrt(sum_i sd_i^2)`` stays within the table's
-``bound_uT`` (a vector error exceeded with ~1 % probability for an honest Gaussian sd, chi-square with 3 dof).
-The parameter part is a convex quadratic in ``b`` (its features are affine in ``b`` at fixed ``T``; the
-nonlinear and current features are bounded by the triangle inequality) and the discrepancy grows with
-``|b|``, so the worst case over a field box is at one of its 8 corners; temperature is searched on a grid.
+**Validity region** (:func:`validity_region`): a temperature interval, a limit per calibrated axis
+(``|B_j| <= F_j``) and on the calibrated magnitude (``|B| <= R``), where twice the predictive vector sd
+``2 sqrt(sum_i sd_i^2)`` stays within the table's ``bound_uT`` (a vector error exceeded with ~1 % probability
+for an honest Gaussian sd, chi-square with 3 dof). The region is stated in the calibrated field, so the
+applier checks its own output against it. Its points are mapped to readings through the table's affine part
+and the variance is evaluated there exactly (full covariance); with affine features the parameter part is a
+convex quadratic and the discrepancy grows with ``|b|``, so the worst case is at the region's extreme
+points (also with cross terms, convex along every coordinate line); cubic terms are searched on two inner
+shells as well; temperature on a grid.
 On board, evaluating ``f^T C f`` costs k^2 + k multiply-adds per axis (k ~ 10): optional, not done by the
 fixed-point applier (docs/cal-table.md).
 """
@@ -97,10 +100,14 @@ class Predictive:
     """The predictive variance of a table's calibrated samples, from its ``posterior`` block.
 
     ``posterior``: ``{"x": {"names", "cov"}, "y": ..., "z": ..., "noise_uT": [3], "discrepancy": {...}}``;
-    ``t0_c`` the table's temperature reference (degC)."""
+    ``t0_c`` the table's temperature reference (degC). The parts are functions of the DUT's reading; a validity
+    region is stated in the calibrated field, so the worst cases over a region (:meth:`worst_vector_sd_uT`) map
+    its points to readings through ``calibration`` = the table's ``(S, K_S, K_S2, O, K_O)`` (the inverse of its
+    affine part at each temperature; None: readings and calibrated field taken as the same)."""
 
-    def __init__(self, posterior: Mapping, t0_c: float) -> None:
+    def __init__(self, posterior: Mapping, t0_c: float, calibration: Sequence | None = None) -> None:
         self.t0_c = float(t0_c)
+        self.calibration = None if calibration is None else tuple(np.asarray(x, dtype=float) for x in calibration)
         self.names = [list(posterior[a]["names"]) for a in AXES]
         self.cov = [0.5 * (np.asarray(posterior[a]["cov"], dtype=float) + np.asarray(posterior[a]["cov"]).T)
                     for a in AXES]
@@ -108,6 +115,16 @@ class Predictive:
         self.noise_uT = np.asarray(posterior.get("noise_uT", (0.0, 0.0, 0.0)), dtype=float).reshape(3)
         self.disc = dict(posterior["discrepancy"]) if posterior.get("discrepancy") else None
         self.complete = "noise_uT" in posterior and self.disc is not None
+
+    def to_reading(self, b_cal_uT: np.ndarray, temp_c: float) -> np.ndarray:
+        """(m, 3) the readings that calibrate to ``b_cal_uT`` (m, 3) at ``temp_c`` (the table's affine part)."""
+        b = np.asarray(b_cal_uT, dtype=float).reshape(-1, 3)
+        if self.calibration is None:
+            return b
+        S, K_S, K_S2, O, K_O = self.calibration
+        dT = temp_c - self.t0_c
+        G = S + K_S * dT + np.diag(K_S2) * dT * dT
+        return np.linalg.solve(G, (b - (O + K_O * dT)[None, :]).T).T
 
     # ------------------------------------------------------------------ parts, per row
     def param_var_uT2(self, b_uT, temp_c, currents_A=None) -> np.ndarray:
@@ -144,52 +161,65 @@ class Predictive:
         return np.sqrt(v)
 
     # ------------------------------------------------------------------ worst case over a field region
-    def worst_vector_sd_uT(self, temp_c: float, field_axes_uT: Sequence[float], field_norm_uT: float = math.inf,
-                           currents_A: Mapping[str, tuple[float, float]] | None = None) -> float:
-        """The largest predictive vector sd ``sqrt(sum_i sd_i^2)`` (uT) over fields ``|b_j| <= F_j``,
-        ``|b| <= R`` at temperature ``temp_c``, currents inside their intervals (see the module docstring)."""
-        pts = region_points(field_axes_uT, field_norm_uT)
+    def _region_cal_points(self, field_axes_uT, field_norm_uT) -> np.ndarray:
+        """Calibrated-field points searched for a worst case: the region's extreme points (:func:`region_points`).
+        A cross product ``b_a b_c`` keeps every feature affine along each axis, so the variance is convex along
+        every coordinate line and the worst case stays on the region's boundary; the sphere is sampled 4x denser
+        for it (a quadratic feature turns faster along the sphere). A cube ``b_i^3`` is not convex along its axis:
+        two inner shells (x0.5, x0.75) are searched as well."""
+        kinds = {parse_name(nm)[0] for names in self.names for nm in names}
+        cal = region_points(field_axes_uT, field_norm_uT, dense="c3" in kinds or "P" in kinds)
+        return np.vstack([cal, 0.75 * cal, 0.5 * cal]) if "c3" in kinds else cal
+
+    def _current_corners(self, currents_A: Mapping[str, tuple[float, float]] | None) -> list[dict[str, float]]:
+        """Every corner of the current box (a feature affine in each current: the worst case is at a corner)."""
+        used = sorted({parse_name(nm)[0][2:] for names in self.names for nm in names
+                       if parse_name(nm)[0].startswith("D_")})
+        ivals = [tuple(sorted({float(x) for x in (currents_A or {}).get(c, (0.0, 0.0))})) for c in used]
+        return [dict(zip(used, combo, strict=True)) for combo in itertools.product(*ivals)]
+
+    def _worst_at(self, temp_c: float, cal: np.ndarray, currents_A) -> tuple[np.ndarray, np.ndarray]:
+        """(m,) the predictive vector variance (uT^2) at the calibrated points ``cal`` (m, 3), worst over the
+        current corners, and the readings (m, 3) they map to."""
+        pts = self.to_reading(cal, temp_c)
         m = pts.shape[0]
         t = np.full(m, temp_c)
-        tot = self.disc_var_uT2(pts, t).sum(axis=1) + float(np.sum(self.noise_uT ** 2))
-        dT = t - self.t0_c
-        for i in range(3):
-            names, L = self.names[i], self.L[i]
-            lin = [k for k, nm in enumerate(names) if parse_name(nm)[0] in LINEAR_PARAMS]
-            v = features([names[k] for k in lin], pts, dT) @ L[lin]
-            extra = np.zeros(m)
-            for k, nm in enumerate(names):
-                p, ax, j = parse_name(nm)
-                if p == "c3":
-                    extra += np.abs(pts[:, ax]) ** 3 * float(np.linalg.norm(L[k]))
-                elif p == "P":
-                    a, c = _PAIRS[j]
-                    extra += np.abs(pts[:, a] * pts[:, c]) * float(np.linalg.norm(L[k]))
-                elif p.startswith("D_"):
-                    lo, hi = (currents_A or {}).get(p[2:], (0.0, 0.0))
-                    extra += max(abs(lo), abs(hi)) * float(np.linalg.norm(L[k]))
-            tot = tot + (np.linalg.norm(v, axis=1) + extra) ** 2
-        return float(np.sqrt(tot.max()))
+        best = np.full(m, -np.inf)
+        base = self.disc_var_uT2(pts, t).sum(axis=1) + float(np.sum(self.noise_uT ** 2))
+        for corner in self._current_corners(currents_A):
+            cur = {k: np.full(m, v) for k, v in corner.items()}
+            best = np.maximum(best, base + self.param_var_uT2(pts, t, cur).sum(axis=1))
+        return best, pts
+
+    # ------------------------------------------------------------------ worst case over a field region
+    def worst_vector_sd_uT(self, temp_c: float, field_axes_uT: Sequence[float], field_norm_uT: float = math.inf,
+                           currents_A: Mapping[str, tuple[float, float]] | None = None) -> float:
+        """The largest predictive vector sd ``sqrt(sum_i sd_i^2)`` (uT) over calibrated fields ``|B_i| <= F_i``,
+        ``|B| <= R`` at temperature ``temp_c``, currents inside their intervals. The variance is evaluated
+        exactly (the full covariance, correlations included) at the points of :meth:`_region_cal_points`
+        mapped to readings by :meth:`to_reading` (affine, so extreme points stay extreme) and at every corner
+        of the current box (each feature is affine in each current)."""
+        v, _ = self._worst_at(temp_c, self._region_cal_points(field_axes_uT, field_norm_uT), currents_A)
+        return float(np.sqrt(v.max()))
 
     def worst_point(self, temps_c: Sequence[float], field_axes_uT: Sequence[float], field_norm_uT: float = math.inf,
                     currents_A: Mapping[str, tuple[float, float]] | None = None) -> tuple[float, np.ndarray]:
-        """``(temperature, field (3,))`` where the worst predictive vector sd over the region lies."""
+        """``(temperature, calibrated field (3,))`` where the worst predictive vector sd over the region lies."""
         best = (-1.0, float(temps_c[0]), np.zeros(3))
+        cal = self._region_cal_points(field_axes_uT, field_norm_uT)
         for t in temps_c:
-            pts = region_points(field_axes_uT, field_norm_uT)
-            v = np.sum(self.sd_axes_uT(pts, np.full(pts.shape[0], t),
-                                       {k: np.full(pts.shape[0], max(abs(lo), abs(hi)))
-                                        for k, (lo, hi) in (currents_A or {}).items()}) ** 2, axis=1)
+            v, _ = self._worst_at(float(t), cal, currents_A)
             k = int(np.argmax(v))
             if v[k] > best[0]:
-                best = (float(v[k]), float(t), pts[k])
+                best = (float(v[k]), float(t), cal[k])
         return best[1], best[2]
 
     def parts_nT(self, b_uT: Sequence[float], temp_c: float, currents_A: Mapping[str, float] | None = None,
                  top: int = 4) -> list[tuple[str, float]]:
-        """The largest parts of the predictive vector variance at one input, as sd in nT: noise, discrepancy and
-        each parameter's share ``f_k (C f)_k`` (a parameter's share can be negative: correlations)."""
-        b = np.asarray(b_uT, dtype=float).reshape(1, 3)
+        """The largest parts of the predictive vector variance at one calibrated field, as sd in nT: noise,
+        discrepancy and each parameter's share ``f_k (C f)_k`` (a parameter's share can be negative:
+        correlations)."""
+        b = self.to_reading(np.asarray(b_uT, dtype=float).reshape(1, 3), temp_c)
         cur = {k: np.array([v]) for k, v in (currents_A or {}).items()}
         out = [("noise", float(np.sum(self.noise_uT ** 2))),
                ("discrepancy", float(self.disc_var_uT2(b, [temp_c]).sum()))]
@@ -218,14 +248,15 @@ def _sphere(n: int) -> np.ndarray:
 
 
 _DIRS = _sphere(192)
+_DIRS_DENSE = _sphere(768)
 _CORNERS = np.array(list(itertools.product((-1.0, 1.0), repeat=3)))
 
 
-def region_points(field_axes_uT: Sequence[float], field_norm_uT: float = math.inf) -> np.ndarray:
-    """Points where the worst case over ``{|b_j| <= F_j, |b| <= R}`` lies: the box's corners pulled onto the
-    ball where they stick out, and 192 directions on the sphere of radius R clipped to the box. Every feature's
-    contribution is convex in ``b``, so its maximum over this convex region is at an extreme point: exactly a
-    corner when the ball does not cut the box, else on the sphere, found to about 1 % by the directions."""
+def region_points(field_axes_uT: Sequence[float], field_norm_uT: float = math.inf, dense: bool = False) -> np.ndarray:
+    """The extreme points of ``{|b_j| <= F_j, |b| <= R}``: the box's corners pulled onto the ball where they
+    stick out, and 192 directions on the sphere of radius R clipped to the box. A convex function's maximum
+    over this convex region is at an extreme point: exactly a corner when the ball does not cut the box, else
+    on the sphere, found to about 1 % by the directions (768 with ``dense``)."""
     F = np.maximum(np.asarray(field_axes_uT, dtype=float).reshape(3), 0.0)
     c = _CORNERS * F
     R = float(field_norm_uT)
@@ -233,7 +264,7 @@ def region_points(field_axes_uT: Sequence[float], field_norm_uT: float = math.in
         return c
     nc = np.linalg.norm(c, axis=1)
     c = c * np.minimum(1.0, R / np.where(nc > 0, nc, 1.0))[:, None]
-    return np.vstack([c, np.clip(R * _DIRS, -F, F)])
+    return np.vstack([c, np.clip(R * (_DIRS_DENSE if dense else _DIRS), -F, F)])
 
 
 def predictive_sd_uT(posterior: Mapping, t0_c: float, b_uT, temp_c, currents_A=None) -> np.ndarray:

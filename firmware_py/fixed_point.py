@@ -103,16 +103,16 @@ class FixedPointTable:
     K_O: tuple[int, int, int]
     D: tuple[tuple[int, int, int], ...]      # one row per current, in table.currents order
     t0_cdeg: int
-    field_limit_nT: int                      # validity: |B_j| <= this
+    field_limit_nT: int                      # validity: calibrated |B_cal,i| <= this
     temp_range_cdeg: tuple[int, int] | None  # validity (None: table has no temperature terms)
     current_ranges_mA: tuple[tuple[int, int], ...]
     K_S2: tuple[int, int, int] = (0, 0, 0)   # on-axis second-order sensitivity tempco
-    field_limits_nT: tuple[int, int, int] | None = None   # validity per input axis (None: field_limit_nT on each)
-    field_norm_nT: int | None = None         # validity: Bx^2 + By^2 + Bz^2 <= this^2 (None: no magnitude limit)
+    field_limits_nT: tuple[int, int, int] | None = None   # validity per calibrated axis (None: field_limit_nT)
+    field_norm_nT: int | None = None         # validity: |B_cal|^2 <= this^2 (nT; None: no magnitude limit)
 
     @property
     def axis_limits_nT(self) -> tuple[int, int, int]:
-        """``|B_j| <= this[j]`` is inside the validity box."""
+        """``|B_cal,i| <= this[i]`` (the calibrated field, nT) is inside the validity region."""
         return self.field_limits_nT if self.field_limits_nT is not None else (self.field_limit_nT,) * 3
 
     @classmethod
@@ -165,15 +165,10 @@ class FixedPointTable:
         ``temp_cdeg`` is required (no default: a silent 0 degC would bias every temperature term)."""
         status = 0
         b = []
-        lim = self.axis_limits_nT
-        for j, v in enumerate(b_nT):
+        for v in b_nT:
             c, hit = _clip(int(v), B_LIMIT_nT)
             status |= ApplyFlag.SATURATED if hit else 0
-            if abs(c) > lim[j]:
-                status |= ApplyFlag.OUT_OF_VALIDITY
             b.append(c)
-        if self.field_norm_nT is not None and b[0] * b[0] + b[1] * b[1] + b[2] * b[2] > self.field_norm_nT ** 2:
-            status |= ApplyFlag.OUT_OF_VALIDITY
         t, hit = _clip(int(temp_cdeg), T_LIMIT_cdeg)
         status |= ApplyFlag.SATURATED if hit else 0
         if self.temp_range_cdeg is not None and not self.temp_range_cdeg[0] <= t <= self.temp_range_cdeg[1]:
@@ -207,6 +202,13 @@ class FixedPointTable:
             elif o < INT32_MIN:
                 o, status = INT32_MIN, status | ApplyFlag.SATURATED
             out.append(o)
+        # validity of the calibrated field: per axis on the output, magnitude on the output in whole nT
+        lim = self.axis_limits_nT
+        nt = [rshift_round(o, OUT_FRAC) for o in out]
+        if any(abs(nt[i]) > lim[i] for i in range(3)):
+            status |= ApplyFlag.OUT_OF_VALIDITY
+        if self.field_norm_nT is not None and nt[0] * nt[0] + nt[1] * nt[1] + nt[2] * nt[2] > self.field_norm_nT ** 2:
+            status |= ApplyFlag.OUT_OF_VALIDITY
         return (out[0], out[1], out[2]), int(status)
 
     # ----------------------------------------------------------- vectorised (same integers)
@@ -241,12 +243,8 @@ class FixedPointTable:
         cc = np.clip(ccol, -I_LIMIT_mA, I_LIMIT_mA)
         sat = tc != t
         oov = np.zeros(n, bool)
-        lim = self.axis_limits_nT
         for j in range(3):
             sat |= bc[j] != bcol[j]
-            oov |= np.abs(bc[j]) > lim[j]
-        if self.field_norm_nT is not None:
-            oov |= bc[0] * bc[0] + bc[1] * bc[1] + bc[2] * bc[2] > np.int64(self.field_norm_nT) ** 2
         for k, (lo, hi) in enumerate(self.current_ranges_mA):
             sat |= cc[k] != ccol[k]
             oov |= (cc[k] < lo) | (cc[k] > hi)
@@ -272,6 +270,13 @@ class FixedPointTable:
             acc >>= ACC_FRAC - OUT_FRAC
             sat |= (acc > INT32_MAX) | (acc < INT32_MIN)
             np.clip(acc, INT32_MIN, INT32_MAX, out=out[:, i])
+        # validity of the calibrated field (as apply_sample): whole nT of the output, rounded half away from zero
+        half8 = np.int64(1) << (OUT_FRAC - 1)
+        nt = (np.abs(out) + half8) >> OUT_FRAC
+        lim = np.array(self.axis_limits_nT, np.int64)
+        oov |= np.any(nt > lim[None, :], axis=1)
+        if self.field_norm_nT is not None:
+            oov |= np.einsum("ij,ij->i", nt, nt) > np.int64(self.field_norm_nT) ** 2
         status = np.where(sat, int(ApplyFlag.SATURATED), 0) | np.where(oov, int(ApplyFlag.OUT_OF_VALIDITY), 0)
         return out, status.astype(np.int64)
 

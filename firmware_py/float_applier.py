@@ -67,12 +67,13 @@ def apply_float(table, b_meas_uT, temp_c=None, currents_A: Mapping[str, np.ndarr
         out = out + prods @ np.asarray(table.P).T
     out[missing] = np.nan
     flags[missing] |= ApplyFlag.MISSING_INPUT
-    flags[~missing & outside_validity(table, b, t if need_t else None, cur)] |= ApplyFlag.OUT_OF_VALIDITY
+    flags[~missing & outside_validity(table, out, t if need_t else None, cur)] |= ApplyFlag.OUT_OF_VALIDITY
     return out, flags
 
 
 def outside_validity(table, b_uT: np.ndarray, temp_c, currents_A: Mapping[str, np.ndarray]) -> np.ndarray:
-    """(N,) bool: row outside the table's validity box (NaN compares as outside)."""
+    """(N,) bool: row outside the table's validity region (NaN compares as outside); ``b_uT`` the calibrated
+    field (the region's field limits are on the calibrated field, whatever the part's offsets)."""
     with np.errstate(invalid="ignore"):
         bad = ~np.all(np.abs(b_uT) <= np.asarray(table.field_limits_uT)[None, :], axis=1)
         if table.validity_field_norm_uT is not None:

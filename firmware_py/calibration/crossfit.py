@@ -286,7 +286,7 @@ def _pieces(d: FitData, rows: _Rows, piece: _PieceOf, sessions: np.ndarray, n_fo
             xy_sum[k] += np.ones(e - a) @ Z[a:e]
             R[k] = qr_r(np.vstack([R[k], Z[a:e] if w is None else Z[a:e] * np.sqrt(w[a:e])[:, None]]))
             cov[k].update(b[a:e], temp[a:e], {c: v[a:e] for c, v in cur.items()}, sess[a:e], t[a:e],
-                          options.field_present_uT, np.ones(e - a) if w is None else w[a:e])
+                          options.field_present_uT, np.ones(e - a) if w is None else w[a:e], ref_uT=Y[a:e])
             count[k] += e - a
             t_sum[k] += float(np.sum(t[a:e]))
     return _Pieces(R, cov, count, t_sum, xy_sum, np.repeat(sessions, n_folds), np.tile(np.arange(n_folds),

@@ -78,6 +78,16 @@ __all__ = ["FitData", "FitOptions", "FitResult", "Coverage", "HeldParam", "StepD
 
 #: Bins (1 uT each) of the coverage's field histograms.
 FIELD_HIST_BINS = 2048
+
+
+def _field_hist(b: np.ndarray) -> np.ndarray:
+    """(4, FIELD_HIST_BINS) counts of |b_x|, |b_y|, |b_z| and |b| in 1 uT bins (non-finite rows left out)."""
+    b = b[np.all(np.isfinite(b), axis=1)]
+    top = FIELD_HIST_BINS - 1
+    out = np.empty((4, FIELD_HIST_BINS), dtype=np.int64)
+    for k, v in enumerate((np.abs(b[:, 0]), np.abs(b[:, 1]), np.abs(b[:, 2]), np.linalg.norm(b, axis=1))):
+        out[k] = np.bincount(np.minimum(v, top).astype(np.int64), minlength=FIELD_HIST_BINS)
+    return out
 #: Rows per block where a pass over the rows works block by block (the cross-fit's passes, the row checks).
 BLOCK_ROWS = 65536
 
@@ -265,17 +275,22 @@ class Coverage:
     temp_with_field_c: np.ndarray = field(default_factory=lambda: np.array([[np.inf, -np.inf]] * 3))
     field_max_uT: np.ndarray = field(default_factory=lambda: np.zeros(3))
     norm_max_uT: float = 0.0                   # largest |B| of a row
-    #: rows per 1 uT bin of |B_x|, |B_y|, |B_z| and |B| (last bin: at or beyond FIELD_HIST_BINS - 1 uT)
+    #: rows per 1 uT bin of |B_x|, |B_y|, |B_z| and |B| (last bin: at or beyond FIELD_HIST_BINS - 1 uT) of the
+    #: readings (``field_hist``) and of the reference field (``ref_hist``: the calibrated field's extents)
     field_hist: np.ndarray = field(default_factory=lambda: np.zeros((4, FIELD_HIST_BINS), dtype=np.int64))
+    ref_hist: np.ndarray = field(default_factory=lambda: np.zeros((4, FIELD_HIST_BINS), dtype=np.int64))
     currents_A: dict[str, list[float]] = field(default_factory=dict)
     sessions: set = field(default_factory=set)
     t_min_s: float = np.inf
     t_max_s: float = -np.inf
 
-    def update(self, b_uT, temp_c, currents_A, session, t_s, field_present_uT: float, weights=None) -> None:
+    def update(self, b_uT, temp_c, currents_A, session, t_s, field_present_uT: float, weights=None,
+               ref_uT=None) -> None:
         b = np.asarray(b_uT).reshape(-1, 3)
         if b.shape[0] == 0:
             return
+        if ref_uT is not None:
+            self.ref_hist += _field_hist(np.asarray(ref_uT, dtype=float).reshape(-1, 3))
         self.n += b.shape[0]
         self.sum_w += float(b.shape[0] if weights is None else np.sum(weights))
         t = np.asarray(temp_c)
@@ -294,10 +309,7 @@ class Coverage:
         nrm = np.einsum("ij,ij->j", mag, mag)
         if np.isfinite(nrm).any():
             self.norm_max_uT = max(self.norm_max_uT, float(np.sqrt(np.nanmax(nrm))))
-        top = FIELD_HIST_BINS - 1
-        for k, v in enumerate((mag[0], mag[1], mag[2], np.sqrt(nrm))):
-            v = v[np.isfinite(v)]
-            self.field_hist[k] += np.bincount(np.minimum(v, top).astype(np.int64), minlength=FIELD_HIST_BINS)
+        self.field_hist += _field_hist(b)
         for k, v in (currents_A or {}).items():
             lo, hi = self.currents_A.get(k, [np.inf, -np.inf])
             self.currents_A[k] = [min(lo, float(np.min(v))), max(hi, float(np.max(v)))]
@@ -319,6 +331,7 @@ class Coverage:
         self.field_max_uT = np.maximum(self.field_max_uT, other.field_max_uT)
         self.norm_max_uT = max(self.norm_max_uT, other.norm_max_uT)
         self.field_hist = self.field_hist + other.field_hist
+        self.ref_hist = self.ref_hist + other.ref_hist
         for k, (lo, hi) in other.currents_A.items():
             lo0, hi0 = self.currents_A.get(k, [np.inf, -np.inf])
             self.currents_A[k] = [min(lo0, lo), max(hi0, hi)]
@@ -326,18 +339,26 @@ class Coverage:
         self.t_min_s, self.t_max_s = min(self.t_min_s, other.t_min_s), max(self.t_max_s, other.t_max_s)
         return self
 
-    def field_quantile_uT(self, q: float) -> tuple[np.ndarray, float]:
-        """``(per-axis |B_j| (3,), |B|)`` below which a fraction ``q`` of the rows lie (upper edge of the 1 uT
-        bin, never above the largest value seen)."""
+    def field_quantile_uT(self, q: float, reference: bool = False) -> tuple[np.ndarray, float]:
+        """``(per-axis |B_j| (3,), |B|)`` below which a fraction ``q`` of the rows lie, of the readings or (with
+        ``reference``) of the reference field (upper edge of the 1 uT bin; readings: never above the largest
+        value seen)."""
+        hist = self.ref_hist if reference else self.field_hist
         out = []
         for k in range(4):
-            c = np.cumsum(self.field_hist[k])
+            c = np.cumsum(hist[k])
             if c[-1] == 0:
                 out.append(0.0)
                 continue
             out.append(float(np.searchsorted(c, q * c[-1]) + 1))
+        if reference:
+            return np.array(out[:3]), out[3]
         lim = np.minimum(np.array(out[:3]), self.field_max_uT)
         return lim, min(out[3], self.norm_max_uT)
+
+    @property
+    def has_reference(self) -> bool:
+        return bool(self.ref_hist[3].sum())
 
     def temp_span_with_field(self, j: int) -> float:
         lo, hi = self.temp_with_field_c[j]
@@ -671,7 +692,7 @@ def _fit_core(data: FitData, model: CalModel, options: FitOptions) -> CoreFit:
     sw = np.sqrt(w)[:, None]
     cov = Coverage()
     cov.update(data.b_meas_uT, data.temp_c, {k: data.currents_A[k] for k in model.currents}, data.session,
-               data.t_s, options.field_present_uT, w)
+               data.t_s, options.field_present_uT, w, ref_uT=data.b_ref_uT)
     R = qr_r(np.hstack([X, Y]) * sw)
     first = first_solve(R, n, model, cov, options)
     prior, gated, post = first.prior, first.gated, first.post

@@ -93,7 +93,7 @@ class StreamingFit:
         X = self.model.design(b, temp, cur, sess, t)
         with single_thread():           # a block QR of ~16k x 30: 4-7x slower on threaded BLAS (bench_blas.py)
             self._R = qr_r(np.vstack([self._R, np.hstack([X, y]) * np.sqrt(w)[:, None]]))
-        self.coverage.update(b, temp, cur, sess, t, self.options.field_present_uT, w)
+        self.coverage.update(b, temp, cur, sess, t, self.options.field_present_uT, w, ref_uT=y)
         self._raw_sq += np.sum((y - b) ** 2, axis=0)
         self.n_used += b.shape[0]
 
