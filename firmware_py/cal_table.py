@@ -89,8 +89,8 @@ class CalTable:
     t0_c: float = 25.0
     validity_temp_c: tuple[float, float] | None = None
     validity_field_uT: float = 100.0
-    validity_field_axes_uT: tuple[float, float, float] | None = None   # per input axis (None: field_uT on each)
-    validity_field_norm_uT: float | None = None                         # |B| limit (None: none beyond the axes')
+    validity_field_axes_uT: tuple[float, float, float] | None = None   # per calibrated axis (None: field_uT on each)
+    validity_field_norm_uT: float | None = None                         # calibrated |B| limit (None: none)
     validity_currents_A: tuple[tuple[str, tuple[float, float]], ...] = ()
     model_name: str = "eq3"
     table_name: str = TABLE_NAME
@@ -538,8 +538,9 @@ def table_from_fit(result, device_id: str, *, description: str = "", created_utc
 
     With a posterior (the MAP fit) the table carries its predictive parts (block ``posterior``) and the validity
     box is where twice the predictive vector sd stays within the bound ``2 x validity_sd_uT`` (default: 1.5x the
-    sd's RMS over the fit data): a temperature interval and a field limit per input axis, clipped to the part's
-    operating range (the chip's priors) and to ``FIELD_EXTRAPOLATION`` x each axis's largest field in the data
+    sd's RMS over the fit data, see ``VALIDITY_SD_FACTOR``): a temperature interval, a limit per calibrated axis
+    and on the calibrated magnitude, clipped to the part's operating range (the chip's priors) and to
+    ``FIELD_EXTRAPOLATION`` x each axis's largest field in the data
     (:mod:`magstack.firmware.cal_uncertainty`). :class:`~magstack.firmware.errors.NoValidityRegion` when even the
     data's centre exceeds the bound. Without a posterior, validity is what the fit data covered (temperature
     range, max |B| component). Given values override; currents: the data's ranges. The decisions are in

@@ -21,7 +21,7 @@ def test_apply_interpolates_sparse_currents_like_refit():
     b = rng.normal(0, 30, (n, 3))
     table = CalTable(device_id="dev", terms=("gain_matrix", "offset", "currents"), S=np.eye(3), K_S=np.zeros((3, 3)),
                      O=np.zeros(3), K_O=np.zeros(3), D=(("solar", (100.0, -50.0, 20.0)),), t0_c=25.0,
-                     validity_temp_c=None, validity_field_uT=100.0, validity_currents_A=(("solar", (-5.0, 5.0)),))
+                     validity_temp_c=None, validity_field_uT=1000.0, validity_currents_A=(("solar", (-5.0, 5.0)),))
     s = Session(t, np.zeros((n, 3)), b, np.full(n, 25.0), sess, {"solar": solar})
     out = calibrate_session(table, s)
     blk = TelemetryBlock("mem", 0, t, b, np.full(n, 25.0), sess, np.zeros((n, 3)), np.tile([1.0, 0, 0, 0], (n, 1)),

@@ -162,7 +162,7 @@ def test_an_honest_total_sd_passes_the_acceptance_on_the_control(tmp_path, monke
     """The harness's "total" path with an oracle predictive sd (the table's parameter sd and the part's
     known noise) on the Eq. 3-exact control: the acceptance figures are reachable, and measured as claimed."""
     from magstack.data.session import read_session
-    from magstack.firmware.cal_uncertainty import predictive_sd_uT
+    from magstack.firmware.cal_uncertainty import Predictive
 
     bench = gen.make_bench("eq3_control", 0, seed=0)
     s = bench.sensor
@@ -172,7 +172,7 @@ def test_an_honest_total_sd_passes_the_acceptance_on_the_control(tmp_path, monke
         cal = real_apply(table, held, out)
         raw = read_session(held)
         doc = harness.json.loads(Path(table).read_text())
-        param = predictive_sd_uT(doc["posterior"], doc["model"]["t0_c"], raw.dut_uT, raw.temp_c)
+        param = np.sqrt(Predictive(doc["posterior"], doc["model"]["t0_c"]).param_var_uT2(raw.dut_uT, raw.temp_c))
         noise = np.abs(1 - s.a_per_c * (raw.temp_c[:, None] - gen.T_REF_C)) * s.noise_uT   # Eq. 3-exact part
         for i, col in enumerate(harness.AXIS_SD_COLUMNS):
             cal.extra[col] = np.hypot(param[:, i], noise[:, i]) * 1e3
@@ -185,5 +185,7 @@ def test_an_honest_total_sd_passes_the_acceptance_on_the_control(tmp_path, monke
         one, two = r[part]["axis"]
         assert 0.62 <= one <= 0.74 and 0.93 <= two <= 0.97, (part, one, two)
         v1, v2 = r[part]["vector"]
-        assert 0.55 <= v1 <= 0.67 and v2 >= 0.975, (part, v1, v2)
+        # 1 sd of the vector: chi-square(3) gives 0.61 with equal axis sds, up to chi-square(1)'s 0.68 with one
+        # dominant axis; the oracle's parameter part carries the left-out terms' priors (a little conservative)
+        assert 0.55 <= v1 <= 0.72 and v2 >= 0.975, (part, v1, v2)
     assert r["box_above_bound_clean"] <= 0.05 and r["box_above_bound_noisy"] <= 0.05

@@ -147,13 +147,14 @@ def test_holdout_session_residual_before_after(demo):
     assert h.saturated_rows == 0
     cal = read_session(h.calibrated_path)
     # rows outside the table's validity region are flagged and carry no value (as on board): the held-out
-    # session's excursions take one axis beyond the largest |B| at which the table can bound its error in every
-    # direction; every other row is calibrated
+    # session's excursions take the calibrated field beyond the largest |B| at which the table can bound its
+    # error in every direction; every other row is calibrated
     t = res.table.table
     paired = read_session(h.align.paired_path)
-    beyond = ((np.linalg.norm(paired.dut_uT, axis=1) > t.validity_field_norm_uT)
+    b_cal, _ = apply_float(t, paired.dut_uT, paired.temp_c)
+    beyond = ((np.linalg.norm(b_cal, axis=1) > t.validity_field_norm_uT)
               | (paired.temp_c < t.validity_temp_c[0]) | (paired.temp_c > t.validity_temp_c[1])
-              | np.any(np.abs(paired.dut_uT) > np.asarray(t.field_limits_uT), axis=1))
+              | np.any(np.abs(b_cal) > np.asarray(t.field_limits_uT), axis=1))
     flagged = ((cal.flag >> FLAG_SHIFT) & 2) != 0
     assert h.out_of_validity_rows == int(flagged.sum())
     assert np.array_equal(flagged, beyond & np.all(np.isfinite(paired.dut_uT), axis=1))

@@ -1,8 +1,8 @@
-"""The vectorised fixed-point applier as it was before issue 25 (commit f5b2a93), frozen verbatim.
+"""A straightforward vectorised fixed-point applier, frozen as a reference (validity judged on the input field).
 
-``apply_block(table, ...)`` is ``FixedPointTable.apply_block`` of that commit with ``self`` passed
-explicitly: the reference that tests/test_fixed_point_vectorised.py holds the current applier to
-(bit for bit) and the "before" of benchmarks/bench_calibration.py. Not used by magstack itself.
+``apply_block(table, ...)`` with the table passed explicitly: the reference that
+tests/test_fixed_point_vectorised.py holds the applier's integers and saturation bits to (bit for bit) and the
+baseline of benchmarks/bench_calibration.py. Not used by magstack itself.
 """
 from __future__ import annotations
 
