@@ -102,3 +102,59 @@ def test_a_reference_plateau_the_dut_agrees_with_is_not_a_clip():
     ref = j["reference"]
     assert ref["saturated_rows"] == 0 and not ref["clipped"], ref
     assert "DUT agrees" in ref["note"]
+
+
+# ----------------------------------------------------------------------------- a prior conflict is evidence
+def _thermal_run(seed=3, seconds=1800.0, tempco=-2.7e-3, k_o=(0.0, 0.1, 0.0)) -> Session:
+    """X held at 44 uT while the unit cools 80 -> 38 degC (slower than exponential at the end: the run is
+    stopped before it settles); every sensitivity falls with temperature (``tempco``) and Y carries an offset
+    tempco ``k_o`` (0.1 uT/degC: beyond the HMC1053's datasheet prior, as a real board's can be); 30 nT noise."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, seconds, 0.5)
+    temp = 38.0 + 42.0 * np.exp(-t / seconds)
+    dT = temp - 25.0
+    b = np.tile([44.0, 0.0, 0.0], (t.size, 1))
+    dut = (b @ G.T) * (1.0 + tempco * dT)[:, None] + O + np.outer(dT, k_o)
+    dut = dut + rng.standard_normal(dut.shape) * 0.03
+    ref = b + rng.standard_normal(b.shape) * 0.002
+    return Session(1.7e9 + t, ref, dut, temp, np.zeros(t.size, int), {},
+                   {"device_id": "thermal", "dut_chip": "hmc1053"})
+
+
+def _sweep_only_table():
+    """A gain + offset table fitted on a bench sweep at one temperature (no temperature column)."""
+    from test_diagnose import make
+
+    from magstack.firmware.cal_table import table_from_fit
+    from magstack.firmware.calibration import FitData, FitOptions, fit
+    clean = make(None, seed=5, temp=False)
+    return table_from_fit(fit(FitData.from_session(clean), "gain_offset", options=FitOptions(holdout=False)), "test")
+
+
+def test_a_thermal_run_against_a_sweep_only_table_keeps_the_temperature_gain_despite_a_prior_conflict():
+    """temperature_gain closes the gap (needing K_S[y,x] ~6 prior sd to carry Y's offset tempco); drift is
+    plausible but leaves three times the floor. A veto handed the verdict to drift, whose residual had not been
+    kept: the diagnosis crashed. Weighed, the prior conflict leaves temperature_gain named, with the note."""
+    from test_diagnose import _table_diagnosis
+    j = _table_diagnosis(_thermal_run(), _sweep_only_table()).to_dict()
+    assert j["verdict"] == "temperature_gain", j["notes"]
+    assert j["after_rmse_nT"] <= 1.2 * j["noise_floor_nT"]
+    checks = {c["effect"]: c for c in j["prior_check"]}
+    assert not checks["temperature_gain"]["plausible"] and checks["drift"]["plausible"]
+    assert checks["temperature_gain"]["constrained_rmse_nT"] > j["after_rmse_nT"]
+    assert any("prior conflict weighed, not a veto" in n and "data's verdict stands" in n for n in j["notes"]), \
+        j["notes"]
+
+
+def test_two_explanations_beyond_the_prior_are_weighed_by_their_fits_within_it():
+    """Forward, at one field level: temperature_offset (fewer parameters, the data's pick) needs K_O[x] ~20 sd
+    out, temperature_gain only its Y cross term ~7 sd out. Named by the data alone, temperature_offset stood;
+    within the prior temperature_gain leaves far less, so it is named."""
+    d = diagnose_model(_thermal_run(), "gain_offset")
+    j = d.to_dict()
+    assert j["verdict"] == "temperature_gain", j["notes"]
+    checks = {c["effect"]: c for c in j["prior_check"]}
+    assert not checks["temperature_offset"]["plausible"] and not checks["temperature_gain"]["plausible"]
+    assert checks["temperature_gain"]["constrained_rmse_nT"] < 0.7 * checks["temperature_offset"]["constrained_rmse_nT"]
+    assert any("part's physics names temperature_gain" in n for n in j["notes"]), j["notes"]
+    assert "fitted within 3 prior sd" in d.text()

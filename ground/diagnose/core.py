@@ -150,7 +150,9 @@ class Diagnosis:
         for c in d["prior_check"]:
             L.append(f"prior check ({c['effect']}): {c['parameter']} = {c['value']:.4g} {c['unit']}, "
                      f"{c['z']:.1f} prior sd from {c['prior_mean']:.4g} +- {c['prior_sd']:.3g} "
-                     f"({'plausible' if c['plausible'] else 'implausible for the part'})")
+                     f"({'plausible' if c['plausible'] else 'implausible for the part'})"
+                     + (f"; fitted within {pr.IMPLAUSIBLE_Z:g} prior sd: {c['constrained_rmse_nT']:.1f} nT held out"
+                        if c.get("constrained_rmse_nT") is not None else ""))
         if d["parameters"]:
             L.append("parameters of the verdict's effect (value +- standard error):")
             for name, p in d["parameters"].items():
@@ -301,7 +303,7 @@ def diagnose(gap: Gap, options: sr.Options | None = None) -> Diagnosis:
     res = sr.search(gap, blocks, fold, opts)
     notes: list[str] = []
     chip = pr.chip_priors(gap, opts.chip)
-    checks, note = prior_choice(gap, res, chip)
+    checks, note = prior_choice(gap, res, chip, fold, blocks, opts.alpha)
     if note:
         notes.append(note)
     params = verdict_parameters(gap, res, fold, run)
@@ -333,14 +335,20 @@ def diagnose(gap: Gap, options: sr.Options | None = None) -> Diagnosis:
     return diag
 
 
-def prior_choice(gap: Gap, res: sr.SearchResult, chip) -> tuple[list[dict], str | None]:
-    """Confounded explanations decided by the part's physics (priors.prior_check).
+def prior_choice(gap: Gap, res: sr.SearchResult, chip, fold: np.ndarray, blocks: np.ndarray,
+                 alpha: float = 0.05) -> tuple[list[dict], str | None]:
+    """Confounded explanations weighed with the part's physics (priors.prior_check, priors.constrained_oof).
 
     When the verdict (a linear effect) is confounded with significant linear candidates that close as much
     (same columns in this session, e.g. a sensitivity tempco and an offset tempco at one field level), each
-    one's parameters (MAP on all rows with the chip's prior on its columns) are checked against that prior.
-    A verdict that needs a parameter beyond priors.IMPLAUSIBLE_Z prior sd gives way to the simplest plausible
-    partner; the checks are reported either way. Returns (checks, note)."""
+    one's parameters (MAP on all rows with the chip's prior on its columns) are checked against that prior, and
+    each is fitted again on held-out blocks *within* the prior (MAP, parameters boxed to priors.IMPLAUSIBLE_Z
+    prior sd). A prior conflict is evidence, not a veto: a verdict that needs a parameter beyond that many sd
+    gives way to a partner that closes the gap as well (its own held-out fit not worse by the signed-rank test
+    on held-out blocks) and whose fit within the prior is better than the verdict's within the prior (same
+    test); among those the best fit within the prior, then the simplest. Otherwise the data's verdict stands
+    and the note says what each alternative leaves. The checks (with ``constrained_rmse_nT``) are reported
+    either way. Returns (checks, note)."""
     v = next((t for t in res.trials if t.effect == res.verdict), None)
     if v is None or v.kind != "linear" or not res.confounded_with:
         return [], None
@@ -358,20 +366,42 @@ def prior_choice(gap: Gap, res: sr.SearchResult, chip) -> tuple[list[dict], str 
     out = list(checks.values())
     if v.effect not in checks or checks[v.effect]["plausible"]:
         return out, None
-    ok = [t for t in group if checks.get(t.effect, {}).get("plausible")]
-    if not ok:
-        return out, (f"every explanation confounded with {v.effect} needs parameters beyond the {chip.chip} prior "
-                     f"({IMPLAUSIBLE_TEXT}); named by the data alone")
-    new = min(ok, key=lambda t: (t.n_params, t.rmse_norm_uT))
+    bs = res.baseline.extra["block_session"]
+    nb = bs.size
+    g = v.extra.get("group", 1)
+    within = {}                 # effect -> (held-out RMSE uT, per-block SSE) of the fit within the prior
+    for t in group:
+        r = pr.constrained_oof(gap, t, base, fold, chip)
+        within[t.effect] = ((t.rmse_norm_uT, t.block_sse) if r is None else
+                            (float(np.linalg.norm(sr.rms3(r))), sr.block_sse(r, blocks, nb)))
+        if t.effect in checks and r is not None:
+            checks[t.effect]["constrained_rmse_nT"] = within[t.effect][0] * 1e3
+
+    def worse_p(a_sse, b_sse):   # one-sided p of "a is worse than b" on held-out blocks (signed-rank)
+        return sr.paired_worse_p(sr.grouped(a_sse - b_sse, bs, g))
+    as_well = [t for t in group[1:] if worse_p(t.block_sse, v.block_sse) >= alpha]
+    better = [t for t in as_well if worse_p(within[v.effect][1], within[t.effect][1]) < alpha]
     c = checks[v.effect]
+    conflict = (f"{v.effect} would need {c['parameter']} = {c['value']:.4g} {c['unit']}, {c['z']:.1f} sd from the "
+                f"{chip.chip} prior {c['prior_mean']:.4g} +- {c['prior_sd']:.3g}, beyond the {chip.chip} prior "
+                f"({IMPLAUSIBLE_TEXT}); held within it {v.effect} leaves {within[v.effect][0] * 1e3:.1f} nT held out")
+    if not better:
+        others = ", ".join(f"{t.effect} {t.rmse_norm_uT * 1e3:.1f} nT (within its prior "
+                           f"{within[t.effect][0] * 1e3:.1f} nT)" for t in group[1:])
+        return out, (f"prior conflict weighed, not a veto: {conflict}; no alternative that closes the gap as well "
+                     f"({v.rmse_norm_uT * 1e3:.1f} nT held out) fits better within its prior ({others}): the data's "
+                     "verdict stands")
+    new = min(better, key=lambda t: (within[t.effect][0], t.n_params))
     res.verdict, res.runner_up = new.effect, v.effect
     res.trials.remove(new)
     res.trials.insert(0, new)
     res.confounded_with = [e for e in res.confounded_with if e != new.effect] + [v.effect]
-    return out, (f"{new.effect} and {v.effect} are confounded in this session (they close the gap equally); "
-                 f"{v.effect} would need {c['parameter']} = {c['value']:.4g} {c['unit']}, {c['z']:.0f} sd from the "
-                 f"{chip.chip} prior {c['prior_mean']:.4g} +- {c['prior_sd']:.3g}: the part's physics names "
-                 f"{new.effect}")
+    if new.resid is None:      # dropped while searching: the same out-of-fold fit again
+        new.resid = sr.oof_residual(gap, [base, sr.linear_block(gap, new.effect, new.extra["terms"])],
+                                    gap.target, fold).astype(np.float32)
+    return out, (f"{new.effect} and {v.effect} are confounded in this session (held out {new.rmse_norm_uT * 1e3:.1f} "
+                 f"and {v.rmse_norm_uT * 1e3:.1f} nT); {conflict}, {new.effect} "
+                 f"{within[new.effect][0] * 1e3:.1f} nT: the part's physics names {new.effect}")
 
 
 IMPLAUSIBLE_TEXT = f"more than {pr.IMPLAUSIBLE_Z:g} prior sd"
