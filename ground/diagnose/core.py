@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from magstack.firmware.calibration.model import time_derivative
 from magstack.ground.diagnose import noise
 from magstack.ground.diagnose import nonlinear as nl
 from magstack.ground.diagnose import orbit as ob
@@ -161,9 +162,14 @@ class Diagnosis:
             L.append(f"not testable: {nt['effect']}: {nt['reason']}")
         if d["modelled"]:
             L.append(f"modelled by the simulator: {', '.join(d['modelled'])}")
+        if (d["where"].get("alternation") or {}).get("significant"):
+            a = d["where"]["alternation"]
+            L.append(a["text"] + (" (reported apart; its constant part removed before the noise floor)"
+                                  if a.get("removed_before_floor") else " (reported apart)"))
         for tone in d["where"].get("tones", []):
             L.append(f"tone (reported apart, removed before the noise floor): {tone['freq_hz']:.5g} Hz, amplitude "
-                     + "/".join(f"{a:.1f}" for a in tone["amplitude_nT"]) + " nT (x, y, z)")
+                     + "/".join(f"{a:.1f}" for a in tone["amplitude_nT"]) + " nT (x, y, z)"
+                     + (f": {tone['note']}" if tone.get("kind") == "even_odd_alternation" else ""))
         L += [f"note: {n}" for n in d["notes"]]
         return "\n".join(L)
 
@@ -256,13 +262,26 @@ def verdict_parameters(gap: Gap, res: sr.SearchResult, fold: np.ndarray, run: np
                 out[f"initial_state[{a}]"] = {"value": float(init[j]), "se": float("nan"),
                                               "unit": "sign of the remanence before the first excursion (chosen)"}
         return out
-    if v.kind == "lag":
-        allb = Block.join([base, sr.lag_block(gap, v.extra["tau_s"])], gap.n)
+    if v.kind == "lag":      # the fit with each stretch's starting offset (lag.py), coefficients at those offsets
+        from magstack.ground.diagnose import lag as lg
+        dz = lg.design(gap, v.extra["tau_s"])
+        fits = lg.fits(gap, base, Y, fold, dz)
+        delta = fits.delta[-1]
+        allb = Block.join([base, lg.lag_block(gap, dz.tau_s, temp=lg.die_temperature(gap, dz, delta))], gap.n)
         out = _params(gap, allb, Y, base.p, fold)
         jk = jackknife_se([np.array([x]) for x in v.extra["fold_tau_s"]])
         out["tau_s"] = {"value": float(v.extra["tau_s"]), "se": float(jk[0]), "se_jackknife": float(jk[0]), "unit": "s",
                         "meaning": "time constant of the die temperature behind the measured temperature (grid "
                                    f"{v.extra['grid_s'][0]:.3g}-{v.extra['grid_s'][-1]:.3g} s)"}
+        lagged = lg.lagged_temperature(gap, dz.tau_s)
+        djk = jackknife_se([d for d in fits.delta[:-1]])
+        for r, row in enumerate(dz.first):
+            t0 = float(gap.session.t_s[row])
+            out[f"T_die_start[{r}]"] = {
+                "value": float(lagged[row] + delta[r]), "se": float(djk[r]), "se_jackknife": float(djk[r]),
+                "unit": "degC", "offset_from_continuous_c": float(delta[r]),
+                "meaning": f"die temperature where the record (re)starts (session {gap.session.session[row]}, "
+                           f"t = {t0:.1f} s): fitted, not carried across the pause"}
         return out
     blk = sr.linear_block(gap, v.effect, v.extra["terms"])
     allb = Block.join([base, blk], gap.n)
@@ -319,10 +338,14 @@ def diagnose(gap: Gap, options: sr.Options | None = None) -> Diagnosis:
                      "matrix change: misalignment leaves the diagonal unchanged to first order")
     # noise floor: white level of the residual of the best description found (lowest held-out RMSE)
     best = min([res.baseline] + [t for t in res.trials if t.resid is not None], key=lambda t: t.rmse_norm_uT)
-    nf, lag, tones = noise.noise_floor(np.asarray(best.resid, dtype=float), s.t_s, s.session)
+    # the reference's field and rate in DUT axes (dut ~ A ref): what an alternation's cause is proportional to
+    image = gap.predictor_uT @ gap._dut_image().T if gap.forward else gap.predictor_uT
+    rate = time_derivative(image, s.t_s, s.session)
+    nf, lag, tones, alt = noise.noise_floor(np.asarray(best.resid, dtype=float), s.t_s, s.session, rate, image)
     where = wh.breakdowns(res.baseline.resid, s, blocks)
     where["spectrum"] = wh.spectrum(res.baseline.resid, s.t_s, s.session)
     where["tones"] = tones
+    where["alternation"] = alt
     where["noise_floor_lag_s"] = lag
     diag = Diagnosis(gap, res, nf, where, params, opts, notes=notes, block_choice=block_choice,
                      base_model=pr.base_identifiability(gap, chip), prior_check=checks,

@@ -33,7 +33,6 @@ For each effect of :data:`magstack.firmware.effects.EFFECTS` that the simulator 
 """
 from __future__ import annotations
 
-import dataclasses
 import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -45,6 +44,7 @@ from magstack.firmware.calibration.linalg import qr_r
 from magstack.firmware.calibration.model import JOINT_TERMS, time_derivative
 from magstack.firmware.effects import EFFECT_NAMES, EFFECTS
 from magstack.firmware.errors import FitError
+from magstack.ground.diagnose import lag as lg
 from magstack.ground.diagnose import nonlinear as nl
 from magstack.ground.diagnose import rotation as rot
 from magstack.ground.diagnose.gap import (
@@ -52,15 +52,14 @@ from magstack.ground.diagnose.gap import (
     Block,
     Gap,
     fold_products,
-    gram,
     out_of_fold,
     out_of_fold_blocks,
     predict,
     solve,
     solve_gram,
     solve_normal,
-    solve_normal_batch,
 )
+from magstack.ground.diagnose.lag import LAG_TERMS, lag_block, lagged_temperature  # noqa: F401
 from magstack.ground.errors import DiagnosisError
 
 #: Temperature effects need at least this temperature span (degC) to be tested.
@@ -588,96 +587,6 @@ def choose_thresholds(gap: Gap, base: Block, Y: np.ndarray, cands: list, rows: n
     return thr, init
 
 
-#: Calibration terms evaluated on the lagged temperature by the thermal-lag candidate.
-LAG_TERMS = ("temperature_gain", "temperature_offset")
-
-
-def lag_block(gap: Gap, tau_s: float, rows: np.ndarray | None = None) -> Block:
-    """The thermal-lag candidate's columns: the temperature terms (LAG_TERMS, plus a constant when the base
-    has none) evaluated on the temperature lagged by ``tau_s`` (nonlinear.lagged_temperature). ``rows``: the
-    columns on those rows only (the lag is filtered on the whole series; the terms are row by row)."""
-    temp = lagged_temperature(gap, tau_s)
-    if rows is not None:
-        gap, temp = gap.rows_view(rows), temp[rows]
-    lagged = dataclasses.replace(gap.session)
-    lagged.temp_c = temp
-    terms = LAG_TERMS if "offset" in gap.base_terms else ("offset",) + LAG_TERMS
-    blk = dataclasses.replace(gap, session=lagged).term_design(terms)
-    if not gap.forward:
-        blk = Block.join([blk, temperature_gain_higher_order(gap, lagged.temp_c)], gap.n)
-    names = [[n + "@lag" for n in row] for row in blk.names]
-    return Block(blk.X, blk.mask, names, blk.units)
-
-
-def lagged_temperature(gap: Gap, tau_s: float) -> np.ndarray:
-    """``nonlinear.lagged_temperature`` of the gap's session (read-only), kept on the gap per time constant
-    while the kept series hold at most LAG_CACHE_FLOATS floats: the search, the per-fold fits and the
-    surrogate test ask for the same grid of time constants (a short session also keeps the rows' time order,
-    :func:`nonlinear.lag_groups`)."""
-    cache = gap.__dict__.setdefault("_lag_temp", {})
-    key = float(tau_s)
-    if key not in cache:
-        s = gap.session
-        groups = gap.__dict__.get("_lag_groups")      # the rows' time order: kept for a short session too
-        if groups is None:
-            groups = nl.lag_groups(s.t_s, s.session)
-            if gap.n <= LAG_CACHE_FLOATS:
-                gap.__dict__["_lag_groups"] = groups
-        temp = nl.lagged_temperature(s.t_s, s.temp_c, s.session, key, groups)
-        temp.setflags(write=False)
-        if (len(cache) + 1) * gap.n > LAG_CACHE_FLOATS:
-            return temp
-        cache[key] = temp
-    return cache[key]
-
-
-#: Floats of lagged temperature series a gap keeps (:func:`lagged_temperature`).
-LAG_CACHE_FLOATS = 500_000
-
-
-def lag_train_sse(gap: Gap, base: Block, Y: np.ndarray, fold: np.ndarray, grid: np.ndarray) -> np.ndarray:
-    """(folds, taus) training SSE of base + lag_block(tau) for each fold left out, from per-fold Gram
-    matrices: the base's own fold products formed once, per tau only the lag columns' products with the
-    base, themselves and the target on each fold's rows (the folds' systems solved together where every
-    axis uses every column)."""
-    folds = np.unique(fold)
-    order = np.argsort(fold, kind="stable")             # rows grouped by fold, in row order within each
-    ends = np.searchsorted(fold[order], folds, side="right")
-    spans = [slice(int(a), int(b)) for a, b in zip(np.r_[0, ends[:-1]], ends, strict=True)]
-    Ys = Y[order]
-    Bs = base.X[order]
-    yy = np.sum(Y ** 2, axis=0)
-    yt = [yy - np.sum(Ys[sp] ** 2, axis=0) for sp in spans]
-    yt_all = np.array(yt).sum(axis=1)                   # (folds,) over the axes
-    pb, nf = Bs.shape[1], len(spans)
-    base_f = [gram(Bs[sp], Ys[sp]) for sp in spans]     # the base's fold products: the same for every tau
-    out = np.full((folds.size, grid.size), np.inf)
-    for k, tau in enumerate(grid):
-        lag = lag_block(gap, float(tau))
-        L = lag.X[order]
-        p = pb + L.shape[1]
-        mask = np.hstack([base.mask, lag.mask])
-        Gf, Cf = np.empty((nf, p, p)), np.empty((nf, p, 3))
-        for f, sp in enumerate(spans):                  # one fold's rows at a time
-            Lf = L[sp]
-            Gf[f, :pb, :pb], Cf[f, :pb] = base_f[f]
-            Gf[f, :pb, pb:] = Bs[sp].T @ Lf
-            Gf[f, pb:, :pb] = Gf[f, :pb, pb:].T
-            Gf[f, pb:, pb:] = Lf.T @ Lf
-            Cf[f, pb:] = Lf.T @ Ys[sp]
-        Gt = Gf.sum(axis=0)[None] - Gf                  # (folds, p, p) training Gram matrices
-        Ct = Cf.sum(axis=0)[None] - Cf                  # (folds, p, 3)
-        if mask.all():               # every axis uses every column: the folds' systems solved together
-            th = solve_normal_batch(Gt, Ct)                         # (folds, p, 3)
-            out[:, k] = (yt_all - 2 * np.einsum("fpa,fpa->f", th, Ct)
-                         + np.einsum("fpa,fpa->f", th, Gt @ th))
-            continue
-        for i in range(nf):
-            th = np.where(mask, solve_gram(Gt[i], Ct[i], mask), 0.0)
-            out[i, k] = float(sum(yt[i][a] - 2 * th[a] @ Ct[i][:, a] + th[a] @ Gt[i] @ th[a] for a in range(3)))
-    return out
-
-
 def delay_sse_fn(gap: Gap, rows: np.ndarray):
     """Training SSE of the base refitted on the DUT reading de-skewed by delays ``d`` (3,) s.
 
@@ -797,31 +706,35 @@ def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: n
         r, angles = rot.out_of_fold(base, mc, Y, fold, base_trial.rmse_uT)
         cols = mc.flat(np.arange(gap.n)[SUB(gap.n)])
         n_par = mc.q
-    elif cand.kind == "lag":   # thermal lag: tau chosen per fold by training SSE, like the delay
+    elif cand.kind == "lag":   # thermal lag: tau chosen per fold by training SSE, like the delay (lag.py)
         coarse = nl.lag_grid(gap.session.t_s, gap.session.session)
-        tr = lag_train_sse(gap, base, Y, fold, coarse)
+        tr = lg.train_sse(gap, base, Y, fold, coarse)
         # a fine grid between the neighbours of the best coarse point (summed over folds), where the
         # parabola's error is far below the held-out effect of a wrong time constant
         k = int(np.argmin(tr.sum(axis=0)))
         fine = np.geomspace(coarse[max(k - 1, 0)], coarse[min(k + 1, coarse.size - 1)], nl.LAG_FINE_POINTS)
         grid = np.unique(np.r_[coarse, fine])
-        tr = np.hstack([tr, lag_train_sse(gap, base, Y, fold, fine)])[:, np.argsort(np.r_[coarse, fine])]
+        tr = np.hstack([tr, lg.train_sse(gap, base, Y, fold, fine)])[:, np.argsort(np.r_[coarse, fine])]
         keep = np.r_[True, np.diff(np.sort(np.r_[coarse, fine])) > 0]
         tr = tr[:, keep]
         folds = np.unique(fold)
         fold_tau = [nl.refine_log_minimum(grid, tr[i]) for i in range(folds.size)]
         r = np.full(Y.shape, np.nan)
+        fold_delta = [None] * folds.size
         for tau in set(fold_tau):
-            blk = Block.join([base, lag_block(gap, tau)], gap.n)
-            for f, ft in zip(folds, fold_tau, strict=True):
-                if ft == tau:
-                    r[fold == f] = fold_residual(gap, blk, Y, fold != f, fold == f)
+            dz = lg.design(gap, tau)
+            ft = lg.fits(gap, base, Y, fold, dz)
+            for i, (f, t_f) in enumerate(zip(folds, fold_tau, strict=True)):
+                if t_f == tau:
+                    test = np.flatnonzero(fold == f)
+                    r[test] = Y[test] - lg.predict(base, dz, ft.theta[i], ft.delta[i], test)
+                    fold_delta[i] = ft.delta[i]
         # all rows: each row is in the training set of all folds but its own: the sum over folds orders the
         # time constants as the training SSE on all rows would, without another pass
         cand.lag_tau_s = nl.refine_log_minimum(grid, tr.sum(axis=0))
-        own = lag_block(gap, cand.lag_tau_s)
-        cols = own.X
-        n_par = int(own.mask.sum()) + 1
+        dz = lg.design(gap, cand.lag_tau_s)
+        cols = dz.lag.X
+        n_par = int(dz.lag.mask.sum()) + 1 + dz.R
     else:   # delay
         r = np.full(Y.shape, np.nan)
         grid = nl.delay_grid(gap.session.t_s)
@@ -852,7 +765,8 @@ def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: n
         t.extra["terms"] = cand.terms
         t.extra["n_params"] = n_par
     elif cand.kind == "lag":
-        t.extra.update(n_params=n_par, fold_tau_s=fold_tau, tau_s=cand.lag_tau_s, grid_s=grid)
+        t.extra.update(n_params=n_par, fold_tau_s=fold_tau, tau_s=cand.lag_tau_s, grid_s=grid,
+                       fold_delta_c=fold_delta, restarts=dz.R)
     elif cand.kind == "joint":
         t.extra["n_params"] = n_par
         t.extra["fold_angles_rad"] = angles

@@ -438,10 +438,17 @@ def candidate_designs(gap: Gap, cand, order: np.ndarray) -> list[AxisDesign]:
         # the time constant is searched on the data, so it is searched on every surrogate too: one option per
         # coarse-grid tau (plus the one chosen), chosen per fold by training SSE as the search does (a fixed tau
         # fitted on the data alone made the test anti-conservative: 1 of 4 orbit null sessions named a lag)
+        # each option carries the starting transient of every stretch with a free coefficient per axis
+        # (lag.transient_block: more freedom than the fitted starting offsets, so the test stays conservative)
+        from magstack.ground.diagnose import lag as lg
+        base = gap.base_design()
         taus = np.unique(np.r_[nl.lag_grid(gap.session.t_s, gap.session.session), cand.lag_tau_s])
         own = [[], [], []]
         for tau in taus:
-            for i, c in enumerate(_per_axis(sr.lag_block(gap, float(tau), order))):
+            dz = lg.design(gap, float(tau))
+            blk = Block.join([sr.lag_block(gap, float(tau), order), lg.transient_block(gap, base, dz, order)],
+                             order.size)
+            for i, c in enumerate(_per_axis(blk)):
                 own[i].append(c)
     elif cand.kind == "joint":
         mc = rot.mount_columns(gap)
