@@ -85,6 +85,7 @@ class Diagnosis:
             "p_vs_runner_up": r.p_vs_runner_up,
             "distinguishable": r.distinguishable,
             "confounded_with": r.confounded_with,
+            "hysteresis_vs_session_offset": self.after_trial.extra.get("hysteresis_vs_session_offset"),
             "verdict_note": self.verdict_note,
             "modelled": r.modelled,
             "mode": self.gap.mode,

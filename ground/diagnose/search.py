@@ -492,6 +492,27 @@ def hysteresis_block(gap: Gap, thresholds: np.ndarray, initial: np.ndarray | Non
     return blk
 
 
+#: An axis' hysteresis state counts as used when some output's remanence coefficient is this many standard errors
+#: (OLS, all rows) from 0.
+HYSTERESIS_AXIS_T = 3.0
+
+
+def hysteresis_axes_used(gap: Gap, base: Block, Y: np.ndarray, thr: np.ndarray, init: np.ndarray) -> list[int]:
+    """Axes whose state column (thresholds ``thr``, initial states ``init``, all rows) carries a remanence: some
+    output's coefficient beyond HYSTERESIS_AXIS_T OLS standard errors in base + hysteresis_block on all rows."""
+    blk = hysteresis_block(gap, thr, init)
+    allb = Block.join([base, blk], gap.n)
+    th, se = solve(allb.X, Y, allb.mask, with_se=True)
+    axes = [j for j in range(3) if np.isfinite(thr[j])]
+    first = allb.p - len(axes)                  # the state columns come last, in axis order
+    used = []
+    for k, j in enumerate(axes):
+        z = np.abs(th[:, first + k]) / np.where(se[:, first + k] > 0, se[:, first + k], np.inf)
+        if np.nanmax(z) >= HYSTERESIS_AXIS_T:
+            used.append(j)
+    return used
+
+
 def hysteresis_options(gap: Gap, cands: list, j: int, which: Sequence[int] | None = None) -> np.ndarray:
     """(N, 2 x len(which)) axis j's state column (:func:`nonlinear.hysteresis_state`) on the gap's rows for
     the thresholds ``cands[j][which]`` (all by default), each with the initial state -1 then +1. The state is
@@ -701,6 +722,7 @@ def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: n
         thr_all = choose_thresholds(gap, base, Y, cand.thresholds, np.ones(gap.n, bool))
         cols = nl.hysteresis_state(hist, *thr_all)[idx]
         telling = nl.before_first_excursion(hist, idx, thr_all[0], gap.session.session)
+        hyst_axes = hysteresis_axes_used(gap, base, Y, *thr_all)
     elif cand.kind == "joint":   # mount_rotation (rotation.py)
         mc = rot.mount_columns(gap)
         r, angles = rot.out_of_fold(base, mc, Y, fold, base_trial.rmse_uT)
@@ -779,9 +801,11 @@ def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: n
     elif cand.kind == "hysteresis":
         t.extra["fold_thresholds_uT"] = fold_thr
         t.extra["telling_rows"] = telling
-        # one remanence vector per axis with excursions (the threshold and the initial sign are choices among a
-        # few options, like the delay grid), plus the constant when the base has none
-        t.extra["n_params"] = 3 * sum(1 for c in cand.thresholds if c) + (0 if "offset" in gap.base_terms else 3)
+        # one remanence vector per axis whose state the fit uses (the threshold and the initial sign are choices
+        # among a few options, like the delay grid), plus the constant when the base has none; an axis whose state
+        # column fits nothing (its excursions leave no remanence) is not a parameter the explanation needs
+        t.extra["hysteresis_axes"] = ["xyz"[j] for j in hyst_axes]
+        t.extra["n_params"] = 3 * max(len(hyst_axes), 1) + (0 if "offset" in gap.base_terms else 3)
     b = base_trial.rmse_norm_uT
     t.shrink = float(1.0 - t.rmse_norm_uT / b) if b > 0 else 0.0
     return t
@@ -808,36 +832,61 @@ def surrogate_tests(gap: Gap, cands: list[Candidate], trials: list[Trial], base:
 
 
 def hysteresis_or_session_offset(h: Trial, so: Trial, blocks: np.ndarray, block_session: np.ndarray, alpha: float,
-                                 baseline_rmse_uT: float) -> tuple[Trial | None, str | None]:
+                                 baseline_rmse_uT: float) -> tuple[Trial | None, str | None, dict | None]:
     """Hysteresis against per-session offsets, both significant: they differ on the rows of a power cycle
     before its first excursion (the remanence carried over from the previous cycle against the cycle's
     own constant; after it both are constant until the next excursion). The signed-rank test on the
-    per-block held-out SSE differences over those rows decides when it rejects either way; otherwise the
-    one with fewer parameters (hysteresis: one remanence vector per axis with excursions; per-session
-    offsets: three per session) is named if it closes as much of the gap (:func:`closes_as_much`).
-    None: no decision here."""
+    per-block held-out SSE differences over those rows decides when it rejects either way. Otherwise they are
+    compared on every held-out block (grouped units, both ways): when neither is better there the held-out errors
+    tie (a near-tie: a state flipping once per power cycle is a per-session offset but for those few rows) and
+    parsimony decides: the one with fewer parameters (hysteresis: one remanence vector per axis whose state the
+    fit uses; per-session offsets: one vector per session beyond the first) is named; when one is better on
+    every block it is named. Returns (choice or None: no decision here, note, the comparison for the JSON)."""
     tell = h.extra.get("telling_rows")
     if tell is None or h.resid is None or so.resid is None or not tell.any():
-        return None, None
+        return None, None, None
     nb = block_session.size
     sse = [np.bincount(blocks[tell], weights=np.sum(np.nan_to_num(np.asarray(t.resid, float)[tell]) ** 2, axis=1),
                        minlength=nb) for t in (h, so)]
     used = np.bincount(blocks[tell], minlength=nb) > 0
     d = (sse[1] - sse[0])[used]              # > 0: hysteresis better on the telling rows
     n_tell = int(tell.sum())
-    if paired_worse_p(d) < alpha:
+    p_tell = (paired_worse_p(d), paired_worse_p(-d))      # (session_offset worse, hysteresis worse)
+    g = max(h.extra.get("group", 1), so.extra.get("group", 1))
+    d_all = grouped(so.block_sse - h.block_sse, block_session, g)
+    p_all = (paired_worse_p(d_all), paired_worse_p(-d_all))
+    info = {"effects": ["hysteresis", "session_offset"], "rmse_nT": [h.rmse_norm_uT * 1e3, so.rmse_norm_uT * 1e3],
+            "n_params": [h.n_params, so.n_params], "telling_rows": n_tell,
+            "p_telling_rows": {"session_offset_worse": p_tell[0], "hysteresis_worse": p_tell[1]},
+            "p_all_blocks": {"session_offset_worse": p_all[0], "hysteresis_worse": p_all[1]}}
+    if p_tell[0] < alpha:
+        info["decided_by"] = "telling rows"
         return h, (f"hysteresis and session_offset compared on the {n_tell} rows before the first excursion of each "
-                   "power cycle (where they differ): hysteresis predicts them better")
-    if paired_worse_p(-d) < alpha:
+                   "power cycle (where they differ): hysteresis predicts them better"), info
+    if p_tell[1] < alpha:
+        info["decided_by"] = "telling rows"
         return so, (f"hysteresis and session_offset compared on the {n_tell} rows before the first excursion of "
-                    "each power cycle (where they differ): session_offset predicts them better")
+                    "each power cycle (where they differ): session_offset predicts them better"), info
+    if p_all[0] < alpha or p_all[1] < alpha:
+        better = h if p_all[0] < alpha else so
+        info["decided_by"] = "all held-out blocks"
+        return better, (f"hysteresis and session_offset are not told apart on the {n_tell} rows before each power "
+                        f"cycle's first excursion; on every held-out block {better.effect} is better "
+                        f"(p = {min(p_all):.2g})"), info
     simple, rich = (h, so) if h.n_params < so.n_params else (so, h)
-    if simple.n_params < rich.n_params and closes_as_much(simple.rmse_norm_uT, min(h.rmse_norm_uT, so.rmse_norm_uT),
-                                                          baseline_rmse_uT):
-        return simple, (f"{simple.effect} ({simple.n_params} parameters) and {rich.effect} ({rich.n_params}) are not "
-                        f"told apart on the {n_tell} rows before each power cycle's first excursion: the one with "
-                        "fewer parameters is named")
-    return None, None
+    info["near_tie"] = True
+    if simple.n_params < rich.n_params:
+        info["decided_by"] = "parsimony"
+        what = {"hysteresis": "one remanence vector per axis with a state", "session_offset": "one offset vector per "
+                "session beyond the first"}
+        return simple, (f"near-tie: hysteresis {h.rmse_norm_uT * 1e3:.1f} nT and session_offset "
+                        f"{so.rmse_norm_uT * 1e3:.1f} nT held out are not told apart on the {n_tell} rows before each "
+                        f"power cycle's first excursion (p = {min(p_tell):.2g}) nor on all held-out blocks "
+                        f"(p = {min(p_all):.2g}): parsimony names {simple.effect} ({simple.n_params} parameters, "
+                        f"{what[simple.effect]}) over {rich.effect} ({rich.n_params}, {what[rich.effect]})"), info
+    info["decided_by"] = None
+    return None, (f"near-tie: hysteresis and session_offset ({h.n_params} parameters each) are not told apart "
+                  f"(held out {h.rmse_norm_uT * 1e3:.1f} and {so.rmse_norm_uT * 1e3:.1f} nT)"), info
 
 
 def choose_verdict(sig: list[Trial], baseline_rmse_uT: float, block_session: np.ndarray, alpha: float,
@@ -851,17 +900,24 @@ def choose_verdict(sig: list[Trial], baseline_rmse_uT: float, block_session: np.
     v = sig[0]
     pair = {t.effect: t for t in sig if t.effect in ("hysteresis", "session_offset")}
     if len(pair) == 2 and v.effect in pair and blocks is not None:
-        choice, note = hysteresis_or_session_offset(pair["hysteresis"], pair["session_offset"], blocks,
-                                                    block_session, alpha, baseline_rmse_uT)
+        choice, note, info = hysteresis_or_session_offset(pair["hysteresis"], pair["session_offset"], blocks,
+                                                          block_session, alpha, baseline_rmse_uT)
+        if info is not None:
+            v.extra["hysteresis_vs_session_offset"] = info
+            if choice is not None:
+                choice.extra["hysteresis_vs_session_offset"] = info
         if choice is not None:
             return choice, note
+        tie_note = note
+    else:
+        tie_note = None
     for t in sorted(sig[1:], key=lambda t: (t.n_params, t.rmse_norm_uT)):
         g = max(t.extra.get("group", 1), v.extra.get("group", 1))
         if (t.n_params < v.n_params and closes_as_much(t.rmse_norm_uT, v.rmse_norm_uT, baseline_rmse_uT)
                 and paired_worse_p(grouped(t.block_sse - v.block_sse, block_session, g)) >= alpha):
             return t, (f"{t.effect} ({t.n_params} parameters) explains the gap as well as {v.effect} "
                        f"({v.n_params}) on held-out blocks: the simpler one is named")
-    return v, None
+    return v, tie_note
 
 
 #: Held-out residuals kept while searching: the lowest-RMSE ones (the test template, the noise floor) and
