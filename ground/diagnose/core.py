@@ -71,6 +71,7 @@ class Diagnosis:
             "noise_floor_nT": nf,
             "reference_budget": self.reference_budget,
             "floor_with_reference_nT": self.floor_total_nT(nf),
+            "floor": self.floor_parts(nf, float(self.after_trial.rmse_norm_uT * 1e3)),
             "ranking": [{"effect": t.effect, "rmse_nT": float(t.rmse_norm_uT * 1e3), "shrink": float(t.shrink),
                          "significant": bool(t.significant), "p_value": float(t.p_value),
                          "p_holm": float(t.p_holm), "kind": t.kind,
@@ -117,6 +118,36 @@ class Diagnosis:
             return nf
         return float(np.hypot(nf, self.reference_budget["total_nT"]))
 
+    def floor_parts(self, nf: float | None, after_nT: float) -> dict | None:
+        """The floor the after-gap is judged against, in its parts: the sensor's white level (measured: differences
+        of the residual; on a bench it holds the reference's own noise too) and the reference's error budget (orbit:
+        IGRF + attitude, :func:`orbit.reference_budget`; none on a bench), their root sum square, and the after-gap
+        against it: its part beyond the white level (``slow_nT`` = sqrt(after^2 - white^2), what slow reference
+        errors and unmodelled effects leave) against the budget."""
+        if nf is None:
+            return None
+        b = self.reference_budget
+        total = self.floor_total_nT(nf)
+        slow = float(np.sqrt(max(after_nT ** 2 - nf ** 2, 0.0)))
+        out = {"sensor_white_nT": nf, "sensor_white_axes_nT": [float(v * 1e3) for v in self.noise_floor_uT],
+               "reference_budget_nT": None if b is None else b["total_nT"], "total_nT": total,
+               "after_nT": after_nT, "after_over_total": after_nT / total if total else None, "slow_nT": slow,
+               "slow_over_budget": (slow / b["total_nT"]) if b and b["total_nT"] > 0 else None}
+        if b is None:
+            out["text"] = (f"floor {nf:.1f} nT: the white level of the residual (sensor and bench reference noise "
+                           f"together); after {after_nT:.1f} nT = {after_nT / nf:.2f}x it")
+            return out
+        att = float(np.linalg.norm(b["attitude_axes_nT"]))
+        verdict = ("within the reference's budget" if slow <= b["total_nT"] else
+                   "beyond the reference's budget: more than its errors explain")
+        out["text"] = (f"floor {total:.1f} nT = sensor white {nf:.1f} nT (+) reference budget {b['total_nT']:.1f} nT "
+                       f"(attitude {b['attitude_sd_deg']:g} deg {att:.1f} nT, crustal {b['crustal_nT_per_axis']:g} and "
+                       f"external {b['external_nT_per_axis']:g} nT per axis, {b['auroral_nT_per_axis']:g} nT on the "
+                       f"{b['auroral_rows']} auroral-zone rows) in root sum square; after {after_nT:.1f} nT = "
+                       f"{after_nT / total:.2f}x it: white (+) a slow part of {slow:.1f} nT, "
+                       f"{slow / b['total_nT']:.2f}x the budget, {verdict}")
+        return out
+
     def text(self) -> str:
         d = self.to_dict()
         bc = d["method"]["block_choice"]
@@ -131,6 +162,8 @@ class Diagnosis:
                      f"{_f(d['floor_with_reference_nT'])} nT)")
         if self.verdict_note:
             L.append("  " + self.verdict_note)
+        if d["floor"] and d["reference_budget"]:
+            L.append("  " + d["floor"]["text"])
         if self.unexplained.get("remains"):
             L.append(self.unexplained["text"])
         L.append(f"{'effect':20s}{'held-out nT':>12s}{'shrink':>9s}{'p blocks':>10s}{'p surr.':>9s}{'p':>9s}"
