@@ -438,17 +438,17 @@ def candidate_designs(gap: Gap, cand, order: np.ndarray) -> list[AxisDesign]:
         # the time constant is searched on the data, so it is searched on every surrogate too: one option per
         # coarse-grid tau (plus the one chosen), chosen per fold by training SSE as the search does (a fixed tau
         # fitted on the data alone made the test anti-conservative: 1 of 4 orbit null sessions named a lag)
-        # each option carries the starting transient of every stretch with a free coefficient per axis
-        # (lag.transient_block: more freedom than the fitted starting offsets, so the test stays conservative)
+        # each option on the die temperature of the data's own fit at that time constant (its starting offsets per
+        # stretch, lag.py, held: a few numbers on thousands of rows; free per-axis transients on every surrogate
+        # widened the statistic's spread so far that the test ran its 1999 surrogates and lost power)
         from magstack.ground.diagnose import lag as lg
         base = gap.base_design()
         taus = np.unique(np.r_[nl.lag_grid(gap.session.t_s, gap.session.session), cand.lag_tau_s])
         own = [[], [], []]
         for tau in taus:
             dz = lg.design(gap, float(tau))
-            blk = Block.join([sr.lag_block(gap, float(tau), order), lg.transient_block(gap, base, dz, order)],
-                             order.size)
-            for i, c in enumerate(_per_axis(blk)):
+            die = lg.die_temperature(gap, dz, lg.fit_all(gap, base, gap.target, dz).delta[0])
+            for i, c in enumerate(_per_axis(sr.lag_block(gap, float(tau), order, temp=die))):
                 own[i].append(c)
     elif cand.kind == "joint":
         mc = rot.mount_columns(gap)
