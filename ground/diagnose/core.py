@@ -401,11 +401,11 @@ def prior_choice(gap: Gap, res: sr.SearchResult, chip, fold: np.ndarray, blocks:
     one's parameters (MAP on all rows with the chip's prior on its columns) are checked against that prior, and
     each is fitted again on held-out blocks *within* the prior (MAP, parameters boxed to priors.IMPLAUSIBLE_Z
     prior sd). A prior conflict is evidence, not a veto: a verdict that needs a parameter beyond that many sd
-    gives way to a partner that closes the gap as well (its own held-out fit not worse by the signed-rank test
-    on held-out blocks) and whose fit within the prior is better than the verdict's within the prior (same
-    test); among those the best fit within the prior, then the simplest. Otherwise the data's verdict stands
-    and the note says what each alternative leaves. The checks (with ``constrained_rmse_nT``) are reported
-    either way. Returns (checks, note)."""
+    gives way only to a partner whose fit within its prior closes the gap as well as the verdict's own fit
+    (closes as much, and is not worse by the signed-rank test on held-out blocks); among those the best fit
+    within the prior, then the simplest. Otherwise the data's verdict stands and the note says what each
+    alternative leaves within its prior. The checks (with ``constrained_rmse_nT``) are reported either way.
+    Returns (checks, note)."""
     v = next((t for t in res.trials if t.effect == res.verdict), None)
     if v is None or v.kind != "linear" or not res.confounded_with:
         return [], None
@@ -436,8 +436,9 @@ def prior_choice(gap: Gap, res: sr.SearchResult, chip, fold: np.ndarray, blocks:
 
     def worse_p(a_sse, b_sse):   # one-sided p of "a is worse than b" on held-out blocks (signed-rank)
         return sr.paired_worse_p(sr.grouped(a_sse - b_sse, bs, g))
-    as_well = [t for t in group[1:] if worse_p(t.block_sse, v.block_sse) >= alpha]
-    better = [t for t in as_well if worse_p(within[v.effect][1], within[t.effect][1]) < alpha]
+    # a replacement must close the gap, within its prior, as well as the verdict does with its own parameters
+    better = [t for t in group[1:] if sr.closes_as_much(within[t.effect][0], v.rmse_norm_uT, base_rmse)
+              and worse_p(within[t.effect][1], v.block_sse) >= alpha]
     c = checks[v.effect]
     conflict = (f"{v.effect} would need {c['parameter']} = {c['value']:.4g} {c['unit']}, {c['z']:.1f} sd from the "
                 f"{chip.chip} prior {c['prior_mean']:.4g} +- {c['prior_sd']:.3g}, beyond the {chip.chip} prior "
@@ -445,9 +446,9 @@ def prior_choice(gap: Gap, res: sr.SearchResult, chip, fold: np.ndarray, blocks:
     if not better:
         others = ", ".join(f"{t.effect} {t.rmse_norm_uT * 1e3:.1f} nT (within its prior "
                            f"{within[t.effect][0] * 1e3:.1f} nT)" for t in group[1:])
-        return out, (f"prior conflict weighed, not a veto: {conflict}; no alternative that closes the gap as well "
-                     f"({v.rmse_norm_uT * 1e3:.1f} nT held out) fits better within its prior ({others}): the data's "
-                     "verdict stands")
+        return out, (f"prior conflict weighed, not a veto: {conflict}; no alternative closes the gap as well "
+                     f"({v.rmse_norm_uT * 1e3:.1f} nT held out) within its own prior ({others}): the data's verdict "
+                     "stands")
     new = min(better, key=lambda t: (within[t.effect][0], t.n_params))
     res.verdict, res.runner_up = new.effect, v.effect
     res.trials.remove(new)
@@ -457,7 +458,7 @@ def prior_choice(gap: Gap, res: sr.SearchResult, chip, fold: np.ndarray, blocks:
         new.resid = sr.oof_residual(gap, [base, sr.linear_block(gap, new.effect, new.extra["terms"])],
                                     gap.target, fold).astype(np.float32)
     return out, (f"{new.effect} and {v.effect} are confounded in this session (held out {new.rmse_norm_uT * 1e3:.1f} "
-                 f"and {v.rmse_norm_uT * 1e3:.1f} nT); {conflict}, {new.effect} "
+                 f"and {v.rmse_norm_uT * 1e3:.1f} nT); {conflict}, while {new.effect} within its prior leaves "
                  f"{within[new.effect][0] * 1e3:.1f} nT: the part's physics names {new.effect}")
 
 
