@@ -134,8 +134,8 @@ def _sweep_only_table():
 
 def test_a_thermal_run_against_a_sweep_only_table_keeps_the_temperature_gain_despite_a_prior_conflict():
     """temperature_gain closes the gap (needing K_S[y,x] ~6 prior sd to carry Y's offset tempco); drift is
-    plausible but leaves three times the floor. A veto handed the verdict to drift, whose residual had not been
-    kept: the diagnosis crashed. Weighed, the prior conflict leaves temperature_gain named, with the note."""
+    plausible but leaves three times the floor. A veto would hand the verdict to drift (whose held-out residual is
+    not kept while searching: it must be evaluated again). Weighed, the conflict leaves temperature_gain named."""
     from test_diagnose import _table_diagnosis
     j = _table_diagnosis(_thermal_run(), _sweep_only_table()).to_dict()
     assert j["verdict"] == "temperature_gain", j["notes"]
@@ -150,7 +150,7 @@ def test_a_thermal_run_against_a_sweep_only_table_keeps_the_temperature_gain_des
 def test_two_explanations_beyond_the_prior_leave_the_data_s_verdict_with_both_fits_within_the_prior():
     """Forward, at one field level: temperature_offset (the data's pick, fewer parameters) needs K_O[x] ~20 sd out,
     temperature_gain its Y cross term ~7 sd out; neither closes the gap within its prior, so the data's verdict
-    stands and the note gives what each leaves within its prior (this case crashed the diagnosis)."""
+    stands and the note gives what each leaves within its prior."""
     d = diagnose_model(_thermal_run(), "gain_offset")
     j = d.to_dict()
     assert j["verdict"] == "temperature_offset", j["notes"]
@@ -243,7 +243,7 @@ def alternating_run(seed=0, offset_nT=(40.0, -15.0, 25.0), stamp_ms=0.0, seconds
 
 def test_an_alternating_set_reset_offset_is_named_an_even_odd_alternation_at_nyquist():
     """Its power sits at the Nyquist frequency of the 0.461 s sampling, where a periodogram's last bin hides it
-    and missed cycles smear it beside Nyquist: it was not reported at all."""
+    and missed cycles smear it beside Nyquist: only the explicit parity test names it."""
     d = diagnose_model(alternating_run(), "gain_offset")
     j = d.to_dict()
     a = j["where"]["alternation"]
@@ -308,8 +308,8 @@ def once_per_session(seed=0, sessions=3, session_s=600.0, pause_s=60.0, lead_s=1
 @pytest.mark.parametrize("seed", [0, 3])
 def test_hysteresis_flipping_once_per_session_is_a_near_tie_that_parsimony_decides(seed):
     """Only the first 10 s of each cycle tell the remanence from per-session offsets: held out they tie. Counting
-    a parameter vector for every axis with large fields (9) made session_offset (6) the simpler and named it;
-    the fit uses one remanence vector (3): hysteresis is named, and the report says it was a near-tie."""
+    a parameter vector for every axis with large fields (9) would make session_offset (6) the simpler; the fit
+    uses one remanence vector (3): hysteresis is named, and the report says it is a near-tie."""
     d = diagnose_model(once_per_session(seed=seed), "gain_offset")
     j = d.to_dict()
     assert j["verdict"] == "hysteresis", j["notes"]

@@ -5,19 +5,21 @@ The die follows the board thermistor through a first-order lag, ``dT_die/dt = (T
 (:func:`nonlinear.lagged_temperature`: continuous across short pauses, bridged by interpolation). Where a session
 starts, or the record pauses for more than RESTART_GAP_TAU time constants, the die's temperature is not known: a
 powered-down bench cools (or the generator restarts the lag from equilibrium), a bench left on keeps its heat.
-Carrying the die across such a pause left the thermal-lag fit 2-8x the floor on sessions with 90 s pauses (and
-chose a time constant 5x too short); so each such stretch ``r`` gets its own starting offset ``delta_r`` (degC):
+Carried across such a pause, the die's temperature is wrong for minutes after each start (90 s pauses, a 260 s
+lag: after/floor 4.6-6.2 and a time constant of 46 s); so each such stretch ``r`` gets its own starting offset
+``delta_r`` (degC):
 
     T_die(t) = T_lag(t) + delta_r exp(-(t - t_r) / tau)       (t in stretch r, starting at t_r)
 
 exact for a linear first-order lag (two solutions with different starting values differ by that decaying term).
 The candidate's columns ``L(T_die)`` (the temperature terms, LAG_TERMS) are linear in ``T_die`` forward, so the
 model is bilinear: ``Y = X_b th_b + (F_0 + sum_r delta_r D_r) th_L`` with ``F_0 = L(T_lag)`` and ``D_r`` the
-change of ``L`` per degC of starting offset on stretch r. It is fitted by alternating least squares in
-normal-equation space (:func:`als`): per training set the products of ``[X_b F_0 D Y]`` over each stretch's rows
-are formed once, then ``th`` given ``delta`` is one small solve, ``delta_r`` given ``th`` a ratio, with a weak
-ridge (prior sd :data:`DELTA_SD_MIN_C` or the temperature span) and a bound of that size so a stretch the training
-rows barely see keeps ``delta_r`` near 0. ``delta = 0`` is the continuous lag, so the model nests it.
+change of ``L`` per degC of starting offset on stretch r. It is fitted in normal-equation space (:func:`bilinear_fit`):
+per training set the products of ``[X_b F_0 D Y]`` over each stretch's rows are formed once; ``th`` given ``delta``
+is one small solve, and ``delta`` moves by Gauss-Newton steps of the profiled SSE (variable projection: ``th``
+eliminated exactly), Levenberg-Marquardt damped, with a weak ridge (prior sd :data:`DELTA_SD_MIN_C` or the
+temperature span) and bounds (:func:`design`: between carrying the die across the pause and restarting it at the
+board's temperature) held by projection. ``delta = 0`` is the continuous lag, so the model nests it.
 """
 from __future__ import annotations
 
@@ -40,11 +42,11 @@ DELTA_SD_MIN_C = 5.0
 #: less the carried value, widened by this fraction of that difference and RESTART_MARGIN_C (degC).
 RESTART_MARGIN = 0.1
 RESTART_MARGIN_C = 0.2
-#: Gauss-Newton rounds in the starting offsets at most, stopping when no offset moves by more than ALS_TOL_C degC
-#: or the objective falls by less than ALS_REL_TOL of itself (far below the differences between time constants).
-ALS_ROUNDS = 10
-ALS_TOL_C = 1e-3
-ALS_REL_TOL = 1e-7
+#: Gauss-Newton rounds in the starting offsets at most, stopping when no offset moves by more than GN_TOL_C degC
+#: or the objective falls by less than GN_REL_TOL of itself (far below the differences between time constants).
+GN_ROUNDS = 10
+GN_TOL_C = 1e-3
+GN_REL_TOL = 1e-7
 
 
 def lagged_temperature(gap: Gap, tau_s: float) -> np.ndarray:
@@ -140,8 +142,9 @@ def stretch_products(base: Block, lag: Block, D: np.ndarray, Y: np.ndarray, code
     return S.reshape(n_sets, R, S.shape[1], S.shape[2])
 
 
-def als(S: np.ndarray, mask: np.ndarray, p: int, q: int, n_rows: np.ndarray, sd_c: float,
-        delta0: np.ndarray | None = None, lo: np.ndarray | None = None, hi: np.ndarray | None = None) -> LagFit:
+def bilinear_fit(S: np.ndarray, mask: np.ndarray, p: int, q: int, n_rows: np.ndarray, sd_c: float,
+                 delta0: np.ndarray | None = None, lo: np.ndarray | None = None,
+                 hi: np.ndarray | None = None) -> LagFit:
     """Bilinear least squares (module docs) of K training sets from their stretch products ``S`` (K, R, m, m);
     ``mask`` (3, p + q) the columns each output axis uses (base then lag block), ``n_rows`` (K,) rows per set,
     ``sd_c`` the starting offsets' prior sd; ``lo``, ``hi`` (R,) their bounds (default +-sd_c); ``delta0`` (K, R)
@@ -172,7 +175,7 @@ def als(S: np.ndarray, mask: np.ndarray, p: int, q: int, n_rows: np.ndarray, sd_
         groups.setdefault(mask[i].tobytes(), []).append(i)
     theta, sse, G = _solve_theta(delta, G0, G1, G2, C0, C1, yy, mask, groups)
     mu = np.zeros(K)                                          # Levenberg-Marquardt damping, raised after a failed step
-    for _ in range(ALS_ROUNDS):
+    for _ in range(GN_ROUNDS):
         tb, tl = theta[:, :, :p], theta[:, :, p:]                       # (K, 3, p), (K, 3, q)
         # the profiled SSE's gradient and Gauss-Newton matrix in delta (variable projection, Kaufman): with
         # u_ri = D_r th_L,i on stretch r, g_r = sum_i u_ri . residual_i and H = U^T (I - P) U, P the projection
@@ -212,7 +215,7 @@ def als(S: np.ndarray, mask: np.ndarray, p: int, q: int, n_rows: np.ndarray, sd_
         sse = np.where(ok, sse_t, sse)
         G = np.where(ok[:, None, None], G_t, G)
         mu = np.where(ok, 0.1 * mu, np.maximum(10.0 * mu, 1e-3 * np.maximum(np.einsum("krr->k", H) / max(R, 1), 1e-12)))
-        if np.all((ok & (moved < ALS_TOL_C)) | (obj - np.minimum(obj_t, obj) <= ALS_REL_TOL * np.abs(obj))):
+        if np.all((ok & (moved < GN_TOL_C)) | (obj - np.minimum(obj_t, obj) <= GN_REL_TOL * np.abs(obj))):
             break
     return LagFit(theta, delta, sse)
 
@@ -277,7 +280,7 @@ def design(gap: Gap, tau_s: float) -> LagDesign:
 
 def fits(gap: Gap, base: Block, Y: np.ndarray, fold: np.ndarray, dz: LagDesign,
          delta0: np.ndarray | None = None) -> LagFit:
-    """:func:`als` of every fold's training set (``np.unique(fold)`` order) and, last, of all rows (starting
+    """:func:`bilinear_fit` of every fold's training set (``np.unique(fold)`` order) and, last, of all rows (starting
     offsets from ``delta0``, e.g. a neighbouring time constant's fit)."""
     folds = np.unique(fold)
     code = np.searchsorted(folds, fold)
@@ -287,7 +290,7 @@ def fits(gap: Gap, base: Block, Y: np.ndarray, fold: np.ndarray, dz: LagDesign,
     counts = np.bincount(code, minlength=folds.size).astype(float)
     n_rows = np.r_[counts.sum() - counts, counts.sum()]
     mask = np.hstack([base.mask, dz.lag.mask])
-    return als(sets, mask, base.p, dz.lag.p, n_rows, delta_sd(gap), delta0, dz.lo, dz.hi)
+    return bilinear_fit(sets, mask, base.p, dz.lag.p, n_rows, delta_sd(gap), delta0, dz.lo, dz.hi)
 
 
 def train_sse(gap: Gap, base: Block, Y: np.ndarray, fold: np.ndarray, grid: np.ndarray) -> np.ndarray:
@@ -321,10 +324,10 @@ def die_temperature(gap: Gap, dz: LagDesign, delta: np.ndarray) -> np.ndarray:
 
 
 def fit_all(gap: Gap, base: Block, Y: np.ndarray, dz: LagDesign) -> LagFit:
-    """:func:`als` of all rows (K = 1)."""
+    """:func:`bilinear_fit` of all rows (K = 1)."""
     S = stretch_products(base, dz.lag, dz.D, Y, np.zeros(gap.n, dtype=np.int64), 1, dz.sid, dz.R)
     mask = np.hstack([base.mask, dz.lag.mask])
-    return als(S, mask, base.p, dz.lag.p, np.array([float(gap.n)]), delta_sd(gap), None, dz.lo, dz.hi)
+    return bilinear_fit(S, mask, base.p, dz.lag.p, np.array([float(gap.n)]), delta_sd(gap), None, dz.lo, dz.hi)
 
 
 def transient_block(gap: Gap, base: Block, dz: LagDesign, rows: np.ndarray | None = None) -> Block:

@@ -4,8 +4,8 @@ A fluxgate reference has a measuring range (its datasheet full scale: the FVM400
 ``magstack.drivers.fvm400.NOMINAL_RANGE_NT``; real files hold readings up to 107.24 uT, so the real clip
 sits a little beyond the nominal range). Where the field exceeds it the reference reads a flat plateau at
 an extreme while the DUT goes on reading the real, larger field; paired as truth, those rows look like a
-gross nonlinearity (a +-107.1 uT plateau against a 119 uT DUT reading left "UNEXPLAINED 869 nT, 5.9x the
-floor" on a real high-field run).
+gross nonlinearity (kept, a +-107.1 uT plateau against a 119 uT DUT reading leaves "UNEXPLAINED 869 nT, 5.9x
+the floor" on a real high-field run).
 
 Per axis and sign (:func:`reference_guard`):
 

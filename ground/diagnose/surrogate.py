@@ -440,7 +440,7 @@ def candidate_designs(gap: Gap, cand, order: np.ndarray) -> list[AxisDesign]:
         # fitted on the data alone made the test anti-conservative: 1 of 4 orbit null sessions named a lag)
         # each option on the die temperature of the data's own fit at that time constant (its starting offsets per
         # stretch, lag.py, held: a few numbers on thousands of rows; free per-axis transients on every surrogate
-        # widened the statistic's spread so far that the test ran its 1999 surrogates and lost power)
+        # widen the statistic's spread so far that the test runs to its 1999 surrogates and loses power)
         from magstack.ground.diagnose import lag as lg
         base = gap.base_design()
         taus = np.unique(np.r_[nl.lag_grid(gap.session.t_s, gap.session.session), cand.lag_tau_s])
