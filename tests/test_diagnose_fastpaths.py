@@ -194,6 +194,13 @@ def test_lag_and_linear_columns_built_on_a_row_subset_equal_the_whole_gaps_rows(
     rows = np.arange(0, 1500, 7)
     whole = sr.lag_block(gap, 60.0)
     assert np.allclose(sr.lag_block(gap, 60.0, rows).X, whole.X[rows], rtol=0, atol=1e-12)
+    # the forward lag columns formed directly equal the calibration model's design of the lagged temperature
+    import dataclasses
+    lagged = dataclasses.replace(gap.session)
+    lagged.temp_c = sr.lagged_temperature(gap, 60.0)
+    ref = dataclasses.replace(gap, session=lagged).term_design(sr.LAG_TERMS)
+    assert np.array_equal(whole.X, ref.X) and np.array_equal(whole.mask, ref.mask) and whole.units == ref.units
+    assert [[n.removesuffix("@lag") for n in row] for row in whole.names] == ref.names
     cands, _, _ = sr.build_candidates(gap, gap.base_design())
     linear = [c for c in cands if c.kind == "linear"]
     assert {"temperature_gain", "cross_axis", "nonlinearity"} <= {c.effect for c in linear}

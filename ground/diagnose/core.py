@@ -372,10 +372,14 @@ def diagnose(gap: Gap, options: sr.Options | None = None) -> Diagnosis:
                      "matrix change: misalignment leaves the diagonal unchanged to first order")
     # noise floor: white level of the residual of the best description found (lowest held-out RMSE)
     best = min([res.baseline] + [t for t in res.trials if t.resid is not None], key=lambda t: t.rmse_norm_uT)
-    # the reference's field and rate in DUT axes (dut ~ A ref): what an alternation's cause is proportional to
-    image = gap.predictor_uT @ gap._dut_image().T if gap.forward else gap.predictor_uT
-    rate = time_derivative(image, s.t_s, s.session)
-    nf, lag, tones, alt = noise.noise_floor(np.asarray(best.resid, dtype=float), s.t_s, s.session, rate, image)
+    # the reference's field and rate in DUT axes (dut ~ A ref), per session: what an alternation's cause is
+    # proportional to
+    A = gap._dut_image() if gap.forward else np.eye(3)
+
+    def field_and_rate(m):
+        image = gap.predictor_uT[m] @ A.T
+        return image, time_derivative(image, s.t_s[m], s.session[m])
+    nf, lag, tones, alt = noise.noise_floor(np.asarray(best.resid, dtype=float), s.t_s, s.session, field_and_rate)
     where = wh.breakdowns(res.baseline.resid, s, blocks)
     where["spectrum"] = wh.spectrum(res.baseline.resid, s.t_s, s.session)
     where["tones"] = tones

@@ -73,21 +73,47 @@ def lagged_temperature(gap: Gap, tau_s: float) -> np.ndarray:
 
 def lag_block(gap: Gap, tau_s: float, rows: np.ndarray | None = None, temp: np.ndarray | None = None) -> Block:
     """The thermal-lag candidate's columns: the temperature terms (LAG_TERMS, plus a constant when the base
-    has none) evaluated on the temperature lagged by ``tau_s`` (or on ``temp`` (N,), a die temperature of the
-    gap's rows). ``rows``: the columns on those rows only (the lag is filtered on the whole series; the terms
-    are row by row)."""
+    has none) evaluated on the temperature lagged by ``tau_s`` (or on ``temp``, a die temperature of the gap's
+    rows, or of ``rows`` only). ``rows``: the columns on those rows only (the lag is filtered on the whole
+    series; the terms are row by row). Forward, the columns (``1``, ``B_j dT``, ``dT``) are formed directly
+    (:func:`_forward_columns`, the calibration model's columns without its full design: memory of the block
+    alone)."""
     from magstack.ground.diagnose.search import temperature_gain_higher_order
-    temp = lagged_temperature(gap, tau_s) if temp is None else temp
+    temp = lagged_temperature(gap, tau_s) if temp is None else np.asarray(temp, dtype=float)
     if rows is not None:
-        gap, temp = gap.rows_view(rows), temp[rows]
-    lagged = dataclasses.replace(gap.session)
-    lagged.temp_c = temp
+        gap, temp = gap.rows_view(rows), (temp if temp.size == len(rows) != gap.n else temp[rows])
     terms = LAG_TERMS if "offset" in gap.base_terms else ("offset",) + LAG_TERMS
-    blk = dataclasses.replace(gap, session=lagged).term_design(terms)
-    if not gap.forward:
+    if gap.forward:
+        X, cm, keep = _forward_columns(gap, terms, np.asarray(temp, dtype=float) - gap.t0_c)
+        blk = Block(X, cm.axis_mask()[:, keep], [[cm.param_name(i, c) for c in keep] for i in range(3)],
+                    [cm.columns[c].unit for c in keep])
+    else:
+        lagged = dataclasses.replace(gap.session)
+        lagged.temp_c = temp
+        blk = dataclasses.replace(gap, session=lagged).term_design(terms)
         blk = Block.join([blk, temperature_gain_higher_order(gap, lagged.temp_c)], gap.n)
     names = [[n + "@lag" for n in row] for row in blk.names]
     return Block(blk.X, blk.mask, names, blk.units)
+
+
+def _forward_columns(gap: Gap, terms, factor: np.ndarray):
+    """(X (N,k), the calibration model, its column indices): the columns of ``terms`` (offset, temperature_gain,
+    temperature_offset) with ``dT`` replaced by ``factor`` (N,): ``1``, ``B_j x factor``, ``factor``; in the
+    calibration model's column order (equal to ``CalModel.design``'s, test)."""
+    cm, keep = gap.term_model(terms)
+    b = gap.predictor_uT
+    X = np.empty((gap.n, len(keep)))
+    for k, c in enumerate(keep):
+        col = cm.columns[c]
+        if col.term == "offset":
+            X[:, k] = 1.0
+        elif col.term == "temperature_gain":
+            np.multiply(b[:, col.index], factor, out=X[:, k])
+        elif col.term == "temperature_offset":
+            X[:, k] = factor
+        else:                                   # a term this fast path does not know: the model's own design
+            raise ValueError(f"no forward lag column for term {col.term!r}")
+    return X, cm, keep
 
 
 def restarts(gap: Gap, tau_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -109,10 +135,19 @@ def restarts(gap: Gap, tau_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray
 
 def transient_columns(gap: Gap, tau_s: float, lag: Block, rows: np.ndarray | None = None) -> np.ndarray:
     """(N,q) ``D``: the change of the lag block's columns per degC of starting offset, on each row of its own
-    stretch (exact for the forward columns, which are linear in the temperature; the calibration direction's
-    higher orders are linearised by this 1 degC difference)."""
-    temp = lagged_temperature(gap, tau_s)
+    stretch: forward the columns are linear in the temperature, so ``D`` is the block with ``dT`` replaced by the
+    transient ``exp(-(t - t_r)/tau)`` (the constant's column 0); the calibration direction's higher orders are
+    linearised by a 1 degC difference."""
     _, e, _ = restarts(gap, tau_s)
+    if gap.forward:
+        g = gap if rows is None else gap.rows_view(rows)
+        terms = LAG_TERMS if "offset" in gap.base_terms else ("offset",) + LAG_TERMS
+        X, cm, keep = _forward_columns(g, terms, e if rows is None else e[rows])
+        for k, c in enumerate(keep):
+            if cm.columns[c].term == "offset":
+                X[:, k] = 0.0
+        return X
+    temp = lagged_temperature(gap, tau_s)
     moved = lag_block(gap, tau_s, rows, temp=temp + e)
     return moved.X - lag.X
 
@@ -328,6 +363,32 @@ def fit_all(gap: Gap, base: Block, Y: np.ndarray, dz: LagDesign) -> LagFit:
     S = stretch_products(base, dz.lag, dz.D, Y, np.zeros(gap.n, dtype=np.int64), 1, dz.sid, dz.R)
     mask = np.hstack([base.mask, dz.lag.mask])
     return bilinear_fit(S, mask, base.p, dz.lag.p, np.array([float(gap.n)]), delta_sd(gap), None, dz.lo, dz.hi)
+
+
+def die_temperature_on(gap: Gap, base: Block, tau_s: float, rows: np.ndarray) -> np.ndarray:
+    """(len(rows),) the die temperature of the fit on ``rows`` only (indices; the surrogate test's thinned rows):
+    the lag filtered and the stretches found on the whole series, the columns, the fit and the path on ``rows``
+    (memory of those rows, not of the whole series' design)."""
+    sid, e, first = restarts(gap, tau_s)
+    lagged = lagged_temperature(gap, tau_s)
+    u = np.asarray(gap.session.temp_c, dtype=float)[first] - lagged[first]
+    u = np.where(np.isfinite(u), u, 0.0)
+    pad = RESTART_MARGIN * np.abs(u) + RESTART_MARGIN_C
+    sid, e, lagged = sid[rows], e[rows], lagged[rows]
+    lag = lag_block(gap, tau_s, rows)
+    if gap.forward:
+        terms = LAG_TERMS if "offset" in gap.base_terms else ("offset",) + LAG_TERMS
+        D, cm, keep = _forward_columns(gap.rows_view(rows), terms, e)
+        for k, c in enumerate(keep):
+            if cm.columns[c].term == "offset":
+                D[:, k] = 0.0
+    else:
+        D = transient_columns(gap, tau_s, lag_block(gap, tau_s), None)[rows]
+    b = Block(base.X[rows], base.mask, base.names, base.units)
+    S = stretch_products(b, lag, D, gap.target[rows], np.zeros(rows.size, dtype=np.int64), 1, sid, first.size)
+    fit = bilinear_fit(S, np.hstack([base.mask, lag.mask]), base.p, lag.p, np.array([float(rows.size)]),
+                       delta_sd(gap), None, np.minimum(u, 0.0) - pad, np.maximum(u, 0.0) + pad)
+    return lagged + fit.delta[0][sid] * e
 
 
 def transient_block(gap: Gap, base: Block, dz: LagDesign, rows: np.ndarray | None = None) -> Block:

@@ -149,13 +149,13 @@ def find_tones(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray) -> tu
     return tones, x
 
 
-def noise_floor(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, rate_uT_s: np.ndarray | None = None,
-                field_uT: np.ndarray | None = None) -> tuple[np.ndarray, float, list[dict], dict | None]:
+def noise_floor(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, columns=None
+                ) -> tuple[np.ndarray, float, list[dict], dict | None]:
     """(white level per axis (3,) uT, the differencing lag in s, tones found and removed first, the even/odd
     alternation found and removed before them (:func:`alternation`, None when there is none)). Tones within
     NYQUIST_BINS periodogram bins of the DUT's Nyquist frequency are named an even/odd alternation too (with
     missed cycles or a drifting spacing its power sits beside Nyquist)."""
-    alt, clean = alternation(resid_uT, t_s, session, rate_uT_s, field_uT)
+    alt, clean = alternation(resid_uT, t_s, session, columns)
     tones, clean = find_tones(clean, t_s, session)
     band = nyquist_band(t_s, session)
     if band is not None:
@@ -226,8 +226,8 @@ def cycle_parity(t_s: np.ndarray, session: np.ndarray) -> tuple[np.ndarray, floa
     return np.where(cyc % 2 == 0, 1.0, -1.0), h
 
 
-def alternation(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, rate_uT_s: np.ndarray | None = None,
-                field_uT: np.ndarray | None = None) -> tuple[dict | None, np.ndarray]:
+def alternation(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, columns=None
+                ) -> tuple[dict | None, np.ndarray]:
     """An even/odd alternation in a residual (N,3) uT (rows sorted by session then time). A reading that alternates
     with the set/reset strap keeps what the half-difference of the two conversions should cancel: the bridge
     offset (a constant with alternating sign) or a sensitivity that differs between the states (alternating,
@@ -235,24 +235,25 @@ def alternation(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, rate
     (alternating, proportional to the field's rate of change). Its power sits at the DUT's Nyquist frequency
     ``1/(2h)`` (where a periodogram's last bin hides it, or, with cycles missed or the spacing drifting, two tones
     beside it). Tested explicitly: per session and axis the residual is regressed on the cycle parity
-    (:func:`cycle_parity`) and on parity x field and parity x rate (``field_uT``, ``rate_uT_s`` (N,3) in DUT axes),
-    with a constant, the field and the rate as nuisance columns; each parity part's explained power against the
+    (:func:`cycle_parity`) and on parity x field and parity x rate (``columns(rows)`` -> (field, rate), each
+    (n,3) in DUT axes, for a session's rows (a bool mask): formed per session, never for all rows at once), with a
+    constant, the field and the rate as nuisance columns; each parity part's explained power against the
     white level (differences two cycles apart, which an alternation does not reach) gives a chi-square p-value
     (Bonferroni over the axes and parts). Also reported: the even/odd difference of the logged spacing. Returns
     (the test's result, ``significant`` when p < ALTERNATION_P, or None when it cannot be made; the residual with
-    a significant constant part removed: a clean +-1 regressor per session, where the field- and rate-proportional
-    parts, fitted per session, would add their own estimation noise to the floor's differences)."""
+    a significant constant part removed (else ``resid_uT`` itself): a clean +-1 regressor per session, where the
+    field- and rate-proportional parts, fitted per session, would add their own estimation noise to the floor's
+    differences)."""
     import scipy.stats
-    x = np.where(np.isfinite(resid_uT), resid_uT, 0.0).astype(float)
+    x = np.nan_to_num(np.asarray(resid_uT, dtype=float), nan=0.0, posinf=0.0, neginf=0.0, copy=True)
     if x.shape[0] < 40:
-        return None, x
+        return None, resid_uT
     par, h = cycle_parity(t_s, session)
     ids, inv = np.unique(session, return_inverse=True)
     inv = inv.ravel()
-    extra = [np.where(np.isfinite(v), v, 0.0) for v in (field_uT, rate_uT_s) if v is not None]
-    names = ["constant"] + (["field"] if field_uT is not None else []) + (["rate"] if rate_uT_s is not None else [])
+    names = ["constant"] + (["field", "rate"] if columns is not None else [])
     k = len(names)
-    fitted = np.zeros((k,) + x.shape)
+    fitted = np.zeros((k,) + x.shape, dtype=np.float32)       # each part's fit (float32: memory of a long session)
     ess = np.zeros((k, 3))
     n_sess = 0
     for s in range(ids.size):
@@ -260,8 +261,9 @@ def alternation(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, rate
         if m.sum() < 4 * k + 4:
             continue
         n_sess += 1
+        extra = [] if columns is None else [np.where(np.isfinite(v), v, 0.0) for v in columns(m)]
         for j in range(3):
-            nuis = [np.ones(int(m.sum()))] + [v[m, j] for v in extra]
+            nuis = [np.ones(int(m.sum()))] + [v[:, j] for v in extra]
             A = np.column_stack(nuis + [par[m] * c for c in nuis])
             y = x[m, j]
             # the parity parts added one at a time (constant, then field, then rate): each part's explained power
@@ -276,12 +278,12 @@ def alternation(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, rate
                 prev_fit = fit_q
     white = _two_cycle_white(x, par, inv)
     if n_sess == 0 or not np.all(np.isfinite(white)) or np.any(white <= 0):
-        return None, x
+        return None, resid_uT
     p_parts = [float(min(1.0, 3.0 * float(np.min(scipy.stats.chi2.sf(ess[q] / white ** 2, n_sess))))) for q in range(k)]
     p = float(min(1.0, k * min(p_parts)))
     significant = p < ALTERNATION_P
     keep = [q for q in range(k) if k * p_parts[q] < ALTERNATION_P] or [int(np.argmin(p_parts))]
-    amp = np.sqrt(np.mean(fitted[keep].sum(axis=0) ** 2, axis=0))   # an alternation of +-a has rms a
+    amp = np.sqrt(np.mean(fitted[keep].sum(axis=0, dtype=float) ** 2, axis=0))   # an alternation of +-a has rms a
     stamp = _stamp_alternation_ms(t_s, par, inv, h)
     what = {"constant": "set/reset polarity: an offset alternating with each reading (the bridge offset does not "
                         "cancel between the set and reset conversions)",
@@ -299,7 +301,7 @@ def alternation(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, rate
             "p_parts": {names[q]: min(1.0, k * p_parts[q]) for q in range(k)}, "p_value": p,
             "stamp_alternation_ms": stamp, "causes": causes, "text": text,
             "removed_before_floor": bool(0 in keep and significant)}, \
-        (x - fitted[0] if 0 in keep and significant else x)
+        (x - fitted[0] if 0 in keep and significant else resid_uT)
 
 
 def _stamp_alternation_ms(t_s: np.ndarray, par: np.ndarray, inv: np.ndarray, h: float) -> float:

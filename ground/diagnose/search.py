@@ -501,16 +501,29 @@ def hysteresis_axes_used(gap: Gap, base: Block, Y: np.ndarray, thr: np.ndarray, 
     """Axes whose state column (thresholds ``thr``, initial states ``init``, all rows) carries a remanence: some
     output's coefficient beyond HYSTERESIS_AXIS_T OLS standard errors in base + hysteresis_block on all rows."""
     blk = hysteresis_block(gap, thr, init)
-    allb = Block.join([base, blk], gap.n)
-    th, se = solve(allb.X, Y, allb.mask, with_se=True)
+    # normal equations accumulated in row chunks (the joined N-row design is never formed)
+    GC = fold_products([base.X, blk.X], [base.X, blk.X, Y], np.zeros(gap.n, dtype=np.int64), 1)[0]
+    p = base.p + blk.p
+    G, C = GC[:, :p], GC[:, p:]
+    mask = np.hstack([base.mask, blk.mask])
+    th = solve_gram(G, C, mask)
+    yy = np.sum(Y ** 2, axis=0)
     axes = [j for j in range(3) if np.isfinite(thr[j])]
-    first = allb.p - len(axes)                  # the state columns come last, in axis order
-    used = []
-    for k, j in enumerate(axes):
-        z = np.abs(th[:, first + k]) / np.where(se[:, first + k] > 0, se[:, first + k], np.inf)
-        if np.nanmax(z) >= HYSTERESIS_AXIS_T:
-            used.append(j)
-    return used
+    first = p - len(axes)                       # the state columns come last, in axis order
+    z = np.zeros((3, len(axes)))
+    for i in range(3):
+        cols = np.flatnonzero(mask[i])
+        Gi = G[np.ix_(cols, cols)]
+        t = th[i, cols]
+        s2 = max(float(yy[i] - 2 * t @ C[cols, i] + t @ Gi @ t), 0.0) / max(gap.n - cols.size, 1)
+        d = np.sqrt(np.diag(Gi))
+        d[d == 0] = 1.0
+        cov = np.linalg.pinv(Gi / np.outer(d, d), rcond=RCOND, hermitian=True) / np.outer(d, d)
+        for k in range(len(axes)):
+            c = int(np.flatnonzero(cols == first + k)[0])
+            se = np.sqrt(max(cov[c, c], 0.0) * s2)
+            z[i, k] = abs(t[c]) / se if se > 0 else 0.0
+    return [j for k, j in enumerate(axes) if np.max(z[:, k]) >= HYSTERESIS_AXIS_T]
 
 
 def hysteresis_options(gap: Gap, cands: list, j: int, which: Sequence[int] | None = None) -> np.ndarray:

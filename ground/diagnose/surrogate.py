@@ -446,8 +446,7 @@ def candidate_designs(gap: Gap, cand, order: np.ndarray) -> list[AxisDesign]:
         taus = np.unique(np.r_[nl.lag_grid(gap.session.t_s, gap.session.session), cand.lag_tau_s])
         own = [[], [], []]
         for tau in taus:
-            dz = lg.design(gap, float(tau))
-            die = lg.die_temperature(gap, dz, lg.fit_all(gap, base, gap.target, dz).delta[0])
+            die = lg.die_temperature_on(gap, base, float(tau), order)          # on the tested rows
             for i, c in enumerate(_per_axis(sr.lag_block(gap, float(tau), order, temp=die))):
                 own[i].append(c)
     elif cand.kind == "joint":
