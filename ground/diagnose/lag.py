@@ -71,17 +71,18 @@ def lagged_temperature(gap: Gap, tau_s: float) -> np.ndarray:
     return cache[key]
 
 
-def lag_block(gap: Gap, tau_s: float, rows: np.ndarray | None = None, temp: np.ndarray | None = None) -> Block:
+def lag_block(gap: Gap, tau_s: float, rows: np.ndarray | None = None, temp: np.ndarray | None = None,
+              temp_on_rows: bool = False) -> Block:
     """The thermal-lag candidate's columns: the temperature terms (LAG_TERMS, plus a constant when the base
     has none) evaluated on the temperature lagged by ``tau_s`` (or on ``temp``, a die temperature of the gap's
-    rows, or of ``rows`` only). ``rows``: the columns on those rows only (the lag is filtered on the whole
-    series; the terms are row by row). Forward, the columns (``1``, ``B_j dT``, ``dT``) are formed directly
-    (:func:`_forward_columns`, the calibration model's columns without its full design: memory of the block
-    alone)."""
+    rows, or with ``temp_on_rows`` of ``rows`` only, in their order). ``rows``: the columns on those rows only
+    (the lag is filtered on the whole series; the terms are row by row). Forward, the columns (``1``,
+    ``B_j dT``, ``dT``) are formed directly (:func:`_forward_columns`: the calibration model's columns without
+    its full design, memory of the block alone)."""
     from magstack.ground.diagnose.search import temperature_gain_higher_order
     temp = lagged_temperature(gap, tau_s) if temp is None else np.asarray(temp, dtype=float)
     if rows is not None:
-        gap, temp = gap.rows_view(rows), (temp if temp.size == len(rows) != gap.n else temp[rows])
+        gap, temp = gap.rows_view(rows), (temp if temp_on_rows else temp[rows])
     terms = LAG_TERMS if "offset" in gap.base_terms else ("offset",) + LAG_TERMS
     if gap.forward:
         X, cm, keep = _forward_columns(gap, terms, np.asarray(temp, dtype=float) - gap.t0_c)

@@ -447,7 +447,7 @@ def candidate_designs(gap: Gap, cand, order: np.ndarray) -> list[AxisDesign]:
         own = [[], [], []]
         for tau in taus:
             die = lg.die_temperature_on(gap, base, float(tau), order)          # on the tested rows
-            for i, c in enumerate(_per_axis(sr.lag_block(gap, float(tau), order, temp=die))):
+            for i, c in enumerate(_per_axis(sr.lag_block(gap, float(tau), order, temp=die, temp_on_rows=True))):
                 own[i].append(c)
     elif cand.kind == "joint":
         mc = rot.mount_columns(gap)
