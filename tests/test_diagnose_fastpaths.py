@@ -194,6 +194,13 @@ def test_lag_and_linear_columns_built_on_a_row_subset_equal_the_whole_gaps_rows(
     rows = np.arange(0, 1500, 7)
     whole = sr.lag_block(gap, 60.0)
     assert np.allclose(sr.lag_block(gap, 60.0, rows).X, whole.X[rows], rtol=0, atol=1e-12)
+    # the forward lag columns formed directly equal the calibration model's design of the lagged temperature
+    import dataclasses
+    lagged = dataclasses.replace(gap.session)
+    lagged.temp_c = sr.lagged_temperature(gap, 60.0)
+    ref = dataclasses.replace(gap, session=lagged).term_design(sr.LAG_TERMS)
+    assert np.array_equal(whole.X, ref.X) and np.array_equal(whole.mask, ref.mask) and whole.units == ref.units
+    assert [[n.removesuffix("@lag") for n in row] for row in whole.names] == ref.names
     cands, _, _ = sr.build_candidates(gap, gap.base_design())
     linear = [c for c in cands if c.kind == "linear"]
     assert {"temperature_gain", "cross_axis", "nonlinearity"} <= {c.effect for c in linear}
@@ -293,28 +300,48 @@ def test_hysteresis_options_are_the_state_columns_of_each_threshold_and_initial_
     assert sr.hysteresis_options(gap, cands, 1) is U                 # kept for the next fold
 
 
-def test_lag_train_sse_is_each_folds_training_sse_and_the_lagged_temperature_is_kept_read_only():
+def test_lag_train_sse_reaches_each_folds_least_squares_minimum_over_the_starting_offsets():
+    """lag.train_sse (Gauss-Newton in the starting offsets, in normal-equation space) against a direct bounded
+    minimisation of each fold's training SSE over the stretches' starting offsets (L-BFGS-B on full refits, the
+    same bounds); the continuous lag (offsets 0) is never better; the lagged temperature is kept read-only."""
+    import scipy.optimize
+
+    from magstack.ground.diagnose import lag as lg
     from magstack.ground.diagnose import nonlinear as nl
-    from magstack.ground.diagnose import search as sr
     from magstack.ground.diagnose.gap import Block, model_gap, predict, solve
     s = _skewed_session(900)
-    s.temp_c = 20 + 10 * np.sin(2 * np.pi * s.t_s / 300.0)
-    s.dut_uT[:, 0] += 0.5 * (nl.lagged_temperature(s.t_s, s.temp_c, s.session, 40.0) - 25)
+    s.temp_c = 20 + 10 * np.sin(2 * np.pi * s.t_s / 300.0) + 8.0 * (s.session == 1)   # session 1 starts warmer
+    lagged = nl.lagged_temperature(s.t_s, s.temp_c, s.session, 40.0)
+    first1 = np.flatnonzero(s.session == 1)[0]
+    u1 = s.temp_c[first1] - lagged[first1]                     # the die restarted at the board's temperature
+    die = lagged + np.where(s.session == 1, u1 * np.exp(-(s.t_s - s.t_s[first1]) / 40.0), 0.0)
+    s.dut_uT[:, 0] += 0.5 * (die - 25)
     gap = model_gap(s, ("gain_matrix", "offset"), (), "test")
     base, Y = gap.base_design(), gap.target
     fold = np.arange(gap.n) * 7 % 4
     grid = np.array([10.0, 40.0, 90.0])
-    got = sr.lag_train_sse(gap, base, Y, fold, grid)
+    got = lg.train_sse(gap, base, Y, fold, grid)
+
+    def sse(tau, rows, delta):
+        dz = lg.design(gap, tau)
+        blk = Block.join([base, lg.lag_block(gap, tau, temp=lg.die_temperature(gap, dz, np.asarray(delta)))], gap.n)
+        th = solve(blk.X, Y, blk.mask, rows)
+        return float(np.sum((Y[rows] - predict(blk.X[rows], th, blk.mask)) ** 2))
     for k, tau in enumerate(grid):
-        blk = Block.join([base, sr.lag_block(gap, tau)], gap.n)
+        dz = lg.design(gap, tau)
         for f in range(4):
             tr = fold != f
-            th = solve(blk.X, Y, blk.mask, tr)
-            want = float(np.sum((Y[tr] - predict(blk.X[tr], th, blk.mask)) ** 2))
-            assert abs(got[f, k] - want) <= 1e-9 * want
+            best = scipy.optimize.minimize(lambda d, tau=tau, tr=tr: sse(tau, tr, d), np.zeros(3), method="L-BFGS-B",
+                                           bounds=list(zip(dz.lo, dz.hi, strict=True)),
+                                           options={"ftol": 1e-14, "gtol": 1e-10}).fun
+            assert got[f, k] <= sse(tau, tr, np.zeros(3)) * (1 + 1e-12)
+            assert abs(got[f, k] - best) <= 1e-3 * best, (tau, f, got[f, k], best)
     assert np.argmin(got.sum(axis=0)) == 1
-    kept = sr.lagged_temperature(gap, 40.0)
-    assert kept is sr.lagged_temperature(gap, 40.0) and not kept.flags.writeable
+    dz = lg.design(gap, 40.0)
+    fit = lg.fits(gap, base, Y, fold, dz)
+    assert dz.R == 3 and abs(u1) > 4 and abs(fit.delta[-1][1] - u1) < 0.5, (u1, fit.delta[-1])
+    kept = lg.lagged_temperature(gap, 40.0)
+    assert kept is lg.lagged_temperature(gap, 40.0) and not kept.flags.writeable
     assert np.array_equal(kept, nl.lagged_temperature(s.t_s, s.temp_c, s.session, 40.0))
 
 

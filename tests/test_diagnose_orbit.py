@@ -43,6 +43,22 @@ def test_an_orbit_effect_is_found_through_the_igrf_attitude_reference(effect):
     assert "attitude knowledge" in nt["mount_rotation"]
 
 
+def test_the_orbit_floor_states_its_parts_and_compares_the_after_gap_with_their_sum():
+    """Sensor white (measured) and the reference's budget (IGRF + attitude), their root sum square, and what the
+    after-gap holds beyond the white level against the budget (the validation's attitude error, 0.1 deg wandering
+    with 300 s correlation, against the default 0.1 deg budget)."""
+    j = _orbit("temperature_gain")
+    f = j["floor"]
+    assert f["sensor_white_nT"] == pytest.approx(j["noise_floor_nT"])
+    assert f["reference_budget_nT"] == pytest.approx(j["reference_budget"]["total_nT"])
+    assert f["total_nT"] == pytest.approx(np.hypot(f["sensor_white_nT"], f["reference_budget_nT"]))
+    assert f["after_over_total"] == pytest.approx(j["after_rmse_nT"] / f["total_nT"])
+    assert f["slow_nT"] == pytest.approx(np.sqrt(j["after_rmse_nT"] ** 2 - j["noise_floor_nT"] ** 2))
+    # what remains beyond the white level is the attitude error: within the budget, at least half of it
+    assert 0.5 <= f["slow_over_budget"] <= 1.0 and "within the reference's budget" in f["text"]
+    assert f["text"].startswith(f"floor {f['total_nT']:.1f} nT = sensor white")
+
+
 def test_orbit_telemetry_with_a_wandering_attitude_error_and_nothing_unmodelled_gives_none():
     assert _orbit(None)["verdict"] == "none"
 

@@ -3,7 +3,7 @@ docs/diagnosis.md's real-data table stay what they are when the diagnosis is mad
 
 Tests 3-7 carry two tones 1.6 mHz apart near 1.08 Hz (less than 2 periodogram bins): the tone refinement
 must find the stronger one's peak on its 0.1-bin grid (a coarse-then-fine scan moved the second tone and the
-noise floor, session 7)."""
+noise floor). Both are at the Nyquist frequency of the DUT's 0.461 s sampling: an even/odd alternation."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -33,3 +33,9 @@ def test_tests_3_to_7_gain_offset_30_s_blocks(tests_3_to_7):
     assert d["ranking"][0]["effect"] == "session_offset" and abs(d["ranking"][0]["rmse_nT"] - 66.3) < 0.1
     tones = sorted(t["freq_hz"] for t in d["where"]["tones"])
     assert np.allclose(tones, [1.0829, 1.0845], atol=1e-4), tones
+    # both sit at the Nyquist frequency of the 0.461 s DUT sampling: an even/odd alternation, named so, and the
+    # explicit parity test finds it (its constant part is not significant here: nothing is removed from the floor)
+    assert all(t["kind"] == "even_odd_alternation" for t in d["where"]["tones"])
+    alt = d["where"]["alternation"]
+    assert alt["significant"] and alt["p_value"] < 0.01 and not alt["removed_before_floor"]
+    assert abs(alt["nyquist_hz"] - 1.0846) < 1e-3

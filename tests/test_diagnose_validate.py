@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from magstack.ground.diagnose import Options
 from magstack.ground.diagnose.validate import SCENARIOS, STRENGTHS, _scenario, jobs_count, nameable, run_validation
 
@@ -49,3 +51,29 @@ def test_thermal_lag_scenario_names_the_lag_behind_a_modelled_temperature_effect
     assert j["verdict"] == "thermal_lag", d.text()
     assert j["after_rmse_nT"] <= 1.2 * j["noise_floor_nT"], d.text()
     assert 120.0 <= j["parameters"]["tau_s"]["value"] <= 270.0
+
+
+@pytest.mark.slow
+def test_quick_mode_covers_every_effect_and_exits_0_on_a_healthy_build(tmp_path):
+    """``validate-diagnosis --quick``: the same targets on a subset (every effect at realistic strength, three
+    scenarios, an orbit case and null, the stale-offset (b) path, 5 nulls with each noise); its run time is in
+    docs/diagnosis.md."""
+    import io
+    from contextlib import redirect_stdout
+
+    from magstack.cli.main import main
+    from magstack.ground.diagnose.validate import QUICK_SCENARIOS, jobs_count
+    out = tmp_path / "quick"
+    buf = io.StringIO()
+    with redirect_stdout(buf):
+        rc = main(["validate-diagnosis", "--quick", "--out", str(out), "--json"])
+    doc = json.loads(buf.getvalue())
+    assert rc == 0 and doc["exit_code"] == 0, doc["targets"]
+    assert doc["quick"] and "every nameable effect at realistic strength" in doc["covers"]
+    assert doc["sessions_completed"] == jobs_count(quick=True) < jobs_count() / 3
+    assert all(doc["targets"].values())
+    assert set(doc["per_effect"]) == {e for e in nameable() if e in STRENGTHS}
+    assert all(set(v) == {"scale_1"} for v in doc["per_effect"].values())
+    assert set(doc["scenarios"]) == set(QUICK_SCENARIOS) | {"orbit"}
+    assert doc["null_sessions"] == 5 and doc["null_slow_noise_sessions"] == 5
+    assert "(quick)" in (out / "summary.md").read_text()

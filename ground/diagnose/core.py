@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from magstack.firmware.calibration.model import time_derivative
 from magstack.ground.diagnose import noise
 from magstack.ground.diagnose import nonlinear as nl
 from magstack.ground.diagnose import orbit as ob
@@ -70,6 +71,7 @@ class Diagnosis:
             "noise_floor_nT": nf,
             "reference_budget": self.reference_budget,
             "floor_with_reference_nT": self.floor_total_nT(nf),
+            "floor": self.floor_parts(nf, float(self.after_trial.rmse_norm_uT * 1e3)),
             "ranking": [{"effect": t.effect, "rmse_nT": float(t.rmse_norm_uT * 1e3), "shrink": float(t.shrink),
                          "significant": bool(t.significant), "p_value": float(t.p_value),
                          "p_holm": float(t.p_holm), "kind": t.kind,
@@ -84,6 +86,7 @@ class Diagnosis:
             "p_vs_runner_up": r.p_vs_runner_up,
             "distinguishable": r.distinguishable,
             "confounded_with": r.confounded_with,
+            "hysteresis_vs_session_offset": self.after_trial.extra.get("hysteresis_vs_session_offset"),
             "verdict_note": self.verdict_note,
             "modelled": r.modelled,
             "mode": self.gap.mode,
@@ -115,6 +118,36 @@ class Diagnosis:
             return nf
         return float(np.hypot(nf, self.reference_budget["total_nT"]))
 
+    def floor_parts(self, nf: float | None, after_nT: float) -> dict | None:
+        """The floor the after-gap is judged against, in its parts: the sensor's white level (measured: differences
+        of the residual; on a bench it holds the reference's own noise too) and the reference's error budget (orbit:
+        IGRF + attitude, :func:`orbit.reference_budget`; none on a bench), their root sum square, and the after-gap
+        against it: its part beyond the white level (``slow_nT`` = sqrt(after^2 - white^2), what slow reference
+        errors and unmodelled effects leave) against the budget."""
+        if nf is None:
+            return None
+        b = self.reference_budget
+        total = self.floor_total_nT(nf)
+        slow = float(np.sqrt(max(after_nT ** 2 - nf ** 2, 0.0)))
+        out = {"sensor_white_nT": nf, "sensor_white_axes_nT": [float(v * 1e3) for v in self.noise_floor_uT],
+               "reference_budget_nT": None if b is None else b["total_nT"], "total_nT": total,
+               "after_nT": after_nT, "after_over_total": after_nT / total if total else None, "slow_nT": slow,
+               "slow_over_budget": (slow / b["total_nT"]) if b and b["total_nT"] > 0 else None}
+        if b is None:
+            out["text"] = (f"floor {nf:.1f} nT: the white level of the residual (sensor and bench reference noise "
+                           f"together); after {after_nT:.1f} nT = {after_nT / nf:.2f}x it")
+            return out
+        att = float(np.linalg.norm(b["attitude_axes_nT"]))
+        verdict = ("within the reference's budget" if slow <= b["total_nT"] else
+                   "beyond the reference's budget: more than its errors explain")
+        out["text"] = (f"floor {total:.1f} nT = sensor white {nf:.1f} nT (+) reference budget {b['total_nT']:.1f} nT "
+                       f"(attitude {b['attitude_sd_deg']:g} deg {att:.1f} nT, crustal {b['crustal_nT_per_axis']:g} and "
+                       f"external {b['external_nT_per_axis']:g} nT per axis, {b['auroral_nT_per_axis']:g} nT on the "
+                       f"{b['auroral_rows']} auroral-zone rows) in root sum square; after {after_nT:.1f} nT = "
+                       f"{after_nT / total:.2f}x it: white (+) a slow part of {slow:.1f} nT, "
+                       f"{slow / b['total_nT']:.2f}x the budget, {verdict}")
+        return out
+
     def text(self) -> str:
         d = self.to_dict()
         bc = d["method"]["block_choice"]
@@ -129,6 +162,8 @@ class Diagnosis:
                      f"{_f(d['floor_with_reference_nT'])} nT)")
         if self.verdict_note:
             L.append("  " + self.verdict_note)
+        if d["floor"] and d["reference_budget"]:
+            L.append("  " + d["floor"]["text"])
         if self.unexplained.get("remains"):
             L.append(self.unexplained["text"])
         L.append(f"{'effect':20s}{'held-out nT':>12s}{'shrink':>9s}{'p blocks':>10s}{'p surr.':>9s}{'p':>9s}"
@@ -150,7 +185,9 @@ class Diagnosis:
         for c in d["prior_check"]:
             L.append(f"prior check ({c['effect']}): {c['parameter']} = {c['value']:.4g} {c['unit']}, "
                      f"{c['z']:.1f} prior sd from {c['prior_mean']:.4g} +- {c['prior_sd']:.3g} "
-                     f"({'plausible' if c['plausible'] else 'implausible for the part'})")
+                     f"({'plausible' if c['plausible'] else 'implausible for the part'})"
+                     + (f"; fitted within {pr.IMPLAUSIBLE_Z:g} prior sd: {c['constrained_rmse_nT']:.1f} nT held out"
+                        if c.get("constrained_rmse_nT") is not None else ""))
         if d["parameters"]:
             L.append("parameters of the verdict's effect (value +- standard error):")
             for name, p in d["parameters"].items():
@@ -159,9 +196,14 @@ class Diagnosis:
             L.append(f"not testable: {nt['effect']}: {nt['reason']}")
         if d["modelled"]:
             L.append(f"modelled by the simulator: {', '.join(d['modelled'])}")
+        if (d["where"].get("alternation") or {}).get("significant"):
+            a = d["where"]["alternation"]
+            L.append(a["text"] + (" (reported apart; its constant part removed before the noise floor)"
+                                  if a.get("removed_before_floor") else " (reported apart)"))
         for tone in d["where"].get("tones", []):
             L.append(f"tone (reported apart, removed before the noise floor): {tone['freq_hz']:.5g} Hz, amplitude "
-                     + "/".join(f"{a:.1f}" for a in tone["amplitude_nT"]) + " nT (x, y, z)")
+                     + "/".join(f"{a:.1f}" for a in tone["amplitude_nT"]) + " nT (x, y, z)"
+                     + (f": {tone['note']}" if tone.get("kind") == "even_odd_alternation" else ""))
         L += [f"note: {n}" for n in d["notes"]]
         return "\n".join(L)
 
@@ -254,13 +296,26 @@ def verdict_parameters(gap: Gap, res: sr.SearchResult, fold: np.ndarray, run: np
                 out[f"initial_state[{a}]"] = {"value": float(init[j]), "se": float("nan"),
                                               "unit": "sign of the remanence before the first excursion (chosen)"}
         return out
-    if v.kind == "lag":
-        allb = Block.join([base, sr.lag_block(gap, v.extra["tau_s"])], gap.n)
+    if v.kind == "lag":      # the fit with each stretch's starting offset (lag.py), coefficients at those offsets
+        from magstack.ground.diagnose import lag as lg
+        dz = lg.design(gap, v.extra["tau_s"])
+        fits = lg.fits(gap, base, Y, fold, dz)
+        delta = fits.delta[-1]
+        allb = Block.join([base, lg.lag_block(gap, dz.tau_s, temp=lg.die_temperature(gap, dz, delta))], gap.n)
         out = _params(gap, allb, Y, base.p, fold)
         jk = jackknife_se([np.array([x]) for x in v.extra["fold_tau_s"]])
         out["tau_s"] = {"value": float(v.extra["tau_s"]), "se": float(jk[0]), "se_jackknife": float(jk[0]), "unit": "s",
                         "meaning": "time constant of the die temperature behind the measured temperature (grid "
                                    f"{v.extra['grid_s'][0]:.3g}-{v.extra['grid_s'][-1]:.3g} s)"}
+        lagged = lg.lagged_temperature(gap, dz.tau_s)
+        djk = jackknife_se([d for d in fits.delta[:-1]])
+        for r, row in enumerate(dz.first):
+            t0 = float(gap.session.t_s[row])
+            out[f"T_die_start[{r}]"] = {
+                "value": float(lagged[row] + delta[r]), "se": float(djk[r]), "se_jackknife": float(djk[r]),
+                "unit": "degC", "offset_from_continuous_c": float(delta[r]),
+                "meaning": f"die temperature where the record (re)starts (session {gap.session.session[row]}, "
+                           f"t = {t0:.1f} s): fitted, not carried across the pause"}
         return out
     blk = sr.linear_block(gap, v.effect, v.extra["terms"])
     allb = Block.join([base, blk], gap.n)
@@ -301,7 +356,7 @@ def diagnose(gap: Gap, options: sr.Options | None = None) -> Diagnosis:
     res = sr.search(gap, blocks, fold, opts)
     notes: list[str] = []
     chip = pr.chip_priors(gap, opts.chip)
-    checks, note = prior_choice(gap, res, chip)
+    checks, note = prior_choice(gap, res, chip, fold, blocks, opts.alpha)
     if note:
         notes.append(note)
     params = verdict_parameters(gap, res, fold, run)
@@ -317,10 +372,18 @@ def diagnose(gap: Gap, options: sr.Options | None = None) -> Diagnosis:
                      "matrix change: misalignment leaves the diagonal unchanged to first order")
     # noise floor: white level of the residual of the best description found (lowest held-out RMSE)
     best = min([res.baseline] + [t for t in res.trials if t.resid is not None], key=lambda t: t.rmse_norm_uT)
-    nf, lag, tones = noise.noise_floor(np.asarray(best.resid, dtype=float), s.t_s, s.session)
+    # the reference's field and rate in DUT axes (dut ~ A ref), per session: what an alternation's cause is
+    # proportional to
+    A = gap._dut_image() if gap.forward else np.eye(3)
+
+    def field_and_rate(m):
+        image = gap.predictor_uT[m] @ A.T
+        return image, time_derivative(image, s.t_s[m], s.session[m])
+    nf, lag, tones, alt = noise.noise_floor(np.asarray(best.resid, dtype=float), s.t_s, s.session, field_and_rate)
     where = wh.breakdowns(res.baseline.resid, s, blocks)
     where["spectrum"] = wh.spectrum(res.baseline.resid, s.t_s, s.session)
     where["tones"] = tones
+    where["alternation"] = alt
     where["noise_floor_lag_s"] = lag
     diag = Diagnosis(gap, res, nf, where, params, opts, notes=notes, block_choice=block_choice,
                      base_model=pr.base_identifiability(gap, chip), prior_check=checks,
@@ -333,14 +396,20 @@ def diagnose(gap: Gap, options: sr.Options | None = None) -> Diagnosis:
     return diag
 
 
-def prior_choice(gap: Gap, res: sr.SearchResult, chip) -> tuple[list[dict], str | None]:
-    """Confounded explanations decided by the part's physics (priors.prior_check).
+def prior_choice(gap: Gap, res: sr.SearchResult, chip, fold: np.ndarray, blocks: np.ndarray,
+                 alpha: float = 0.05) -> tuple[list[dict], str | None]:
+    """Confounded explanations weighed with the part's physics (priors.prior_check, priors.constrained_oof).
 
     When the verdict (a linear effect) is confounded with significant linear candidates that close as much
     (same columns in this session, e.g. a sensitivity tempco and an offset tempco at one field level), each
-    one's parameters (MAP on all rows with the chip's prior on its columns) are checked against that prior.
-    A verdict that needs a parameter beyond priors.IMPLAUSIBLE_Z prior sd gives way to the simplest plausible
-    partner; the checks are reported either way. Returns (checks, note)."""
+    one's parameters (MAP on all rows with the chip's prior on its columns) are checked against that prior, and
+    each is fitted again on held-out blocks *within* the prior (MAP, parameters boxed to priors.IMPLAUSIBLE_Z
+    prior sd). A prior conflict is evidence, not a veto: a verdict that needs a parameter beyond that many sd
+    gives way only to a partner whose fit within its prior closes the gap as well as the verdict's own fit
+    (closes as much, and is not worse by the signed-rank test on held-out blocks); among those the best fit
+    within the prior, then the simplest. Otherwise the data's verdict stands and the note says what each
+    alternative leaves within its prior. The checks (with ``constrained_rmse_nT``) are reported either way.
+    Returns (checks, note)."""
     v = next((t for t in res.trials if t.effect == res.verdict), None)
     if v is None or v.kind != "linear" or not res.confounded_with:
         return [], None
@@ -358,20 +427,43 @@ def prior_choice(gap: Gap, res: sr.SearchResult, chip) -> tuple[list[dict], str 
     out = list(checks.values())
     if v.effect not in checks or checks[v.effect]["plausible"]:
         return out, None
-    ok = [t for t in group if checks.get(t.effect, {}).get("plausible")]
-    if not ok:
-        return out, (f"every explanation confounded with {v.effect} needs parameters beyond the {chip.chip} prior "
-                     f"({IMPLAUSIBLE_TEXT}); named by the data alone")
-    new = min(ok, key=lambda t: (t.n_params, t.rmse_norm_uT))
+    bs = res.baseline.extra["block_session"]
+    nb = bs.size
+    g = v.extra.get("group", 1)
+    within = {}                 # effect -> (held-out RMSE uT, per-block SSE) of the fit within the prior
+    for t in group:
+        r = pr.constrained_oof(gap, t, base, fold, chip)
+        within[t.effect] = ((t.rmse_norm_uT, t.block_sse) if r is None else
+                            (float(np.linalg.norm(sr.rms3(r))), sr.block_sse(r, blocks, nb)))
+        if t.effect in checks and r is not None:
+            checks[t.effect]["constrained_rmse_nT"] = within[t.effect][0] * 1e3
+
+    def worse_p(a_sse, b_sse):   # one-sided p of "a is worse than b" on held-out blocks (signed-rank)
+        return sr.paired_worse_p(sr.grouped(a_sse - b_sse, bs, g))
+    # a replacement must close the gap, within its prior, as well as the verdict does with its own parameters
+    better = [t for t in group[1:] if sr.closes_as_much(within[t.effect][0], v.rmse_norm_uT, base_rmse)
+              and worse_p(within[t.effect][1], v.block_sse) >= alpha]
     c = checks[v.effect]
+    conflict = (f"{v.effect} would need {c['parameter']} = {c['value']:.4g} {c['unit']}, {c['z']:.1f} sd from the "
+                f"{chip.chip} prior {c['prior_mean']:.4g} +- {c['prior_sd']:.3g}, beyond the {chip.chip} prior "
+                f"({IMPLAUSIBLE_TEXT}); held within it {v.effect} leaves {within[v.effect][0] * 1e3:.1f} nT held out")
+    if not better:
+        others = ", ".join(f"{t.effect} {t.rmse_norm_uT * 1e3:.1f} nT (within its prior "
+                           f"{within[t.effect][0] * 1e3:.1f} nT)" for t in group[1:])
+        return out, (f"prior conflict weighed, not a veto: {conflict}; no alternative closes the gap as well "
+                     f"({v.rmse_norm_uT * 1e3:.1f} nT held out) within its own prior ({others}): the data's verdict "
+                     "stands")
+    new = min(better, key=lambda t: (within[t.effect][0], t.n_params))
     res.verdict, res.runner_up = new.effect, v.effect
     res.trials.remove(new)
     res.trials.insert(0, new)
     res.confounded_with = [e for e in res.confounded_with if e != new.effect] + [v.effect]
-    return out, (f"{new.effect} and {v.effect} are confounded in this session (they close the gap equally); "
-                 f"{v.effect} would need {c['parameter']} = {c['value']:.4g} {c['unit']}, {c['z']:.0f} sd from the "
-                 f"{chip.chip} prior {c['prior_mean']:.4g} +- {c['prior_sd']:.3g}: the part's physics names "
-                 f"{new.effect}")
+    if new.resid is None:      # dropped while searching: the same out-of-fold fit again
+        new.resid = sr.oof_residual(gap, [base, sr.linear_block(gap, new.effect, new.extra["terms"])],
+                                    gap.target, fold).astype(np.float32)
+    return out, (f"{new.effect} and {v.effect} are confounded in this session (held out {new.rmse_norm_uT * 1e3:.1f} "
+                 f"and {v.rmse_norm_uT * 1e3:.1f} nT); {conflict}, while {new.effect} within its prior leaves "
+                 f"{within[new.effect][0] * 1e3:.1f} nT: the part's physics names {new.effect}")
 
 
 IMPLAUSIBLE_TEXT = f"more than {pr.IMPLAUSIBLE_Z:g} prior sd"

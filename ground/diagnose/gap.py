@@ -29,8 +29,8 @@ import scipy.linalg
 from magstack.data.dictionary import usable
 from magstack.data.session import Session
 from magstack.firmware.calibration.model import CalModel
-from magstack.firmware.calibration.reference import reference_range, saturated_rows
 from magstack.firmware.errors import FitError
+from magstack.ground.diagnose.reference_clip import reference_guard
 from magstack.ground.errors import DiagnosisError
 
 #: Memoised skew columns kept (floats); one column per (axis, delay) tried by the delay search.
@@ -498,7 +498,7 @@ def usable_rows(s: Session) -> np.ndarray:
 def check_rows(s: Session, min_rows: int = 50, exclude_bends: float | None = None,
                include_saturated: bool = False) -> tuple[Session, np.ndarray, list[str]]:
     """The usable rows sorted by session then time (attributes ``dut_history``: see
-    :meth:`Gap.history`; ``reference_guard``: see :func:`reference_guard`), the mask of those kept for
+    :meth:`Gap.history`; ``reference_guard``: see :func:`.reference_clip.reference_guard`), the mask of those kept for
     the diagnosis (with ``exclude_bends``: not at sharp bends of the reference, see
     :func:`nonlinear.bend_rows`, nor at the edges of a contiguous run, see :func:`run_edge_rows`), and
     notes; DiagnosisError when too few remain. Rows with the reference at or beyond its range are
@@ -516,10 +516,10 @@ def check_rows(s: Session, min_rows: int = 50, exclude_bends: float | None = Non
         notes.append(guard["note"])
     if guard["saturated_rows"]:
         notes.append(f"{guard['saturated_rows']} rows with the reference at or beyond its range "
-                     f"(+-{guard['range_uT']:g} uT, {guard['reference']}): "
+                     f"(+-{guard['range_uT']:g} uT, {guard['reference']}) "
                      + ("INCLUDED as requested (--include-saturated)" if include_saturated else
                         "left out (a clipped reference against the DUT's real reading looks like a nonlinearity; "
-                        "--include-saturated keeps them)"))
+                        "--include-saturated keeps them)") + f": {guard['why']}")
         if not include_saturated:
             ok &= ~sat
             if ok.sum() < min_rows:
@@ -561,53 +561,6 @@ def kept_rows(full: Session, keep: np.ndarray) -> Session:
     """The rows of :func:`check_rows`' session that ``keep`` marks; when it marks them all, the same arrays
     (a copy of a 10^6-row session is 76 MiB; nothing in the diagnosis writes to a session's arrays)."""
     return dataclasses.replace(full) if keep.all() else full.select(keep)
-
-
-def reference_guard(s: Session, usable: np.ndarray, include_saturated: bool) -> tuple[dict, np.ndarray]:
-    """The calibration fit's reference-range guard (firmware calibration.reference): the reference
-    named by the session metadata (``reference``; the default assumed with a note), its range, and the
-    usable rows with a component at or beyond ``(1 - margin)`` of it, counted per axis only where the
-    reference is evidently pinned there (:func:`_pinned`). Returns (summary, saturated mask)."""
-    name, rng, note = reference_range(s.metadata)
-    b = np.abs(np.asarray(s.ref_uT, dtype=float))
-    sat = np.zeros(len(s), bool)
-    unpinned = []
-    for j in range(3):
-        flagged = usable & saturated_rows(np.where(np.arange(3) == j, s.ref_uT, 0.0), rng)
-        if flagged.any():
-            if _pinned(b[flagged, j], np.abs(s.dut_uT[flagged, j]), rng):
-                sat |= flagged
-            else:
-                unpinned.append("xyz"[j])
-    if unpinned:
-        msg = (f"the reference reads at or beyond its range (+-{rng:g} uT, {name}) on {', '.join(unpinned)} but "
-               "follows the DUT there (not pinned): those rows are kept")
-        note = f"{note}; {msg}" if note else msg
-    return {"reference": name, "range_uT": float(rng), "assumed": note is not None and "assuming" in note,
-            "note": note, "saturated_rows": int(sat.sum()),
-            "saturated_excluded": bool(sat.any() and not include_saturated)}, sat
-
-
-#: A flagged reference axis counts as pinned when its spread over the flagged rows is below this fraction of
-#: the DUT's spread there (a clipped reference is flat while the DUT follows the real field).
-PINNED_SPREAD_RATIO = 0.5
-#: ... and sits within this fraction above its nominal range (the real clip: 107 uT on a 100 uT instrument).
-PINNED_LEVEL = 0.1
-
-
-def _pinned(ref_abs: np.ndarray, dut_abs: np.ndarray, range_uT: float) -> bool:
-    """True when the reference sits near its range over the flagged rows (median within PINNED_LEVEL of it)
-    and is flat there while the DUT is not (2-98 % spreads), or when there are too few rows to tell (the
-    fit's rule then stands). A real clip (reference at +-107 uT of a +-100 uT instrument, DUT at 119 uT) is
-    pinned; a simulator's ideal reference, or one that reads far beyond the nominal range (150 uT plateaus
-    held by the coils), is kept."""
-    if ref_abs.size < 5:
-        return True
-    if np.median(ref_abs) > (1.0 + PINNED_LEVEL) * range_uT:
-        return False
-    spread = np.diff(np.quantile(ref_abs, [0.02, 0.98]))[0]
-    d_spread = np.diff(np.quantile(dut_abs, [0.02, 0.98]))[0]
-    return bool(spread < PINNED_SPREAD_RATIO * d_spread)
 
 
 def run_edge_rows(t_s: np.ndarray, session: np.ndarray) -> np.ndarray:

@@ -188,3 +188,66 @@ def map_block(X: np.ndarray, Y: np.ndarray, mask: np.ndarray, mean: np.ndarray, 
 def _num(x) -> float | None:
     x = float(x)
     return x if np.isfinite(x) else None
+
+
+def constrained_oof(gap, trial, base, fold: np.ndarray, chip: CalPriors, z_max: float = IMPLAUSIBLE_Z):
+    """Held-out residual (N,3) of a linear trial fitted **within the part's prior**: per training set (every fold
+    left out in turn) the MAP fit of :func:`prior_check` (base flat, the trial's term columns with the chip's
+    Gaussian prior, residual scale the trial's held-out RMS) with each prior-bearing parameter also boxed to
+    ``mean +- z_max sd`` (scipy.optimize.lsq_linear), so no parameter the data force beyond the prior survives.
+    The fold systems come from per-fold normal equations (gap.fold_products). None when the trial has no
+    prior-bearing column, or with a modelled mount rotation (its joint estimator has no prior)."""
+    import scipy.linalg
+    import scipy.optimize
+
+    from magstack.ground.diagnose.gap import Block, fold_products, predict
+    from magstack.ground.diagnose.search import linear_block
+
+    terms = trial.extra.get("terms")
+    if trial.kind != "linear" or not terms or gap.rotation is not None:
+        return None
+    blk = linear_block(gap, trial.effect, terms)
+    cm, keep = gap.term_model(terms)
+    mean_t, sd_t = term_prior(gap, cm, keep, chip, trial.effect in gap.modelled)
+    allb = Block.join([base, blk], gap.n)
+    p = allb.p
+    mean = np.zeros((3, p))
+    sd = np.full((3, p), np.inf)
+    mean[:, base.p:base.p + len(keep)] = mean_t
+    sd[:, base.p:base.p + len(keep)] = sd_t
+    has = allb.mask & np.isfinite(sd) & (sd > 0)
+    if not has.any():
+        return None
+    Y = gap.target
+    folds = np.unique(fold)
+    code = np.searchsorted(folds, fold)
+    GC = fold_products([allb.X], [allb.X, Y], code, folds.size)
+    G, C = GC[:, :, :p], GC[:, :, p:]
+    sigma = np.maximum(np.asarray(trial.rmse_uT, dtype=float), 1e-9)
+    thetas = []
+    for f in range(folds.size):
+        Gt, Ct = G.sum(axis=0) - G[f], C.sum(axis=0) - C[f]
+        th = np.zeros((3, p))
+        for i in range(3):
+            cols = np.flatnonzero(allb.mask[i])
+            if cols.size == 0:
+                continue
+            w = has[i, cols]
+            A = Gt[np.ix_(cols, cols)] / sigma[i] ** 2
+            b = Ct[cols, i] / sigma[i] ** 2
+            A[np.flatnonzero(w), np.flatnonzero(w)] += 1.0 / sd[i, cols][w] ** 2
+            b[w] += mean[i, cols][w] / sd[i, cols][w] ** 2
+            d = np.sqrt(np.clip(np.diag(A), 1e-300, None))
+            An = A / np.outer(d, d) + 1e-10 * np.eye(cols.size)   # equilibrated; the ridge keeps it definite
+            R = scipy.linalg.cholesky(An, lower=False)
+            q = scipy.linalg.solve_triangular(R, b / d, trans="T")
+            lo = np.where(w, (mean[i, cols] - z_max * sd[i, cols]) * d, -np.inf)
+            hi = np.where(w, (mean[i, cols] + z_max * sd[i, cols]) * d, np.inf)
+            sol = scipy.optimize.lsq_linear(R, q, bounds=(lo, hi), method="bvls")
+            th[i, cols] = sol.x / d
+        thetas.append(th)
+    resid = np.full(Y.shape, np.nan)
+    for f in range(folds.size):
+        m = code == f
+        resid[m] = Y[m] - predict(allb.X[m], thetas[f], allb.mask)
+    return resid

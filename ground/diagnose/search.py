@@ -33,7 +33,6 @@ For each effect of :data:`magstack.firmware.effects.EFFECTS` that the simulator 
 """
 from __future__ import annotations
 
-import dataclasses
 import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -45,6 +44,7 @@ from magstack.firmware.calibration.linalg import qr_r
 from magstack.firmware.calibration.model import JOINT_TERMS, time_derivative
 from magstack.firmware.effects import EFFECT_NAMES, EFFECTS
 from magstack.firmware.errors import FitError
+from magstack.ground.diagnose import lag as lg
 from magstack.ground.diagnose import nonlinear as nl
 from magstack.ground.diagnose import rotation as rot
 from magstack.ground.diagnose.gap import (
@@ -52,15 +52,14 @@ from magstack.ground.diagnose.gap import (
     Block,
     Gap,
     fold_products,
-    gram,
     out_of_fold,
     out_of_fold_blocks,
     predict,
     solve,
     solve_gram,
     solve_normal,
-    solve_normal_batch,
 )
+from magstack.ground.diagnose.lag import LAG_TERMS, lag_block, lagged_temperature  # noqa: F401
 from magstack.ground.errors import DiagnosisError
 
 #: Temperature effects need at least this temperature span (degC) to be tested.
@@ -493,6 +492,40 @@ def hysteresis_block(gap: Gap, thresholds: np.ndarray, initial: np.ndarray | Non
     return blk
 
 
+#: An axis' hysteresis state counts as used when some output's remanence coefficient is this many standard errors
+#: (OLS, all rows) from 0.
+HYSTERESIS_AXIS_T = 3.0
+
+
+def hysteresis_axes_used(gap: Gap, base: Block, Y: np.ndarray, thr: np.ndarray, init: np.ndarray) -> list[int]:
+    """Axes whose state column (thresholds ``thr``, initial states ``init``, all rows) carries a remanence: some
+    output's coefficient beyond HYSTERESIS_AXIS_T OLS standard errors in base + hysteresis_block on all rows."""
+    blk = hysteresis_block(gap, thr, init)
+    # normal equations accumulated in row chunks (the joined N-row design is never formed)
+    GC = fold_products([base.X, blk.X], [base.X, blk.X, Y], np.zeros(gap.n, dtype=np.int64), 1)[0]
+    p = base.p + blk.p
+    G, C = GC[:, :p], GC[:, p:]
+    mask = np.hstack([base.mask, blk.mask])
+    th = solve_gram(G, C, mask)
+    yy = np.sum(Y ** 2, axis=0)
+    axes = [j for j in range(3) if np.isfinite(thr[j])]
+    first = p - len(axes)                       # the state columns come last, in axis order
+    z = np.zeros((3, len(axes)))
+    for i in range(3):
+        cols = np.flatnonzero(mask[i])
+        Gi = G[np.ix_(cols, cols)]
+        t = th[i, cols]
+        s2 = max(float(yy[i] - 2 * t @ C[cols, i] + t @ Gi @ t), 0.0) / max(gap.n - cols.size, 1)
+        d = np.sqrt(np.diag(Gi))
+        d[d == 0] = 1.0
+        cov = np.linalg.pinv(Gi / np.outer(d, d), rcond=RCOND, hermitian=True) / np.outer(d, d)
+        for k in range(len(axes)):
+            c = int(np.flatnonzero(cols == first + k)[0])
+            se = np.sqrt(max(cov[c, c], 0.0) * s2)
+            z[i, k] = abs(t[c]) / se if se > 0 else 0.0
+    return [j for k, j in enumerate(axes) if np.max(z[:, k]) >= HYSTERESIS_AXIS_T]
+
+
 def hysteresis_options(gap: Gap, cands: list, j: int, which: Sequence[int] | None = None) -> np.ndarray:
     """(N, 2 x len(which)) axis j's state column (:func:`nonlinear.hysteresis_state`) on the gap's rows for
     the thresholds ``cands[j][which]`` (all by default), each with the initial state -1 then +1. The state is
@@ -586,96 +619,6 @@ def choose_thresholds(gap: Gap, base: Block, Y: np.ndarray, cands: list, rows: n
         E = np.hstack([E, best_col[:, None]])
         mA = np.hstack([mA, np.ones((3, 1), bool)])
     return thr, init
-
-
-#: Calibration terms evaluated on the lagged temperature by the thermal-lag candidate.
-LAG_TERMS = ("temperature_gain", "temperature_offset")
-
-
-def lag_block(gap: Gap, tau_s: float, rows: np.ndarray | None = None) -> Block:
-    """The thermal-lag candidate's columns: the temperature terms (LAG_TERMS, plus a constant when the base
-    has none) evaluated on the temperature lagged by ``tau_s`` (nonlinear.lagged_temperature). ``rows``: the
-    columns on those rows only (the lag is filtered on the whole series; the terms are row by row)."""
-    temp = lagged_temperature(gap, tau_s)
-    if rows is not None:
-        gap, temp = gap.rows_view(rows), temp[rows]
-    lagged = dataclasses.replace(gap.session)
-    lagged.temp_c = temp
-    terms = LAG_TERMS if "offset" in gap.base_terms else ("offset",) + LAG_TERMS
-    blk = dataclasses.replace(gap, session=lagged).term_design(terms)
-    if not gap.forward:
-        blk = Block.join([blk, temperature_gain_higher_order(gap, lagged.temp_c)], gap.n)
-    names = [[n + "@lag" for n in row] for row in blk.names]
-    return Block(blk.X, blk.mask, names, blk.units)
-
-
-def lagged_temperature(gap: Gap, tau_s: float) -> np.ndarray:
-    """``nonlinear.lagged_temperature`` of the gap's session (read-only), kept on the gap per time constant
-    while the kept series hold at most LAG_CACHE_FLOATS floats: the search, the per-fold fits and the
-    surrogate test ask for the same grid of time constants (a short session also keeps the rows' time order,
-    :func:`nonlinear.lag_groups`)."""
-    cache = gap.__dict__.setdefault("_lag_temp", {})
-    key = float(tau_s)
-    if key not in cache:
-        s = gap.session
-        groups = gap.__dict__.get("_lag_groups")      # the rows' time order: kept for a short session too
-        if groups is None:
-            groups = nl.lag_groups(s.t_s, s.session)
-            if gap.n <= LAG_CACHE_FLOATS:
-                gap.__dict__["_lag_groups"] = groups
-        temp = nl.lagged_temperature(s.t_s, s.temp_c, s.session, key, groups)
-        temp.setflags(write=False)
-        if (len(cache) + 1) * gap.n > LAG_CACHE_FLOATS:
-            return temp
-        cache[key] = temp
-    return cache[key]
-
-
-#: Floats of lagged temperature series a gap keeps (:func:`lagged_temperature`).
-LAG_CACHE_FLOATS = 500_000
-
-
-def lag_train_sse(gap: Gap, base: Block, Y: np.ndarray, fold: np.ndarray, grid: np.ndarray) -> np.ndarray:
-    """(folds, taus) training SSE of base + lag_block(tau) for each fold left out, from per-fold Gram
-    matrices: the base's own fold products formed once, per tau only the lag columns' products with the
-    base, themselves and the target on each fold's rows (the folds' systems solved together where every
-    axis uses every column)."""
-    folds = np.unique(fold)
-    order = np.argsort(fold, kind="stable")             # rows grouped by fold, in row order within each
-    ends = np.searchsorted(fold[order], folds, side="right")
-    spans = [slice(int(a), int(b)) for a, b in zip(np.r_[0, ends[:-1]], ends, strict=True)]
-    Ys = Y[order]
-    Bs = base.X[order]
-    yy = np.sum(Y ** 2, axis=0)
-    yt = [yy - np.sum(Ys[sp] ** 2, axis=0) for sp in spans]
-    yt_all = np.array(yt).sum(axis=1)                   # (folds,) over the axes
-    pb, nf = Bs.shape[1], len(spans)
-    base_f = [gram(Bs[sp], Ys[sp]) for sp in spans]     # the base's fold products: the same for every tau
-    out = np.full((folds.size, grid.size), np.inf)
-    for k, tau in enumerate(grid):
-        lag = lag_block(gap, float(tau))
-        L = lag.X[order]
-        p = pb + L.shape[1]
-        mask = np.hstack([base.mask, lag.mask])
-        Gf, Cf = np.empty((nf, p, p)), np.empty((nf, p, 3))
-        for f, sp in enumerate(spans):                  # one fold's rows at a time
-            Lf = L[sp]
-            Gf[f, :pb, :pb], Cf[f, :pb] = base_f[f]
-            Gf[f, :pb, pb:] = Bs[sp].T @ Lf
-            Gf[f, pb:, :pb] = Gf[f, :pb, pb:].T
-            Gf[f, pb:, pb:] = Lf.T @ Lf
-            Cf[f, pb:] = Lf.T @ Ys[sp]
-        Gt = Gf.sum(axis=0)[None] - Gf                  # (folds, p, p) training Gram matrices
-        Ct = Cf.sum(axis=0)[None] - Cf                  # (folds, p, 3)
-        if mask.all():               # every axis uses every column: the folds' systems solved together
-            th = solve_normal_batch(Gt, Ct)                         # (folds, p, 3)
-            out[:, k] = (yt_all - 2 * np.einsum("fpa,fpa->f", th, Ct)
-                         + np.einsum("fpa,fpa->f", th, Gt @ th))
-            continue
-        for i in range(nf):
-            th = np.where(mask, solve_gram(Gt[i], Ct[i], mask), 0.0)
-            out[i, k] = float(sum(yt[i][a] - 2 * th[a] @ Ct[i][:, a] + th[a] @ Gt[i] @ th[a] for a in range(3)))
-    return out
 
 
 def delay_sse_fn(gap: Gap, rows: np.ndarray):
@@ -792,36 +735,41 @@ def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: n
         thr_all = choose_thresholds(gap, base, Y, cand.thresholds, np.ones(gap.n, bool))
         cols = nl.hysteresis_state(hist, *thr_all)[idx]
         telling = nl.before_first_excursion(hist, idx, thr_all[0], gap.session.session)
+        hyst_axes = hysteresis_axes_used(gap, base, Y, *thr_all)
     elif cand.kind == "joint":   # mount_rotation (rotation.py)
         mc = rot.mount_columns(gap)
         r, angles = rot.out_of_fold(base, mc, Y, fold, base_trial.rmse_uT)
         cols = mc.flat(np.arange(gap.n)[SUB(gap.n)])
         n_par = mc.q
-    elif cand.kind == "lag":   # thermal lag: tau chosen per fold by training SSE, like the delay
+    elif cand.kind == "lag":   # thermal lag: tau chosen per fold by training SSE, like the delay (lag.py)
         coarse = nl.lag_grid(gap.session.t_s, gap.session.session)
-        tr = lag_train_sse(gap, base, Y, fold, coarse)
+        tr = lg.train_sse(gap, base, Y, fold, coarse)
         # a fine grid between the neighbours of the best coarse point (summed over folds), where the
         # parabola's error is far below the held-out effect of a wrong time constant
         k = int(np.argmin(tr.sum(axis=0)))
         fine = np.geomspace(coarse[max(k - 1, 0)], coarse[min(k + 1, coarse.size - 1)], nl.LAG_FINE_POINTS)
         grid = np.unique(np.r_[coarse, fine])
-        tr = np.hstack([tr, lag_train_sse(gap, base, Y, fold, fine)])[:, np.argsort(np.r_[coarse, fine])]
+        tr = np.hstack([tr, lg.train_sse(gap, base, Y, fold, fine)])[:, np.argsort(np.r_[coarse, fine])]
         keep = np.r_[True, np.diff(np.sort(np.r_[coarse, fine])) > 0]
         tr = tr[:, keep]
         folds = np.unique(fold)
         fold_tau = [nl.refine_log_minimum(grid, tr[i]) for i in range(folds.size)]
         r = np.full(Y.shape, np.nan)
+        fold_delta = [None] * folds.size
         for tau in set(fold_tau):
-            blk = Block.join([base, lag_block(gap, tau)], gap.n)
-            for f, ft in zip(folds, fold_tau, strict=True):
-                if ft == tau:
-                    r[fold == f] = fold_residual(gap, blk, Y, fold != f, fold == f)
+            dz = lg.design(gap, tau)
+            ft = lg.fits(gap, base, Y, fold, dz)
+            for i, (f, t_f) in enumerate(zip(folds, fold_tau, strict=True)):
+                if t_f == tau:
+                    test = np.flatnonzero(fold == f)
+                    r[test] = Y[test] - lg.predict(base, dz, ft.theta[i], ft.delta[i], test)
+                    fold_delta[i] = ft.delta[i]
         # all rows: each row is in the training set of all folds but its own: the sum over folds orders the
         # time constants as the training SSE on all rows would, without another pass
         cand.lag_tau_s = nl.refine_log_minimum(grid, tr.sum(axis=0))
-        own = lag_block(gap, cand.lag_tau_s)
-        cols = own.X
-        n_par = int(own.mask.sum()) + 1
+        dz = lg.design(gap, cand.lag_tau_s)
+        cols = dz.lag.X
+        n_par = int(dz.lag.mask.sum()) + 1 + dz.R
     else:   # delay
         r = np.full(Y.shape, np.nan)
         grid = nl.delay_grid(gap.session.t_s)
@@ -852,7 +800,8 @@ def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: n
         t.extra["terms"] = cand.terms
         t.extra["n_params"] = n_par
     elif cand.kind == "lag":
-        t.extra.update(n_params=n_par, fold_tau_s=fold_tau, tau_s=cand.lag_tau_s, grid_s=grid)
+        t.extra.update(n_params=n_par, fold_tau_s=fold_tau, tau_s=cand.lag_tau_s, grid_s=grid,
+                       fold_delta_c=fold_delta, restarts=dz.R)
     elif cand.kind == "joint":
         t.extra["n_params"] = n_par
         t.extra["fold_angles_rad"] = angles
@@ -865,9 +814,11 @@ def evaluate(gap: Gap, cand: Candidate, base: Block, fold: np.ndarray, blocks: n
     elif cand.kind == "hysteresis":
         t.extra["fold_thresholds_uT"] = fold_thr
         t.extra["telling_rows"] = telling
-        # one remanence vector per axis with excursions (the threshold and the initial sign are choices among a
-        # few options, like the delay grid), plus the constant when the base has none
-        t.extra["n_params"] = 3 * sum(1 for c in cand.thresholds if c) + (0 if "offset" in gap.base_terms else 3)
+        # one remanence vector per axis whose state the fit uses (the threshold and the initial sign are choices
+        # among a few options, like the delay grid), plus the constant when the base has none; an axis whose state
+        # column fits nothing (its excursions leave no remanence) is not a parameter the explanation needs
+        t.extra["hysteresis_axes"] = ["xyz"[j] for j in hyst_axes]
+        t.extra["n_params"] = 3 * max(len(hyst_axes), 1) + (0 if "offset" in gap.base_terms else 3)
     b = base_trial.rmse_norm_uT
     t.shrink = float(1.0 - t.rmse_norm_uT / b) if b > 0 else 0.0
     return t
@@ -894,36 +845,61 @@ def surrogate_tests(gap: Gap, cands: list[Candidate], trials: list[Trial], base:
 
 
 def hysteresis_or_session_offset(h: Trial, so: Trial, blocks: np.ndarray, block_session: np.ndarray, alpha: float,
-                                 baseline_rmse_uT: float) -> tuple[Trial | None, str | None]:
+                                 baseline_rmse_uT: float) -> tuple[Trial | None, str | None, dict | None]:
     """Hysteresis against per-session offsets, both significant: they differ on the rows of a power cycle
     before its first excursion (the remanence carried over from the previous cycle against the cycle's
     own constant; after it both are constant until the next excursion). The signed-rank test on the
-    per-block held-out SSE differences over those rows decides when it rejects either way; otherwise the
-    one with fewer parameters (hysteresis: one remanence vector per axis with excursions; per-session
-    offsets: three per session) is named if it closes as much of the gap (:func:`closes_as_much`).
-    None: no decision here."""
+    per-block held-out SSE differences over those rows decides when it rejects either way. Otherwise they are
+    compared on every held-out block (grouped units, both ways): when neither is better there the held-out errors
+    tie (a near-tie: a state flipping once per power cycle is a per-session offset but for those few rows) and
+    parsimony decides: the one with fewer parameters (hysteresis: one remanence vector per axis whose state the
+    fit uses; per-session offsets: one vector per session beyond the first) is named; when one is better on
+    every block it is named. Returns (choice or None: no decision here, note, the comparison for the JSON)."""
     tell = h.extra.get("telling_rows")
     if tell is None or h.resid is None or so.resid is None or not tell.any():
-        return None, None
+        return None, None, None
     nb = block_session.size
     sse = [np.bincount(blocks[tell], weights=np.sum(np.nan_to_num(np.asarray(t.resid, float)[tell]) ** 2, axis=1),
                        minlength=nb) for t in (h, so)]
     used = np.bincount(blocks[tell], minlength=nb) > 0
     d = (sse[1] - sse[0])[used]              # > 0: hysteresis better on the telling rows
     n_tell = int(tell.sum())
-    if paired_worse_p(d) < alpha:
+    p_tell = (paired_worse_p(d), paired_worse_p(-d))      # (session_offset worse, hysteresis worse)
+    g = max(h.extra.get("group", 1), so.extra.get("group", 1))
+    d_all = grouped(so.block_sse - h.block_sse, block_session, g)
+    p_all = (paired_worse_p(d_all), paired_worse_p(-d_all))
+    info = {"effects": ["hysteresis", "session_offset"], "rmse_nT": [h.rmse_norm_uT * 1e3, so.rmse_norm_uT * 1e3],
+            "n_params": [h.n_params, so.n_params], "telling_rows": n_tell,
+            "p_telling_rows": {"session_offset_worse": p_tell[0], "hysteresis_worse": p_tell[1]},
+            "p_all_blocks": {"session_offset_worse": p_all[0], "hysteresis_worse": p_all[1]}}
+    if p_tell[0] < alpha:
+        info["decided_by"] = "telling rows"
         return h, (f"hysteresis and session_offset compared on the {n_tell} rows before the first excursion of each "
-                   "power cycle (where they differ): hysteresis predicts them better")
-    if paired_worse_p(-d) < alpha:
+                   "power cycle (where they differ): hysteresis predicts them better"), info
+    if p_tell[1] < alpha:
+        info["decided_by"] = "telling rows"
         return so, (f"hysteresis and session_offset compared on the {n_tell} rows before the first excursion of "
-                    "each power cycle (where they differ): session_offset predicts them better")
+                    "each power cycle (where they differ): session_offset predicts them better"), info
+    if p_all[0] < alpha or p_all[1] < alpha:
+        better = h if p_all[0] < alpha else so
+        info["decided_by"] = "all held-out blocks"
+        return better, (f"hysteresis and session_offset are not told apart on the {n_tell} rows before each power "
+                        f"cycle's first excursion; on every held-out block {better.effect} is better "
+                        f"(p = {min(p_all):.2g})"), info
     simple, rich = (h, so) if h.n_params < so.n_params else (so, h)
-    if simple.n_params < rich.n_params and closes_as_much(simple.rmse_norm_uT, min(h.rmse_norm_uT, so.rmse_norm_uT),
-                                                          baseline_rmse_uT):
-        return simple, (f"{simple.effect} ({simple.n_params} parameters) and {rich.effect} ({rich.n_params}) are not "
-                        f"told apart on the {n_tell} rows before each power cycle's first excursion: the one with "
-                        "fewer parameters is named")
-    return None, None
+    info["near_tie"] = True
+    if simple.n_params < rich.n_params:
+        info["decided_by"] = "parsimony"
+        what = {"hysteresis": "one remanence vector per axis with a state", "session_offset": "one offset vector per "
+                "session beyond the first"}
+        return simple, (f"near-tie: hysteresis {h.rmse_norm_uT * 1e3:.1f} nT and session_offset "
+                        f"{so.rmse_norm_uT * 1e3:.1f} nT held out are not told apart on the {n_tell} rows before each "
+                        f"power cycle's first excursion (p = {min(p_tell):.2g}) nor on all held-out blocks "
+                        f"(p = {min(p_all):.2g}): parsimony names {simple.effect} ({simple.n_params} parameters, "
+                        f"{what[simple.effect]}) over {rich.effect} ({rich.n_params}, {what[rich.effect]})"), info
+    info["decided_by"] = None
+    return None, (f"near-tie: hysteresis and session_offset ({h.n_params} parameters each) are not told apart "
+                  f"(held out {h.rmse_norm_uT * 1e3:.1f} and {so.rmse_norm_uT * 1e3:.1f} nT)"), info
 
 
 def choose_verdict(sig: list[Trial], baseline_rmse_uT: float, block_session: np.ndarray, alpha: float,
@@ -937,17 +913,24 @@ def choose_verdict(sig: list[Trial], baseline_rmse_uT: float, block_session: np.
     v = sig[0]
     pair = {t.effect: t for t in sig if t.effect in ("hysteresis", "session_offset")}
     if len(pair) == 2 and v.effect in pair and blocks is not None:
-        choice, note = hysteresis_or_session_offset(pair["hysteresis"], pair["session_offset"], blocks,
-                                                    block_session, alpha, baseline_rmse_uT)
+        choice, note, info = hysteresis_or_session_offset(pair["hysteresis"], pair["session_offset"], blocks,
+                                                          block_session, alpha, baseline_rmse_uT)
+        if info is not None:
+            v.extra["hysteresis_vs_session_offset"] = info
+            if choice is not None:
+                choice.extra["hysteresis_vs_session_offset"] = info
         if choice is not None:
             return choice, note
+        tie_note = note
+    else:
+        tie_note = None
     for t in sorted(sig[1:], key=lambda t: (t.n_params, t.rmse_norm_uT)):
         g = max(t.extra.get("group", 1), v.extra.get("group", 1))
         if (t.n_params < v.n_params and closes_as_much(t.rmse_norm_uT, v.rmse_norm_uT, baseline_rmse_uT)
                 and paired_worse_p(grouped(t.block_sse - v.block_sse, block_session, g)) >= alpha):
             return t, (f"{t.effect} ({t.n_params} parameters) explains the gap as well as {v.effect} "
                        f"({v.n_params}) on held-out blocks: the simpler one is named")
-    return v, None
+    return v, tie_note
 
 
 #: Held-out residuals kept while searching: the lowest-RMSE ones (the test template, the noise floor) and

@@ -438,10 +438,16 @@ def candidate_designs(gap: Gap, cand, order: np.ndarray) -> list[AxisDesign]:
         # the time constant is searched on the data, so it is searched on every surrogate too: one option per
         # coarse-grid tau (plus the one chosen), chosen per fold by training SSE as the search does (a fixed tau
         # fitted on the data alone made the test anti-conservative: 1 of 4 orbit null sessions named a lag)
+        # each option on the die temperature of the data's own fit at that time constant (its starting offsets per
+        # stretch, lag.py, held: a few numbers on thousands of rows; free per-axis transients on every surrogate
+        # widen the statistic's spread so far that the test runs to its 1999 surrogates and loses power)
+        from magstack.ground.diagnose import lag as lg
+        base = gap.base_design()
         taus = np.unique(np.r_[nl.lag_grid(gap.session.t_s, gap.session.session), cand.lag_tau_s])
         own = [[], [], []]
         for tau in taus:
-            for i, c in enumerate(_per_axis(sr.lag_block(gap, float(tau), order))):
+            die = lg.die_temperature_on(gap, base, float(tau), order)          # on the tested rows
+            for i, c in enumerate(_per_axis(sr.lag_block(gap, float(tau), order, temp=die, temp_on_rows=True))):
                 own[i].append(c)
     elif cand.kind == "joint":
         mc = rot.mount_columns(gap)

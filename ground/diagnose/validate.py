@@ -294,8 +294,37 @@ def _row(kind, withheld, scale, seed, d, seconds) -> dict:
             "top": [(r["effect"], round(r["rmse_nT"], 1), r["significant"]) for r in j["ranking"][:3]]}
 
 
-def _jobs(seeds: int, n_null: int | None) -> list[tuple]:
+#: Quick mode (``validate-diagnosis --quick``): every effect at realistic strength only, these scenarios at
+#: realistic strength, one orbit effect and one orbit null, the (b) path's stale-offset table and parameter file, and
+#: QUICK_NULLS null sessions with each noise. What it leaves out: half strength, the constant-field and short-session
+#: scenarios, the other orbit effects, the table with a temperature offset and the unchanged table.
+QUICK_SCENARIOS = ("one_field_thermal", "hysteresis_one_excursion", "thermal_lag")
+QUICK_ORBIT = ("temperature_gain",)
+QUICK_NULLS = 5
+QUICK_COVERS = ("every nameable effect at realistic strength (one session each), the one-field thermal, "
+                "one-excursion hysteresis and thermal-lag scenarios, one orbit effect "
+                f"({', '.join(QUICK_ORBIT)}) and one orbit null, "
+                "the (b) path with a stale offset (table and parameter file), and the null sessions (white and slow "
+                "noise); not: half strength, the constant-field and short-session scenarios, the other orbit effects")
+
+
+def _jobs(seeds: int, n_null: int | None, quick: bool = False) -> list[tuple]:
     effects = [e for e in nameable() if e in STRENGTHS]
+    if quick:
+        n_null = n_null if n_null is not None else QUICK_NULLS
+        jobs = [("withheld", e, 1.0, 1000 * k + i) for k, e in enumerate(effects) for i in range(seeds)]
+        for k, (kind, (eff, *_rest)) in enumerate(SCENARIOS.items()):
+            if kind in QUICK_SCENARIOS:
+                jobs += [(kind, e, 1.0, 100_000 + 1000 * k + 10 * j + i) for j, e in enumerate(eff or effects)
+                         for i in range(seeds)]
+        jobs += [("orbit", e, 1.0, 200_000 + 10 * k + i) for k, e in enumerate(ORBIT_EFFECTS) if e in QUICK_ORBIT
+                 for i in range(seeds)]
+        jobs += [("orbit_null", None, 0.0, 210_000 + i) for i in range(seeds)]
+        jobs += [("null", None, 0.0, 50_000 + i) for i in range(n_null)]
+        jobs += [("null_slow", None, 0.0, 90_000 + i) for i in range(n_null)]
+        jobs += [("table", "offset", 1.0, 70_000 + i) for i in range(seeds)]
+        jobs += [("sim", "offset", 1.0, 80_000 + i) for i in range(seeds)]
+        return jobs
     n_null = n_null if n_null is not None else max(20, 10 * seeds)
     jobs = [("withheld", e, s, 1000 * k + i) for k, e in enumerate(effects) for s in (1.0, 0.5)
             for i in range(seeds)]
@@ -312,15 +341,16 @@ def _jobs(seeds: int, n_null: int | None) -> list[tuple]:
     return jobs
 
 
-def jobs_count(seeds: int = 1, n_null: int | None = None) -> int:
+def jobs_count(seeds: int = 1, n_null: int | None = None, quick: bool = False) -> int:
     """Number of sessions :func:`run_validation` simulates and diagnoses (for a progress bar)."""
-    return len(_jobs(seeds, n_null))
+    return len(_jobs(seeds, n_null, quick))
 
 
 def run_validation(out_dir, seeds: int = 1, n_null: int | None = None, duration_s: float = DURATION_S,
-                   on_session=None) -> dict:
-    """Run the whole validation, write results into ``out_dir`` (created) and return the summary dict.
-    ``on_session()`` is called after each session (progress).
+                   on_session=None, quick: bool = False) -> dict:
+    """Run the whole validation (``quick``: the subset of :data:`QUICK_COVERS`, the same targets), write results
+    into ``out_dir`` (created) and return the summary dict. ``on_session()`` is called after each session
+    (progress).
 
     Interrupted by ``KeyboardInterrupt`` (Ctrl-C; SIGTERM / SIGHUP under the ``magstack`` command), the
     sessions completed so far are summarised and written as usual, the summary saying ``interrupted: true``
@@ -334,7 +364,7 @@ def run_validation(out_dir, seeds: int = 1, n_null: int | None = None, duration_
     out = Path(out_dir)
     effects = [e for e in nameable() if e in STRENGTHS]
     not_validated = [e for e in nameable() if e not in STRENGTHS]
-    jobs = _jobs(seeds, n_null)
+    jobs = _jobs(seeds, n_null, quick)
     rows = []
     opts = Options()
     stopped_by = None
@@ -371,7 +401,7 @@ def run_validation(out_dir, seeds: int = 1, n_null: int | None = None, duration_
         stopped_by = getattr(exc, "signal_name", None) or "SIGINT"
     summary = summarise(rows, effects, not_validated, time.perf_counter() - t_all)
     summary.update(interrupted=stopped_by is not None, stopped_by=stopped_by, sessions_completed=len(rows),
-                   sessions_planned=len(jobs))
+                   sessions_planned=len(jobs), quick=quick, covers=QUICK_COVERS if quick else "everything")
     if stopped_by is not None:
         summary["targets"] = dict.fromkeys(summary["targets"])
         log.info("validate-diagnosis: interrupted (%s) after %d of %d sessions", stopped_by, len(rows), len(jobs))
@@ -501,7 +531,9 @@ def _write(out: Path, rows: list[dict], summary: dict) -> None:
     lines = ["withheld\\verdict," + ",".join(cols)]
     lines += [w + "," + ",".join(str(summary["confusion"][w][c]) for c in cols) for w in labels]
     atomic_write_text(out / "confusion.csv", "\n".join(lines) + "\n")
-    md = ["# Withheld-effect validation", ""]
+    md = ["# Withheld-effect validation" + (" (quick)" if summary.get("quick") else ""), ""]
+    if summary.get("quick"):
+        md += [f"Quick mode: {summary['covers']}.", ""]
     if summary.get("interrupted"):
         md += [f"**Interrupted** ({summary['stopped_by']}) after {summary['sessions_completed']} of "
                f"{summary['sessions_planned']} sessions: partial results, targets not decided.", ""]

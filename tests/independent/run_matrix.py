@@ -1,7 +1,6 @@
 """Confusion matrix of ``magstack diagnose`` on independent sessions (docs/diagnosis-independent.md).
 
-    cd /work/wt/diag && /work/venv/diag/bin/python /work/wt/ind/tests/independent/run_matrix.py \
-        --seeds 1 2 3 --strengths 1 0.5 --clean-seeds 10 --out /tmp/matrix.json
+    python tests/independent/run_matrix.py --seeds 1 2 3 --strengths 1 0.5 --clean-seeds 10 --out matrix.json
 
 Runs whatever ``magstack`` the interpreter imports. Prints one line per case and the matrix.
 """

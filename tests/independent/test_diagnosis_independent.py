@@ -7,7 +7,7 @@ strength on top of gain matrix + offset + noise; the effect is withheld from ``-
 (``gain_offset``; ``offset`` for gain and misalignment). Pass: the verdict is the effect (or, when the
 diagnosis says it cannot tell the verdict from its runner-up, the runner-up is the effect), and the
 held-out gap after adding it is within 1.3x the diagnosis' own noise floor. Clean sessions must give
-``none``. Results against the diag branch: docs/diagnosis-independent.md.
+``none``. Results: docs/diagnosis-independent.md.
 """
 from __future__ import annotations
 
@@ -58,7 +58,7 @@ def _explain(o) -> str:
             f"ranking (held-out nT, * significant): {rank}")
 
 
-#: Findings of this harness that the diagnosis does not yet meet (docs/diagnosis-independent.md, "Findings").
+#: Cases of this harness that the diagnosis does not yet meet (none at present; docs/diagnosis-independent.md).
 #: Each is a known limit under work, run and reported as xfail (not strict: a fix shows as XPASS); remove the
 #: entry when it is fixed. Keyed by (test name, effect); effect None = any parameter.
 KNOWN_LIMITS: dict = {
@@ -130,7 +130,8 @@ def test_false_alarm_rate_on_clean_sessions(tmp_path):
 @pytest.mark.slow
 def test_nonlinearity_with_excursions_at_random_times(tmp_path):
     """Control for the even bench program: the same unit and effect with excursions at random times,
-    so an axis' two excursions rarely share a held-out fold (docs/diagnosis-independent.md, finding 2)."""
+    so an axis' two excursions rarely share a held-out fold (the folds are stratified by field magnitude:
+    docs/diagnosis.md, "Which effect")."""
     _check_effect(case(tmp_path, "nonlinearity", 3, excursion_times="random"))
 
 
