@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -256,3 +257,14 @@ def test_demo_reference_stays_inside_the_fvm400_range(demo, tmp_path, capsys):
     assert main(["fit", str(res.align.paired_path), "--no-holdout", "--out", str(tmp_path / "c.json"), "--json"]) == 0
     stats = json.loads(capsys.readouterr().out)["stats"]
     assert stats["saturated_rows"] == 0 and stats["n_used"] > 0
+
+
+def test_report_and_console_show_the_same_wall_time(demo):
+    res, lines = demo
+    console = next(ln for ln in lines if ln.startswith("wall time"))
+    html = (res.config.out_dir / "report.html").read_text()
+    page = re.search(r"<td>wall time[^<]*</td><td>([^<]*)</td>", html).group(1)
+    assert console.endswith(f"  {page}") and page == f"{res.wall_s:.1f} s"
+    doc = json.loads((res.config.out_dir / "summary.json").read_text())
+    assert doc["wall_s"]["steps_1_to_7"] == pytest.approx(res.wall_s)
+    assert doc["wall_s"]["total"] >= res.wall_s

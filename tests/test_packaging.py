@@ -1,6 +1,7 @@
 """One import root: the folders map onto ``magstack.*`` and nothing else is installed at top level."""
 from __future__ import annotations
 
+import shutil
 import subprocess
 import sys
 import tomllib
@@ -61,3 +62,17 @@ def test_license_typing_marker_changelog_and_extras():
     assert (ROOT / "magstack" / "py.typed").is_file() and "py.typed" in CONFIG["package-data"]["magstack"]
     assert "plot" not in project["optional-dependencies"]
     assert (ROOT / "CHANGELOG.md").read_text().startswith("# Changelog")
+
+
+def test_the_demos_default_output_folder_is_git_ignored():
+    """`magstack demo` run in the checkout (the README's first command) leaves `git status` clean."""
+    from magstack.cli.main import build_parser
+
+    default = Path(build_parser(load="demo").parse_args(["demo"]).out)
+    assert not default.is_absolute() and len(default.parts) == 1
+    patterns = [p.strip() for p in (ROOT / ".gitignore").read_text().splitlines()]
+    assert f"/{default}/" in patterns
+    git = shutil.which("git")
+    if git and (ROOT / ".git").exists():
+        r = subprocess.run([git, "-C", str(ROOT), "check-ignore", "-q", f"{default}/report.html"], timeout=60)
+        assert r.returncode == 0

@@ -18,6 +18,9 @@ from magstack.firmware.calibration.model import CAL_TERMS, MODELS
 from magstack.firmware.calibration.reference import reference_range
 from magstack.firmware.errors import CalTableInvalid, FitError
 
+#: The optional extra this command needs (cli/extras.py): checked before this module is imported.
+EXTRA = "ground"
+
 log = logging.getLogger(__name__)
 
 

@@ -1,6 +1,6 @@
 """One self-contained HTML page: headings, paragraphs, tables and PNG figures embedded as base64.
 
-Figures come from matplotlib with the Agg backend (no display needed; a core dependency). The page
+Figures come from matplotlib with the Agg backend (no display needed; the ``ground`` extra). The page
 is written whole or not at all (:func:`magstack.data.io.atomic_write_text`: exclusive temp file,
 fsync, rename). Text is HTML-escaped.
 """
@@ -29,8 +29,8 @@ def require_matplotlib():
     try:
         import matplotlib
     except ImportError:
-        raise ConfigurationError("the HTML report needs matplotlib (a dependency of magstack): "
-                                 "pip install matplotlib") from None
+        raise ConfigurationError("the HTML report needs matplotlib (the ground extra): "
+                                 "pip install 'magstack[ground]'") from None
     matplotlib.use("Agg", force=True)
     import matplotlib.pyplot as plt
     return plt
