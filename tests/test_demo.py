@@ -196,24 +196,24 @@ def test_files_exist_and_parse(demo):
     assert json.loads((out / "probe.json").read_text())["ads1248_id"] == res.probe.ads1248_id
 
 
-def test_cli_demo_runs_and_is_deterministic(tmp_path, capsys):
-    a, b = tmp_path / "a", tmp_path / "b"
+def test_cli_demo_runs_and_is_deterministic(tmp_path, capsys, shared_demo):
+    a, b = tmp_path / "a", shared_demo["out"]
     assert main(["demo", "--out-dir", str(a), "--seconds", "300", "--seed", "1"]) == 0
     text = capsys.readouterr().out
     for n in range(1, 9):
         assert f"[{n}/8]" in text
     assert "summary" in text and "files written" in text
-    # the same run with --json: stdout holds only the summary figures as strict JSON
-    assert main(["demo", "--out-dir", str(b), "--seconds", "300", "--seed", "1", "--json"]) == 0
-    cap = capsys.readouterr()
+    # the same run with --json (the shared run, tests/conftest.py): stdout holds only the summary figures as
+    # strict JSON
 
     def refuse(c):
         raise ValueError(f"non-standard JSON constant {c}")
 
-    doc = json.loads(cap.out, parse_constant=refuse)
+    assert shared_demo["code"] == 0
+    doc = json.loads(shared_demo["stdout"], parse_constant=refuse)
     assert doc["command"] == "demo" and doc["exit_code"] == 0 and doc["out_dir"] == str(b)
     assert {"probe", "bench", "align", "fit", "table", "holdout", "loop", "wall_s", "files"} <= set(doc)
-    assert doc["loop"]["health"]["error_count"] == 2 and cap.err == ""
+    assert doc["loop"]["health"]["error_count"] == 2 and shared_demo["stderr"] == ""
     for name in ("session.csv", "session-paired.csv", "cal.json", "holdout-calibrated.csv", "flight-loop.csv"):
         assert (a / name).read_bytes() == (b / name).read_bytes(), name
     html = (a / "report.html").read_text()

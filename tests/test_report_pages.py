@@ -43,10 +43,12 @@ class _Text(HTMLParser):
 
 
 @pytest.fixture(scope="module")
-def pages(tmp_path_factory):
-    """(demo page, diagnose page, layout problems recorded by Report while writing them)."""
+def pages(tmp_path_factory, shared_demo):
+    """(demo page, diagnose page, layout problems recorded by Report while writing them). The demo page is the
+    shared demo run's (tests/conftest.py), which recorded its own."""
     d = tmp_path_factory.mktemp("pages")
-    problems: list = []
+    assert shared_demo["code"] == 0, shared_demo["stderr"]
+    problems: list = [tuple(p) for p in shared_demo["layout_problems"]]
     real_write = Report.write
 
     def write(self, path):
@@ -56,13 +58,12 @@ def pages(tmp_path_factory):
     mp = pytest.MonkeyPatch()
     mp.setattr(Report, "write", write)
     try:
-        assert main(["demo", "--out", str(d / "demo"), "--seconds", "300", "-q"]) == 0
         s = d / "s.csv"
         assert main(["simulate", "--program", "full", "--seconds", "900", "--out", str(s), "-q"]) == 0
         assert main(["diagnose", str(s), "--block-s", "30", "--report", str(d / "rep"), "-q"]) == 0
     finally:
         mp.undo()
-    return d / "demo" / "report.html", d / "rep" / "diagnosis.html", problems
+    return shared_demo["out"] / "report.html", d / "rep" / "diagnosis.html", problems
 
 
 def test_no_figure_text_is_cut_off(pages):
@@ -146,7 +147,7 @@ def test_interrupted_report_leaves_no_empty_folder(tmp_path, monkeypatch):
 
 def test_page_titles_name_their_inputs(pages):
     demo_title = re.search(r"<h1>(.*?)</h1>", pages[0].read_text()).group(1)
-    assert re.search(r"seed 0, 300 s of coil program &#x27;full_in_range&#x27;, held-out 300 s", demo_title), demo_title
+    assert re.search(r"seed 1, 300 s of coil program &#x27;full_in_range&#x27;, held-out 300 s", demo_title), demo_title
     diag_title = re.search(r"<h1>(.*?)</h1>", pages[1].read_text()).group(1)
     assert diag_title.startswith("magstack diagnose s.csv: "), diag_title
 
