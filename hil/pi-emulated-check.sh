@@ -213,12 +213,17 @@ took
 # 6. the systemd service recipe of hil/README.md -------------------------------------------------------------
 if [ $service = 1 ]; then
     stage "service recipe of hil/README.md, run as pi with sudo"
+    # sudo is setuid: under qemu user mode the kernel honours that only with the handler's C (credentials) flag
+    grep -q '^flags: .*C' "$binfmt/qemu-aarch64" || die "sudo cannot work inside the root: the qemu-aarch64 \
+binfmt_misc handler lacks the C (credentials) flag (hil/README.md, 'Emulated Pi check', says how to add it)"
     # what Raspberry Pi OS has and a minbase Debian root lacks: sudo (pi without a password), systemd and its
     # NTP client, the device groups, home directories of mode 0700
     chroot "$root" /bin/sh -c 'DEBIAN_FRONTEND=noninteractive apt-get install -y -q sudo systemd systemd-timesyncd &&
         for g in i2c spi gpio; do getent group $g >/dev/null || groupadd --system $g; done &&
         usermod -aG sudo pi && echo "pi ALL=(ALL) NOPASSWD: ALL" > /etc/sudoers.d/010_pi-nopasswd &&
-        chmod 0440 /etc/sudoers.d/010_pi-nopasswd && chmod 0700 /home/pi' >"$work/logs/service-prep.log" 2>&1
+        chmod 0440 /etc/sudoers.d/010_pi-nopasswd && chmod 0700 /home/pi &&
+        { grep -qw "$(hostname)" /etc/hosts || echo "127.0.1.1 $(hostname)" >> /etc/hosts; }' \
+        >"$work/logs/service-prep.log" 2>&1
     as_pi 'sudo -n true' >>"$work/logs/service-prep.log" 2>&1 || die "sudo does not work for pi inside the root \
 (under qemu user mode a setuid binary needs the binfmt_misc handler's C flag: see hil/README.md)"
     # a previous run's service install is removed first, so the recipe runs as on a fresh Pi

@@ -118,6 +118,7 @@ def quick_validation(monkeypatch):
     monkeypatch.setattr(v, "jobs_count", lambda *a: 1)
 
 
+@pytest.mark.slow
 def test_every_command_prints_one_strict_json_object_with_numbers_as_numbers(files, tmp_path, capsys,
                                                                             quick_validation, shared_demo):
     for name, argv in _cases(files, tmp_path).items():
@@ -197,6 +198,7 @@ def test_temporary_outputs_never_follow_a_planted_symlink(tmp_path):
     assert victim.read_text() == "keep me"
 
 
+@pytest.mark.slow
 def test_report_and_json_writers_use_exclusive_temp_files(files, tmp_path, capsys):
     """The diagnose report and --json FILE go through the exclusive writer: a planted .part is never followed."""
     victim = tmp_path / "victim.txt"

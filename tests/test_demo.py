@@ -196,6 +196,7 @@ def test_files_exist_and_parse(demo):
     assert json.loads((out / "probe.json").read_text())["ads1248_id"] == res.probe.ads1248_id
 
 
+@pytest.mark.slow
 def test_cli_demo_runs_and_is_deterministic(tmp_path, capsys, shared_demo):
     a, b = tmp_path / "a", shared_demo["out"]
     assert main(["demo", "--out-dir", str(a), "--seconds", "300", "--seed", "1"]) == 0
@@ -235,6 +236,7 @@ def test_cli_rejects_bad_parameters(tmp_path, capsys):
         DemoConfig(seconds=math.nan)
 
 
+@pytest.mark.slow
 def test_failing_step_names_itself_and_exits_nonzero(tmp_path, monkeypatch, capsys):
     import magstack.ground.alignment
 

@@ -9,12 +9,13 @@ library the code tries to import anywhere fails loudly instead of going unnotice
 from __future__ import annotations
 
 import ast
+import functools
 import json
 import re
 import subprocess
 import sys
 import tomllib
-from importlib.metadata import packages_distributions
+from importlib.metadata import packages_distributions as _packages_distributions
 from pathlib import Path
 
 import pytest
@@ -45,6 +46,12 @@ def lean_python(code: str, cwd: Path, refused: set[str] | None = None) -> subpro
         refused = {m for mods in EXTRA_MODULES.values() for m in mods}
     return subprocess.run([sys.executable, "-c", _HOOK.format(refused=sorted(refused)) + code], cwd=cwd,
                           capture_output=True, text=True, timeout=600)
+
+
+@functools.cache
+def packages_distributions() -> dict[str, list[str]]:
+    """Import name -> distributions providing it (scanning the installed metadata once)."""
+    return _packages_distributions()
 
 
 def _dist_name(requirement: str) -> str:
