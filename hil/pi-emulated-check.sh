@@ -204,9 +204,12 @@ compare "$work/arm64/telemetry" "$work/host/telemetry" telemetry || verdict=1
 
 # 5. the flight application's footprint ----------------------------------------------------------------------
 stage "footprint of magstack run --sim (import time, CPU, peak RSS), arm64 (qemu) and host"
-bench='benchmarks/bench_flight_footprint.py --config flight.toml --duration 60 --runs 3'
-as_pi "cd $rundir && ~/magstack-venv/bin/python ~/magstack/$bench" >"$work/footprint-arm64.txt" 2>"$work/logs/footprint-arm64.log"
-(cd "$rundir" && ${host_python:-python3} "$repo/$bench") >"$work/footprint-host.txt" 2>"$work/logs/footprint-host.log"
+bench=benchmarks/bench_flight_footprint.py
+args='--config flight.toml --duration 60 --runs 3'
+as_pi "cd $rundir && ~/magstack-venv/bin/python ~/magstack/$bench $args" >"$work/footprint-arm64.txt" \
+    2>"$work/logs/footprint-arm64.log"
+# shellcheck disable=SC2086 # $args: the benchmark's options
+(cd "$rundir" && ${host_python:-python3} "$repo/$bench" $args) >"$work/footprint-host.txt" 2>"$work/logs/footprint-host.log"
 sed "s/^/$me:   /" "$work/footprint-arm64.txt" "$work/footprint-host.txt"
 took
 
@@ -224,6 +227,11 @@ binfmt_misc handler lacks the C (credentials) flag (hil/README.md, 'Emulated Pi 
         chmod 0440 /etc/sudoers.d/010_pi-nopasswd && chmod 0700 /home/pi &&
         { grep -qw "$(hostname)" /etc/hosts || echo "127.0.1.1 $(hostname)" >> /etc/hosts; }' \
         >"$work/logs/service-prep.log" 2>&1
+    # sudo clears the environment: a CA bundle given for pip (a TLS-intercepting proxy) goes to /etc/pip.conf,
+    # which every user's pip reads (Raspberry Pi OS keeps its piwheels index there)
+    if [ ${#pip_cert[@]} -gt 0 ]; then
+        printf '[global]\ncert = /etc/magstack-pi-ca.crt\n' > "$root/etc/pip.conf"
+    fi
     as_pi 'sudo -n true' >>"$work/logs/service-prep.log" 2>&1 || die "sudo does not work for pi inside the root \
 (under qemu user mode a setuid binary needs the binfmt_misc handler's C flag: see hil/README.md)"
     # a previous run's service install is removed first, so the recipe runs as on a fresh Pi
@@ -253,7 +261,8 @@ binfmt_misc handler lacks the C (credentials) flag (hil/README.md, 'Emulated Pi 
         "/etc/systemd/system/magstack.service root:root 644" | while read -r want; do
         echo "$modes" | grep -qx "$want" || echo "$want"; done > "$work/modes-differ.txt"
     [ ! -s "$work/modes-differ.txt" ] || fail+=("modes differ from: $(tr '\n' ';' < "$work/modes-differ.txt")")
-    as_svc() { chroot "$root" /usr/sbin/runuser -u magstack -- /bin/sh -c "cd /var/lib/magstack && $1"; }
+    umask_svc=$(in_root 'sed -n "s/^UMask=//p" /etc/systemd/system/magstack.service')
+    as_svc() { chroot "$root" /usr/sbin/runuser -u magstack -- /bin/sh -c "umask ${umask_svc:-0022} && cd /var/lib/magstack && $1"; }
     origin=$(as_svc '/opt/magstack/bin/python -c "import magstack, sys; print(magstack.__file__)"')
     case $origin in /opt/magstack/lib/python3*/site-packages/magstack/__init__.py) ;;
         *) fail+=("magstack is imported from $origin, not from the install in /opt/magstack") ;; esac
@@ -275,6 +284,8 @@ print(\" \".join(m for m in sys.argv[1:] if importlib.util.find_spec(m)))' $grou
     in_root 'ls /var/lib/magstack/sigterm-check/summary-*.json' >/dev/null 2>&1 \
         || fail+=("no summary written after SIGTERM")
     in_root 'ls /var/lib/magstack/sigterm-check/*.part' >/dev/null 2>&1 && fail+=("temporary files left after SIGTERM")
+    tlm_mode=$(in_root 'stat -c "%U:%G %a" /var/lib/magstack/sigterm-check/summary-0001.json' || true)
+    [ "$tlm_mode" = "magstack:magstack 640" ] || fail+=("telemetry written as $tlm_mode, not magstack:magstack 640")
     grep -E 'systemd-analyze verify' -A3 "$work/logs/service-recipe.log" | sed "s/^/$me:   /"
     if [ ${#fail[@]} -gt 0 ]; then
         die "service recipe: $(printf '%s; ' "${fail[@]}")"

@@ -344,6 +344,11 @@ def test_fit_warns_when_the_field_cannot_support_the_table(tmp_path, capsys):
     assert main(["fit", str(tmp_path / "zero.csv"), "--no-holdout", "--model", "gain_offset", "--out",
                  str(tmp_path / "c.json"), "-q"]) == 0
     assert "WARNING" not in capsys.readouterr().err
+    # as text: the warning is said once, on stderr, not repeated as a note on stdout
+    assert main(["fit", str(tmp_path / "zero.csv"), "--no-holdout", "--model", "gain_offset", "--out",
+                 str(tmp_path / "c.json")]) == 0
+    cap = capsys.readouterr()
+    assert cap.err.count("never reaches 5 uT") == 1 and "never reaches" not in cap.out
 
 
 def test_a_missing_output_directory_is_a_system_error_for_every_writer(files, tmp_path, capsys):

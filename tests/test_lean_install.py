@@ -173,8 +173,22 @@ def test_the_extras_in_pyproject_and_in_cli_extras_agree():
 
 def test_every_command_outside_the_flight_install_declares_the_ground_extra():
     declared = {name: extra for name, (_module, _help, extra) in command_index().items()}
-    assert {n for n, e in declared.items() if e is None} == FLIGHT_COMMANDS, declared
+    assert {n for n, e in declared.items() if e is None} == FLIGHT_COMMANDS, (
+        "a command either declares EXTRA = 'ground' in its module (cli/extras.py) or belongs to the flight install "
+        f"(FLIGHT_COMMANDS here, and README.md / hil/README.md say so): {declared}")
     assert {e for n, e in declared.items() if n not in FLIGHT_COMMANDS} == {"ground"}
+
+
+def test_every_command_without_an_extra_loads_and_shows_its_help_without_the_extras(tmp_path):
+    """A command that declares no extra is loaded (its module and its parser) where no extra is installed."""
+    names = sorted(n for n, (_m, _h, extra) in command_index().items() if extra is None)
+    code = ("import contextlib, io, json\nfrom magstack.cli.main import main\ncodes = {}\n"
+            f"for name in {names!r}:\n"
+            "    with contextlib.redirect_stdout(io.StringIO()):\n        codes[name] = main([name, '--help'])\n"
+            "print(json.dumps(codes))")
+    r = lean_python(code, tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads(r.stdout.strip().splitlines()[-1]) == dict.fromkeys(names, 0), r.stderr[-2000:]
 
 
 @pytest.mark.parametrize("argv", [["fit", "s.csv", "--out", "cal.json"], ["demo", "--out", "demo"],
