@@ -61,8 +61,8 @@ def pytest_xdist_make_scheduler(config, log):
     except that the tests of a module defining a module- or session-scoped fixture stay together on one worker,
     so the fixture is built once, and tests marked ``xdist_group(name)`` share a worker as in pytest-xdist's
     own loadgroup. The grouping is decided here on the controller from the test ids and the module sources
-    (pytest-xdist's loadgroup appends the group to the test id on the workers, which pytest 9.2 no longer
-    honours: pytest-dev/pytest-xdist issue 1386)."""
+    (pytest-xdist's own loadgroup appends the group to the test id on the workers, which pytest 9.2 ignores:
+    https://github.com/pytest-dev/pytest-xdist/issues/1386)."""
     if config.getvalue("dist") != "loadgroup":
         return None
     from xdist.scheduler import LoadScopeScheduling
