@@ -236,7 +236,8 @@ binfmt_misc handler lacks the C (credentials) flag (hil/README.md, 'Emulated Pi 
 (under qemu user mode a setuid binary needs the binfmt_misc handler's C flag: see hil/README.md)"
     # a previous run's service install is removed first, so the recipe runs as on a fresh Pi
     chroot "$root" /bin/sh -c 'rm -f /etc/systemd/system/magstack.service \
-        /etc/systemd/system/multi-user.target.wants/magstack.service; rm -rf /opt/magstack /var/lib/magstack \
+        /etc/systemd/system/multi-user.target.wants/magstack.service \
+        /etc/systemd/system/sysinit.target.wants/systemd-time-wait-sync.service; rm -rf /opt/magstack /var/lib/magstack \
         /home/pi/magstack-dist; if id magstack >/dev/null 2>&1; then userdel magstack; fi;
         getent group magstack >/dev/null && groupdel magstack; true' >>"$work/logs/service-prep.log" 2>&1
     recipe=$(awk '/<!-- service-recipe/ {want=1; next} want && /^```sh$/ {inblock=1; next}
