@@ -26,6 +26,7 @@ import pkgutil
 import sys
 from pathlib import Path
 
+from magstack.cli.extras import MissingExtra, as_missing_extra, require
 from magstack.cli.interrupt import exit_for, signals_raise
 from magstack.cli.options import CommandParser, common_flags, declared_paths, split_json_flag
 from magstack.cli.output import CommandResult, configure_logging, dumps, set_json_mode
@@ -37,36 +38,41 @@ from magstack.errors import EXIT_DEVICE, EXIT_USAGE, MagError
 ALL = "*"
 
 
-def command_index() -> dict[str, tuple[str, str]]:
-    """``{command: (module, one-line help)}`` for every module in :mod:`magstack.cli.commands`, read
-    from the source of its ``subparsers.add_parser("name", help="...")`` call, without importing it:
-    ``magstack --help`` lists the commands without importing what they use."""
+def command_index() -> dict[str, tuple[str, str, str | None]]:
+    """``{command: (module, one-line help, extra)}`` for every module in :mod:`magstack.cli.commands`, read
+    from the source of its ``subparsers.add_parser("name", help="...")`` call and its module-level
+    ``EXTRA = "..."`` (the optional extra it needs, cli/extras.py), without importing it: ``magstack --help``
+    lists the commands without importing what they use."""
     import magstack.cli.commands as commands
 
-    index: dict[str, tuple[str, str]] = {}
+    index: dict[str, tuple[str, str, str | None]] = {}
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
         if info.name.startswith("_"):
             continue
-        name, helptext = _declared_command(Path(info.module_finder.path) / f"{info.name}.py")
-        index[name or info.name.replace("_", "-")] = (info.name, helptext)
+        name, helptext, extra = _declared_command(Path(info.module_finder.path) / f"{info.name}.py")
+        index[name or info.name.replace("_", "-")] = (info.name, helptext, extra)
     return index
 
 
-def _declared_command(source: Path) -> tuple[str | None, str]:
-    """(name, help) of the first ``add_parser("name", help="...")`` call in ``source`` (None if not literal)."""
+def _declared_command(source: Path) -> tuple[str | None, str, str | None]:
+    """(name, help, extra) of ``source``: the first ``add_parser("name", help="...")`` call (name None if not
+    literal) and the module-level ``EXTRA = "..."`` (None without one)."""
     import ast
 
     try:
         tree = ast.parse(source.read_text(encoding="utf-8"))
     except (OSError, SyntaxError, UnicodeDecodeError):
-        return None, ""
+        return None, "", None
+    extra = next((node.value.value for node in tree.body if isinstance(node, ast.Assign)
+                  and any(isinstance(t, ast.Name) and t.id == "EXTRA" for t in node.targets)
+                  and isinstance(node.value, ast.Constant) and isinstance(node.value.value, str)), None)
     for node in ast.walk(tree):
         if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "add_parser"
                 and node.args and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)):
             helptext = next((k.value.value for k in node.keywords if k.arg == "help"
                              and isinstance(k.value, ast.Constant) and isinstance(k.value.value, str)), "")
-            return node.args[0].value, helptext
-    return None, ""
+            return node.args[0].value, helptext, extra
+    return None, "", extra
 
 
 def build_parser(load: str | None = ALL) -> argparse.ArgumentParser:
@@ -79,8 +85,9 @@ def build_parser(load: str | None = ALL) -> argparse.ArgumentParser:
                                             "-q/--quiet.")
     parser.add_argument("--version", action=_VersionAction)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=CommandParser)
-    for name, (module_name, helptext) in command_index().items():
+    for name, (module_name, helptext, extra) in command_index().items():
         if load == ALL or load == name:
+            require(extra)   # MissingExtra (one line, exit 4) before importing what the extra brings
             importlib.import_module(f"magstack.cli.commands.{module_name}").register(sub)
         else:
             sub.add_parser(name, help=helptext)
@@ -145,7 +152,14 @@ def check_outputs(parser: argparse.ArgumentParser, args: argparse.Namespace) -> 
 
 def _main(argv: list[str] | None) -> int:
     argv = split_json_flag(sys.argv[1:] if argv is None else list(argv))
-    parser = build_parser(load=_command_named(argv))
+    try:
+        parser = build_parser(load=_command_named(argv))
+    except (MissingExtra, ModuleNotFoundError) as exc:   # the command's module needs an extra not installed
+        missing = exc if isinstance(exc, MissingExtra) else as_missing_extra(exc)
+        if missing is None:
+            raise
+        args = argparse.Namespace(command=_command_named(argv))
+        return _error(args, "-" if "--json=-" in argv else None, str(missing), missing.exit_code)
     CommandParser.last_error = None
     try:
         args = parser.parse_args(argv)
@@ -169,6 +183,11 @@ def _main(argv: list[str] | None) -> int:
         return _emit(args.func(args), json_target)
     except MagError as exc:
         return _error(args, json_target, str(exc), exc.exit_code)
+    except ModuleNotFoundError as exc:   # a library of an optional extra, imported where it is used
+        missing = as_missing_extra(exc)
+        if missing is None:
+            raise
+        return _error(args, json_target, str(missing), missing.exit_code)
     except BrokenPipeError:
         # output piped into a reader that stopped (``| head``): files are already written
         devnull = os.open(os.devnull, os.O_WRONLY)

@@ -240,7 +240,7 @@ def import_mageval(data_csv: str | os.PathLike, ref_csv: str | os.PathLike, *,
             if on_undetermined == "raise":
                 raise
             offset = float(offset_prior_s)
-            meta["clock_offset_method"] = f"prior (data do not determine it: {exc})"
+            meta["clock_offset_method"] = f"prior ({exc})"
             meta["clock_offset_sigma_s"] = "nan"
     meta["clock_offset_s"] = f"{offset:.6f}"
     meta["clock_offset_vs_authors_s"] = f"{offset - AUTHORS_OFFSET_S:+.4f}"

@@ -2,28 +2,38 @@
 # hil/pi-emulated-check.sh - magstack on an emulated 64-bit Raspberry Pi OS base (Debian 12 "bookworm", arm64,
 # qemu user mode), installed as README.md / hil/README.md tell a Pi user, compared with this host.
 #
-#   sudo hil/pi-emulated-check.sh [--check] [--rebuild] [--no-demo]
+#   sudo hil/pi-emulated-check.sh [--check] [--rebuild] [--no-demo] [--no-service]
 #
 # 1. checks its prerequisites (root, mmdebstrap, qemu-aarch64-static registered with binfmt_misc, git, a
 #    magstack on this host) and stops with one line naming what is missing (exit 4);
 # 2. builds an arm64 Debian 12 root with mmdebstrap (kept in $MAGSTACK_PI_WORK/root and reused; --rebuild);
 # 3. copies this checkout (tracked and untracked, not ignored files) to /home/pi/magstack in the root and, as
-#    user pi, follows the README's Pi recipe: `apt update && apt install python3-spidev` (root), `python3 -m venv
-#    --system-site-packages ~/magstack-venv`, `~/magstack-venv/bin/pip install -e '.[pi]'`; then checks that
-#    spidev came from Debian and lgpio from an aarch64 wheel;
+#    user pi, follows the Pi recipe of hil/README.md: `apt-get install python3-venv python3-spidev` (root),
+#    `python3 -m venv --system-site-packages ~/magstack-venv`, `~/magstack-venv/bin/pip install -e '.[pi]'` (the
+#    flight install); checks that spidev came from Debian, lgpio from an aarch64 wheel, and that none of the
+#    ground extra's libraries (scipy, pandas, matplotlib, pyerfa, ppigrf, threadpoolctl) was installed;
 # 4. runs the simulated flight application (`magstack run --example-config`, then `magstack run --sim
 #    --duration S`, virtual time) on both sides in the same absolute directory and compares every telemetry
 #    file byte for byte, printing what differs;
-# 5. runs `magstack demo` on both sides and lists which artefacts are byte-identical (informational: the
-#    fitted floats may differ in the last digit between platforms and library versions, docs/demo.md).
+# 5. measures the flight application's import time, CPU and wall time and peak resident memory on both sides
+#    (benchmarks/bench_flight_footprint.py, `magstack run --sim --duration 60`, median of 3 runs);
+# 6. runs the systemd service recipe of hil/README.md (the block after `<!-- service-recipe`) as user pi with
+#    sudo, on a root made to look like Raspberry Pi OS (sudo, systemd, systemd-timesyncd, groups i2c/spi/gpio,
+#    pi in group sudo without a password, /home/pi mode 0700), then checks the service user, the file modes,
+#    that the install in /opt/magstack is not editable and is readable by the service user, that the unit is
+#    enabled, and that the unit's command line, run as the service user on simulated sensors, stops on
+#    SIGTERM with exit 143 and complete files; --no-service skips it;
+# 7. installs the ground extra into the venv (`pip install -e '.[pi,ground]'`), runs `magstack demo` on both
+#    sides and lists which artefacts are byte-identical (informational: the fitted floats may differ in the
+#    last digit between platforms and library versions, docs/demo.md); --no-demo skips it.
 #
-# Exit status: 0 telemetry byte-identical; 1 telemetry differs (listed); 4 a prerequisite is missing or a
-# step failed (its log named). --check: only step 1. Logs and results: $MAGSTACK_PI_WORK (default
-# /var/tmp/magstack-pi-check). Environment: MAGSTACK_PI_WORK, MAGSTACK_PI_RUN_S (virtual seconds of the
-# flight run, default 600), MAGSTACK_HOST (the host's magstack command, default `magstack` on PATH),
-# MAGSTACK_PI_MIRROR (mmdebstrap mirror arguments, default mmdebstrap's own), MAGSTACK_PI_CA_BUNDLE (CA
-# certificates for pip inside the root, default the host's $PIP_CERT or $SSL_CERT_FILE, e.g. behind a
-# TLS-intercepting proxy). hil/README.md says more.
+# Exit status: 0 telemetry byte-identical and every check passed; 1 telemetry differs (listed); 4 a
+# prerequisite is missing or a step or check failed (its log named). --check: only step 1. Logs and results:
+# $MAGSTACK_PI_WORK (default /var/tmp/magstack-pi-check). Environment: MAGSTACK_PI_WORK, MAGSTACK_PI_RUN_S
+# (virtual seconds of the flight run, default 600), MAGSTACK_HOST (the host's magstack command, default
+# `magstack` on PATH), MAGSTACK_PI_MIRROR (mmdebstrap mirror arguments, default mmdebstrap's own),
+# MAGSTACK_PI_CA_BUNDLE (CA certificates for pip inside the root, default the host's $PIP_CERT or
+# $SSL_CERT_FILE, e.g. behind a TLS-intercepting proxy). hil/README.md says more.
 set -euo pipefail
 
 me=pi-emulated-check
@@ -36,14 +46,15 @@ run_s=${MAGSTACK_PI_RUN_S:-600}
 host_magstack=${MAGSTACK_HOST:-magstack}
 rundir=/tmp/magstack-pi-check   # the same absolute path on both sides (telemetry records table paths)
 binfmt=/proc/sys/fs/binfmt_misc
-check_only=0 rebuild=0 demo=1
+check_only=0 rebuild=0 demo=1 service=1
 for a in "$@"; do
     case $a in
         --check) check_only=1 ;;
         --rebuild) rebuild=1 ;;
         --no-demo) demo=0 ;;
+        --no-service) service=0 ;;
         -h|--help) sed -n '2,/^set -euo/p' "${BASH_SOURCE[0]}" | sed '$d; s/^# \{0,1\}//'; exit 0 ;;
-        *) echo "$me: unknown argument '$a' (--check, --rebuild, --no-demo, --help)" >&2; exit 2 ;;
+        *) echo "$me: unknown argument '$a' (--check, --rebuild, --no-demo, --no-service, --help)" >&2; exit 2 ;;
     esac
 done
 
@@ -92,7 +103,7 @@ if [ $rebuild = 1 ] || [ ! -x "$root/usr/bin/python3" ]; then
     stage "build the arm64 Debian 12 root (mmdebstrap)"
     rm -rf "$root"
     # shellcheck disable=SC2086 # MAGSTACK_PI_MIRROR holds mmdebstrap's mirror arguments
-    mmdebstrap --arch=arm64 --variant=minbase --include=python3,python3-venv,ca-certificates \
+    mmdebstrap --arch=arm64 --variant=minbase --include=python3,python3-venv,ca-certificates,systemd,sudo \
         bookworm "$root" ${MAGSTACK_PI_MIRROR:-} >"$work/logs/mmdebstrap.log" 2>&1
     took
 fi
@@ -115,18 +126,20 @@ fi
 as_pi() { chroot --userspec=1000:1000 "$root" /usr/bin/env -i HOME=/home/pi PATH=/usr/bin:/bin LANG=C.UTF-8 \
               "${pip_cert[@]}" /bin/sh -c "$1"; }
 
-# 3. install as README.md says ---------------------------------------------------------------------------
-stage "install magstack in a venv inside the root (README recipe)"
+# 3. the flight install as hil/README.md says -----------------------------------------------------------------
+stage "install magstack in a venv inside the root (flight install: '.[pi]')"
 chroot "$root" /bin/sh -c 'id pi >/dev/null 2>&1 || useradd -m -u 1000 -s /bin/sh pi'
 rm -rf "$root/home/pi/magstack" "$root/home/pi/magstack-venv"
 mkdir -p "$root/home/pi/magstack"
 git -C "$repo" ls-files -z -c -o --exclude-standard | (cd "$repo" && tar --null -T - -cf -) \
     | tar -xf - -C "$root/home/pi/magstack"
 chroot "$root" chown -R pi:pi /home/pi/magstack
-chroot "$root" /bin/sh -c 'apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q python3-spidev' \
+chroot "$root" /bin/sh -c 'apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q python3-venv python3-spidev' \
     >"$work/logs/apt.log" 2>&1
+t_pip=$SECONDS
 as_pi 'python3 -m venv --system-site-packages ~/magstack-venv &&
        cd ~/magstack && ~/magstack-venv/bin/pip install --progress-bar off -e ".[pi]"' >"$work/logs/pip.log" 2>&1
+echo "$me:   pip install -e '.[pi]': $((SECONDS - t_pip)) s"
 took
 # located, not imported: importing lgpio creates its notification pipes in the current directory
 where='import importlib.util, sys; print(importlib.util.find_spec(sys.argv[1]).origin)'
@@ -140,6 +153,12 @@ case $lgpio_wheel in *aarch64*) ;; *) die "lgpio was not installed from an aarch
 if grep -q 'Building wheel for' "$work/logs/pip.log"; then
     echo "$me:   note: pip built from source: $(grep -o 'Building wheel for [^ ]*' "$work/logs/pip.log" | sort -u | tr '\n' ' ')"
 fi
+ground_libs='scipy pandas matplotlib erfa ppigrf threadpoolctl'
+present=$(as_pi "~/magstack-venv/bin/python -c 'import importlib.util, sys
+print(\" \".join(m for m in sys.argv[1:] if importlib.util.find_spec(m)))' $ground_libs")
+[ -z "$present" ] || die "the flight install brought libraries of the ground extra: $present"
+echo "$me:   flight install: none of $ground_libs installed; $(as_pi "~/magstack-venv/bin/pip list 2>/dev/null" \
+    | tail -n +3 | wc -l) distributions in the venv"
 ver='import platform, numpy, sys; print(platform.machine(), "Python", sys.version.split()[0], "numpy", numpy.__version__)'
 host_python=$(head -n 1 "$(command -v "$host_magstack")" | sed -n 's/^#! *//p')
 echo "$me:   arm64: $(as_pi "~/magstack-venv/bin/python -c '$ver'")"
@@ -183,8 +202,107 @@ compare() {   # compare DIR_A DIR_B LABEL -> prints per-file verdicts, returns 1
 verdict=0
 compare "$work/arm64/telemetry" "$work/host/telemetry" telemetry || verdict=1
 
-# 5. the demo (informational) ------------------------------------------------------------------------------
+# 5. the flight application's footprint ----------------------------------------------------------------------
+stage "footprint of magstack run --sim (import time, CPU, peak RSS), arm64 (qemu) and host"
+bench=benchmarks/bench_flight_footprint.py
+args='--config flight.toml --duration 60 --runs 3'
+as_pi "cd $rundir && ~/magstack-venv/bin/python ~/magstack/$bench $args" >"$work/footprint-arm64.txt" \
+    2>"$work/logs/footprint-arm64.log"
+# shellcheck disable=SC2086 # $args: the benchmark's options
+(cd "$rundir" && ${host_python:-python3} "$repo/$bench" $args) >"$work/footprint-host.txt" 2>"$work/logs/footprint-host.log"
+sed "s/^/$me:   /" "$work/footprint-arm64.txt" "$work/footprint-host.txt"
+took
+
+# 6. the systemd service recipe of hil/README.md -------------------------------------------------------------
+if [ $service = 1 ]; then
+    stage "service recipe of hil/README.md, run as pi with sudo"
+    # sudo is setuid: under qemu user mode the kernel honours that only with the handler's C (credentials) flag
+    grep -q '^flags: .*C' "$binfmt/qemu-aarch64" || die "sudo cannot work inside the root: the qemu-aarch64 \
+binfmt_misc handler lacks the C (credentials) flag (hil/README.md, 'Emulated Pi check', says how to add it)"
+    # what Raspberry Pi OS has and a minbase Debian root lacks: sudo (pi without a password), systemd and its
+    # NTP client, the device groups, home directories of mode 0700
+    chroot "$root" /bin/sh -c 'DEBIAN_FRONTEND=noninteractive apt-get install -y -q sudo systemd systemd-timesyncd &&
+        for g in i2c spi gpio; do getent group $g >/dev/null || groupadd --system $g; done &&
+        usermod -aG sudo pi && echo "pi ALL=(ALL) NOPASSWD: ALL" > /etc/sudoers.d/010_pi-nopasswd &&
+        chmod 0440 /etc/sudoers.d/010_pi-nopasswd && chmod 0700 /home/pi &&
+        { grep -qw "$(hostname)" /etc/hosts || echo "127.0.1.1 $(hostname)" >> /etc/hosts; }' \
+        >"$work/logs/service-prep.log" 2>&1
+    # sudo clears the environment: a CA bundle given for pip (a TLS-intercepting proxy) goes to /etc/pip.conf,
+    # which every user's pip reads (Raspberry Pi OS keeps its piwheels index there)
+    if [ ${#pip_cert[@]} -gt 0 ]; then
+        printf '[global]\ncert = /etc/magstack-pi-ca.crt\n' > "$root/etc/pip.conf"
+    fi
+    as_pi 'sudo -n true' >>"$work/logs/service-prep.log" 2>&1 || die "sudo does not work for pi inside the root \
+(under qemu user mode a setuid binary needs the binfmt_misc handler's C flag: see hil/README.md)"
+    # a previous run's service install is removed first, so the recipe runs as on a fresh Pi
+    chroot "$root" /bin/sh -c 'rm -f /etc/systemd/system/magstack.service \
+        /etc/systemd/system/multi-user.target.wants/magstack.service \
+        /etc/systemd/system/sysinit.target.wants/systemd-time-wait-sync.service; rm -rf /opt/magstack /var/lib/magstack \
+        /home/pi/magstack-dist; if id magstack >/dev/null 2>&1; then userdel magstack; fi;
+        getent group magstack >/dev/null && groupdel magstack; true' >>"$work/logs/service-prep.log" 2>&1
+    recipe=$(awk '/<!-- service-recipe/ {want=1; next} want && /^```sh$/ {inblock=1; next}
+                  inblock && /^```$/ {exit} inblock {print}' "$repo/hil/README.md")
+    [ -n "$recipe" ] || die "no service recipe block found in hil/README.md"
+    printf '%s\n' "$recipe" > "$root/home/pi/service-recipe.sh"
+    chroot "$root" chown pi:pi /home/pi/service-recipe.sh
+    as_pi 'PATH=/usr/sbin:/usr/bin:/sbin:/bin; cd ~ && bash -x ~/service-recipe.sh' >"$work/logs/service-recipe.log" 2>&1 \
+        || die "the service recipe failed (see $work/logs/service-recipe.log)"
+    in_root() { chroot "$root" /bin/sh -c "$1"; }
+    fail=()
+    [ "$(in_root 'getent passwd magstack | cut -d: -f7')" = /usr/sbin/nologin ] || fail+=("magstack's shell is not nologin")
+    [ "$(in_root 'id -u magstack')" -lt 1000 ] || fail+=("magstack is not a system user")
+    for g in i2c spi gpio dialout; do
+        in_root "id -nG magstack" | tr ' ' '\n' | grep -qx $g || fail+=("magstack is not in group $g")
+    done
+    modes=$(in_root 'stat -c "%n %U:%G %a" /opt/magstack /var/lib/magstack /var/lib/magstack/flight.toml \
+        /var/lib/magstack/tables /etc/systemd/system/magstack.service')
+    echo "$modes" | sed "s/^/$me:   /"
+    printf '%s\n' "/opt/magstack root:root 755" "/var/lib/magstack magstack:magstack 750" \
+        "/var/lib/magstack/flight.toml root:magstack 640" "/var/lib/magstack/tables magstack:magstack 750" \
+        "/etc/systemd/system/magstack.service root:root 644" | while read -r want; do
+        echo "$modes" | grep -qx "$want" || echo "$want"; done > "$work/modes-differ.txt"
+    [ ! -s "$work/modes-differ.txt" ] || fail+=("modes differ from: $(tr '\n' ';' < "$work/modes-differ.txt")")
+    umask_svc=$(in_root 'sed -n "s/^UMask=//p" /etc/systemd/system/magstack.service')
+    as_svc() { chroot "$root" /usr/sbin/runuser -u magstack -- /bin/sh -c "umask ${umask_svc:-0022} && cd /var/lib/magstack && $1"; }
+    origin=$(as_svc '/opt/magstack/bin/python -c "import magstack, sys; print(magstack.__file__)"')
+    case $origin in /opt/magstack/lib/python3*/site-packages/magstack/__init__.py) ;;
+        *) fail+=("magstack is imported from $origin, not from the install in /opt/magstack") ;; esac
+    ! in_root 'ls /opt/magstack/lib/python3*/site-packages/' | grep -q '__editable__' || fail+=("the install is editable")
+    present=$(in_root "/opt/magstack/bin/python -c 'import importlib.util, sys
+print(\" \".join(m for m in sys.argv[1:] if importlib.util.find_spec(m)))' $ground_libs")
+    [ -z "$present" ] || fail+=("the service install brought libraries of the ground extra: $present")
+    in_root '[ -L /etc/systemd/system/multi-user.target.wants/magstack.service ]' || fail+=("magstack.service is not enabled")
+    in_root 'ls /etc/systemd/system/*.wants/systemd-time-wait-sync.service' >/dev/null 2>&1 \
+        || fail+=("systemd-time-wait-sync.service is not enabled")
+    # the unit's command line as the service user, stopped as systemd stops it (SIGTERM); simulated sensors
+    exec_start=$(in_root 'sed -n "s/^ExecStart=//p" /etc/systemd/system/magstack.service')
+    set +e
+    as_svc "$exec_start --sim --out /var/lib/magstack/sigterm-check -q & pid=\$!; sleep 40; kill -TERM \$pid;
+            wait \$pid; echo exit=\$?" >"$work/logs/service-sigterm.log" 2>&1
+    set -e
+    grep -q '^exit=143$' "$work/logs/service-sigterm.log" || fail+=("the service command did not end with 143 on SIGTERM \
+(see $work/logs/service-sigterm.log)")
+    in_root 'ls /var/lib/magstack/sigterm-check/summary-*.json' >/dev/null 2>&1 \
+        || fail+=("no summary written after SIGTERM")
+    in_root 'ls /var/lib/magstack/sigterm-check/*.part' >/dev/null 2>&1 && fail+=("temporary files left after SIGTERM")
+    tlm_mode=$(in_root 'stat -c "%U:%G %a" /var/lib/magstack/sigterm-check/summary-0001.json' || true)
+    [ "$tlm_mode" = "magstack:magstack 640" ] || fail+=("telemetry written as $tlm_mode, not magstack:magstack 640")
+    grep -E 'systemd-analyze verify' -A3 "$work/logs/service-recipe.log" | sed "s/^/$me:   /"
+    if [ ${#fail[@]} -gt 0 ]; then
+        die "service recipe: $(printf '%s; ' "${fail[@]}")"
+    fi
+    echo "$me:   service recipe ran; user, modes, a non-editable lean install, enabled unit, SIGTERM -> 143: as stated"
+    took
+fi
+
+# 7. the ground extra and the demo (informational) -----------------------------------------------------------
 if [ $demo = 1 ]; then
+    stage "pip install -e '.[pi,ground]' (the ground tools), arm64 (qemu)"
+    t_pip=$SECONDS
+    as_pi 'cd ~/magstack && ~/magstack-venv/bin/pip install --progress-bar off -e ".[pi,ground]"' \
+        >"$work/logs/pip-ground.log" 2>&1
+    echo "$me:   pip install -e '.[pi,ground]' on top of the flight install: $((SECONDS - t_pip)) s"
+    took
     stage "magstack demo, arm64 (qemu)"
     as_pi "cd $rundir && \$HOME/magstack-venv/bin/magstack demo --out demo -q" >"$work/logs/demo-arm64.log" 2>&1
     took

@@ -14,9 +14,11 @@ A program is built from three independent parts so they combine freely:
 plus the number of power cycles: the run is split into ``sessions`` equal parts numbered 0, 1, ...
 Outside [0, duration_s] every profile holds its end value. Time is simulation time in s.
 
-Other generators (an orbit generator, later) plug in beside these by implementing the same
-TruthSource protocol (and optionally the series methods) and registering a builder with
-:func:`register_program`, which makes them available to ``magstack simulate --program``.
+Other generators plug in beside these by implementing the same TruthSource protocol (and optionally
+the series methods) and registering a builder with :func:`register_program`, which makes them available
+to ``magstack simulate --program`` and ``magstack run --sim --sim-program``. The orbit programmes
+(:mod:`magstack.sim.orbit_truth`) are registered here by name; their builder imports the orbit generator
+(IGRF and the celestial frames: the ``ground`` extra's libraries) only when one is built.
 """
 from __future__ import annotations
 
@@ -25,7 +27,6 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from magstack.drivers.errors import ConfigurationError
 from magstack.sim.truth_source import SeriesTruth
@@ -168,7 +169,7 @@ def sweep_profile(axes: str, duration_s: float, amplitude_uT: float = 50.0,
 def rotation_profile(duration_s: float, magnitude_uT: float = 50.0, turns: float = 4.0) -> Profile:
     """A field of constant magnitude whose direction spirals over the whole sphere.
 
-    ``b_body_uT(t) = R(t).apply((0, 0, magnitude_uT))`` with the active rotation
+    ``b_body_uT(t) = R(t) @ (0, 0, magnitude_uT)`` with the active rotation
     ``R(t) = Rz(phi) Ry(theta)`` (:func:`spiral_rotation`): the polar angle theta goes 0 -> pi over
     the run while the azimuth phi makes ``turns`` turns, like a 3-axis coil tracing the sphere
     (or a sensor turned through every attitude in a constant field).
@@ -183,25 +184,30 @@ def rotation_profile(duration_s: float, magnitude_uT: float = 50.0, turns: float
         t = _t(t_s)
         if t.size == 0:
             return np.zeros(t.shape + (3,))
-        return rot_body_from_spiral(t).apply(b_spiral_uT).reshape(t.shape + (3,))
+        return (rot_body_from_spiral(t) @ b_spiral_uT).reshape(t.shape + (3,))
 
     return f
 
 
-def spiral_rotation(duration_s: float, turns: float = 4.0) -> Callable[[np.ndarray], Rotation]:
-    """``t_s -> R(t)``: the turning frame of :func:`rotation_profile` relative to the body frame.
+def spiral_rotation(duration_s: float, turns: float = 4.0) -> Callable[[np.ndarray], np.ndarray]:
+    """``t_s (N,) -> R(t) (N, 3, 3)``: the turning frame of :func:`rotation_profile` relative to the body frame.
 
-    ``R = Rotation.from_euler("ZY", [phi, theta])`` (intrinsic Z then Y, i.e. Rz(phi) @ Ry(theta)),
-    an active rotation: ``R.apply(v_spiral)`` gives body-frame coordinates of a vector fixed in the
-    turning frame. theta = pi * u, phi = 2 pi turns u, u = t / duration_s clipped to [0, 1].
-    As a quaternion (scipy's default scalar-last order x, y, z, w): ``R.as_quat()``.
+    ``R = Rz(phi) @ Ry(theta)`` (intrinsic Z then Y Euler angles, scipy's ``Rotation.from_euler("ZY",
+    [phi, theta])``), an active rotation: ``R @ v_spiral`` gives body-frame coordinates of a vector fixed
+    in the turning frame (the columns of R are the turning frame's axes in the body frame).
+    theta = pi * u, phi = 2 pi turns u, u = t / duration_s clipped to [0, 1].
     """
     _num("duration_s", duration_s, positive=True)
     _num("turns", turns)
 
-    def rot_body_from_spiral(t_s) -> Rotation:
+    def rot_body_from_spiral(t_s) -> np.ndarray:
         u = np.clip(_t(t_s), 0.0, duration_s).reshape(-1) / duration_s
-        return Rotation.from_euler("ZY", np.stack([2.0 * math.pi * turns * u, math.pi * u], axis=-1))
+        phi, theta = 2.0 * math.pi * turns * u, math.pi * u
+        cp, sp, ct, st = np.cos(phi), np.sin(phi), np.cos(theta), np.sin(theta)
+        zero = np.zeros_like(u)
+        return np.stack([np.stack([cp * ct, -sp, cp * st], axis=-1),
+                         np.stack([sp * ct, cp, sp * st], axis=-1),
+                         np.stack([-st, zero, ct], axis=-1)], axis=-2)
 
     return rot_body_from_spiral
 
@@ -436,12 +442,12 @@ def _cycling(d, s):
                         description="rotation with thermal cycling")
 
 
-@_reg("currents", 600.0, "constant field with named currents: solar_A square wave, torquer_A pulses")
+@_reg("currents", 600.0, "constant field with named currents: solar square wave, torquer pulses")
 def _currents(d, s):
     return ProgramTruth("currents", d, constant_field((20.0, -5.0, 40.0)),
-                        current_fns={"solar_A": square_current(0.5, 60.0, 0.5),
-                                     "torquer_A": pulse_current(0.1, 20.0, 2.0, start_s=5.0)},
-                        sessions=s, description="solar_A 0/0.5 A square (60 s), torquer_A 0.1 A pulses")
+                        current_fns={"solar": square_current(0.5, 60.0, 0.5),
+                                     "torquer": pulse_current(0.1, 20.0, 2.0, start_s=5.0)},
+                        sessions=s, description="solar 0/0.5 A square (60 s), torquer 0.1 A pulses")
 
 
 @_reg("full", 3600.0, "steps, sweeps, rotation and excursions with thermal cycling and named currents")
@@ -474,6 +480,28 @@ def _full_program(d, s, name: str, peak_uT: float):
         return out
 
     return ProgramTruth(name, d, fld, cycling_temp(d, mean_c=30.0, amplitude_c=25.0, cycles=1.0),
-                        current_fns={"solar_A": square_current(0.5, 90.0, 0.5),
-                                     "torquer_A": pulse_current(0.1, 30.0, 3.0, start_s=10.0)},
+                        current_fns={"solar": square_current(0.5, 90.0, 0.5),
+                                     "torquer": pulse_current(0.1, 30.0, 3.0, start_s=10.0)},
                         sessions=s, description="all bench patterns, thermal cycle, currents")
+
+
+#: Orbit programmes (:mod:`magstack.sim.orbit_truth`): name -> (attitude, help). Built on demand: the orbit
+#: generator needs IGRF and the celestial frames (the ``ground`` extra), a bench program does not.
+ORBIT_PROGRAMS = {
+    "orbit_nadir": ("nadir", "500 km SSO, nadir pointing, eclipse thermal cycle, torquer/solar/battery currents"),
+    "orbit_inertial": ("inertial", "500 km SSO, inertially fixed attitude, eclipse thermal cycle, currents"),
+    "orbit_tumbling": ("tumbling", "500 km SSO, tumbling (1.1 and 0.37 deg/s), eclipse thermal cycle, currents"),
+    "orbit_spinning": ("spinning", "500 km SSO, 6 deg/s spin about body z, spin axis precessing on a 20 deg cone"),
+}
+
+
+def _orbit_builder(name: str) -> Callable[[float, int], object]:
+    def build(d, s):
+        from magstack.sim.orbit_truth import orbit_program
+
+        return orbit_program(name, d, s)
+    return build
+
+
+for _name, (_, _help) in ORBIT_PROGRAMS.items():
+    register_program(_name, _orbit_builder(_name), 5700.0, _help)

@@ -86,12 +86,12 @@ class ErrorParams:
     # interference: field added at the sensor per named current, uT/A, body frame (3,).
     interference_uT_per_A: Mapping[str, Any] = field(default_factory=dict)
     # mount_rotation: session id -> rotation vector (3,) rad of the sensor mount in that session
-    # relative to the frame mount; the sensor senses R_s^T b_body (R_s = Rotation.from_rotvec, active:
+    # relative to the frame mount; the sensor senses R_s^T b_body (R_s = error_stages.rotvec_matrix, active:
     # the mounted triad is the frame triad turned by +rotvec). Sessions not listed: unrotated.
     mount_rotation_rad: Mapping[int, Any] = field(default_factory=dict)
     # misalignment: non-orthogonality angles (a_xy, a_xz, a_yz) in rad (deviation from 90 deg
     # between the named pair of sensor axes) and a rotation vector (rad): b_sensor = W R b_body with
-    # R = Rotation.from_rotvec(rotation_rad) applied actively (the sensor triad is the body triad
+    # R = error_stages.rotvec_matrix(rotation_rad) applied actively (the sensor triad is the body triad
     # turned by -rotation_rad); see magstack.sim.error_stages.misalignment_matrix.
     misalignment_rad: Any = (0.0, 0.0, 0.0)
     rotation_rad: Any = (0.0, 0.0, 0.0)

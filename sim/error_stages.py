@@ -26,9 +26,8 @@ Four kinds of stage, in this order along the catalogue:
 
 Adding an effect: add it to the catalogue, add its parameters to
 :class:`~magstack.sim.error_params.ErrorParams` (neutral defaults), and write one stage class here
-with both forms (docs/error-model.md, "Adding an effect"). Rotations use
-:class:`scipy.spatial.transform.Rotation`, active (``r.apply(v)`` turns ``v``); ``rot_a_from_b``
-maps coordinates in frame b to frame a.
+with both forms (docs/error-model.md, "Adding an effect"). Rotations are active 3x3 matrices
+(:func:`rotvec_matrix`: ``R @ v`` turns ``v``); ``rot_a_from_b`` maps coordinates in frame b to frame a.
 """
 from __future__ import annotations
 
@@ -37,14 +36,13 @@ from collections.abc import Collection
 from typing import Any, ClassVar
 
 import numpy as np
-from scipy.signal import lfilter
-from scipy.spatial.transform import Rotation
 
 from magstack.firmware.effects import EFFECT_NAMES, effect
 from magstack.sim.error_params import ErrorParams
 from magstack.sim.error_random import SESSION_OFFSET_TAG, normal_stream, session_rng
 
 __all__ = ["Stage", "FieldInputs", "ReadingInputs", "STAGES", "stage", "build_stages", "misalignment_matrix",
+           "rotvec_matrix",
            "TEMPERATURE", "SAMPLING", "FIELD", "READING"]
 
 TEMPERATURE, SAMPLING, FIELD, READING = "temperature", "sampling", "field", "reading"
@@ -53,7 +51,8 @@ _KIND_RANK = {TEMPERATURE: 0, SAMPLING: 1, FIELD: 2, READING: 3}
 #: The cross field is limited to this fraction of H0 in the cross-axis formula (the AMR model
 #: diverges at |B_c| = H0, far outside every supported range; beyond it the bridge would flip).
 _CROSS_AXIS_CLAMP = 0.9
-#: Runs of one held step at least this long use scipy's lfilter for the 1/f state; shorter ones a loop.
+#: Runs of one held step at least this long use scipy's lfilter for the 1/f state (the vector form of long
+#: runs: ``magstack simulate``); shorter ones, and the single-sample form, a loop.
 _PINK_LFILTER_MIN = 32
 #: A step within this relative distance of the held step keeps it (1/f coefficients; see Noise).
 _HELD_STEP_RTOL = 1e-9
@@ -155,10 +154,28 @@ def _matvec_one(rows: list[list[float]], x: float, y: float, z: float) -> list[f
     return [x * r0[0] + y * r0[1] + z * r0[2], x * r1[0] + y * r1[1] + z * r1[2], x * r2[0] + y * r2[1] + z * r2[2]]
 
 
+def rotvec_matrix(rotvec_rad) -> np.ndarray:
+    """The active rotation by the rotation vector ``rotvec_rad`` (axis times angle, rad) as a 3x3 matrix.
+
+    Through the unit quaternion (v sin(a/2)/a, cos(a/2)), a = |v| (a Taylor series of sin(a/2)/a below
+    1e-3 rad), as scipy's ``Rotation.from_rotvec(v).as_matrix()`` computes it, to the last bit."""
+    v = np.array(rotvec_rad, dtype=float).reshape(3)
+    a = math.sqrt(float(v @ v))
+    a2 = a * a
+    scale = 0.5 - a2 / 48.0 + a2 * a2 / 3840.0 if a <= 1e-3 else math.sin(a / 2.0) / a
+    x, y, z = (float(c) * scale for c in v)
+    w = math.cos(a / 2.0)
+    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    return np.array([[x2 - y2 - z2 + w2, 2.0 * (xy - zw), 2.0 * (xz + yw)],
+                     [2.0 * (xy + zw), -x2 + y2 - z2 + w2, 2.0 * (yz - xw)],
+                     [2.0 * (xz - yw), 2.0 * (yz + xw), -x2 - y2 + z2 + w2]])
+
+
 def misalignment_matrix(misalignment_rad: np.ndarray, rotation_rad: np.ndarray) -> np.ndarray:
     """M = W @ R mapping a body-frame field to the sensor axes: b_sensor = M b_body.
 
-    R = ``Rotation.from_rotvec(rotation_rad)`` as a matrix (active; i.e. the orthogonal sensor triad
+    R = :func:`rotvec_matrix` ``(rotation_rad)`` (active; i.e. the orthogonal sensor triad
     is the body triad turned by -rotation_rad). Rows of W are the sensor axes' unit vectors in that
     orthogonal triad (a non-orthogonal frame, not a rotation): with angles (a_xy, a_xz, a_yz),
     e_x = (1,0,0); e_y = (sin a_xy, cos a_xy, 0); e_z a unit vector with e_x.e_z = sin a_xz and
@@ -170,8 +187,7 @@ def misalignment_matrix(misalignment_rad: np.ndarray, rotation_rad: np.ndarray) 
     w = np.array([[1.0, 0.0, 0.0],
                   [math.sin(a_xy), math.cos(a_xy), 0.0],
                   [sz, cz, math.sqrt(max(0.0, 1.0 - sz * sz - cz * cz))]])
-    rot_sensor_from_body = Rotation.from_rotvec(np.array(rotation_rad, dtype=float))  # writable copy for scipy
-    return w @ rot_sensor_from_body.as_matrix()
+    return w @ rotvec_matrix(rotation_rad)
 
 
 # ---------------------------------------------------------------- the stages, in catalogue order
@@ -276,7 +292,7 @@ class MountRotation(Stage):
     def __init__(self, params: ErrorParams, seed: int, enabled: Collection[str]) -> None:
         super().__init__(params, seed, enabled)
         # rot_mount_from_frame^T as a matrix per session: b_mounted = R_s^T b_body
-        self._m = {k: Rotation.from_rotvec(np.array(v, dtype=float)).as_matrix().T
+        self._m = {k: rotvec_matrix(v).T
                    for k, v in params.mount_rotation_rad.items() if np.any(v != 0)}
         self._rows = {k: m.tolist() for k, m in self._m.items()}
         self.active = bool(self._m)
@@ -674,6 +690,8 @@ class Noise(Stage):
             for a, b in zip(cuts[:-1], cuts[1:], strict=True):  # runs of one held step
                 phi, g = self._coef(steps[a])
                 if b - a >= _PINK_LFILTER_MIN:  # x_n = phi x_{n-1} + g z_n per process: a one-pole filter
+                    from scipy.signal import lfilter  # the ground extra: bulk simulation only
+
                     acc = np.zeros((b - a, 3))
                     for j in range(k):
                         xs, _ = lfilter([1.0], [1.0, -phi[j]], z[start + a:start + b, j, :] * g[j], axis=0,

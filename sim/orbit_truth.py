@@ -32,6 +32,7 @@ from scipy.spatial.transform import Rotation
 
 from magstack.drivers.errors import ConfigurationError
 from magstack.firmware.reference import frames, geomag
+from magstack.sim.coil_programs import ORBIT_PROGRAMS
 from magstack.sim.truth_source import SeriesTruth
 
 MU_KM3_S2 = 398600.4418
@@ -205,27 +206,7 @@ class OrbitTruth(SeriesTruth):
     # session_series and the scalar TruthSource protocol: SeriesTruth
 
 
-#: Orbit programmes for ``magstack simulate --program``: name -> (attitude, help).
-ORBIT_PROGRAMS = {
-    "orbit_nadir": ("nadir", "500 km SSO, nadir pointing, eclipse thermal cycle, torquer/solar/battery currents"),
-    "orbit_inertial": ("inertial", "500 km SSO, inertially fixed attitude, eclipse thermal cycle, currents"),
-    "orbit_tumbling": ("tumbling", "500 km SSO, tumbling (1.1 and 0.37 deg/s), eclipse thermal cycle, currents"),
-    "orbit_spinning": ("spinning", "500 km SSO, 6 deg/s spin about body z, spin axis precessing on a 20 deg cone"),
-}
-
-
 def orbit_program(name: str, duration_s: float, sessions: int) -> OrbitTruth:
+    """The orbit programme ``name`` of :data:`magstack.sim.coil_programs.ORBIT_PROGRAMS` (registered there)."""
     attitude, help_ = ORBIT_PROGRAMS[name]
     return OrbitTruth(name=name, duration_s=duration_s, attitude=attitude, sessions=sessions, description=help_)
-
-
-def register_orbit_programs() -> None:
-    """Register the orbit programmes with the coil-program registry (idempotent)."""
-    from magstack.sim.coil_programs import PROGRAMS, register_program
-
-    for name, (_, help_) in ORBIT_PROGRAMS.items():
-        if name not in PROGRAMS:
-            register_program(name, (lambda n: lambda d, s: orbit_program(n, d, s))(name), 5700.0, help_)
-
-
-register_orbit_programs()

@@ -5,13 +5,23 @@ without ``--hil`` they are skipped. See hil/README.md for wiring.
 """
 from __future__ import annotations
 
-import logging
 import os
 
-import pytest
-from hypothesis import settings
+# One BLAS / OpenMP thread per test process, set before numpy or scipy load their BLAS (workers of pytest-xdist
+# and the subprocesses tests start inherit it): OpenBLAS starts a spinning thread per core for each call, so
+# two test workers on two cores would oversubscribe the machine and make small solves many times slower
+# (firmware_py/blas.py). Thread counts change speed, not results.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
-from magstack.drivers.clock import VirtualClock
+import logging  # noqa: E402
+import re  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+from hypothesis import settings  # noqa: E402
+
+from magstack.drivers.clock import VirtualClock  # noqa: E402
 
 # CI replays a fixed set of examples (no database, derandomised) so a run is reproducible;
 # developers' runs keep exploring new examples. Property tests set their own example counts.
@@ -31,12 +41,48 @@ def pytest_addoption(parser):
 
 
 def pytest_collection_modifyitems(config, items):
+    """Hardware tests are skipped without ``--hil``."""
     if config.getoption("--hil"):
         return
     skip = pytest.mark.skip(reason="hardware test: run with --hil (see hil/README.md)")
     for item in items:
         if "hil" in item.keywords:
             item.add_marker(skip)
+
+
+#: A test module that defines a module- or session-scoped fixture (a simulated session, a demo run built once
+#: for its tests).
+_SHARED_FIXTURE = re.compile(r"@pytest\.fixture\([^)]*scope\s*=\s*[\"'](module|session)[\"']")
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """``pytest -n N --dist loadgroup`` (pyproject addopts): tests go to whichever worker is free, one by one,
+    except that the tests of a module defining a module- or session-scoped fixture stay together on one worker,
+    so the fixture is built once, and tests marked ``xdist_group(name)`` share a worker as in pytest-xdist's
+    own loadgroup. The grouping is decided here on the controller from the test ids and the module sources
+    (pytest-xdist's own loadgroup appends the group to the test id on the workers, which pytest 9.2 ignores:
+    https://github.com/pytest-dev/pytest-xdist/issues/1386)."""
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    root = Path(str(config.rootpath))
+    shared: dict[str, bool] = {}
+
+    class ModuleFixtureScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            if nodeid.rfind("@") > nodeid.rfind("]"):     # an xdist_group mark that reached the test id
+                return nodeid.split("@")[-1]
+            module = nodeid.split("::", 1)[0]
+            if module not in shared:
+                try:
+                    shared[module] = bool(_SHARED_FIXTURE.search((root / module).read_text(encoding="utf-8")))
+                except OSError:
+                    shared[module] = False
+            return module if shared[module] else nodeid
+
+    return ModuleFixtureScheduling(config, log)
 
 
 _MAGSTACK_LOGGER = logging.getLogger("magstack")
@@ -75,3 +121,65 @@ def sim_profile(request):
 
     with default_lints(STRICT if request.param == "strict" else PART_FAITHFUL) as lints:
         yield lints
+
+
+def shared_artifact(tmp_path_factory, name: str, build) -> Path:
+    """A directory ``build(path)`` fills once per test run and every test (and every pytest-xdist worker) reads.
+
+    The first caller builds it under a file lock in the run's common temporary folder, the others wait for
+    the lock and reuse it; a build that raises leaves nothing behind (the next caller tries again). Tests must
+    not change what they get: copy a file before changing it."""
+    import fcntl
+    import shutil
+
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        base = base.parent               # the workers' folders share this parent
+    path, done = base / f"shared-{name}", base / f"shared-{name}.done"
+    with open(base / f"shared-{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not done.exists():
+            shutil.rmtree(path, ignore_errors=True)
+            path.mkdir()
+            try:
+                build(path)
+            except BaseException:
+                shutil.rmtree(path, ignore_errors=True)
+                raise
+            done.touch()
+    return path
+
+
+@pytest.fixture(scope="session")
+def shared_demo(tmp_path_factory) -> dict:
+    """One ``magstack demo --out DIR --seconds 300 --seed 1 --json`` run for every test that only reads it:
+    ``{"out": DIR, "stdout": the JSON text, "stderr": text, "code": exit status, "layout_problems": [...]}``
+    (the layout problems every report page of the run recorded, ``Report.layout_problems``)."""
+    import contextlib
+    import io
+    import json
+
+    def build(d: Path) -> None:
+        from magstack.cli.main import main
+        from magstack.ground.report import Report
+
+        problems: list = []
+        real_write = Report.write
+
+        def write(self, path):
+            problems.extend(self.layout_problems)
+            return real_write(self, path)
+
+        out, err = io.StringIO(), io.StringIO()
+        mp = pytest.MonkeyPatch()
+        mp.setattr(Report, "write", write)
+        try:
+            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+                code = main(["demo", "--out", str(d / "demo"), "--seconds", "300", "--seed", "1", "--json"])
+        finally:
+            mp.undo()
+        (d / "run.json").write_text(json.dumps({"stdout": out.getvalue(), "stderr": err.getvalue(), "code": code,
+                                                "layout_problems": [list(p) for p in problems]}))
+
+    d = shared_artifact(tmp_path_factory, "demo-300s-seed1", build)
+    return {"out": d / "demo", **json.loads((d / "run.json").read_text())}

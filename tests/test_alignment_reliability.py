@@ -184,6 +184,7 @@ def test_library_progress_drives_a_bar_only_on_a_terminal(monkeypatch):
         p("per-axis skew", 1.0)
     assert "per-axis skew" in out.getvalue() and "100%" in out.getvalue()
 
+@pytest.mark.slow
 def test_long_search_work_grows_with_rows_not_with_range_times_rows(monkeypatch):
     """A wide search on a long session: the medium stage used to evaluate 4 x (range/4000)/h offsets on
     every row (800 here, ~900 x rows interpolations in all); now passes of at most 81 offsets."""

@@ -161,7 +161,7 @@ def test_cli_bench_sim(tmp_path, capsys):
     cap = capsys.readouterr()
     assert "rows in" in cap.out and cap.err == ""   # stderr is not a terminal: no progress bar
     s = read_session(out)
-    assert set(s.currents_A) == {"solar_A", "torquer_A"} and s.metadata["program"] == "currents"
+    assert set(s.currents_A) == {"solar", "torquer"} and s.metadata["program"] == "currents"
     assert main(["bench", "--dut", "lis3mdl", "--bus", "1", "--seconds", "1", "--out", str(out),
                  "--sim-ref-faults", "garble=0.1"]) == 2
 

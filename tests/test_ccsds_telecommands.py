@@ -113,14 +113,12 @@ def test_fuzzed_telecommands_never_crash_and_are_all_counted(tmp_path_factory, i
 
 
 def test_udp_telecommand_from_an_allowed_host_is_received(tmp_path):
-    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    probe.bind(("127.0.0.1", 0))
-    port = probe.getsockname()[1]
-    probe.close()
     r = _Rig(tmp_path)
     r.rx.close()
-    r.rx = TelecommandReceiver(CcsdsConfig(tc_udp=("127.0.0.1", port)), r.events, r.stream, r.dispatched.append,
+    # port 0: the system picks a free port for the receiver (no port another test could take in between)
+    r.rx = TelecommandReceiver(CcsdsConfig(tc_udp=("127.0.0.1", 0)), r.events, r.stream, r.dispatched.append,
                                lambda: 1.0)
+    port = r.rx.sock.getsockname()[1]
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.sendto(pack_tc(17, 1, seq_count=3, source_id=1), ("127.0.0.1", port))
         s.sendto(b"\x18\xf0garbage", ("127.0.0.1", port))

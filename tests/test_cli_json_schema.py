@@ -120,11 +120,15 @@ def quick_validation(monkeypatch):
     monkeypatch.setattr(v, "jobs_count", lambda *a: 1)
 
 
+@pytest.mark.slow
 def test_every_command_prints_one_strict_json_object_with_numbers_as_numbers(files, tmp_path, capsys,
-                                                                            quick_validation):
+                                                                            quick_validation, shared_demo):
     for name, argv in _cases(files, tmp_path).items():
-        code = main([*argv, "--json"])
-        cap = capsys.readouterr()
+        if name == ("demo",):   # the shared run of this same command line with --json (tests/conftest.py)
+            code, cap = shared_demo["code"], argparse.Namespace(out=shared_demo["stdout"], err=shared_demo["stderr"])
+        else:
+            code = main([*argv, "--json"])
+            cap = capsys.readouterr()
         doc = strict_json(cap.out)          # the whole of stdout is one object
         assert isinstance(doc, dict) and doc["command"] == name[0] and doc["exit_code"] == code, (name, cap.err)
         assert code in (0, 1), (name, doc)
@@ -196,6 +200,7 @@ def test_temporary_outputs_never_follow_a_planted_symlink(tmp_path):
     assert victim.read_text() == "keep me"
 
 
+@pytest.mark.slow
 def test_report_and_json_writers_use_exclusive_temp_files(files, tmp_path, capsys):
     """The diagnose report and --json FILE go through the exclusive writer: a planted .part is never followed."""
     victim = tmp_path / "victim.txt"
@@ -341,6 +346,11 @@ def test_fit_warns_when_the_field_cannot_support_the_table(tmp_path, capsys):
     assert main(["fit", str(tmp_path / "zero.csv"), "--no-holdout", "--model", "gain_offset", "--out",
                  str(tmp_path / "c.json"), "-q"]) == 0
     assert "WARNING" not in capsys.readouterr().err
+    # as text: the warning is said once, on stderr, not repeated as a note on stdout
+    assert main(["fit", str(tmp_path / "zero.csv"), "--no-holdout", "--model", "gain_offset", "--out",
+                 str(tmp_path / "c.json")]) == 0
+    cap = capsys.readouterr()
+    assert cap.err.count("never reaches 5 uT") == 1 and "never reaches" not in cap.out
 
 
 def test_a_missing_output_directory_is_a_system_error_for_every_writer(files, tmp_path, capsys):

@@ -1,6 +1,8 @@
 """Truth generators: bench coil programs implement TruthSource, series == scalar, documented shapes."""
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -100,11 +102,13 @@ def test_rotation_profile_is_the_spiral_rotation_of_z_in_the_stated_convention()
     rz = np.array([[c(phi[k]), -s_(phi[k]), 0], [s_(phi[k]), c(phi[k]), 0], [0, 0, 1]])
     ry = np.array([[c(theta[k]), 0, s_(theta[k])], [0, 1, 0], [-s_(theta[k]), 0, c(theta[k])]])
     rot = spiral_rotation(d, turns)(t[k:k + 1])
-    np.testing.assert_allclose(rot.as_matrix()[0], rz @ ry, atol=1e-14)
-    # scalar-last quaternion (x, y, z, w) of the same rotation
-    q = rot.as_quat()[0]
-    w = np.cos(theta[k] / 2) * np.cos(phi[k] / 2)
-    assert abs(abs(q[3]) - abs(w)) < 1e-14 and abs(np.linalg.norm(q) - 1.0) < 1e-15
+    assert rot.shape == (1, 3, 3)
+    np.testing.assert_allclose(rot[0], rz @ ry, atol=1e-14)
+    # the same rotation as scipy's intrinsic Z-then-Y Euler angles, at every instant
+    from scipy.spatial.transform import Rotation
+
+    np.testing.assert_allclose(spiral_rotation(d, turns)(t), Rotation.from_euler("ZY", np.stack([phi, theta], 1))
+                               .as_matrix(), rtol=0, atol=1e-14)
     assert rotation_profile(d)(np.array([])).shape == (0, 3)
 
 
@@ -129,14 +133,23 @@ def test_heating_and_cycling_temperature_profiles():
     assert h(np.array([-10.0]))[0] == 20.0  # holds outside the run
 
 
+def test_current_names_leave_the_unit_to_the_session_column():
+    """A session file names a current's column ``current_<name>_A``: a name carrying the unit itself would give
+    ``current_solar_A_A``."""
+    for name in PROGRAMS:
+        if not name.startswith("orbit_"):
+            for current in program(name, 60.0, sessions=1).currents_series_A(np.array([0.0])):
+                assert re.fullmatch(r"[a-z0-9]+(_[a-z0-9]+)*", current) and not current.endswith("_a"), (name, current)
+
+
 def test_named_current_profiles():
     tr = program("currents", 600.0, sessions=1)
     cur = tr.currents_series_A(np.linspace(0, 600, 6001))
-    assert set(cur) == {"solar_A", "torquer_A"}
-    assert set(np.unique(cur["solar_A"])) == {0.0, 0.5}
-    assert cur["solar_A"].mean() == pytest.approx(0.25, abs=0.01)
-    assert set(np.unique(cur["torquer_A"])) == {0.0, 0.1}
-    assert cur["torquer_A"].mean() == pytest.approx(0.1 * 2 / 20, abs=0.003)
+    assert set(cur) == {"solar", "torquer"}
+    assert set(np.unique(cur["solar"])) == {0.0, 0.5}
+    assert cur["solar"].mean() == pytest.approx(0.25, abs=0.01)
+    assert set(np.unique(cur["torquer"])) == {0.0, 0.1}
+    assert cur["torquer"].mean() == pytest.approx(0.1 * 2 / 20, abs=0.003)
     s = square_current(1.0, 10.0, duty=0.3)(np.array([0.0, 2.9, 3.1, 10.0]))
     np.testing.assert_array_equal(s, [1.0, 1.0, 0.0, 1.0])
     p = pulse_current(2.0, 5.0, 1.0, start_s=1.0)(np.array([0.5, 1.5, 2.5, 6.2]))
@@ -166,7 +179,7 @@ def test_full_program_combines_all_patterns():
     b = tr.field_series_uT(t)
     assert np.abs(b).max() == pytest.approx(150.0)  # excursions in the last quarter
     assert np.ptp(tr.temp_series_c(t)) > 40
-    assert set(tr.currents_series_A(t)) == {"solar_A", "torquer_A"}
+    assert set(tr.currents_series_A(t)) == {"solar", "torquer"}
     assert list(np.unique(tr.session_series(t))) == [0, 1, 2, 3]
 
 

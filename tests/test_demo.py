@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -208,24 +209,25 @@ def test_files_exist_and_parse(demo):
     assert json.loads((out / "probe.json").read_text())["ads1248_id"] == res.probe.ads1248_id
 
 
-def test_cli_demo_runs_and_is_deterministic(tmp_path, capsys):
-    a, b = tmp_path / "a", tmp_path / "b"
+@pytest.mark.slow
+def test_cli_demo_runs_and_is_deterministic(tmp_path, capsys, shared_demo):
+    a, b = tmp_path / "a", shared_demo["out"]
     assert main(["demo", "--out-dir", str(a), "--seconds", "300", "--seed", "1"]) == 0
     text = capsys.readouterr().out
     for n in range(1, 9):
         assert f"[{n}/8]" in text
     assert "summary" in text and "files written" in text
-    # the same run with --json: stdout holds only the summary figures as strict JSON
-    assert main(["demo", "--out-dir", str(b), "--seconds", "300", "--seed", "1", "--json"]) == 0
-    cap = capsys.readouterr()
+    # the same run with --json (the shared run, tests/conftest.py): stdout holds only the summary figures as
+    # strict JSON
 
     def refuse(c):
         raise ValueError(f"non-standard JSON constant {c}")
 
-    doc = json.loads(cap.out, parse_constant=refuse)
+    assert shared_demo["code"] == 0
+    doc = json.loads(shared_demo["stdout"], parse_constant=refuse)
     assert doc["command"] == "demo" and doc["exit_code"] == 0 and doc["out_dir"] == str(b)
     assert {"probe", "bench", "align", "fit", "table", "holdout", "loop", "wall_s", "files"} <= set(doc)
-    assert doc["loop"]["health"]["error_count"] == 2 and cap.err == ""
+    assert doc["loop"]["health"]["error_count"] == 2 and shared_demo["stderr"] == ""
     for name in ("session.csv", "session-paired.csv", "cal.json", "holdout-calibrated.csv", "flight-loop.csv"):
         assert (a / name).read_bytes() == (b / name).read_bytes(), name
     html = (a / "report.html").read_text()
@@ -247,6 +249,7 @@ def test_cli_rejects_bad_parameters(tmp_path, capsys):
         DemoConfig(seconds=math.nan)
 
 
+@pytest.mark.slow
 def test_failing_step_names_itself_and_exits_nonzero(tmp_path, monkeypatch, capsys):
     import magstack.ground.alignment
 
@@ -269,3 +272,14 @@ def test_demo_reference_stays_inside_the_fvm400_range(demo, tmp_path, capsys):
     assert main(["fit", str(res.align.paired_path), "--no-holdout", "--out", str(tmp_path / "c.json"), "--json"]) == 0
     stats = json.loads(capsys.readouterr().out)["stats"]
     assert stats["saturated_rows"] == 0 and stats["n_used"] > 0
+
+
+def test_report_and_console_show_the_same_wall_time(demo):
+    res, lines = demo
+    console = next(ln for ln in lines if ln.startswith("wall time"))
+    html = (res.config.out_dir / "report.html").read_text()
+    page = re.search(r"<td>wall time[^<]*</td><td>([^<]*)</td>", html).group(1)
+    assert console.endswith(f"  {page}") and page == f"{res.wall_s:.1f} s"
+    doc = json.loads((res.config.out_dir / "summary.json").read_text())
+    assert doc["wall_s"]["steps_1_to_7"] == pytest.approx(res.wall_s)
+    assert doc["wall_s"]["total"] >= res.wall_s

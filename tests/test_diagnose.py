@@ -252,6 +252,7 @@ def test_noise_floor_for_sparse_rows_and_with_an_aliased_tone():
     assert "tone" in d.text()
 
 
+@pytest.mark.slow
 def test_report_is_one_self_contained_html_page(tmp_path):
     pytest.importorskip("matplotlib")
     from magstack.ground.diagnose.figures import write_report
@@ -266,6 +267,7 @@ def _cli(*args):
     return subprocess.run([sys.executable, "-m", "magstack", *args], capture_output=True, text=True)
 
 
+@pytest.mark.slow
 def test_cli_diagnose_writes_json_and_sim_path_round_trips(tmp_path):
     s1 = tmp_path / "s.csv"
     p = tmp_path / "p.json"
@@ -328,6 +330,7 @@ def test_block_grouping_follows_the_correlation_of_block_means():
     assert grouped(d, bsess, 4).sum() == d.sum() and grouped(d, bsess, 4).size == 16   # 8 units per session
 
 
+@pytest.mark.slow
 def test_windows_select_rows_and_mount_rotation_is_tried(tmp_path):
     s = tmp_path / "s.csv"
     write_session(s, make("temperature_offset", seconds=1200))

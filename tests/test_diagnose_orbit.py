@@ -63,6 +63,7 @@ def test_orbit_telemetry_with_a_wandering_attitude_error_and_nothing_unmodelled_
     assert _orbit(None)["verdict"] == "none"
 
 
+@pytest.mark.slow
 def test_cli_diagnoses_flight_telemetry_without_ref_columns(tmp_path):
     sim = tmp_path / "orbit.csv"
     out = subprocess.run([sys.executable, "-m", "magstack", "simulate", "--program", "orbit_inertial", "--seconds",

@@ -14,6 +14,7 @@ from magstack.ground.diagnose import Options
 from magstack.ground.diagnose.validate import SCENARIOS, STRENGTHS, _scenario, jobs_count, nameable, run_validation
 
 
+@pytest.mark.slow
 def test_validation_writes_the_matrix_false_alarms_with_both_noises_and_the_b_path(tmp_path):
     calls = []
     s = run_validation(tmp_path, seeds=1, n_null=2, duration_s=600.0, on_session=lambda: calls.append(1))

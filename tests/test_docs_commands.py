@@ -4,6 +4,7 @@ has; its ``--help`` runs. Docs cannot drift from the parser again."""
 from __future__ import annotations
 
 import argparse
+import functools
 import re
 from pathlib import Path
 
@@ -47,6 +48,12 @@ def _tokens(text: str) -> list[str]:
     return toks
 
 
+@functools.cache
+def _commands() -> dict[str, argparse.ArgumentParser]:
+    """Every command's parser (built once: the checks only read the parsers)."""
+    return _subparsers(build_parser(ALL))
+
+
 def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
     for a in parser._actions:
         if isinstance(a, argparse._SubParsersAction):
@@ -64,7 +71,7 @@ def test_docs_quote_command_lines():
 @pytest.mark.parametrize("where, text", LINES, ids=[w for w, _ in LINES])
 def test_quoted_command_line_matches_the_parser(where, text, capsys):
     toks = _tokens(text)
-    commands = _subparsers(build_parser(ALL))
+    commands = _commands()
     if not toks or toks[0].startswith("-"):
         assert not toks or toks[0] in ("--help", "-h", "--version"), (where, text)
         return

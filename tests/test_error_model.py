@@ -487,3 +487,17 @@ def test_noise_disabled_model_is_deterministic_regardless_of_seed(p, seed):
 def test_constant_field_helper_is_usable_as_truth():
     truth = ProgramTruth("c", 10.0, constant_field((1.0, 2.0, 3.0)))
     np.testing.assert_array_equal(ErrorModel(ErrorParams()).sense(3.0, truth), [1.0, 2.0, 3.0])
+
+
+@pytest.mark.parametrize("angle_rad", [0.0, 1e-9, 9e-4, 1.1e-3, 0.02, 1.0, 3.1])
+def test_rotation_vector_matrix_is_scipys_from_rotvec(angle_rad):
+    """The simulator's rotations need no scipy (the flight install has none) yet equal scipy's to the bit."""
+    from magstack.sim.error_stages import rotvec_matrix
+
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        v = rng.normal(size=3)
+        v *= angle_rad / np.linalg.norm(v)
+        m = rotvec_matrix(v)
+        np.testing.assert_array_equal(m, Rotation.from_rotvec(v).as_matrix())
+        np.testing.assert_allclose(m @ m.T, np.eye(3), rtol=0, atol=1e-15)

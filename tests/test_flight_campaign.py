@@ -289,6 +289,7 @@ class OutageThenCorruption:
         return s
 
 
+@pytest.mark.slow
 def test_corruptions_after_an_outage_are_never_published_as_good(tmp_path):
     cfg_doc = {"flight": {"name": "outage", "telemetry_dir": "tlm", "block_rows": 500},
                "rate_group": [{"name": "fast", "rate_hz": 10.0}],

@@ -1,6 +1,7 @@
 """Executive: rate groups on their own timelines, overruns, skipped slots (no catch-up bursts), clock steps."""
 from __future__ import annotations
 
+import math
 import threading
 
 import pytest
@@ -149,6 +150,9 @@ def test_threads_on_the_system_clock_keep_their_rates():
     ex.run_threads(0.6)
     # the slow group's blocking (0.12 s, six fast periods) does not hold up the fast one (its own thread):
     # on a single shared timeline the fast group could run at most ~18 times in 0.6 s; allow for a loaded host
-    # slots stay on their grid: OS jitter can shorten one interval a little, a catch-up burst would be ~0 s
-    assert len(a.starts) >= 19 and ex.group("fast").stats.min_interval_s >= 0.5 * 0.02
+    assert len(a.starts) >= 19
+    # slots stay on their grid, at most one run per slot: a run the OS woke late may be followed closely by the
+    # next slot's (on a busy host), but a catch-up burst would put a second run into the late run's slot
+    slot = [math.floor((t - a.starts[0]) / 0.02 + 1e-3) for t in a.starts]
+    assert all(k1 > k0 for k0, k1 in zip(slot, slot[1:], strict=False)), slot
     assert 2 <= len(b.starts) <= 4

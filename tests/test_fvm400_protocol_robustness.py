@@ -146,6 +146,7 @@ REPLY = st.one_of(
 )
 
 
+@pytest.mark.slow
 @pytest.mark.filterwarnings("ignore::magstack.drivers.fvm400.ProtocolAssumptionWarning")
 @settings(max_examples=300, deadline=None)
 @given(replies=st.lists(REPLY, min_size=1, max_size=8), configure=st.booleans())

@@ -71,7 +71,10 @@ def test_coefficients_are_read_from_ppigrfs_file():
 
 
 def test_single_thread_limits_blas_and_restores_it():
-    before = blas.blas_threads()
-    with blas.single_thread():
-        assert blas.blas_threads() and all(k == 1 for k in blas.blas_threads())
-    assert blas.blas_threads() == before
+    # from two threads (the test run itself keeps BLAS at one: tests/conftest.py), so a restore is visible
+    with blas._controller().limit(limits=2, user_api="blas"):
+        before = blas.blas_threads()
+        assert before and all(k == 2 for k in before)
+        with blas.single_thread():
+            assert all(k == 1 for k in blas.blas_threads())
+        assert blas.blas_threads() == before

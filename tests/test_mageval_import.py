@@ -83,7 +83,7 @@ def test_other_resampling_targets(onto):
 
 def test_static_field_falls_back_to_prior_or_raises():
     s = import_mageval(DATA / "data3.csv", DATA / "ref4.csv")
-    assert s.metadata["clock_offset_method"].startswith("prior (data do not determine it")
+    assert s.metadata["clock_offset_method"].startswith("prior (the data do not determine the clock offset: ")
     assert float(s.metadata["clock_offset_s"]) == AUTHORS_OFFSET_S
     with pytest.raises(AlignmentError):
         import_mageval(DATA / "data3.csv", DATA / "ref4.csv", on_undetermined="raise")
@@ -140,3 +140,28 @@ def test_roundtrip_through_session_file_and_cli(tmp_path, capsys):
     assert "wrote" in capsys.readouterr().out
     c = read_session(out)
     assert c.metadata["gap_policy"] == "drop" and not np.isnan(c.ref_uT).any()
+
+
+@pytest.mark.parametrize("extra, offset_words", [
+    ([], "estimated (min residual of ref ~ A dut + b), +0.0314 s vs the authors', sigma 0.0236 s"),
+    (["--authors-offset"], "given, +0.0000 s vs the authors'"),
+])
+@pytest.mark.parametrize("gaps, gap_words", [
+    ([], "32 rows without a reference partner kept (reference empty, flagged)"),
+    (["--drop-gaps"], "32 rows without a reference partner dropped"),
+])
+def test_import_summary_names_no_nan_and_says_what_became_of_the_gap_rows(tmp_path, capsys, extra, offset_words,
+                                                                           gaps, gap_words):
+    assert main(["import-mageval", str(D5), str(R5), "--out", str(tmp_path / "s.csv"), *extra, *gaps]) == 0
+    out, err = capsys.readouterr()
+    assert err == "" and "nan" not in out.lower()
+    assert f"({offset_words}); {gap_words}" in out
+
+
+def test_a_fallback_offset_is_explained_once_on_stderr_not_repeated_on_stdout(tmp_path, capsys):
+    assert main(["import-mageval", str(DATA / "data3.csv"), str(DATA / "ref4.csv"), "--out",
+                 str(tmp_path / "p.csv")]) == 0
+    out, err = capsys.readouterr()
+    reason = "best linear fit explains only"
+    assert reason not in out and err.count(reason) == 1 and err.count("do not determine") == 1
+    assert "nan" not in out.lower() and "the authors' value: the data do not determine it, see the warning" in out

@@ -1,6 +1,7 @@
 """One import root: the folders map onto ``magstack.*`` and nothing else is installed at top level."""
 from __future__ import annotations
 
+import shutil
 import subprocess
 import sys
 import tomllib
@@ -62,3 +63,47 @@ def test_license_typing_marker_changelog_and_extras():
     assert (ROOT / "magstack" / "py.typed").is_file() and "py.typed" in CONFIG["package-data"]["magstack"]
     assert "plot" not in project["optional-dependencies"]
     assert (ROOT / "CHANGELOG.md").read_text().startswith("# Changelog")
+
+
+def test_the_demos_default_output_folder_is_git_ignored():
+    """`magstack demo` run in the checkout (the README's first command) leaves `git status` clean."""
+    from magstack.cli.main import build_parser
+
+    default = Path(build_parser(load="demo").parse_args(["demo"]).out)
+    assert not default.is_absolute() and len(default.parts) == 1
+    patterns = [p.strip() for p in (ROOT / ".gitignore").read_text().splitlines()]
+    assert f"/{default}/" in patterns
+    git = shutil.which("git")
+    if git and (ROOT / ".git").exists():
+        r = subprocess.run([git, "-C", str(ROOT), "check-ignore", "-q", f"{default}/report.html"], timeout=60)
+        assert r.returncode == 0
+
+
+def _fenced_blocks(text: str) -> list[list[str]]:
+    blocks, cur = [], None
+    for line in text.splitlines():
+        if line.startswith("```"):
+            if cur is None:
+                cur = []
+            else:
+                blocks.append(cur)
+                cur = None
+        elif cur is not None:
+            cur.append(line)
+    return blocks
+
+
+def test_readme_sets_up_in_two_commands_and_ci_runs_its_test_command():
+    """The first screen: one command installs what the demo needs and runs it, one installs the test tools and
+    runs the suite in parallel; .ci/run runs that same test command (plus the slowest-tests list)."""
+    setup = _fenced_blocks((ROOT / "README.md").read_text())[0]
+    assert len(setup) == 2
+    demo, tests = setup
+    assert demo == "python3 -m pip install -e '.[ground]' && magstack demo"
+    extras = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    assert "magstack[ground]" in extras["test"] and any(r.startswith("pytest-xdist") for r in extras["test"])
+    install, run = tests.split(" && ")
+    assert install == "python3 -m pip install -e '.[test]'" and run.startswith("python3 -m pytest ")
+    assert "-n auto" in run
+    ci = (ROOT / ".ci" / "run").read_text()
+    assert f"{run} --durations=25" in ci.splitlines() and "-e '.[test]'" in ci

@@ -43,10 +43,12 @@ class _Text(HTMLParser):
 
 
 @pytest.fixture(scope="module")
-def pages(tmp_path_factory):
-    """(demo page, diagnose page, layout problems recorded by Report while writing them)."""
+def pages(tmp_path_factory, shared_demo):
+    """(demo page, diagnose page, layout problems recorded by Report while writing them). The demo page is the
+    shared demo run's (tests/conftest.py), which recorded its own."""
     d = tmp_path_factory.mktemp("pages")
-    problems: list = []
+    assert shared_demo["code"] == 0, shared_demo["stderr"]
+    problems: list = [tuple(p) for p in shared_demo["layout_problems"]]
     real_write = Report.write
 
     def write(self, path):
@@ -56,13 +58,12 @@ def pages(tmp_path_factory):
     mp = pytest.MonkeyPatch()
     mp.setattr(Report, "write", write)
     try:
-        assert main(["demo", "--out", str(d / "demo"), "--seconds", "300", "-q"]) == 0
         s = d / "s.csv"
         assert main(["simulate", "--program", "full", "--seconds", "900", "--out", str(s), "-q"]) == 0
         assert main(["diagnose", str(s), "--block-s", "30", "--report", str(d / "rep"), "-q"]) == 0
     finally:
         mp.undo()
-    return d / "demo" / "report.html", d / "rep" / "diagnosis.html", problems
+    return shared_demo["out"] / "report.html", d / "rep" / "diagnosis.html", problems
 
 
 def test_no_figure_text_is_cut_off(pages):
@@ -142,3 +143,40 @@ def test_interrupted_report_leaves_no_empty_folder(tmp_path, monkeypatch):
     monkeypatch.setattr(figs, "_spectrum", stop)   # interrupted while drawing
     assert main(["diagnose", str(s), "--block-s", "30", "--report", str(tmp_path / "rep"), "-q"]) == 130
     assert not (tmp_path / "rep").exists()
+
+
+def test_page_titles_name_their_inputs(pages):
+    demo_title = re.search(r"<h1>(.*?)</h1>", pages[0].read_text()).group(1)
+    assert re.search(r"seed 1, 300 s of coil program &#x27;full_in_range&#x27;, held-out 300 s", demo_title), demo_title
+    diag_title = re.search(r"<h1>(.*?)</h1>", pages[1].read_text()).group(1)
+    assert diag_title.startswith("magstack diagnose s.csv: "), diag_title
+
+
+def test_demo_residual_axes_are_linear_and_show_the_bulk_with_spikes_counted_on_the_edge():
+    """A few coil-step pairing spikes of 8 uT must neither set the scale (the 30 nT residual would be a flat line)
+    nor call for a symlog axis nobody can read: linear axes at 8 robust sigmas, the spikes drawn on the edge."""
+    from magstack.cli.demo import report as demo_report
+    from magstack.data.session import Session
+
+    rng = np.random.default_rng(5)
+    n = 2000
+    t = np.arange(n) * 0.25
+    ref = 40.0 * np.stack([np.sin(t / 30), np.cos(t / 30), np.sin(t / 70)], axis=1)
+    res_uT = rng.normal(0.0, 0.030, (n, 3))
+    res_uT[[100, 700, 1500], 1] = 8.0
+    cal = Session(t, ref, ref + res_uT, np.full(n, 25.0), np.zeros(n, int))
+    raw = Session(t, ref, 1.05 * ref + 0.4, np.full(n, 25.0), np.zeros(n, int))
+    figs = [demo_report._holdout_error_figure(raw, cal), demo_report._residual_vs_figure(cal),
+            demo_report._magnitude_figure(raw, cal)]
+    checked = 0
+    for fig in figs:
+        for ax in fig.axes:
+            assert ax.get_yscale() == "linear" and ax.get_xscale() == "linear"
+            if "nT" in ax.get_ylabel():
+                lo, hi = ax.get_ylim()
+                assert -hi == pytest.approx(lo) and 4 * 30.0 < hi < 400.0, (ax.get_ylabel(), lo, hi)
+                notes = [tx.get_text() for tx in ax.texts if "drawn on the edge" in tx.get_text()]
+                assert notes and re.match(r"\d+ points beyond", notes[0])
+                checked += 1
+    assert checked == 4
+    assert demo_report.residual_limit_nT(res_uT * 1e3) == pytest.approx(8 * 30.0, rel=0.1)

@@ -33,7 +33,7 @@ def test_same_seed_identical_bytes_different_seed_differs(tmp_path):
 
 def test_metadata_names_chip_preset_program_effects_seed_version(tmp_path):
     out = _run(tmp_path, "s.csv", "--chip", "hmc5983", "--program", "currents", "--seconds", "20", "--seed", "3",
-               "--without", "noise,drift", "--interference", "solar_A=0.5,-0.2,0.1")
+               "--without", "noise,drift", "--interference", "solar=0.5,-0.2,0.1")
     s = read_session(out)
     md = s.metadata
     assert md["dut_chip"] == "hmc5983" and md["preset"] == "hmc5983"
@@ -41,9 +41,11 @@ def test_metadata_names_chip_preset_program_effects_seed_version(tmp_path):
     assert md["effects"].split(",") == [e for e in EFFECT_NAMES if e not in ("noise", "drift")]
     assert md["software_version"]
     params = ErrorParams.from_dict(json.loads(md["error_params"]))
-    np.testing.assert_allclose(params.interference_uT_per_A["solar_A"], [0.5, -0.2, 0.1])
+    np.testing.assert_allclose(params.interference_uT_per_A["solar"], [0.5, -0.2, 0.1])
     np.testing.assert_allclose(params.offset_uT, preset("hmc5983").offset_uT)
-    assert set(s.currents_A) == {"solar_A", "torquer_A"}
+    assert set(s.currents_A) == {"solar", "torquer"}
+    header = next(line for line in out.read_text().splitlines() if line.startswith("t_s,"))
+    assert ",current_solar_A,current_torquer_A" in header and "_A_A" not in header
     assert len(s) == int(20 * 75) + 1
     np.testing.assert_allclose(np.diff(s.t_s), 1 / 75, atol=2e-6)
 
@@ -81,7 +83,7 @@ def test_effects_option_only_selected_effects(tmp_path):
     (["--sessions", "100000"], "argument --sessions: must be within [1, 1000]"),
     (["--sessions", "200", "--seconds", "60"], "fewer than 5 per session for --sessions 200"),
     (["--interference", "x=1,2,3"], "--interference: program 'steps_xyz' has no current x (its currents: none)"),
-    (["--program", "currents", "--interference", "x=1,2,3"], "no current x (its currents: solar_A, torquer_A)"),
+    (["--program", "currents", "--interference", "x=1,2,3"], "no current x (its currents: solar, torquer)"),
     (["--interference", "solar_A=1,2,inf"], "argument --interference: expected finite numbers"),
     (["--seed", "1.5"], "argument --seed: expected an integer"),
     (["--rate-hz", "0"], "--rate-hz"),

@@ -49,3 +49,20 @@ def test_a_refit_run_imports_no_statistics_plotting_demo_or_diagnosis(tmp_path):
             "assert 'magstack.cli.demo' not in sys.modules and 'magstack.cli.commands.demo' not in sys.modules")
     assert heavy_imports(code) == ["pandas"]
     assert out.exists()
+
+
+def test_a_simulated_flight_run_imports_no_scipy_pandas_or_matplotlib(tmp_path):
+    """`magstack run --sim` is the flight application: with every library installed it still loads none of the
+    ground's (tests/test_lean_install.py runs it where they cannot be imported at all)."""
+    from magstack.firmware.flight.config import example_config_text
+
+    cfg = tmp_path / "flight.toml"
+    cfg.write_text(example_config_text())
+    code = ("import contextlib, io, sys\nfrom magstack.cli.main import main\n"
+            "with contextlib.redirect_stdout(io.StringIO()):\n"
+            f"    rc = main(['run', '--config', {str(cfg)!r}, '--sim', '--duration', '20', '--out', "
+            f"{str(tmp_path / 'tlm')!r}, '-q'])\n"
+            "assert rc in (0, 1), rc\n"
+            "assert not [m for m in ('scipy', 'erfa', 'ppigrf') if m in sys.modules]")
+    assert heavy_imports(code) == []
+    assert any((tmp_path / "tlm").glob("packets-*.bin"))

@@ -15,6 +15,9 @@ from magstack.drivers.errors import ConfigurationError
 from magstack.ground.alignment import align_streams, aligned_session
 from magstack.ground.mageval_import import AUTHORS_OFFSET_S, KELVIN_OFFSET, read_mageval_data, read_mageval_ref
 
+#: The optional extra this command needs (cli/extras.py): checked before this module is imported.
+EXTRA = "ground"
+
 log = logging.getLogger(__name__)
 
 

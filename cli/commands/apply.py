@@ -21,6 +21,9 @@ from magstack.firmware.errors import CalTableInvalid
 from magstack.firmware.float_applier import ApplyFlag
 from magstack.ground.apply_session import FLAG_SHIFT, calibrate_session
 
+#: The optional extra this command needs (cli/extras.py): checked before this module is imported.
+EXTRA = "ground"
+
 log = logging.getLogger(__name__)
 
 

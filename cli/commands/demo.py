@@ -15,6 +15,9 @@ from magstack.cli.options import finite_float, int_range, nonempty_dir
 from magstack.cli.output import CommandResult, say
 from magstack.cli.progress import stages
 
+#: The optional extra this command needs (cli/extras.py): checked before this module is imported.
+EXTRA = "ground"
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("demo", help="run the whole stack end to end on the simulated bench (no hardware)",

@@ -17,6 +17,9 @@ from magstack.data.windows import add_window_options, describe, select_rows
 from magstack.ground.diagnose import Options, attach_rows, check_rows, diagnose, kept_rows, model_gap, parse_model
 from magstack.ground.diagnose.spec import hysteresis_base, table_gap
 
+#: The optional extra this command needs (cli/extras.py): checked before this module is imported.
+EXTRA = "ground"
+
 log = logging.getLogger(__name__)
 
 
@@ -166,7 +169,7 @@ def run(args: argparse.Namespace) -> CommandResult:
             from magstack.data.io import staged_directory
             from magstack.ground.diagnose.figures import write_report
             with staged_directory(args.report) as stage:
-                name = write_report(d, stage).name
+                name = write_report(d, stage, inputs=args.sessions).name
             lines.append(f"wrote {Path(args.report) / name}")
     return CommandResult("diagnose", doc, lines)
 

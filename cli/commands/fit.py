@@ -18,6 +18,9 @@ from magstack.firmware.calibration.model import CAL_TERMS, MODELS
 from magstack.firmware.calibration.reference import reference_range
 from magstack.firmware.errors import CalTableInvalid, FitError, NoValidityRegion
 
+#: The optional extra this command needs (cli/extras.py): checked before this module is imported.
+EXTRA = "ground"
+
 log = logging.getLogger(__name__)
 
 
@@ -219,7 +222,7 @@ def run(args: argparse.Namespace) -> CommandResult:
            if table.validity_temp_c is not None else "validity: any temperature") + \
         f", |B_i| <= {table.validity_field_uT:g} uT ({vinfo.get('rule', 'data range')}" + \
         (f", bound {vinfo['bound_uT'] * 1e3:.0f} nT)" if "bound_uT" in vinfo else ")")
-    lines = [f"note: {n}" for n in notes] + [report,
+    lines = [f"note: {n}" for n in notes if n not in weak] + [report,   # weak: said as warnings on stderr
              f"\nwrote {args.out} (device {device_id}, crc32 {crc})", box] + \
         [f"  {x}" for x in vinfo.get("notes", [])] + [f"WARNING: {w}" for w in vinfo.get("warnings", [])] + \
         [f"table validates: worst-case output {v.worst_output_uT:.1f} uT, max cond {v.max_cond:.3g}"]

@@ -13,6 +13,9 @@ from magstack.data.windows import add_window_options, describe, select_rows
 from magstack.drivers.errors import ConfigurationError
 from magstack.ground.mageval_import import AUTHORS_OFFSET_S, import_mageval
 
+#: The optional extra this command needs (cli/extras.py): checked before this module is imported.
+EXTRA = "ground"
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("import-mageval", help="import AV-MagEval dataN.csv + refN.csv as a session file",
@@ -95,13 +98,33 @@ def run(args: argparse.Namespace) -> CommandResult:
     data = {"out": str(args.out), "rows": len(s),
             **{k: _number(m.get(k)) if k in numeric else m.get(k) for k in keys},
             "rows_selected": m.get("rows_selected")}
+    method = m["clock_offset_method"]
     warning = None
-    if m["clock_offset_method"].startswith("prior"):
-        warning = (f"clock offset NOT estimated, the authors' value was used: {m['clock_offset_method']} "
+    if method.startswith("prior"):
+        reason = method[len("prior ("):-1] if method.startswith("prior (") and method.endswith(")") else method
+        warning = (f"clock offset NOT estimated, the authors' value {AUTHORS_OFFSET_S} s was used: {reason} "
                    "(use --strict-offset to fail instead)")
         log.warning("import-mageval: %s", warning)
     data["warning"] = warning
     return CommandResult("import-mageval", data, [
-        f"wrote {args.out}: {len(s)} rows; clock offset {m['clock_offset_s']} s "
-        f"({m['clock_offset_vs_authors_s']} s vs authors, sigma {m['clock_offset_sigma_s']} s, "
-        f"{m['clock_offset_method']}); gap rows {m['gap_rows']} ({m['gap_policy']})"])
+        f"wrote {args.out}: {len(s)} rows; clock offset {m['clock_offset_s']} s ({_offset_source(m)}); "
+        + _gap_text(data["gap_rows"], m["gap_policy"])])
+
+
+def _offset_source(m) -> str:
+    """How the clock offset was chosen, for the one-line summary (the reason of a fallback is the warning's)."""
+    method = m["clock_offset_method"]
+    if method.startswith("prior"):
+        return "the authors' value: the data do not determine it, see the warning"
+    if method == "given":
+        return f"given, {m['clock_offset_vs_authors_s']} s vs the authors'"
+    sigma = _number(m.get("clock_offset_sigma_s"))
+    return (f"{method}, {m['clock_offset_vs_authors_s']} s vs the authors'"
+            + (f", sigma {sigma:.4f} s" if isinstance(sigma, float | int) else ""))
+
+
+def _gap_text(n_gap, policy: str) -> str:
+    """The DUT rows without a reference partner within --max-gap-s, and what became of them."""
+    if policy == "drop":
+        return f"{n_gap} rows without a reference partner dropped"
+    return f"{n_gap} rows without a reference partner kept (reference empty, flagged)"

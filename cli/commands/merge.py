@@ -11,6 +11,10 @@ from magstack.data.telemetry import NO_ADCS_FLAG
 from magstack.ground.merge_adcs import METHODS, TOLERANCE_S, merge_files
 
 log = logging.getLogger(__name__)
+
+#: The optional extra this command needs (cli/extras.py): checked before this module is imported.
+EXTRA = "ground"
+
 #: Gaps printed in the text report (all of them are in --json).
 SHOWN_GAPS = 10
 

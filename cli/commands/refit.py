@@ -18,6 +18,9 @@ from magstack.cli.output import CommandResult
 from magstack.cli.progress import bar
 from magstack.drivers.errors import ConfigurationError
 
+#: The optional extra this command needs (cli/extras.py): checked before this module is imported.
+EXTRA = "ground"
+
 METHODS = ("attitude", "scalar", "pso")
 
 

@@ -42,7 +42,8 @@ def register(subparsers) -> None:
                    help="telemetry directory (overrides the config)")
     p.add_argument("--sim-program", default="rotation", metavar="NAME",
                    help="with --sim: coil program giving the simulated field (default rotation; see magstack "
-                        "simulate --help); an orbit_* programme starts at the run's clock epoch")
+                        "simulate --help); an orbit_* programme starts at the run's clock epoch (it needs "
+                        "magstack[ground])")
     p.add_argument("--seed", type=int_range(0, 2**32 - 1), default=0, help="with --sim: simulation seed (default 0)")
     p.add_argument("--scenario", metavar="ground.toml", type=Path, default=None,
                    help="with --sim --duration: ground actions (magstack command lines) at virtual times, run with "
@@ -54,7 +55,6 @@ def register(subparsers) -> None:
 
 def _sim_options(program_name: str, duration_s: float, seed: int):
     """Per-sensor simulator options: one truth source for the run, a simulated bench per timeline."""
-    import magstack.sim.orbit_truth  # noqa: F401  (registers the orbit_* programs)
     from magstack.sim.coil_programs import PROGRAMS, program
     from magstack.sim.gridded_orbit import GriddedOrbitTruth
     from magstack.sim.i2c_bench import default_bench

@@ -13,7 +13,6 @@ from pathlib import Path
 
 import numpy as np
 
-import magstack.sim.orbit_truth  # noqa: F401  (registers the orbit_* programs)
 from magstack.cli.interrupt import EXIT_FOR_SIGNAL, graceful_stop
 from magstack.cli.options import finite_float, int_range, name_list, named_vector, nonempty_path
 from magstack.cli.output import CommandResult
@@ -25,6 +24,9 @@ from magstack.sim.coil_programs import PROGRAMS, program
 from magstack.sim.error_model import ErrorParams
 from magstack.sim.measurement_sim import FVM400_LSB_uT, FVM400_NOISE_uT, measurement_rows, simulate_measurement_blocks
 from magstack.sim.presets import PRESET_NAMES, preset, preset_info
+
+#: The optional extra this command needs (cli/extras.py): checked before this module is imported.
+EXTRA = "ground"
 
 #: Default start of the simulated run (Unix epoch s): 2020-08-25 12:00:00 UTC, the real bench's day.
 DEFAULT_T0_EPOCH_S = 1598356800.0

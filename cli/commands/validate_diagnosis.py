@@ -10,6 +10,9 @@ from magstack.cli.output import CommandResult
 from magstack.cli.progress import bar
 from magstack.errors import EXIT_NEGATIVE
 
+#: The optional extra this command needs (cli/extras.py): checked before this module is imported.
+EXTRA = "ground"
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(

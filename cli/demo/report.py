@@ -23,6 +23,43 @@ from magstack.ground.report import PSD_LABEL, Report, figure, log_binned_psd
 
 AXES = "xyz"
 
+#: Residual axes are linear and show the bulk of the points: +- this many robust standard deviations
+#: (1.4826 x the median absolute deviation) of the residual, at least :data:`MIN_LIMIT_nT`. The few points
+#: beyond (DUT and reference cannot be paired across a coil step) are drawn on the edge and counted.
+LIMIT_SIGMAS = 8.0
+MIN_LIMIT_nT = 20.0
+
+
+def residual_limit_nT(*values_nT) -> float:
+    """Half-height (nT) of a linear residual axis that shows the bulk of ``values_nT`` (finite values)."""
+    v = np.concatenate([np.asarray(x, float).ravel() for x in values_nT])
+    v = v[np.isfinite(v)]
+    if not v.size:
+        return MIN_LIMIT_nT
+    sigma = 1.4826 * float(np.median(np.abs(v - np.median(v))))
+    return float(max(MIN_LIMIT_nT, LIMIT_SIGMAS * sigma))
+
+
+def plot_clipped(ax, x, y_nT, limit_nT: float, style: str = "-", **kw) -> int:
+    """Plot ``y_nT`` on a linear axis of +-``limit_nT``: values beyond are drawn on the edge as open triangles
+    (pointing out); returns how many were clipped."""
+    y = np.asarray(y_nT, float)
+    ax.plot(x, np.clip(y, -limit_nT, limit_nT), style, **kw)
+    out = np.abs(y) > limit_nT
+    if out.any():
+        color = ax.lines[-1].get_color()
+        xs = np.asarray(x)[out]
+        ax.plot(xs, np.sign(y[out]) * limit_nT, ls="none", marker=6, mfc="none", color=color, ms=5)
+    ax.set_ylim(-1.04 * limit_nT, 1.04 * limit_nT)
+    return int(out.sum())
+
+
+def _clip_note(ax, n_clipped: int, limit_nT: float) -> None:
+    if n_clipped:
+        ax.text(0.01, 0.02, f"{n_clipped} points beyond +-{limit_nT:.0f} nT drawn on the edge (triangles)",
+                transform=ax.transAxes, fontsize=7, va="bottom", ha="left", color="0.2",
+                bbox={"facecolor": "white", "edgecolor": "none", "alpha": 0.85, "pad": 1.5})
+
 
 def _paired_rows(s):
     ok = np.all(np.isfinite(s.ref_uT), axis=1) & np.all(np.isfinite(s.dut_uT), axis=1)
@@ -32,12 +69,15 @@ def _paired_rows(s):
 def _holdout_error_figure(raw, cal):
     fig, ax = figure(9.0, 5.0, nrows=2)
     t0 = raw.t_s[0]
+    res_nT = (cal.dut_uT - cal.ref_uT) * 1e3
+    lim = residual_limit_nT(res_nT)
+    clipped = 0
     for i, a in enumerate(AXES):
         ax[0][0].plot(raw.t_s - t0, raw.dut_uT[:, i] - raw.ref_uT[:, i], lw=0.7, label=f"{a}")
-        ax[1][0].plot(cal.t_s - t0, (cal.dut_uT[:, i] - cal.ref_uT[:, i]) * 1e3, lw=0.7, label=f"{a}")
+        clipped += plot_clipped(ax[1][0], cal.t_s - t0, res_nT[:, i], lim, lw=0.7, label=f"{a}")
     ax[0][0].set_ylabel("raw - ref (uT)")
     ax[1][0].set_ylabel("calibrated - ref (nT)")
-    ax[1][0].set_yscale("symlog", linthresh=200.0)   # spikes at coil steps: DUT and reference cannot pair there
+    _clip_note(ax[1][0], clipped, lim)   # spikes at coil steps: DUT and reference cannot pair there
     ax[1][0].set_xlabel("time in held-out session (s)")
     for a in (ax[0][0], ax[1][0]):
         a.legend(loc="upper right", ncol=3, fontsize=8)
@@ -49,15 +89,17 @@ def _holdout_error_figure(raw, cal):
 def _residual_vs_figure(cal):
     fig, ax = figure(9.0, 3.6, ncols=2)
     res_nT = (cal.dut_uT - cal.ref_uT) * 1e3
+    lim = residual_limit_nT(res_nT)
+    clipped = [0, 0]
     for i, a in enumerate(AXES):
-        ax[0][0].plot(cal.temp_c, res_nT[:, i], ".", ms=2, alpha=0.5, label=a)
-        ax[0][1].plot(cal.ref_uT[:, i], res_nT[:, i], ".", ms=2, alpha=0.5, label=a)
+        clipped[0] += plot_clipped(ax[0][0], cal.temp_c, res_nT[:, i], lim, ".", ms=2, alpha=0.5, label=a)
+        clipped[1] += plot_clipped(ax[0][1], cal.ref_uT[:, i], res_nT[:, i], lim, ".", ms=2, alpha=0.5, label=a)
     ax[0][0].set_xlabel("temperature (degC)")
     ax[0][1].set_xlabel("reference field on the same axis (uT)")
-    for a in ax[0]:
+    for k, a in enumerate(ax[0]):
         a.set_ylabel("calibrated - ref (nT)")
-        a.set_yscale("symlog", linthresh=200.0)   # linear within +-200 nT; coil-step pairing spikes beyond
-        a.legend(fontsize=8)
+        _clip_note(a, clipped[k], lim)   # coil-step pairing spikes
+        a.legend(fontsize=8, loc="upper right")
         a.grid(alpha=0.3)
     ax[0][0].set_title("held-out residual vs temperature")
     ax[0][1].set_title("held-out residual vs field")
@@ -77,13 +119,19 @@ def _magnitude_figure(raw, cal):
     d_raw = np.linalg.norm(raw.dut_uT, axis=1) - b_ref
     d_cal = (np.linalg.norm(cal.dut_uT, axis=1) - np.linalg.norm(cal.ref_uT, axis=1)) * 1e3
     rms_raw, rms_cal = np.sqrt(np.mean(d_raw ** 2)), np.sqrt(np.mean(d_cal ** 2))
-    ax[1][0].plot(raw.t_s - t0, d_raw * 1e3, lw=0.7, color="C1", label=f"raw (RMS {rms_raw:.2f} uT)")
-    ax[1][0].plot(cal.t_s - t0, d_cal, lw=0.7, color="C2", label=f"calibrated (RMS {rms_cal:.0f} nT)")
-    ax[1][0].set_yscale("symlog", linthresh=200.0)
-    ax[1][0].set_ylabel("|B| - |B ref| (nT)")
+    ax[1][0].plot(raw.t_s - t0, d_raw, lw=0.7, color="C1", label=f"raw (RMS {rms_raw:.2f} uT)")
+    ax[1][0].set_ylabel("raw |B| - |B ref| (uT)")
+    twin = ax[1][0].twinx()   # the calibrated difference is some 100x smaller: its own linear axis, in nT
+    lim = residual_limit_nT(d_cal)
+    clipped = plot_clipped(twin, cal.t_s - t0, d_cal, lim, lw=0.7, color="C2",
+                           label=f"calibrated (RMS {rms_cal:.0f} nT)")
+    twin.set_ylabel("calibrated |B| - |B ref| (nT)", color="C2")
+    _clip_note(twin, clipped, lim)
+    lines = ax[1][0].get_lines()[:1] + twin.get_lines()[:1]
+    ax[1][0].legend(lines, [ln.get_label() for ln in lines], loc="upper right", fontsize=8, ncol=2)
     ax[1][0].set_xlabel("time in held-out session (s)")
+    ax[0][0].legend(loc="upper right", fontsize=8, ncol=3)
     for a in (ax[0][0], ax[1][0]):
-        a.legend(loc="upper right", fontsize=8, ncol=3)
         a.grid(alpha=0.3)
     return fig
 
@@ -92,34 +140,40 @@ def _magnitude_figure(raw, cal):
 SPHERE_BANDS, SPHERE_SECTORS = 8, 16
 
 
-def sphere_coverage(ref_uT, min_field_uT: float = 5.0) -> tuple[np.ndarray, np.ndarray, int, int]:
-    """Azimuth and elevation (deg) of the reference field's direction on rows with |B| >= ``min_field_uT``,
-    and how many of the ``SPHERE_BANDS x SPHERE_SECTORS`` equal-area cells they reach (hit, total)."""
+def sphere_cells(ref_uT, min_field_uT: float = 5.0) -> np.ndarray:
+    """Rows per equal-area cell of the field sphere, (``SPHERE_BANDS``, ``SPHERE_SECTORS``): the reference field's
+    direction on rows with |B| >= ``min_field_uT``; bands of equal width in sin(elevation), sectors of azimuth."""
     b = np.asarray(ref_uT, float)
     n = np.linalg.norm(b, axis=1)
     b = b[np.isfinite(n) & (n >= min_field_uT)]
-    if not len(b):
-        return np.zeros(0), np.zeros(0), 0, SPHERE_BANDS * SPHERE_SECTORS
-    u = b / np.linalg.norm(b, axis=1, keepdims=True)
-    az = np.degrees(np.arctan2(u[:, 1], u[:, 0]))
-    el = np.degrees(np.arcsin(np.clip(u[:, 2], -1, 1)))
-    band = np.minimum(((u[:, 2] + 1) / 2 * SPHERE_BANDS).astype(int), SPHERE_BANDS - 1)
-    sector = np.minimum(((az + 180) / 360 * SPHERE_SECTORS).astype(int), SPHERE_SECTORS - 1)
-    hit = np.unique(band * SPHERE_SECTORS + sector).size
-    return az, el, int(hit), SPHERE_BANDS * SPHERE_SECTORS
+    counts = np.zeros((SPHERE_BANDS, SPHERE_SECTORS), dtype=int)
+    if len(b):
+        u = b / np.linalg.norm(b, axis=1, keepdims=True)
+        az = np.degrees(np.arctan2(u[:, 1], u[:, 0]))
+        band = np.minimum(((u[:, 2] + 1) / 2 * SPHERE_BANDS).astype(int), SPHERE_BANDS - 1)
+        sector = np.minimum(((az + 180) / 360 * SPHERE_SECTORS).astype(int), SPHERE_SECTORS - 1)
+        np.add.at(counts, (band, sector), 1)
+    return counts
 
 
 def _coverage_figure(ref_uT):
-    az, el, hit, total = sphere_coverage(ref_uT)
+    """The equal-area cells of the field sphere, shaded by how many rows reached them (white: none)."""
+    counts = sphere_cells(ref_uT)
+    hit, total, rows = int((counts > 0).sum()), counts.size, int(counts.sum())
     fig, ax = figure(9.0, 3.8)
-    ax[0][0].plot(az, el, ".", ms=2, alpha=0.4)
+    az_edges = np.linspace(-180.0, 180.0, SPHERE_SECTORS + 1)
+    el_edges = np.degrees(np.arcsin(np.linspace(-1.0, 1.0, SPHERE_BANDS + 1)))
+    mesh = ax[0][0].pcolormesh(az_edges, el_edges, np.ma.masked_equal(counts, 0), cmap="Blues", vmin=0,
+                               edgecolors="0.75", linewidth=0.5)
+    fig.set_layout_engine("constrained")   # before the colour bar takes its room (Report.image lays out with it)
+    fig.colorbar(mesh, ax=ax[0][0], label="rows in the cell")
     ax[0][0].set_xlim(-180, 180)
     ax[0][0].set_ylim(-90, 90)
+    ax[0][0].set_xticks(np.arange(-180, 181, 45))
     ax[0][0].set_xlabel("azimuth of the reference field (deg)")
     ax[0][0].set_ylabel("elevation (deg)")
     ax[0][0].set_title(f"field-sphere coverage of the fit session: {hit} of {total} equal-area cells "
-                       f"({len(az)} rows with |B| >= 5 uT)")
-    ax[0][0].grid(alpha=0.3)
+                       f"({rows} rows with |B| >= 5 uT)")
     return fig, hit, total
 
 
@@ -160,34 +214,46 @@ def _spectrum_figure(fit_cal):
 
 
 def _flight_figure(loop_path: Path, events_path: Path, truth_uT):
+    """Raw (uT) and calibrated (nT) published minus truth, each on its own linear axis, fault events marked."""
     tlm = read_session(loop_path)
-    fig, ax = figure(9.0, 4.0)
-    t0 = tlm.t_s[0]
+    fig, ax = figure(9.0, 5.0, nrows=2)
+    t = tlm.t_s - tlm.t_s[0]
     cal = np.column_stack([tlm.extra.get(f"cal_{a}_uT", np.full(len(tlm), np.nan)) for a in AXES])
+    cal_nT = (cal - np.asarray(truth_uT)) * 1e3
+    lim = residual_limit_nT(cal_nT)
+    clipped = 0
     for i, a in enumerate(AXES):
-        ax[0][0].plot(tlm.t_s - t0, (tlm.dut_uT[:, i] - truth_uT[i]) * 1e3, ".", ms=4, alpha=0.6, color=f"C{i}",
-                      label=f"raw {a}")
-        ax[0][0].plot(tlm.t_s - t0, (cal[:, i] - truth_uT[i]) * 1e3, "-", lw=1.2, color=f"C{i}",
-                      label=f"calibrated {a}")
+        ax[0][0].plot(t, tlm.dut_uT[:, i] - truth_uT[i], ".-", ms=3, lw=0.6, color=f"C{i}", label=f"raw {a}")
+        clipped += plot_clipped(ax[1][0], t, cal_nT[:, i], lim, ".-", ms=3, lw=0.8, color=f"C{i}",
+                                label=f"calibrated {a}")
     events = [json.loads(x) for x in events_path.read_text().splitlines() if x.strip()]
     for e in events:
         if e["name"].startswith("CHAN_"):
-            ax[0][0].axvline(e["t_s"] - t0, color="red", lw=1.0, alpha=0.7)
-            ax[0][0].annotate(e["name"], (e["t_s"] - t0, 0.98), xycoords=("data", "axes fraction"), rotation=90,
-                              va="top", ha="right", fontsize=7, color="red")
-    ax[0][0].set_yscale("symlog", linthresh=100.0)
-    ax[0][0].set_xlabel("flight time (s)")
-    ax[0][0].set_ylabel("published - truth (nT)")
+            for a in (ax[0][0], ax[1][0]):
+                a.axvline(e["t_s"] - tlm.t_s[0], color="red", lw=1.0, alpha=0.7)
+            ax[0][0].annotate(e["name"], (e["t_s"] - tlm.t_s[0], 0.98), xycoords=("data", "axes fraction"),
+                              rotation=90, va="top", ha="right", fontsize=7, color="red")
+    _clip_note(ax[1][0], clipped, lim)
+    ax[0][0].set_ylabel("raw - truth (uT)")
+    ax[1][0].set_ylabel("calibrated - truth (nT)")
+    ax[1][0].set_xlabel("flight time (s)")
     ax[0][0].set_title("flight executive telemetry (fault events in red)")
-    ax[0][0].legend(fontsize=7, ncol=2)
-    ax[0][0].grid(alpha=0.3)
+    for a in (ax[0][0], ax[1][0]):
+        a.legend(fontsize=7, ncol=3, loc="upper left")
+        a.grid(alpha=0.3)
     return fig
+
+
+def report_title(cfg) -> str:
+    """The page title: what the run was made from (the demo's inputs are its configuration)."""
+    return (f"magstack demo: seed {cfg.seed}, {cfg.seconds:g} s of coil program '{cfg.program}', held-out "
+            f"{cfg.holdout_s:g} s of '{cfg.holdout_program}' (seed {cfg.seed + 1}), {cfg.loop_cycles} flight cycles")
 
 
 def write_demo_report(res, path: Path, summary_rows: list[tuple[str, str]]) -> Path:
     """Write ``report.html`` from the demo's results and output files."""
     out = Path(path).parent
-    rep = Report("magstack demo: simulated bench to calibrated flight loop")
+    rep = Report(report_title(res.config))
     rep.text("Everything below ran on simulated hardware in virtual time (HMC1053 through the ADS1248, FVM400 "
              "reference over a serial URL), through the same drivers, calibration and flight code as on a Pi.")
     rep.heading("Summary")

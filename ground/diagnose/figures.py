@@ -12,16 +12,18 @@ from magstack.ground.report import PSD_LABEL, Report, figure, log_binned_psd
 _AX = "xyz"
 
 
-def write_report(diag, out_dir) -> Path:
-    """Write ``out_dir``/diagnosis.html; returns the path. The directory is created only when the
-    page is ready to be written (an interrupted report leaves no empty folder behind)."""
+def write_report(diag, out_dir, inputs=()) -> Path:
+    """Write ``out_dir``/diagnosis.html; returns the path. ``inputs``: the session files diagnosed (the page's
+    title names them). The directory is created only when the page is ready to be written (an interrupted
+    report leaves no empty folder behind)."""
     out = Path(out_dir)
     d = diag.to_dict()
     s = diag.gap.session
     base = diag.result.baseline.resid * 1e3
     after = diag.after_trial.resid * 1e3
     explained = base - after
-    rep = Report(f"magstack diagnose: {d['simulator']}")
+    names = ", ".join(Path(p).name for p in inputs)
+    rep = Report(f"magstack diagnose {names}: {d['simulator']}" if names else f"magstack diagnose: {d['simulator']}")
     rep.text(f"Verdict: {d['verdict']}", "verdict")
     rep.text(diag.verdict_note)
     if d["unexplained"].get("remains"):

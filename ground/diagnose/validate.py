@@ -63,8 +63,8 @@ def _scaled(f: float, **kw) -> Callable[[ErrorParams, float], ErrorParams]:
 STRENGTHS: dict[str, tuple[Callable[[ErrorParams, float], ErrorParams], str]] = {
     "time_skew": (_scaled(1, axis_delay_s=lambda s: s * np.asarray(_P.axis_delay_s)),
                   "HMC1053 preset: 50.822 ms per multiplexed channel (hardware-facts 4.2/8.3)"),
-    "interference": (_scaled(1, interference_uT_per_A=lambda s: {"solar_A": s * np.array([0.4, -0.3, 0.5]),
-                                                                 "torquer_A": s * np.array([2.0, 1.0, -1.5])}),
+    "interference": (_scaled(1, interference_uT_per_A=lambda s: {"solar": s * np.array([0.4, -0.3, 0.5]),
+                                                                 "torquer": s * np.array([2.0, 1.0, -1.5])}),
                      "assumed: a harness loop a few cm away, ~0.3 uT at 0.5 A; torquer lead 0.2 uT at 0.1 A"),
     "misalignment": (_scaled(1, misalignment_rad=lambda s: s * math.radians(1.18) * np.array([1.0, -1.0, 1.0])),
                      "lab study Table 1: median misalignment 1 deg 11' (HMC5983)"),
@@ -127,8 +127,8 @@ def _constant_field_stretches(duration_s: float) -> ProgramTruth:
     vals = np.repeat(levels[np.arange(n) % 6], 2, axis=0)
     return ProgramTruth("constant_field", duration_s, piecewise_linear(tk, vals),
                         cycling_temp(duration_s, 30.0, 25.0, 1.0),
-                        {"solar_A": lambda t: 0.5 * ((np.asarray(t) // 420) % 2),
-                         "torquer_A": lambda t: 0.1 * ((np.asarray(t) // 300 + 1) % 2)},
+                        {"solar": lambda t: 0.5 * ((np.asarray(t) // 420) % 2),
+                         "torquer": lambda t: 0.1 * ((np.asarray(t) // 300 + 1) % 2)},
                         sessions=SESSIONS, description="constant-field stretches")
 
 

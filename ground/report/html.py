@@ -1,6 +1,6 @@
 """One self-contained HTML page: headings, paragraphs, tables and PNG figures embedded as base64.
 
-Figures come from matplotlib with the Agg backend (no display needed; a core dependency). The page
+Figures come from matplotlib with the Agg backend (no display needed; the ``ground`` extra). The page
 is written whole or not at all (:func:`magstack.data.io.atomic_write_text`: exclusive temp file,
 fsync, rename). Text is HTML-escaped.
 """
@@ -11,8 +11,13 @@ import html
 import io
 from pathlib import Path
 
+import numpy as np
+
 from magstack.data.io import atomic_write_text
 from magstack.drivers.errors import ConfigurationError
+
+#: Resolution of the page's figures (dots per inch).
+_DPI = 90
 
 #: Nothing may be wider than the page: long text wraps, wide tables scroll inside themselves, images shrink.
 _CSS = ("body{font-family:sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}"
@@ -29,8 +34,8 @@ def require_matplotlib():
     try:
         import matplotlib
     except ImportError:
-        raise ConfigurationError("the HTML report needs matplotlib (a dependency of magstack): "
-                                 "pip install matplotlib") from None
+        raise ConfigurationError("the HTML report needs matplotlib (the ground extra): "
+                                 "pip install 'magstack[ground]'") from None
     matplotlib.use("Agg", force=True)
     import matplotlib.pyplot as plt
     return plt
@@ -94,9 +99,15 @@ class Report:
         plt = require_matplotlib()
         buf = io.BytesIO()
         fig.set_layout_engine("constrained")
-        out = clipped_texts(fig)
+        fig.set_dpi(_DPI)
+        out = clipped_texts(fig)          # draws the figure once, at the page's resolution
         self.layout_problems += [(alt, t) for t in out]
-        fig.savefig(buf, format="png", dpi=90, **({"bbox_inches": "tight", "pad_inches": 0.1} if out else {}))
+        if out:
+            fig.savefig(buf, format="png", dpi=_DPI, bbox_inches="tight", pad_inches=0.1)
+        else:                             # the drawing is the page's image: encode it instead of drawing again
+            from matplotlib.image import imsave
+
+            imsave(buf, np.asarray(fig.canvas.buffer_rgba()), format="png")
         plt.close(fig)
         b64 = base64.b64encode(buf.getvalue()).decode("ascii")
         cap = f"<figcaption>{html.escape(caption)}</figcaption>" if caption else ""

@@ -25,6 +25,7 @@ def test_the_igrf_attitude_reference_matches_an_independent_field_to_the_noise(t
     assert j["baseline_rmse_nT"] <= 1.1 * j["noise_floor_nT"], (j["baseline_rmse_nT"], j["noise_floor_nT"])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("tempco", [-2.7e-3, -1.35e-3])
 def test_a_sensitivity_tempco_on_orbit_is_named(tmp_path, tempco):
     j = _diagnose(orbit_telemetry(tmp_path / "tc.csv", tempco=tempco, seed=2))
