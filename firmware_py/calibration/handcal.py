@@ -77,8 +77,9 @@ class HandCalData:
 class HandCalOptions:
     """Policy. ``field_uT``: the local field magnitude (uT) with ``field_source`` saying where it came from;
     None and no per-row magnitudes: estimated (relative scale). ``temperature``: "auto" fits the temperature
-    terms when the session spans at least ``min_temp_span_c``. ``frame``: "level" needs a level turn,
-    "sensor" keeps the sensor's frame, "auto" uses a level turn when there is one. ``allow_poor_coverage``:
+    terms (the chip's prior decides what a session without ``min_temp_span_c`` of span cannot); ``t0_c`` None:
+    the session's mean temperature. ``frame``: "level" needs a level turn, "sensor" keeps the sensor's
+    frame, "auto" uses a level turn when there is one. ``allow_poor_coverage``:
     return a result (flagged) instead of refusing."""
 
     chip: str | None = None
@@ -87,7 +88,7 @@ class HandCalOptions:
     field_source: str = ""
     temperature: str = "auto"
     min_temp_span_c: float = 3.0
-    t0_c: float = 25.0
+    t0_c: float | None = None
     use_priors: bool = True
     priors: dict = field(default_factory=dict)
     holdout: bool = True
@@ -316,7 +317,9 @@ class HandCalResult:
             "soft_iron": p.par.soft_iron, "rows": self.n_rows, "n_used": self.n_used,
             "disturbed_rows_excluded": self.n_disturbed,
             "disturbed_spans_s": [list(x) for x in self.disturbed_spans_s],
-            "magnitude_nT": {k: (None if v is None else float(v) * 1e3) for k, v in self.magnitude.items()},
+            "magnitude_nT": {k[:-3] + "_nT" if k.endswith("_uT") else k: (None if v is None else
+                                                                      (np.asarray(v, dtype=float) * 1e3).tolist())
+                             for k, v in self.magnitude.items()},
             "noise_floor_axes_nT": [float(x) * 1e3 for x in self.noise_floor_axes_uT],
             "noise_floor_magnitude_nT": self.noise_floor_mag_uT * 1e3,
             "coverage": self.coverage.to_dict(), "temp_range_c": list(self.temp_range_c),
@@ -467,19 +470,26 @@ def _spans(mask: np.ndarray, t: np.ndarray, e: np.ndarray) -> list[tuple[float, 
 
 
 def choose_model(temp_c: np.ndarray, options: HandCalOptions) -> tuple[CalModel, str]:
-    """(model, note): ``eq3`` when temperature terms are wanted and the session spans enough temperature."""
-    t = temp_c[np.isfinite(temp_c)]
+    """(model, note): ``eq3`` when every row has a temperature (``temperature`` "auto" or "on"), with ``t0``
+    the session's mean temperature unless given; the estimator lets the chip's prior decide the temperature
+    terms the session's span cannot (so the table's validity box says how far from the session's temperature
+    it holds); ``gain_offset`` otherwise."""
+    fin = np.isfinite(temp_c)
+    t = temp_c[fin]
     span = float(np.ptp(t)) if t.size else 0.0
-    if options.temperature == "off":
-        return CalModel(MODELS["gain_offset"], t0_c=options.t0_c, name="gain_offset"), "temperature terms off"
-    if options.temperature == "on" or span >= options.min_temp_span_c:
-        if t.size != len(temp_c):
-            raise FitError("temperature terms need the temperature on every row (some rows have none)")
-        return (CalModel(MODELS["eq3"], t0_c=options.t0_c, name="eq3"),
+    if options.temperature == "off" or (options.temperature == "auto" and (not t.size or not fin.all())):
+        t0 = options.t0_c if options.t0_c is not None else (round(float(np.mean(t)), 2) if t.size else 25.0)
+        why = "temperature terms off" if options.temperature == "off" else "no temperature on every row"
+        return CalModel(MODELS["gain_offset"], t0_c=t0, name="gain_offset"), why
+    if not fin.all():
+        raise FitError("temperature terms need the temperature on every row (some rows have none)")
+    t0 = options.t0_c if options.t0_c is not None else round(float(np.mean(t)), 2)
+    if span >= options.min_temp_span_c:
+        return (CalModel(MODELS["eq3"], t0_c=t0, name="eq3"),
                 f"temperature span {span:.1f} degC: temperature terms fitted")
-    return (CalModel(MODELS["gain_offset"], t0_c=options.t0_c, name="gain_offset"),
-            f"temperature span {span:.1f} degC < {options.min_temp_span_c:g}: no temperature terms "
-            f"(the table is valid near the session's temperature only)")
+    return (CalModel(MODELS["eq3"], t0_c=t0, name="eq3"),
+            f"temperature span {span:.1f} degC (< {options.min_temp_span_c:g}): the temperature terms are the chip's "
+            f"prior about t0 = {t0:g} degC; the table's validity box says how far from it the calibration holds")
 
 
 def calibrate(data: HandCalData, options: HandCalOptions | None = None) -> HandCalResult:
@@ -496,8 +506,6 @@ def calibrate(data: HandCalData, options: HandCalOptions | None = None) -> HandC
     if data.r_uT is not None:
         ok &= np.isfinite(data.r_uT) & (data.r_uT > 0)
     model, tnote = choose_model(data.temp_c[ok], opt)
-    if model.name == "eq3":
-        ok &= np.isfinite(data.temp_c)
     n_rows = len(data)
     idx = np.flatnonzero(ok)
     if idx.size < 50:
