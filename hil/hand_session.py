@@ -25,12 +25,14 @@ FAST_ODR_HZ = {"lis3mdl": 155.0, "hmc5983": 220.0, "lsm303dlhc": 220.0}
 
 @dataclass
 class SampleStats:
-    """Samples seen, gaps (an interval over 1.5 read periods), overrun flags, first/last sample time (s)."""
+    """Samples seen, gaps (an interval over 1.5 read periods: a read the stream lost), first/last sample time
+    (s), and ``overwritten``: reads whose chip flagged an overrun, i.e. the chip produced samples between two
+    reads (expected: the output data rate is set above the read rate so every read finds a new sample)."""
 
     period_s: float
     n: int = 0
     gaps: int = 0
-    overruns: int = 0
+    overwritten: int = 0
     first_s: float = math.nan
     last_s: float = math.nan
     largest_gap_s: float = 0.0
@@ -46,14 +48,14 @@ class SampleStats:
             self.first_s = t
         self.last_s = t
         self.n += 1
-        self.overruns += bool(getattr(sample, "extra", {}).get("overrun", False))
+        self.overwritten += bool(getattr(sample, "extra", {}).get("overrun", False))
 
     def rate_hz(self) -> float:
         span = self.last_s - self.first_s
         return (self.n - 1) / span if self.n > 1 and span > 0 else math.nan
 
     def to_dict(self) -> dict:
-        return {"samples": self.n, "rate_hz": self.rate_hz(), "gaps": self.gaps, "overruns": self.overruns,
+        return {"samples": self.n, "rate_hz": self.rate_hz(), "gaps": self.gaps, "chip_overwritten": self.overwritten,
                 "largest_interval_s": self.largest_gap_s}
 
 

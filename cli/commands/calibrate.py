@@ -248,7 +248,7 @@ def _record(args, record, field_uT) -> dict:
     from magstack.cli.calibrate_view import TerminalView
     from magstack.drivers.clock import SystemClock
     from magstack.firmware.calibration.live_coverage import LiveCoverage
-    from magstack.hil.hand_session import SampleStats, record_hand_session
+    from magstack.hil.hand_session import FAST_ODR_HZ, SampleStats, record_hand_session
 
     cov = LiveCoverage()
     wall = SystemClock()
@@ -285,8 +285,10 @@ def _record(args, record, field_uT) -> dict:
            "redraws": None if view is None else view.frames,
            "redraw_hz": None if view is None else view.rate_hz(),
            "coverage_cells": state.cells_filled, "coverage_enough": state.enough}
-    lines = [f"recorded {st.n} samples at {st.rate_hz():.1f} Hz into {record} ({st.gaps} gaps, {st.overruns} "
-             f"overruns, largest interval {st.largest_gap_s * 1e3:.1f} ms)"
+    odr = f"{FAST_ODR_HZ[args.chip]:g} Hz"
+    lines = [f"recorded {st.n} samples at {st.rate_hz():.1f} Hz into {record} ({st.gaps} gaps, largest interval "
+             f"{st.largest_gap_s * 1e3:.1f} ms; the chip's {odr} output rate overwrote {st.overwritten} samples "
+             "between reads)"
              + (f"; view redrawn {view.frames} times ({view.rate_hz():.1f} Hz)" if view is not None else "")
              + ("; stopped by " + stop.signal_name + ": fitting what was recorded" if stop.is_set() else "")]
     rec["_lines"] = lines

@@ -96,7 +96,7 @@ class HandCalOptions:
     n_folds: int = 5
     screen: bool = True
     screen_window_s: float = 1.0
-    screen_k: float = 6.0
+    screen_k: float = 5.0
     frame: str = "auto"
     allow_poor_coverage: bool = False
     autocorr: bool = True
@@ -456,6 +456,23 @@ def _windowed_median(x: np.ndarray, t: np.ndarray, window_s: float) -> tuple[np.
     return out, cnt
 
 
+def _close_spans(bad: np.ndarray, t: np.ndarray, window_s: float, gap_windows: float = 3.0) -> np.ndarray:
+    """``bad`` with gaps shorter than ``gap_windows`` windows between flagged rows filled, and each flagged span
+    widened by one window on both sides: a magnet brought near the board is one event, whose field at the
+    sensor passes through zero change in some attitudes."""
+    out = bad.copy()
+    idx = np.flatnonzero(bad)
+    if not idx.size:
+        return out
+    for a, b in zip(idx[:-1], idx[1:], strict=True):
+        if b > a + 1 and t[b] - t[a] <= gap_windows * window_s:
+            out[a:b] = True
+    runs = np.flatnonzero(np.diff(np.r_[0, out.astype(np.int8), 0]))
+    for a, b in zip(runs[::2], runs[1::2], strict=True):
+        out[(t >= t[a] - window_s) & (t <= t[b - 1] + window_s)] = True
+    return out
+
+
 def _spans(mask: np.ndarray, t: np.ndarray, e: np.ndarray) -> list[tuple[float, float, float]]:
     """(t start, t end, largest |residual| uT) of each run of True in ``mask``."""
     out = []
@@ -527,12 +544,12 @@ def calibrate(data: HandCalData, options: HandCalOptions | None = None) -> HandC
     if opt.priors:
         ov = {k: ((float(v), 0.0) if np.isscalar(v) else (float(v[0]), float(v[1]))) for k, v in opt.priors.items()}
         theta_prior = apply_overrides(theta_prior, model, ov)
-    if r is None and not opt.use_priors:
-        F_prior = None            # without priors the scale has no anchor: F is held at the start's value
     mean, cov, src = sm.phi_prior(par, theta_prior, F_prior)
     X = sm.design(model, bb, temp)
     start = sm.start_phi(par, bb, r)
-    if r is None and F_prior is None:
+    if r is None:
+        # the magnitude scales with the whole calibration (a gauge the data cannot see): fit with F held at the
+        # start's value, then choose the overall scale the gain prior prefers (below)
         mean[-1], cov[-1, -1] = start[-1], 0.0
     notes = [tnote]
     # 1. fit, screen disturbed windows, refit
@@ -549,6 +566,7 @@ def calibrate(data: HandCalData, options: HandCalOptions | None = None) -> HandC
             # a window's median of white residuals has sd ~1.25 sigma / sqrt(rows): never flag below that
             sigma = 1.4826 * float(np.median(np.abs(e[use] - np.median(e[use]))))
             bad = np.abs(med - centre) > opt.screen_k * np.maximum(spread, 1.2533 * sigma / np.sqrt(cnt))
+            bad = _close_spans(bad, tt, opt.screen_window_s)
             new_use = ~bad
             if new_use.sum() < 0.5 * len(use) or np.array_equal(new_use, use):
                 break
@@ -567,6 +585,8 @@ def calibrate(data: HandCalData, options: HandCalOptions | None = None) -> HandC
         e = sm.residual(par, post.phi, Xu, ru)
         kappa = float(autocorr_inflation(np.repeat(e[:, None], 3, axis=1), tu, su, min_blocks=KAPPA_MIN_BLOCKS)[0])
         post = sm.fit_magnitude(par, Xu, ru, mean, cov, src, start=post.phi, kappa=kappa)
+    if r is None:
+        post = _prior_scale(post, theta_prior, model, opt.use_priors)
     e_in = sm.residual(par, post.phi, Xu, ru)
     b_cal = Xu @ post.theta.T
     raw_ref = ru if ru is not None else post.phi[-1]
@@ -616,6 +636,32 @@ def calibrate(data: HandCalData, options: HandCalOptions | None = None) -> HandC
         notes.append("poor coverage accepted on request: " + "; ".join(res.refused))
         res.refused = []
     return res
+
+
+def _prior_scale(post: sm.ScalarPosterior, theta_prior, model: CalModel, use_priors: bool) -> sm.ScalarPosterior:
+    """Relative scale: every parameter and ``F`` times ``alpha``, the scale the gain diagonal's prior prefers
+    (``alpha = sum S_ii m_i / v_i / sum S_ii^2 / v_i``); ``F``'s sd is the prior's sd of that scale, labelled as
+    the prior's. Without priors the start's scale is kept (and said)."""
+    S = model.unpack(post.theta)["S"]
+    cols = [c for c, col in enumerate(model.columns) if col.param == "S"]
+    m = np.array([theta_prior.mean[i, cols[i]] for i in range(3)])
+    v = np.array([theta_prior.cov[i, cols[i], cols[i]] for i in range(3)])
+    d = np.diag(S)
+    F0 = float(post.phi[-1])
+    if not (use_priors and np.all(np.isfinite(v)) and np.all(v > 0)):
+        post.prior_cov[-1, -1] = post.cov[-1, -1] = 0.0
+        return post
+    alpha = float(np.sum(d * m / v) / np.sum(d * d / v))
+    sd_alpha = float(1.0 / np.sqrt(np.sum(d * d / v)))
+    post.phi = post.phi * alpha
+    post.cov = post.cov * alpha * alpha
+    post.cov[-1, -1] = (F0 * sd_alpha) ** 2
+    post.prior_mean = post.prior_mean.copy()
+    post.prior_cov = post.prior_cov.copy()
+    post.prior_mean[-1] = F0 * alpha
+    post.prior_cov[-1, -1] = (F0 * sd_alpha) ** 2      # all of it from the gain prior: "prior"
+    post.sigma_uT *= alpha
+    return post
 
 
 def _holdout(par, X, r, t, s, mean, cov, src, post, kappa, opt) -> tuple[np.ndarray | None, list[str]]:
