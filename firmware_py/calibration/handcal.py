@@ -552,9 +552,12 @@ def calibrate(data: HandCalData, options: HandCalOptions | None = None) -> HandC
         # start's value, then choose the overall scale the gain prior prefers (below)
         mean[-1], cov[-1, -1] = start[-1], 0.0
     notes = [tnote]
+    # the sensor's white noise along the field bounds the residual scale from below
+    nf0 = noise_floor_uT(bb, tt, ss)
+    floor = float(np.sqrt(np.mean(nf0 ** 2))) if np.all(np.isfinite(nf0)) else 0.0
     # 1. fit, screen disturbed windows, refit
     use = np.ones(len(order), dtype=bool)
-    post = sm.fit_magnitude(par, X, r, mean, cov, src, start=start)
+    post = sm.fit_magnitude(par, X, r, mean, cov, src, start=start, sigma_floor_uT=floor)
     n_dist = 0
     spans: list = []
     if opt.screen:
@@ -571,7 +574,8 @@ def calibrate(data: HandCalData, options: HandCalOptions | None = None) -> HandC
             if new_use.sum() < 0.5 * len(use) or np.array_equal(new_use, use):
                 break
             use = new_use
-            post = sm.fit_magnitude(par, X[use], None if r is None else r[use], mean, cov, src, start=post.phi)
+            post = sm.fit_magnitude(par, X[use], None if r is None else r[use], mean, cov, src, start=post.phi,
+                                    sigma_floor_uT=floor)
         n_dist = int((~use).sum())
         if n_dist:
             e_all = sm.residual(par, post.phi, X, r)
@@ -584,7 +588,7 @@ def calibrate(data: HandCalData, options: HandCalOptions | None = None) -> HandC
     if opt.autocorr:
         e = sm.residual(par, post.phi, Xu, ru)
         kappa = float(autocorr_inflation(np.repeat(e[:, None], 3, axis=1), tu, su, min_blocks=KAPPA_MIN_BLOCKS)[0])
-        post = sm.fit_magnitude(par, Xu, ru, mean, cov, src, start=post.phi, kappa=kappa)
+        post = sm.fit_magnitude(par, Xu, ru, mean, cov, src, start=post.phi, kappa=kappa, sigma_floor_uT=floor)
     if r is None:
         post = _prior_scale(post, theta_prior, model, opt.use_priors)
     e_in = sm.residual(par, post.phi, Xu, ru)
@@ -597,7 +601,7 @@ def calibrate(data: HandCalData, options: HandCalOptions | None = None) -> HandC
     # 2. held-out time blocks
     hold = None
     if opt.holdout:
-        hold, hnotes = _holdout(par, Xu, ru, tu, su, mean, cov, src, post, kappa, opt)
+        hold, hnotes = _holdout(par, Xu, ru, tu, su, mean, cov, src, post, kappa, opt, floor)
         notes += hnotes
         if hold is not None:
             ok_h = np.isfinite(hold)
@@ -664,7 +668,7 @@ def _prior_scale(post: sm.ScalarPosterior, theta_prior, model: CalModel, use_pri
     return post
 
 
-def _holdout(par, X, r, t, s, mean, cov, src, post, kappa, opt) -> tuple[np.ndarray | None, list[str]]:
+def _holdout(par, X, r, t, s, mean, cov, src, post, kappa, opt, floor=0.0) -> tuple[np.ndarray | None, list[str]]:
     """Out-of-fold magnitude residual per used row (time blocks of ``block_s``, block k -> fold k mod n)."""
     fold = np.zeros(len(t), dtype=np.int64)
     for sid in np.unique(s):
@@ -678,7 +682,7 @@ def _holdout(par, X, r, t, s, mean, cov, src, post, kappa, opt) -> tuple[np.ndar
             continue
         try:
             q = sm.fit_magnitude(par, X[~test], None if r is None else r[~test], mean, cov, src, start=post.phi,
-                                 kappa=kappa)
+                                 kappa=kappa, sigma_floor_uT=floor)
         except FitError as exc:
             notes.append(f"held-out fold {int(f)} skipped: {exc}")
             continue

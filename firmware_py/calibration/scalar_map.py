@@ -272,12 +272,23 @@ def _objective(e: np.ndarray, w: np.ndarray, phi: np.ndarray, mean: np.ndarray, 
     return float(lam * np.sum(w * e * e) + np.sum(d * d / var[fin]))
 
 
+def _solve(R, n, mean, cov, kappa, floor):
+    sol, sigma = map_solve_one(R, n, mean, cov, kappa)
+    if sigma < floor:
+        sol, sigma = map_solve_one(R, n, mean, cov, kappa, sigma=floor)
+    return sol, sigma
+
+
 def fit_magnitude(par: ScalarParams, X: np.ndarray, r_uT: np.ndarray | None, prior_mean: np.ndarray,
                   prior_cov: np.ndarray, sources: tuple[str, ...], *, weights: np.ndarray | None = None,
-                  start: np.ndarray | None = None, kappa: float = 1.0, max_iter: int = MAX_ITER) -> ScalarPosterior:
+                  start: np.ndarray | None = None, kappa: float = 1.0, max_iter: int = MAX_ITER,
+                  sigma_floor_uT: float = 0.0) -> ScalarPosterior:
     """Gauss-Newton MAP of ``phi`` (module docstring) from the design ``X`` (N, p) and magnitudes ``r_uT``
     ((N,) uT, or None when ``par.magnitude``); ``weights`` (N,) >= 0; ``kappa`` the residual
-    autocorrelation inflation. Raises FitError when it does not converge to a finite answer."""
+    autocorrelation inflation; ``sigma_floor_uT`` a lower bound of the residual scale (the sensor's own noise:
+    where the rows admit an exact fit, e.g. a zero gain and an offset as long as the field, the sigma iteration
+    would otherwise shrink to nothing and the prior would stop counting). Raises FitError when it does not
+    converge to a finite answer."""
     n = X.shape[0]
     if n <= par.q:
         raise FitError(f"{n} rows for {par.q} parameters: not enough data")
@@ -293,7 +304,7 @@ def fit_magnitude(par: ScalarParams, X: np.ndarray, r_uT: np.ndarray | None, pri
         it += 1
         J, e = _jacobian(par, phi, X, r_uT)
         R = qr_r(np.hstack([J, e[:, None]]) * sw)
-        sol, sigma = map_solve_one(R, n, prior_mean - phi, prior_cov, kappa)
+        sol, sigma = _solve(R, n, prior_mean - phi, prior_cov, kappa, sigma_floor_uT)
         d = sol.theta
         if not np.all(np.isfinite(d)):
             raise FitError("the attitude-independent fit diverged (non-finite step)")
@@ -314,7 +325,7 @@ def fit_magnitude(par: ScalarParams, X: np.ndarray, r_uT: np.ndarray | None, pri
     # the posterior at the solution (one more linearisation there)
     J, e = _jacobian(par, phi, X, r_uT)
     R = qr_r(np.hstack([J, e[:, None]]) * sw)
-    sol, sigma = map_solve_one(R, n, prior_mean - phi, prior_cov, kappa)
+    sol, sigma = _solve(R, n, prior_mean - phi, prior_cov, kappa, sigma_floor_uT)
     if not np.all(np.isfinite(phi)):
         raise FitError("the attitude-independent fit did not converge to a finite answer")
     return ScalarPosterior(par, phi, sol.cov, prior_mean, prior_cov, sources, float(sigma), float(kappa), n, it,
