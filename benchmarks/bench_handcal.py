@@ -1,6 +1,7 @@
 """Hand calibration next to PyPI ``magcal`` and a Li-Griffiths ellipsoid fit, on the same simulated sessions.
 
     python benchmarks/bench_handcal.py [--seeds 10] [--chips lis3mdl] [--programs hand,hand_warm,hand_laptop,hand_flat]
+    python benchmarks/bench_handcal.py --part acceptance [--seeds 10]     # 10 seeds x 3 chips, held-out / floor
 
 Each session (:mod:`magstack.ground.studies.hand_calibration`) is split into 10 s blocks: the even blocks fit,
 the odd blocks are held out. On held-out rows without the laptop: the magnitude error against the site's field
@@ -79,13 +80,43 @@ def run(chip: str, program: str, seed: int) -> dict:
     return out
 
 
+def acceptance(seeds: int) -> dict:
+    """Held-out magnitude error / floor and the hard iron in posterior sds, ``seeds`` x the three chips on the
+    guided programme (``calibrate``'s own held-out blocks)."""
+    from magstack.ground.studies.hand_calibration import CHIPS, holdout_score
+
+    out = {}
+    for chip in CHIPS:
+        ratios, zs, hidden = [], [], []
+        for seed in range(seeds):
+            s = simulate_session(chip, "hand", seed)
+            res = calibrate(HandCalData(s.dut_uT, s.temp_c, s.t_s), HandCalOptions(chip=chip, field_uT=s.field_uT))
+            h = holdout_score(s, res)
+            ratios.append(h["ratio"])
+            zs += h["offset_z"]
+            hidden.append(h["hidden_rotation_deg"])
+            assert "rotation" in res.frame.undetermined
+        z = np.abs(zs)
+        out[chip] = {"ratio_median": float(np.median(ratios)), "ratio_max": float(np.max(ratios)),
+                     "offset_axes_within_2sd": f"{int(np.sum(z <= 2))}/{z.size}", "offset_z_rms": float(rms(zs)),
+                     "offset_z_max": float(z.max()), "hidden_rotation_deg_median": float(np.median(hidden))}
+        print(chip, out[chip], flush=True)
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--part", choices=("compare", "acceptance"), default="compare")
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--chips", default="lis3mdl")
     ap.add_argument("--programs", default="hand,hand_warm,hand_laptop,hand_flat")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
+    if a.part == "acceptance":
+        res = acceptance(a.seeds)
+        if a.json:
+            Path(a.json).write_text(json.dumps(res, indent=1) + "\n")
+        return 0
     table = {}
     for chip in a.chips.split(","):
         for prog in a.programs.split(","):
