@@ -93,13 +93,13 @@ def _epoch_of(clock: Clock, sample: MagSample) -> float:
     return clock.epoch_s() - (clock.monotonic_s() - sample.t_s)
 
 
-def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Path, *, seconds: float,
+def run_bench(dut: Magnetometer, ref: Magnetometer | None, clock: Clock, out: str | Path, *, seconds: float,
               ref_rate_hz: float = 4.0, dut_rate_hz: float | None = None, session_id: int = 0,
               metadata: Mapping[str, str] | None = None,
               currents: Callable[[float], Mapping[str, float]] | None = None, current_names: tuple[str, ...] = (),
               progress: Callable[..., None] | None = None, max_consecutive_errors: int = 10,
               threaded: bool | None = None, block_rows: int = 20, ref_clock: Clock | None = None,
-              temp_calibration=None, stop=None) -> BenchResult:
+              temp_calibration=None, stop=None, on_sample: Callable[[MagSample], None] | None = None) -> BenchResult:
     """Record ``seconds`` of DUT and reference samples into the session file ``out``.
 
     ``clock`` times the DUT, ``ref_clock`` (default: the same) the reference; in simulation two
@@ -113,6 +113,8 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
     ``calibrate_temperature`` (HMC1053 front end), else applied to each DUT row's ``temp_c``; the
     metadata records it.
     ``stop`` (optional, has ``is_set()``): ends the session early, file closed and complete.
+    ``ref`` None records the DUT alone (a hand calibration: no reference instrument; ``ref_*`` cells empty).
+    ``on_sample(sample)`` (optional) sees every DUT sample as it is recorded (a live view).
     """
     if not (seconds > 0 and math.isfinite(seconds)):
         raise ConfigurationError(f"seconds must be > 0, got {seconds}")
@@ -139,7 +141,8 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
     scheduler = "threads" if threaded else ("discrete-event, one clock per instrument" if rclock is not clock
                                             else "single-thread interleave")
     meta = {"dut_chip": getattr(dut, "name", "unknown"), "dut_serial": str(getattr(dut, "serial", "unknown")),
-            "reference": getattr(ref, "name", "unknown"), "ref_rate_hz": f"{ref_rate_hz:g}",
+            "reference": "none" if ref is None else getattr(ref, "name", "unknown"),
+            "ref_rate_hz": "none" if ref is None else f"{ref_rate_hz:g}",
             "dut_rate_hz": "every new sample" if dut_rate_hz is None else f"{dut_rate_hz:g}",
             "alignment_applied": "none (raw host timestamps; one row per sample of either instrument)",
             "start_utc_epoch_s": f"{clock.epoch_s():.3f}", "requested_s": f"{seconds:g}",
@@ -151,7 +154,7 @@ def run_bench(dut: Magnetometer, ref: Magnetometer, clock: Clock, out: str | Pat
     log.info("bench: recording %g s of %s + %s into %s (%s)", seconds, meta["dut_chip"], meta["reference"],
              writer.part_path, scheduler)
     t0 = clock.monotonic_s()
-    rec = _Recorder(res, writer, clock, rclock, currents, session_id, max_consecutive_errors, temp_fix)
+    rec = _Recorder(res, writer, clock, rclock, currents, session_id, max_consecutive_errors, temp_fix, on_sample)
 
     def finish_durations() -> None:
         res.duration_s = max(clock.monotonic_s(), rclock.monotonic_s()) - t0
@@ -195,7 +198,8 @@ class _Recorder:
 
     def __init__(self, res: BenchResult, writer: SessionWriter, dut_clock: Clock, ref_clock: Clock,
                  currents: Callable[[float], Mapping[str, float]] | None, session_id: int,
-                 max_consecutive: int, temp_fix: Callable[[float], float] | None = None) -> None:
+                 max_consecutive: int, temp_fix: Callable[[float], float] | None = None,
+                 on_sample: Callable[[MagSample], None] | None = None) -> None:
         self.res = res
         self.writer = writer
         self.clocks = {"dut": dut_clock, "ref": ref_clock}
@@ -203,6 +207,7 @@ class _Recorder:
         self.session_id = session_id
         self.max_consecutive = max_consecutive
         self.temp_fix = temp_fix          # a temperature-channel calibration applied to each DUT row
+        self.on_sample = on_sample        # sees each DUT sample (live view)
         self.consecutive = {"dut": 0, "ref": 0}
         self.pending: list[tuple[float, int, tuple]] = []  # rows not yet written: (t_epoch, seq, row)
         self.seq = 0
@@ -228,6 +233,8 @@ class _Recorder:
             temp = math.nan if sample.temp_c is None else float(
                 sample.temp_c if self.temp_fix is None else self.temp_fix(sample.temp_c))
             row = (t_epoch, NAN3, sample.b_uT, temp, self.session_id, cur)
+            if self.on_sample is not None:
+                self.on_sample(sample)
         else:
             res.ref_samples += 1
             row = (t_epoch, sample.b_uT, NAN3, math.nan, self.session_id, cur)
@@ -262,7 +269,7 @@ def _run_event_loop(dut, ref, dclock, rclock, t0, seconds, ref_rate_hz, dut_rate
     same = rclock is dclock
     while stop is None or not stop.is_set():
         td, tr = dclock.monotonic_s(), rclock.monotonic_s()
-        ref_at = max(tr, next_ref)
+        ref_at = max(tr, next_ref) if ref is not None else math.inf
         dut_at = max(td, next_dut) if dut_rate_hz is not None else td
         if ref_at >= end and dut_at >= end:
             return
@@ -283,7 +290,8 @@ def _run_event_loop(dut, ref, dclock, rclock, t0, seconds, ref_rate_hz, dut_rate
             dclock.sleep_s(max(wait, 1e-6))
         # nothing earlier than either clock's present can still arrive
         watermark = min(dclock.epoch_s() if dclock.monotonic_s() < end else math.inf,
-                        rclock.epoch_s() if max(rclock.monotonic_s(), next_ref) < end else math.inf)
+                        rclock.epoch_s() if ref is not None and max(rclock.monotonic_s(), next_ref) < end
+                        else math.inf)
         drain(watermark)
         if progress is not None:
             progress(min(dclock.monotonic_s(), rclock.monotonic_s()) - t0, res)
@@ -306,15 +314,16 @@ def _run_threaded(dut, ref, dclock, rclock, t0, seconds, ref_rate_hz, dut_rate_h
             events.put((kind, sample, err))
         events.put((kind, None, None))  # done marker
 
-    threads = [threading.Thread(target=worker, args=("ref", ref, rclock, 1.0 / ref_rate_hz), daemon=True),
-               threading.Thread(target=worker, args=("dut", dut, dclock,
+    threads = [threading.Thread(target=worker, args=("dut", dut, dclock,
                                                      None if dut_rate_hz is None else 1.0 / dut_rate_hz),
                                 daemon=True)]
+    if ref is not None:
+        threads.append(threading.Thread(target=worker, args=("ref", ref, rclock, 1.0 / ref_rate_hz), daemon=True))
     for th in threads:
         th.start()
     done = 0
     try:
-        while done < 2:
+        while done < len(threads):
             if stop_request is not None and stop_request.is_set():
                 stop.set()  # workers finish their current read and post their done marker
             try:

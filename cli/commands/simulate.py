@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+import magstack.sim.hand_rotation  # noqa: F401  (registers the hand_* programs)
 from magstack.cli.interrupt import EXIT_FOR_SIGNAL, graceful_stop
 from magstack.cli.options import finite_float, int_range, name_list, named_vector, nonempty_path
 from magstack.cli.output import CommandResult

@@ -382,6 +382,41 @@ def map_solve(R: np.ndarray, n: int, model: CalModel, prior: Prior, kappa=None,
     return Posterior(model, prior, theta, cov, sig, kap, sse, dof, cond, int(n), und)
 
 
+def map_solve_one(R: np.ndarray, n: int, mean: np.ndarray, cov: np.ndarray, kappa: float = 1.0,
+                  sigma: float | None = None) -> tuple[AxisPosterior, float]:
+    """MAP of a single output from the R factor of the weighted ``[X | y]`` ((q+1) columns) of ``n`` rows:
+    the solve and sigma iteration of :func:`map_solve` for a problem whose parameters are not split by
+    output axis (the attitude-independent fit: one magnitude residual per row couples all of them).
+    ``mean`` (q,), ``cov`` (q, q) with the same conventions as :class:`Prior` (inf = flat, 0 = fixed).
+    Returns the solution and the residual scale sigma used (same unit as y)."""
+    from magstack.firmware.blas import single_thread
+
+    q = R.shape[1] - 1
+    if n <= 0:
+        raise FitError("no rows to fit")
+    mean = np.asarray(mean, dtype=float).reshape(q)
+    cov = np.asarray(cov, dtype=float).reshape(q, q)
+    mask = np.ones(q, dtype=bool)
+    kap = max(float(kappa), 1.0)
+    with single_thread():
+        if sigma is None:
+            s0, rank = _min_norm_sse(R, q, 0, mask, mean, np.diag(cov))
+            s = float(np.sqrt(s0 / max(n - rank, 1)))
+        else:
+            s = float(sigma)
+        s = s if s > 0 else 1e-9
+        for _ in range(MAX_SIGMA_ITER):
+            sol = _axis_map(R, q, 0, mask, mean, cov, 1.0 / (s * s * kap))
+            if sigma is not None:
+                break
+            new = float(np.sqrt(sol.sse / max(n - sol.trace_h, 1.0)))
+            new = new if new > 0 else 1e-9
+            if abs(new - s) <= SIGMA_RTOL * s:
+                break
+            s = new
+    return sol, s
+
+
 # ---------------------------------------------------------------------- residual autocorrelation
 def autocorr_inflation(resid_uT: np.ndarray, t_s: np.ndarray, session: np.ndarray, min_blocks: int = 16,
                        cap: float = 1e4) -> np.ndarray:
@@ -413,4 +448,5 @@ def names_of(model: CalModel) -> list[tuple[int, int, str]]:
 
 
 __all__ = ["Prior", "Posterior", "AxisPosterior", "model_prior", "apply_overrides", "parse_override", "map_solve",
+           "map_solve_one",
            "autocorr_inflation", "names_of", "RANK_RTOL", "AXES"]
