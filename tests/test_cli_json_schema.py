@@ -48,6 +48,9 @@ def files(tmp_path_factory):
     assert main(["simulate", "--program", "full", "--seconds", "600", "--out", str(f["session"]),
                  "--save-params", str(f["params"]), "-q"]) == 0
     assert main(["fit", str(f["session"]), "--no-holdout", "--out", str(f["table"]), "-q"]) == 0
+    f["hand"] = d / "hand.csv"
+    assert main(["simulate", "--chip", "hmc5983", "--program", "hand", "--seconds", "80", "--sessions", "1",
+                 "--rate-hz", "50", "--out", str(f["hand"]), "-q"]) == 0
     assert main(["simulate", "--program", "orbit_tumbling", "--seconds", "3600", "--rate-hz", "1", "--sessions", "1",
                  "--t0", "1780272000", "--effects", "gain,offset,noise", "--out", str(f["tlm"]), "-q"]) == 0
     from magstack.firmware.flight.config import example_config_text
@@ -79,6 +82,8 @@ def _cases(f, tmp: Path) -> dict[tuple[str, ...], list[str]]:
         ("align",): ["align", s],
         ("apply",): ["apply", t, s, "--out", str(tmp / "c.csv")],
         ("bench",): ["bench", "--dut", "lis3mdl", "--seconds", "2", "--out", str(tmp / "b.csv")],
+        ("calibrate",): ["calibrate", str(f["hand"]), "--chip", "hmc5983", "--site", "52,4.36", "--date",
+                         "2026-06-01", "--out", str(tmp / "hand.json")],
         ("demo",): ["demo", "--out", str(tmp / "demo"), "--seconds", "300"],
         ("diagnose",): ["diagnose", s, "--block-s", "60"],
         ("fit",): ["fit", s, "--no-holdout", "--out", str(tmp / "cal2.json")],

@@ -56,7 +56,6 @@ def register(subparsers) -> None:
 def _sim_options(program_name: str, duration_s: float, seed: int):
     """Per-sensor simulator options: one truth source for the run, a simulated bench per timeline."""
     from magstack.sim.coil_programs import PROGRAMS, program
-    from magstack.sim.gridded_orbit import GriddedOrbitTruth
     from magstack.sim.i2c_bench import default_bench
     from magstack.sim.truth_memo import TruthMemo
 
@@ -73,6 +72,8 @@ def _sim_options(program_name: str, duration_s: float, seed: int):
         monotonic 0, so the field the sensors see belongs to the position and attitude at the telemetry's ``t_s``."""
         if memo is not None:
             return memo
+        from magstack.sim.gridded_orbit import GriddedOrbitTruth  # an orbit programme: the ground extra
+
         epoch0 = round(clock.epoch_s() - clock.monotonic_s(), 3)     # a system clock: calls microseconds apart
         if epoch0 not in anchored:
             anchored[epoch0] = GriddedOrbitTruth(base.at_epoch(epoch0))    # interpolated: one sample at a time

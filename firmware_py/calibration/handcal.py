@@ -283,6 +283,8 @@ class HandCalResult:
     refused: list[str] = field(default_factory=list)
     used: np.ndarray | None = None
     holdout_residual_uT: np.ndarray | None = None
+    #: the fit rows' readings and calibrated field (final frame) as :class:`~.fit.Coverage` (validity region)
+    field_coverage: object | None = None
 
     # ------------------------------------------------------------------ applying
     def apply(self, b_meas_uT: np.ndarray, temp_c: np.ndarray | None = None) -> np.ndarray:
@@ -412,10 +414,13 @@ class _TableView:
                                    np.full(3, res.kappa), np.zeros(3), np.zeros(3), np.zeros(3), res.n_used)
         self.noise_floor_uT = np.asarray(res.noise_floor_axes_uT, dtype=float)
         self.rmse_uT = np.full(3, res.magnitude.get("in_sample_rms_uT") or np.nan)
-        cov_ = Coverage()
-        cov_.temp_min_c, cov_.temp_max_c = res.temp_range_c
-        cov_.field_max_uT = np.asarray(res.magnitude.get("field_max_axes_uT", np.full(3, 100.0)), dtype=float)
-        self.coverage = cov_
+        if res.field_coverage is not None:
+            self.coverage = res.field_coverage
+        else:
+            cov_ = Coverage()
+            cov_.temp_min_c, cov_.temp_max_c = res.temp_range_c
+            cov_.field_max_uT = np.asarray(res.magnitude.get("field_max_axes_uT", np.full(3, 100.0)), dtype=float)
+            self.coverage = cov_
 
     def stats(self) -> dict:
         return dict(self._stats)
@@ -627,6 +632,10 @@ def calibrate(data: HandCalData, options: HandCalOptions | None = None) -> HandC
     used = np.zeros(n_rows, dtype=bool)
     used[order[use]] = True
     res.used = used
+    from magstack.firmware.calibration.fit import Coverage
+
+    res.field_coverage = Coverage()
+    res.field_coverage.update(bu, temp_u, {}, su, tu, 5.0, ref_uT=b_cal @ frame.rotation.T)
     if hold is not None:
         h = np.full(n_rows, np.nan)
         h[order[use]] = hold
