@@ -146,6 +146,37 @@ def test_candidate_not_better_than_active_is_not_proposed(tumbling, tumbling_res
     assert any("not better" in x for x in r.reasons)
 
 
+def test_a_second_refit_of_the_same_data_proposes_nothing(tumbling, tumbling_result, tmp_path, capsys):
+    """The first refit (identity active) is a large, significant improvement; refitting the same data with its
+    candidate active finds an improvement within the noise and proposes nothing (default options)."""
+    t = tumbling_result.paired_test
+    assert tumbling_result.proposed and t.significant and t.p <= 1e-3 and t.gain > 0.5 and t.blocks >= 3
+    again = refit([tumbling], tumbling_result.candidate)
+    assert not again.proposed and not again.paired_test.significant
+    assert any("within the noise" in x or "not better" in x for x in again.reasons), again.reasons
+    assert "paired over held-out blocks" in again.report()
+    doc = again.to_dict()["paired_test"]
+    assert doc["significant"] is False and doc["alpha"] == 0.01 and doc["min_gain"] == 0.01
+    # the CLI: exit 1, nothing written, the test's figures said
+    first, second = tmp_path / "c1.json", tmp_path / "c2.json"
+    assert main(["refit", str(tumbling), "--out", str(first), "--no-progress"]) == 0
+    capsys.readouterr()
+    assert main(["refit", str(tumbling), "--active", str(first), "--out", str(second), "--no-progress"]) == 1
+    assert "paired over held-out blocks" in capsys.readouterr().out and not second.exists()
+
+
+def test_block_grams_give_the_held_out_rms_of_any_table(tumbling, tumbling_result):
+    """The per-block Grams reproduce the held-out R factor's RMS for the candidate and the active table."""
+    plan = make_plan([str(tumbling)], load_identity(), RefitOptions())
+    st = file_pass(str(tumbling), plan)
+    mask = plan.model.axis_mask()
+    from magstack.firmware.calibration.refit import holdout_rms
+    for theta in (plan.theta_active, tumbling_result.fit.theta):
+        sse = sum(st.hold_blocks.sse(np.where(mask, theta, 0.0)).values())
+        rms = holdout_rms(st.hold.R, theta, plan.model, st.hold.n_used)
+        assert np.sqrt(sse / st.hold.n_used) == pytest.approx(float(np.linalg.norm(rms)), rel=1e-9)
+
+
 def test_map_reduce_merge_equals_single_pass(tumbling):
     plan = make_plan([str(tumbling)], load_identity(), RefitOptions())
     whole = file_pass(str(tumbling), plan)

@@ -69,7 +69,8 @@ def register(subparsers) -> None:
     p.add_argument("--dut1", type=finite_float(-1.0, 1.0, unit="s"), default=0.0, metavar="S",
                    help="UT1 - UTC (s, IERS Bulletin A; default 0)")
     p.add_argument("--min-improvement", type=finite_float(0.0, 1.0, hi_open=True), default=0.0, metavar="FRAC",
-                   help="propose only if the held-out RMS improves by this fraction (default 0)")
+                   help="propose only if the held-out RMS improves by this fraction (default 0), in addition to "
+                        "the paired test over held-out blocks (one-sided p <= 0.01, >= 1 %% of the sum of squares)")
     p.add_argument("--device-id", type=nonempty_text, help="device id (default: active table, then telemetry metadata)")
     p.add_argument("--paper-model", type=int_range(1, 5), metavar="N", help="(pso) rerun the riwanto paper's model N")
     p.add_argument("--seed", type=int_range(0, None), default=0, help="(pso) random seed")

@@ -82,3 +82,43 @@ def paired_block_test(base: Mapping[tuple[int, int], float], cand: Mapping[tuple
         t = mean / (sd / np.sqrt(nb))
     p = float(student_t.sf(t, nb - 1)) if np.isfinite(t) else (0.0 if t > 0 else 1.0)
     return PairedTest(gain, float(t), p, int(nb), len(keys), bool(p <= ALPHA and gain >= MIN_GAIN))
+
+
+class BlockGrams:
+    """Per held-out time block the Gram matrix ``Z'Z`` of its rows ``Z = [X | Y]`` (design and targets), so the
+    block's sum of squared residuals of *any* coefficient set follows later without another pass over the data
+    (:meth:`sse`). Keyed like :class:`BlockSSE`; mergeable (a map-reduce over files adds them)."""
+
+    def __init__(self) -> None:
+        self.gram: dict[tuple[int, int], np.ndarray] = {}
+
+    def add(self, session_index: np.ndarray, block: np.ndarray, X: np.ndarray, Y: np.ndarray) -> None:
+        """Rows' session index and block number, design ``X`` (N, p) and targets ``Y`` (N, 3), uT."""
+        if not len(X):
+            return
+        Z = np.hstack([np.asarray(X, dtype=float), np.asarray(Y, dtype=float)])
+        key = np.asarray(session_index, dtype=np.int64) * (1 << 32) + np.asarray(block, dtype=np.int64)
+        order = np.argsort(key, kind="stable")
+        ks = key[order]
+        cuts = np.r_[0, np.flatnonzero(np.diff(ks)) + 1, ks.size]
+        for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+            zz = Z[order[a:b]]
+            k = int(ks[a])
+            kk = (k >> 32, k & 0xFFFFFFFF)
+            g = zz.T @ zz
+            self.gram[kk] = self.gram[kk] + g if kk in self.gram else g
+
+    def merge(self, other: BlockGrams) -> BlockGrams:
+        for k, g in other.gram.items():
+            self.gram[k] = self.gram[k] + g if k in self.gram else g.copy()
+        return self
+
+    def sse(self, theta: np.ndarray) -> dict[tuple[int, int], float]:
+        """Sum over the three axes of the squared residuals ``y_i - X theta_i`` per block (uT^2); ``theta``
+        (3, p) with the columns an axis does not use set to 0."""
+        th = np.asarray(theta, dtype=float)
+        p = th.shape[1]
+        Zc = np.zeros((p + 3, 3))
+        Zc[:p, :] = th.T
+        Zc[p:, :] = -np.eye(3)
+        return {k: float(max(np.einsum("ji,jk,ki->", Zc, g, Zc), 0.0)) for k, g in self.gram.items()}

@@ -28,8 +28,13 @@ sds around its values): a sequential (Kalman-style) update of the table. What th
 determine stays at the active values with their uncertainty; no separate hold rule decides. The 192-bin
 attitude coverage is reported (it explains which directions the orbit data could inform).
 
-A candidate is proposed only if it passes :func:`cal_table.validate` and its held-out RMS (vector
-norm of the per-axis values) is below the active table's by more than ``min_improvement``.
+A candidate is proposed only if it passes :func:`cal_table.validate`, its held-out RMS (vector norm of the
+per-axis values) is below the active table's by more than ``min_improvement``, and the improvement is
+significant: a paired test over the held-out time blocks (:func:`.heldout_test.paired_block_test`, one-sided
+at ``ALPHA`` and at least ``MIN_GAIN`` of the active table's held-out sum of squares), from per-block Grams of
+the held-out rows (:class:`.heldout_test.BlockGrams`), so both tables are scored on the same blocks without
+another pass. A refit of the data a proposed table came from proposes nothing: within the noise, the active
+table stays.
 
 The work is a map (file -> :class:`PassStats`) and a reduce (:meth:`PassStats.merge`); ``mapper``
 lets another engine (Dask, in the CLI) run the map and reduce; the in-process default reads the
@@ -53,6 +58,7 @@ from magstack.firmware import cal_table
 from magstack.firmware.calibration.coverage_bins import N_BINS, AttitudeCoverage
 from magstack.firmware.calibration.estimator import Prior, model_prior
 from magstack.firmware.calibration.fit import FitOptions, FitResult
+from magstack.firmware.calibration.heldout_test import BlockGrams, BlockSSE, PairedTest, paired_block_test
 from magstack.firmware.calibration.housekeeping import MAX_GAP_S, interpolate_currents
 from magstack.firmware.calibration.model import FLIGHT_TERMS, FLOAT_ONLY_TERMS, CalModel, resolve_terms
 from magstack.firmware.calibration.predictive import from_holdout
@@ -162,6 +168,7 @@ class PassStats:
     counts: dict[str, int]
     eclipse_rows: int = 0
     rows: int = 0
+    hold_blocks: BlockGrams | None = None        # per held-out time block Grams (first pass)
     abs_resid_hist: np.ndarray = field(default_factory=lambda: np.zeros((3, HIST_EDGES_uT.size + 1), np.int64))
 
     def robust_scale_uT(self) -> np.ndarray | None:
@@ -180,6 +187,8 @@ class PassStats:
         self.fit.merge(other.fit)
         if self.hold is not None and other.hold is not None:
             self.hold.merge(other.hold)
+        if self.hold_blocks is not None and other.hold_blocks is not None:
+            self.hold_blocks.merge(other.hold_blocks)
         self.bins = self.bins.merge(other.bins)
         for k, v in other.counts.items():
             self.counts[k] = self.counts.get(k, 0) + v
@@ -199,7 +208,7 @@ def merge_stats(parts: Sequence[PassStats]) -> PassStats:
 def _new_stats(plan: Plan, first_pass: bool) -> PassStats:
     fo = FitOptions(holdout=False)
     return PassStats(StreamingFit(plan.model, fo), StreamingFit(plan.model, fo) if first_pass else None,
-                     AttitudeCoverage(), {})
+                     AttitudeCoverage(), {}, hold_blocks=BlockGrams() if first_pass else None)
 
 
 def reference_block(blk: telemetry.TelemetryBlock, dut1_s: float = 0.0):
@@ -337,7 +346,7 @@ def _prepare_block(st: PassStats, blk: telemetry.TelemetryBlock, plan: Plan):
         if k:
             cnt[reason] = cnt.get(reason, 0) + k
         use &= ~bad
-    held_out = np.floor(blk.t_s / opt.holdout_block_s).astype(np.int64) % opt.holdout_every == 0
+    held_out = holdout_block(blk.t_s, opt) % opt.holdout_every == 0
     cur = {k: blk.currents_A[k] for k in model.currents}
     return b_ref, use, held_out, cur
 
@@ -356,11 +365,20 @@ def _block_pass(st: PassStats, blk: telemetry.TelemetryBlock, plan: Plan, theta,
         arrays = _rows(blk, b_ref, cur, fit_rows)
         st.fit.add(*arrays)
         st.bins.update(b_ref[fit_rows], blk.temp_c[fit_rows])
-        st.hold.add(*_rows(blk, b_ref, cur, use & held_out))
+        held = _rows(blk, b_ref, cur, use & held_out)
+        st.hold.add(*held)
+        if held[0].shape[0]:
+            X = plan.model.design(held[0], held[2], held[3], held[4], held[5])
+            st.hold_blocks.add(np.zeros(X.shape[0], np.int64), holdout_block(held[5], plan.options), X, held[1])
         if cache is not None:
             cache.add(blk.path, arrays)
     else:
         _robust_add(st, _rows(blk, b_ref, cur, fit_rows), plan, theta, sigma_uT)
+
+
+def holdout_block(t_s: np.ndarray, options: RefitOptions) -> np.ndarray:
+    """The held-out time block of each row (absolute time: independent of files and blocks)."""
+    return np.floor(np.asarray(t_s) / options.holdout_block_s).astype(np.int64)
 
 
 def holdout_rms(R: np.ndarray, theta: np.ndarray, model: CalModel, n: int) -> np.ndarray:
@@ -440,6 +458,7 @@ class RefitResult:
     runtime_s: float
     active_name: str
     notes: list[str] = field(default_factory=list)
+    paired_test: PairedTest | None = None
 
     def to_dict(self) -> dict[str, Any]:
         def lst(v):
@@ -457,6 +476,7 @@ class RefitResult:
             else float(np.linalg.norm(self.holdout_candidate_uT)),
             "holdout_rms_active_norm_uT": None if self.holdout_active_uT is None
             else float(np.linalg.norm(self.holdout_active_uT)),
+            "paired_test": _test_dict(self.paired_test),
             "attitude_bins_filled": None if self.bins is None else self.bins.bins_filled,
             "attitude_bins_total": N_BINS,
             "attitude_coverage": None if self.bins is None else self.bins.fraction,
@@ -497,6 +517,8 @@ class RefitResult:
             L += [f"held-out RMS on {self.n_holdout} rows (nT):{'x':>9s}{'y':>10s}{'z':>10s}{'norm':>10s}",
                   row("candidate", self.holdout_candidate_uT), row(f"active ({self.active_name})",
                                                                     self.holdout_active_uT)]
+        if self.paired_test is not None:
+            L.append("candidate vs active, paired over held-out blocks: " + self.paired_test.describe())
         L.append(("PROPOSED: " if self.proposed else "NOT proposed: ") + "; ".join(self.reasons))
         L += [f"note: {n}" for n in self.notes]
         return "\n".join(L)
@@ -599,15 +621,34 @@ def refit(paths: Sequence[str], active: cal_table.CalTable | None = None, option
     if hold.n_used < options.min_holdout_rows:
         reasons.append(f"only {hold.n_used} held-out rows (need {options.min_holdout_rows})")
     nc, na = float(np.linalg.norm(h_cand)), float(np.linalg.norm(h_act))
+    mask = plan.model.axis_mask()
+    test = paired_block_test(first.hold_blocks.sse(np.where(mask, plan.theta_active, 0.0)),
+                             first.hold_blocks.sse(np.where(mask, res.theta, 0.0)))
+    stats_doc["paired_test"] = _test_dict(test)
+    table = dataclasses.replace(table, fit_stats=stats_doc)
     if not nc < na * (1.0 - options.min_improvement):
         reasons.append(f"held-out RMS {nc * 1e3:.1f} nT is not better than the active table's {na * 1e3:.1f} nT")
+    elif not test.significant:
+        reasons.append(f"held-out RMS {nc * 1e3:.1f} nT vs active {na * 1e3:.1f} nT is within the noise: "
+                       + test.describe())
     proposed = not reasons
     if proposed:
-        reasons.append(f"held-out RMS {nc * 1e3:.1f} nT vs active {na * 1e3:.1f} nT; validation passed")
+        reasons.append(f"held-out RMS {nc * 1e3:.1f} nT vs active {na * 1e3:.1f} nT, significant ({test.describe()}); "
+                       "validation passed")
     out = RefitResult("attitude", table, proposed, reasons, res, h_cand, h_act, hold.n_used, first.bins,
                       first.counts, first.rows, first.eclipse_rows, n_pass, time.perf_counter() - t_start,
-                      active_name)
+                      active_name, paired_test=test)
     return out
+
+
+def _test_dict(test: PairedTest | None) -> dict | None:
+    """JSON form of a paired held-out test, with its thresholds."""
+    if test is None:
+        return None
+    from magstack.firmware.calibration.heldout_test import ALPHA, MIN_GAIN
+
+    return {"gain": test.gain, "t": test.t, "p": test.p, "blocks": test.blocks, "batches": test.batches,
+            "significant": test.significant, "alpha": ALPHA, "min_gain": MIN_GAIN}
 
 
 __all__ = ["RefitOptions", "RefitResult", "Selection", "Plan", "PassStats", "refit", "file_pass", "make_plan",
@@ -632,10 +673,12 @@ class ScalarRefitResult:
     rows: int
     runtime_s: float
     active_name: str
+    paired_test: PairedTest | None = None
 
     def to_dict(self) -> dict[str, Any]:
         f = self.fit
         return {"method": "scalar", "proposed": self.proposed, "reasons": self.reasons, "rows": self.rows,
+                "paired_test": _test_dict(self.paired_test),
                 "rows_fitted": self.n_fit, "rows_holdout": self.n_holdout, "excluded": dict(self.counts),
                 "runtime_s": self.runtime_s, "active": self.active_name,
                 "holdout_scalar_rms_candidate_uT": self.holdout_candidate_uT,
@@ -656,6 +699,8 @@ class ScalarRefitResult:
                      "is dropped (magnitude-only fit)")
         L.append(f"held-out RMS of |B_cal| - |B_ref| (nT): candidate {self.holdout_candidate_uT * 1e3:.1f}, "
                  f"active ({self.active_name}) {self.holdout_active_uT * 1e3:.1f}")
+        if self.paired_test is not None:
+            L.append("candidate vs active, paired over held-out blocks: " + self.paired_test.describe())
         L.append(("PROPOSED: " if self.proposed else "NOT proposed: ") + "; ".join(self.reasons))
         return "\n".join(L)
 
@@ -731,7 +776,7 @@ def refit_scalar_telemetry(paths: Sequence[str], active: cal_table.CalTable | No
             fit_parts.append(_rows(blk, b_ref, cur, use & ~held_out))
             att_parts.append(blk.q_body_eci[use & ~held_out])
             h = _rows(blk, b_ref, cur, use & held_out)
-            hold_parts.append((h[0], h[1], plan.model.design(*h[:1], h[2], h[3], h[4], h[5])))
+            hold_parts.append((h[0], h[1], plan.model.design(*h[:1], h[2], h[3], h[4], h[5]), h[5]))
             if progress is not None:
                 progress(len(blk), "pass 1/1")
         for k, v in st.counts.items():
@@ -766,12 +811,19 @@ def refit_scalar_telemetry(paths: Sequence[str], active: cal_table.CalTable | No
     hb = [h for h in hold_parts if h[0].shape[0]]
     n_hold = int(sum(h[0].shape[0] for h in hb))
     cand_sq = act_sq = 0.0
-    for bmh, yh, xh in hb:
+    cand_blocks, act_blocks = BlockSSE(), BlockSSE()
+    for bmh, yh, xh, th in hb:
         r = np.linalg.norm(yh, axis=1)
-        cand_sq += float(np.sum((np.linalg.norm(bmh @ np.asarray(fit.S).T + fit.O_uT, axis=1) - r) ** 2))
-        act_sq += float(np.sum((np.linalg.norm(plan.model.predict(plan.theta_active, xh), axis=1) - r) ** 2))
+        ec = (np.linalg.norm(bmh @ np.asarray(fit.S).T + fit.O_uT, axis=1) - r) ** 2
+        ea = (np.linalg.norm(plan.model.predict(plan.theta_active, xh), axis=1) - r) ** 2
+        cand_sq += float(np.sum(ec))
+        act_sq += float(np.sum(ea))
+        blk = holdout_block(th, options)
+        cand_blocks.add(np.zeros(blk.size, np.int64), blk, ec)
+        act_blocks.add(np.zeros(blk.size, np.int64), blk, ea)
     hc = math.sqrt(cand_sq / max(n_hold, 1))
     ha = math.sqrt(act_sq / max(n_hold, 1))
+    test = paired_block_test(act_blocks.sse, cand_blocks.sse)
     table = fit.to_table(device, description=f"on-orbit refit ({method}, IGRF-14 magnitude) vs {active_name}")
     reasons = []
     val = cal_table.validate(table)
@@ -781,9 +833,13 @@ def refit_scalar_telemetry(paths: Sequence[str], active: cal_table.CalTable | No
         reasons.append(f"only {n_hold} held-out rows (need {options.min_holdout_rows})")
     if not hc < ha * (1.0 - options.min_improvement):
         reasons.append(f"held-out scalar RMS {hc * 1e3:.1f} nT is not better than the active table's {ha * 1e3:.1f} nT")
+    elif not test.significant:
+        reasons.append(f"held-out scalar RMS {hc * 1e3:.1f} nT vs active {ha * 1e3:.1f} nT is within the noise: "
+                       + test.describe())
     proposed = not reasons
     if proposed:
-        reasons.append(f"held-out scalar RMS {hc * 1e3:.1f} nT vs active {ha * 1e3:.1f} nT; validation passed")
+        reasons.append(f"held-out scalar RMS {hc * 1e3:.1f} nT vs active {ha * 1e3:.1f} nT, significant "
+                       f"({test.describe()}); validation passed")
     return ScalarRefitResult(table, proposed, reasons, fit, hc, ha, int(bm.shape[0]), n_hold, counts, rows,
-                             time.perf_counter() - t_start, active_name)
+                             time.perf_counter() - t_start, active_name, paired_test=test)
 
