@@ -27,20 +27,22 @@
 #define OFF_DEVICE_ID 16u
 #define OFF_T0 48u
 #define OFF_FIELD_LIMIT 52u
-#define OFF_TEMP_LO 56u
-#define OFF_TEMP_HI 60u
-#define OFF_S 64u
-#define OFF_K_S 100u
-#define OFF_K_S2 136u
-#define OFF_O 148u
-#define OFF_K_O 160u
-#define OFF_D 172u
-#define OFF_CURRENT_RANGES 220u
-#define OFF_CURRENT_NAMES 252u
-#define OFF_CRC 316u
+#define OFF_FIELD_AXES 56u
+#define OFF_FIELD_NORM 68u
+#define OFF_TEMP_LO 72u
+#define OFF_TEMP_HI 76u
+#define OFF_S 80u
+#define OFF_K_S 116u
+#define OFF_K_S2 152u
+#define OFF_O 164u
+#define OFF_K_O 176u
+#define OFF_D 188u
+#define OFF_CURRENT_RANGES 236u
+#define OFF_CURRENT_NAMES 268u
+#define OFF_CRC 332u
 
 #define KNOWN_TERMS 0x3Fu
-#define KNOWN_OPTIONS 0x01u
+#define KNOWN_OPTIONS 0x07u
 
 static uint32_t rd_u16(const uint8_t *p)
 {
@@ -178,10 +180,26 @@ static int decode(magstack_cal_table *t, const uint8_t *img)
         }
     }
     t->field_limit_nT = rd_i32(img + OFF_FIELD_LIMIT);
+    t->field_norm_nT = rd_i32(img + OFF_FIELD_NORM);
     t->temp_lo_cdeg = rd_i32(img + OFF_TEMP_LO);
     t->temp_hi_cdeg = rd_i32(img + OFF_TEMP_HI);
     t->has_temp_range = (uint8_t)(options & MAGSTACK_CAL_OPT_TEMP_RANGE);
+    t->has_field_axes = (uint8_t)((options & MAGSTACK_CAL_OPT_FIELD_AXES) != 0u);
+    t->has_field_norm = (uint8_t)((options & MAGSTACK_CAL_OPT_FIELD_NORM) != 0u);
     if (t->field_limit_nT < 0 || t->field_limit_nT > MAGSTACK_CAL_B_LIMIT_NT) {
+        return MAGSTACK_CAL_E_VALIDITY;
+    }
+    /* per-axis limits within 0..field_limit_nT, each equal to it without their option bit */
+    for (i = 0; i < 3u; i++) {
+        t->field_axes_nT[i] = rd_i32(img + OFF_FIELD_AXES + 4u * i);
+        if (t->field_axes_nT[i] < 0 || t->field_axes_nT[i] > t->field_limit_nT ||
+            (!t->has_field_axes && t->field_axes_nT[i] != t->field_limit_nT)) {
+            return MAGSTACK_CAL_E_VALIDITY;
+        }
+    }
+    /* magnitude limit within 0..MAGSTACK_CAL_B_NORM_LIMIT_NT, zero without its option bit */
+    if (t->field_norm_nT < 0 || t->field_norm_nT > MAGSTACK_CAL_B_NORM_LIMIT_NT ||
+        (!t->has_field_norm && t->field_norm_nT != 0)) {
         return MAGSTACK_CAL_E_VALIDITY;
     }
     if (t->has_temp_range) {
@@ -322,18 +340,33 @@ static void make_terms(const magstack_cal_table *t, int64_t dtc, temperature_ter
     }
 }
 
+/* The squared magnitude limit (nT^2), or one above any output's square sum when the table has none. */
+static int64_t norm2_limit(const magstack_cal_table *t)
+{
+    return t->has_field_norm ? (int64_t)t->field_norm_nT * t->field_norm_nT : INT64_MAX;
+}
+
+/* Validity of the calibrated field: 1 when an output (nT * 2^8, saturated to int32) in whole nT, rounded half away
+ * from zero, is beyond its axis' limit (l0, l1, l2), or the sum of their squares beyond nn (the squared magnitude
+ * limit). Whole nT are at most 2^23, so the squares' sum is below 2^49. */
+static unsigned field_outside(int64_t o0, int64_t o1, int64_t o2, int64_t l0, int64_t l1, int64_t l2, int64_t nn)
+{
+    int64_t n0 = ((o0 < 0 ? -o0 : o0) + 128) >> 8;
+    int64_t n1 = ((o1 < 0 ? -o1 : o1) + 128) >> 8;
+    int64_t n2 = ((o2 < 0 ? -o2 : o2) + 128) >> 8;
+    return (unsigned)(n0 > l0) | (unsigned)(n1 > l1) | (unsigned)(n2 > l2) |
+           (unsigned)(n0 * n0 + n1 * n1 + n2 * n2 > nn);
+}
+
 /* One sample with the temperature terms of its dTc: the status bits. b_nT, cur_mA as given (clipped here). */
 static unsigned sample(const magstack_cal_table *t, const temperature_terms *tt, const int32_t *b_nT,
                        int32_t tc, const int32_t *cur_mA, unsigned sat, int32_t out[3])
 {
     unsigned oov = 0, i, k;
-    int32_t f = t->field_limit_nT;
     int32_t bx = clip(b_nT[0], MAGSTACK_CAL_B_LIMIT_NT, &sat);
     int32_t by = clip(b_nT[1], MAGSTACK_CAL_B_LIMIT_NT, &sat);
     int32_t bz = clip(b_nT[2], MAGSTACK_CAL_B_LIMIT_NT, &sat);
     int64_t acc[3];
-    oov |= (unsigned)(bx > f) | (unsigned)(bx < -f) | (unsigned)(by > f) | (unsigned)(by < -f) |
-           (unsigned)(bz > f) | (unsigned)(bz < -f);
     oov |= (unsigned)t->has_temp_range & ((unsigned)(tc < t->temp_lo_cdeg) | (unsigned)(tc > t->temp_hi_cdeg));
     for (i = 0; i < 3u; i++) {
         acc[i] = tt->g[i][0] * bx + tt->g[i][1] * by + tt->g[i][2] * bz + tt->c[i];
@@ -348,8 +381,11 @@ static unsigned sample(const magstack_cal_table *t, const temperature_terms *tt,
     for (i = 0; i < 3u; i++) {
         int64_t o = rshift_round19(acc[i]);
         sat |= (unsigned)(o > INT32_MAX) | (unsigned)(o < INT32_MIN);
-        out[i] = (int32_t)(o > INT32_MAX ? INT32_MAX : o < INT32_MIN ? INT32_MIN : o);
+        acc[i] = o > INT32_MAX ? INT32_MAX : o < INT32_MIN ? INT32_MIN : o;
+        out[i] = (int32_t)acc[i];
     }
+    oov |= field_outside(acc[0], acc[1], acc[2], t->field_axes_nT[0], t->field_axes_nT[1], t->field_axes_nT[2],
+                         norm2_limit(t));
     return (sat ? MAGSTACK_CAL_SATURATED : 0u) | (oov ? MAGSTACK_CAL_OUT_OF_VALIDITY : 0u);
 }
 
@@ -365,62 +401,80 @@ unsigned magstack_cal_apply(const magstack_cal_table *table, const int32_t b_nT[
 
 /* ------------------------------------------------------------------ blocks */
 /* Temperature terms kept for this many recent temperatures (direct-mapped on the temperature's low bits) by
- * magstack_cal_apply_block: a temperature that toggles between a few values costs no recomputation. A power of
- * two; the cache lives on the stack (about 100 bytes an entry). */
+ * magstack_cal_apply_block: a temperature that toggles between a few values, or steps by 0.01 degC now and then,
+ * costs no recomputation. A power of two; the cache lives on the stack (about 100 bytes an entry). */
 #ifndef MAGSTACK_CAL_TERMS_CACHE
 #define MAGSTACK_CAL_TERMS_CACHE 8u
 #endif
 
+/* The terms of the last MAGSTACK_CAL_TERMS_CACHE clipped temperatures (a tag outside the clip range: empty). */
+typedef struct {
+    temperature_terms tt[MAGSTACK_CAL_TERMS_CACHE];
+    int32_t tag[MAGSTACK_CAL_TERMS_CACHE];
+} terms_cache;
+
+static void cache_init(terms_cache *cache)
+{
+    unsigned i;
+    for (i = 0; i < MAGSTACK_CAL_TERMS_CACHE; i++) {
+        cache->tag[i] = INT32_MIN;
+    }
+}
+
 /* The terms of clipped temperature tc from the cache (computed on a miss). */
-static const temperature_terms *cached_terms(const magstack_cal_table *t, temperature_terms *cache, int32_t *tag,
-                                             uint32_t *valid, int32_t tc)
+static const temperature_terms *cached_terms(const magstack_cal_table *t, terms_cache *cache, int32_t tc)
 {
     uint32_t slot = (uint32_t)tc & (MAGSTACK_CAL_TERMS_CACHE - 1u);
-    if (!valid[slot] || tag[slot] != tc) {
-        make_terms(t, (int64_t)tc - t->t0_cdeg, &cache[slot]);
-        tag[slot] = tc;
-        valid[slot] = 1;
+    if (cache->tag[slot] != tc) {
+        make_terms(t, (int64_t)tc - t->t0_cdeg, &cache->tt[slot]);
+        cache->tag[slot] = tc;
     }
-    return &cache[slot];
+    return &cache->tt[slot];
 }
 
 #ifndef MAGSTACK_CAL_COMPACT /* a kernel per number of currents, vectorisable over runs of one temperature */
 
-/* What a run of samples at one temperature shares: the terms, the currents' coefficients (x 2^7) and ranges,
- * the field limit and the status bits of the temperature itself. */
+/* What every sample of a block shares: the currents' coefficients (x 2^7) and ranges, the field limits, the
+ * temperature range (the clip range without one); and, for a run of one temperature, its terms and the status
+ * bits of the temperature itself. */
 typedef struct {
-    const temperature_terms *tt;
     int64_t d[MAGSTACK_CAL_MAX_CURRENTS][3];
     int32_t lo[MAGSTACK_CAL_MAX_CURRENTS], hi[MAGSTACK_CAL_MAX_CURRENTS];
-    int32_t field;
+    int64_t lim[3], nn;
+    int32_t t_lo, t_hi;
+    const temperature_terms *tt;
     unsigned base;
-} run_terms;
+} block_terms;
 
 #define OUTSIDE(v, lim) ((uint32_t)(v) + (uint32_t)(lim) > 2u * (uint32_t)(lim)) /* v < -lim or v > lim */
 #define OUTSIDE32(o) ((uint64_t)(o) + 0x80000000u > 0xFFFFFFFFu)                   /* o not an int32 */
 #define CLAMP(v, lo, hi) ((v) > (hi) ? (hi) : (v) < (lo) ? (lo) : (v))
 
-/* The coefficients of a run, in locals (registers). */
-#define RUN_LOCALS                                                                                                \
-    const int64_t g00 = rt->tt->g[0][0], g01 = rt->tt->g[0][1], g02 = rt->tt->g[0][2];                            \
-    const int64_t g10 = rt->tt->g[1][0], g11 = rt->tt->g[1][1], g12 = rt->tt->g[1][2];                            \
-    const int64_t g20 = rt->tt->g[2][0], g21 = rt->tt->g[2][1], g22 = rt->tt->g[2][2];                            \
-    const int64_t c0 = rt->tt->c[0], c1 = rt->tt->c[1], c2 = rt->tt->c[2];                                        \
-    const int32_t f = rt->field, L = MAGSTACK_CAL_B_LIMIT_NT, IL = MAGSTACK_CAL_I_LIMIT_MA;                         \
-    const unsigned base = rt->base;                                                                               \
+/* The coefficients every sample uses, in locals (registers). */
+#define BLOCK_LOCALS                                                                                              \
+    const int64_t l0 = bt->lim[0], l1 = bt->lim[1], l2 = bt->lim[2], nn = bt->nn;                                 \
+    const int32_t L = MAGSTACK_CAL_B_LIMIT_NT, IL = MAGSTACK_CAL_I_LIMIT_MA;                                       \
     int k
 
-/* Sample r of a run with K currents: the arithmetic of sample() without a branch. */
-#define RUN_SAMPLE(K, r)                                                                                          \
+/* The terms of a run, in locals. */
+#define RUN_LOCALS                                                                                                \
+    const int64_t g00 = bt->tt->g[0][0], g01 = bt->tt->g[0][1], g02 = bt->tt->g[0][2];                            \
+    const int64_t g10 = bt->tt->g[1][0], g11 = bt->tt->g[1][1], g12 = bt->tt->g[1][2];                            \
+    const int64_t g20 = bt->tt->g[2][0], g21 = bt->tt->g[2][1], g22 = bt->tt->g[2][2];                            \
+    const int64_t c0 = bt->tt->c[0], c1 = bt->tt->c[1], c2 = bt->tt->c[2];                                        \
+    const unsigned base = bt->base
+
+/* Sample r with K currents, the terms g.., c.. and the temperature's status bits in base: the arithmetic of
+ * sample() without a branch. */
+#define SAMPLE(K, r)                                                                                              \
     do {                                                                                                          \
         int32_t x = b[3u * (r)], y = b[3u * (r) + 1u], z = b[3u * (r) + 2u];                                      \
         unsigned sat = (unsigned)OUTSIDE(x, L) | (unsigned)OUTSIDE(y, L) | (unsigned)OUTSIDE(z, L);               \
-        unsigned oov;                                                                                             \
+        unsigned oov = 0;                                                                                         \
         int64_t a0, a1, a2, o0, o1, o2;                                                                           \
         x = CLAMP(x, -L, L);                                                                                      \
         y = CLAMP(y, -L, L);                                                                                      \
         z = CLAMP(z, -L, L);                                                                                      \
-        oov = (unsigned)OUTSIDE(x, f) | (unsigned)OUTSIDE(y, f) | (unsigned)OUTSIDE(z, f);                        \
         a0 = g00 * x + g01 * y + g02 * z + c0;                                                                    \
         a1 = g10 * x + g11 * y + g12 * z + c1;                                                                    \
         a2 = g20 * x + g21 * y + g22 * z + c2;                                                                    \
@@ -428,98 +482,123 @@ typedef struct {
             int32_t c = cur[(size_t)(K) * (r) + (size_t)k];                                                       \
             sat |= (unsigned)OUTSIDE(c, IL);                                                                      \
             c = CLAMP(c, -IL, IL);                                                                                \
-            oov |= (unsigned)((uint32_t)c - (uint32_t)rt->lo[k] > (uint32_t)rt->hi[k] - (uint32_t)rt->lo[k]);     \
-            a0 += rt->d[k][0] * c;                                                                                \
-            a1 += rt->d[k][1] * c;                                                                                \
-            a2 += rt->d[k][2] * c;                                                                                \
+            oov |= (unsigned)((uint32_t)c - (uint32_t)bt->lo[k] > (uint32_t)bt->hi[k] - (uint32_t)bt->lo[k]);     \
+            a0 += bt->d[k][0] * c;                                                                                \
+            a1 += bt->d[k][1] * c;                                                                                \
+            a2 += bt->d[k][2] * c;                                                                                \
         }                                                                                                         \
         o0 = rshift_round19(a0);                                                                                  \
         o1 = rshift_round19(a1);                                                                                  \
         o2 = rshift_round19(a2);                                                                                  \
         sat |= (unsigned)OUTSIDE32(o0) | (unsigned)OUTSIDE32(o1) | (unsigned)OUTSIDE32(o2);                       \
-        out[3u * (r)] = (int32_t)CLAMP(o0, INT32_MIN, INT32_MAX);                                                 \
-        out[3u * (r) + 1u] = (int32_t)CLAMP(o1, INT32_MIN, INT32_MAX);                                            \
-        out[3u * (r) + 2u] = (int32_t)CLAMP(o2, INT32_MIN, INT32_MAX);                                            \
+        o0 = CLAMP(o0, INT32_MIN, INT32_MAX);                                                                     \
+        o1 = CLAMP(o1, INT32_MIN, INT32_MAX);                                                                     \
+        o2 = CLAMP(o2, INT32_MIN, INT32_MAX);                                                                     \
+        oov |= field_outside(o0, o1, o2, l0, l1, l2, nn);                                                         \
+        out[3u * (r)] = (int32_t)o0;                                                                              \
+        out[3u * (r) + 1u] = (int32_t)o1;                                                                         \
+        out[3u * (r) + 2u] = (int32_t)o2;                                                                         \
         status[r] = (uint8_t)(base | (sat << 2) | (oov << 1));                                                    \
     } while (0)
 
-/* m samples at the temperature of *rt (a loop a compiler may vectorise), or one sample (no vector set-up). */
-#define RUN_KERNEL(NAME, ONE, K)                                                                                  \
-    static void NAME(const run_terms *rt, size_t m, const int32_t *restrict b, const int32_t *restrict cur,        \
-                     int32_t *restrict out, uint8_t *restrict status)                                              \
-    {                                                                                                             \
-        size_t r;                                                                                                 \
-        RUN_LOCALS;                                                                                               \
-        for (r = 0; r < m; r++) {                                                                                 \
-            RUN_SAMPLE(K, r);                                                                                     \
-        }                                                                                                         \
-    }                                                                                                             \
-    static void ONE(const run_terms *rt, const int32_t *restrict b, const int32_t *restrict cur,                   \
+/* m samples at the temperature of bt->tt (a loop a compiler may vectorise), and m samples whose temperatures
+ * vary (each sample's terms from the cache, computed on a miss). */
+#define KERNELS(RUN, MIXED, K)                                                                                    \
+    static void RUN(const block_terms *bt, size_t m, const int32_t *restrict b, const int32_t *restrict cur,       \
                     int32_t *restrict out, uint8_t *restrict status)                                               \
     {                                                                                                             \
+        size_t r;                                                                                                 \
+        BLOCK_LOCALS;                                                                                             \
         RUN_LOCALS;                                                                                               \
-        RUN_SAMPLE(K, 0u);                                                                                        \
+        for (r = 0; r < m; r++) {                                                                                 \
+            SAMPLE(K, r);                                                                                         \
+        }                                                                                                         \
+    }                                                                                                             \
+    static void MIXED(const magstack_cal_table *t, terms_cache *cache, const block_terms *bt, size_t m,            \
+                      const int32_t *restrict b, const int32_t *restrict temp, const int32_t *restrict cur,       \
+                      int32_t *restrict out, uint8_t *restrict status)                                             \
+    {                                                                                                             \
+        size_t r;                                                                                                 \
+        const int32_t TL = MAGSTACK_CAL_T_LIMIT_CDEG, t_lo = bt->t_lo, t_hi = bt->t_hi;                           \
+        BLOCK_LOCALS;                                                                                             \
+        for (r = 0; r < m; r++) {                                                                                 \
+            int32_t tc = temp[r];                                                                                 \
+            unsigned base = (unsigned)OUTSIDE(tc, TL) << 2;                                                       \
+            const temperature_terms *tt;                                                                          \
+            tc = CLAMP(tc, -TL, TL);                                                                              \
+            base |= (unsigned)((uint32_t)tc - (uint32_t)t_lo > (uint32_t)t_hi - (uint32_t)t_lo) << 1;             \
+            tt = cached_terms(t, cache, tc);                                                                      \
+            {                                                                                                     \
+                const int64_t g00 = tt->g[0][0], g01 = tt->g[0][1], g02 = tt->g[0][2];                            \
+                const int64_t g10 = tt->g[1][0], g11 = tt->g[1][1], g12 = tt->g[1][2];                            \
+                const int64_t g20 = tt->g[2][0], g21 = tt->g[2][1], g22 = tt->g[2][2];                            \
+                const int64_t c0 = tt->c[0], c1 = tt->c[1], c2 = tt->c[2];                                        \
+                SAMPLE(K, r);                                                                                     \
+            }                                                                                                     \
+        }                                                                                                         \
     }
 
-RUN_KERNEL(run0, one0, 0)
-RUN_KERNEL(run1, one1, 1)
-RUN_KERNEL(run2, one2, 2)
-RUN_KERNEL(run3, one3, 3)
-RUN_KERNEL(run4, one4, 4)
+KERNELS(run0, mixed0, 0)
+KERNELS(run1, mixed1, 1)
+KERNELS(run2, mixed2, 2)
+KERNELS(run3, mixed3, 3)
+KERNELS(run4, mixed4, 4)
+
+/* Samples a mixed-temperature kernel takes at a time before the block looks for a run of one temperature again. */
+#define MIXED_CHUNK 32u
 
 void magstack_cal_apply_block(const magstack_cal_table *table, size_t n, const int32_t *b_nT,
                               const int32_t *temp_cdeg, const int32_t *currents_mA, int32_t *out,
                               uint8_t *status)
 {
-    run_terms rt;
-    temperature_terms cache[MAGSTACK_CAL_TERMS_CACHE];
-    int32_t tag[MAGSTACK_CAL_TERMS_CACHE];
-    uint32_t valid[MAGSTACK_CAL_TERMS_CACHE];
+    block_terms bt;
+    terms_cache cache;
     unsigned i, k, nk = table->n_currents;
     size_t r = 0, end;
-    for (i = 0; i < MAGSTACK_CAL_TERMS_CACHE; i++) {
-        valid[i] = 0;
-        tag[i] = 0;
-    }
+    cache_init(&cache);
     for (k = 0; k < MAGSTACK_CAL_MAX_CURRENTS; k++) {
         for (i = 0; i < 3u; i++) {
-            rt.d[k][i] = (int64_t)table->D[k][i] * 128;
+            bt.d[k][i] = (int64_t)table->D[k][i] * 128;
         }
-        rt.lo[k] = table->current_lo_mA[k];
-        rt.hi[k] = table->current_hi_mA[k];
+        bt.lo[k] = table->current_lo_mA[k];
+        bt.hi[k] = table->current_hi_mA[k];
     }
-    rt.field = table->field_limit_nT;
+    for (i = 0; i < 3u; i++) {
+        bt.lim[i] = table->field_axes_nT[i];
+    }
+    bt.nn = norm2_limit(table);
+    bt.t_lo = table->has_temp_range ? table->temp_lo_cdeg : -MAGSTACK_CAL_T_LIMIT_CDEG;
+    bt.t_hi = table->has_temp_range ? table->temp_hi_cdeg : MAGSTACK_CAL_T_LIMIT_CDEG;
+    bt.tt = NULL;
+    bt.base = 0;
     while (r < n) {
-        unsigned sat = 0;
         int32_t raw = temp_cdeg[r];
-        int32_t tc = clip(raw, MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
-        const temperature_terms *tt = cached_terms(table, cache, tag, valid, tc);
-        /* a run of one temperature (its first, second, 8th and 16th samples equal) goes to the vector kernel at
-         * once; otherwise one sample */
-        unsigned oov = (unsigned)table->has_temp_range &
-                       ((unsigned)(tc < table->temp_lo_cdeg) | (unsigned)(tc > table->temp_hi_cdeg));
-        end = r + 1u;
+        const int32_t *c = nk ? currents_mA + nk * r : NULL;
+        /* a run of one temperature (its first, second, 8th and 16th samples equal) goes to the run kernel;
+         * otherwise the next MIXED_CHUNK samples to the mixed kernel */
         if (r + 16u <= n && ((temp_cdeg[r + 1u] == raw) & (temp_cdeg[r + 7u] == raw) & (temp_cdeg[r + 15u] == raw))) {
+            unsigned sat = 0;
+            int32_t tc = clip(raw, MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
             for (end = r + 2u; end < n && temp_cdeg[end] == raw; end++) {
             }
-        }
-        rt.tt = tt;
-        rt.base = (sat ? MAGSTACK_CAL_SATURATED : 0u) | (oov ? MAGSTACK_CAL_OUT_OF_VALIDITY : 0u);
-        if (end - r == 1u) {
+            bt.tt = cached_terms(table, &cache, tc);
+            bt.base = (sat ? MAGSTACK_CAL_SATURATED : 0u) |
+                      ((unsigned)(tc < bt.t_lo) | (unsigned)(tc > bt.t_hi) ? MAGSTACK_CAL_OUT_OF_VALIDITY : 0u);
             switch (nk) {
-            case 0: one0(&rt, b_nT + 3u * r, NULL, out + 3u * r, status + r); break;
-            case 1: one1(&rt, b_nT + 3u * r, currents_mA + r, out + 3u * r, status + r); break;
-            case 2: one2(&rt, b_nT + 3u * r, currents_mA + 2u * r, out + 3u * r, status + r); break;
-            case 3: one3(&rt, b_nT + 3u * r, currents_mA + 3u * r, out + 3u * r, status + r); break;
-            default: one4(&rt, b_nT + 3u * r, currents_mA + 4u * r, out + 3u * r, status + r); break;
+            case 0: run0(&bt, end - r, b_nT + 3u * r, c, out + 3u * r, status + r); break;
+            case 1: run1(&bt, end - r, b_nT + 3u * r, c, out + 3u * r, status + r); break;
+            case 2: run2(&bt, end - r, b_nT + 3u * r, c, out + 3u * r, status + r); break;
+            case 3: run3(&bt, end - r, b_nT + 3u * r, c, out + 3u * r, status + r); break;
+            default: run4(&bt, end - r, b_nT + 3u * r, c, out + 3u * r, status + r); break;
             }
         } else {
+            end = n - r < MIXED_CHUNK ? n : r + MIXED_CHUNK;
             switch (nk) {
-            case 0: run0(&rt, end - r, b_nT + 3u * r, NULL, out + 3u * r, status + r); break;
-            case 1: run1(&rt, end - r, b_nT + 3u * r, currents_mA + r, out + 3u * r, status + r); break;
-            case 2: run2(&rt, end - r, b_nT + 3u * r, currents_mA + 2u * r, out + 3u * r, status + r); break;
-            case 3: run3(&rt, end - r, b_nT + 3u * r, currents_mA + 3u * r, out + 3u * r, status + r); break;
-            default: run4(&rt, end - r, b_nT + 3u * r, currents_mA + 4u * r, out + 3u * r, status + r); break;
+            case 0: mixed0(table, &cache, &bt, end - r, b_nT + 3u * r, temp_cdeg + r, c, out + 3u * r, status + r); break;
+            case 1: mixed1(table, &cache, &bt, end - r, b_nT + 3u * r, temp_cdeg + r, c, out + 3u * r, status + r); break;
+            case 2: mixed2(table, &cache, &bt, end - r, b_nT + 3u * r, temp_cdeg + r, c, out + 3u * r, status + r); break;
+            case 3: mixed3(table, &cache, &bt, end - r, b_nT + 3u * r, temp_cdeg + r, c, out + 3u * r, status + r); break;
+            default: mixed4(table, &cache, &bt, end - r, b_nT + 3u * r, temp_cdeg + r, c, out + 3u * r, status + r); break;
             }
         }
         r = end;
@@ -532,19 +611,13 @@ void magstack_cal_apply_block(const magstack_cal_table *table, size_t n, const i
                               const int32_t *temp_cdeg, const int32_t *currents_mA, int32_t *out,
                               uint8_t *status)
 {
-    temperature_terms cache[MAGSTACK_CAL_TERMS_CACHE];
-    int32_t tag[MAGSTACK_CAL_TERMS_CACHE];
-    uint32_t valid[MAGSTACK_CAL_TERMS_CACHE];
+    terms_cache cache;
     size_t r, nk = table->n_currents;
-    unsigned i;
-    for (i = 0; i < MAGSTACK_CAL_TERMS_CACHE; i++) {
-        valid[i] = 0;
-        tag[i] = 0;
-    }
+    cache_init(&cache);
     for (r = 0; r < n; r++) {
         unsigned sat = 0;
         int32_t tc = clip(temp_cdeg[r], MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
-        status[r] = (uint8_t)sample(table, cached_terms(table, cache, tag, valid, tc), b_nT + 3u * r, tc,
+        status[r] = (uint8_t)sample(table, cached_terms(table, &cache, tc), b_nT + 3u * r, tc,
                                     nk ? currents_mA + nk * r : NULL, sat, out + 3u * r);
     }
 }
