@@ -299,12 +299,14 @@ const char *magstack_cal_result_name(int code)
 }
 
 /* ------------------------------------------------------------------ arithmetic */
-/* a / d rounded half away from zero (d > 0, |a| < 2^63) */
+/* a / d rounded half away from zero (d > 0 even, |a| < 2^62), without a branch: floor((a + d/2 - [a < 0]) / d),
+ * the floor taken on a + q0 d in unsigned arithmetic (q0 d, the largest multiple of d up to 2^63, keeps it
+ * positive) */
 static int64_t rdiv(int64_t a, uint64_t d)
 {
-    uint64_t m = a < 0 ? (uint64_t)0 - (uint64_t)a : (uint64_t)a;
-    uint64_t q = (m + d / 2u) / d;
-    return a < 0 ? -(int64_t)q : (int64_t)q;
+    uint64_t q0 = ((uint64_t)1 << 63) / d;
+    uint64_t u = (uint64_t)a + q0 * d + d / 2u - (uint64_t)(a < 0);
+    return (int64_t)(u / d) - (int64_t)q0;
 }
 
 /* a / 2^19 rounded half away from zero (|a| < 2^62), without a branch: floor((a + 2^18 - [a < 0]) / 2^19),
@@ -346,16 +348,15 @@ static int64_t norm2_limit(const magstack_cal_table *t)
     return t->has_field_norm ? (int64_t)t->field_norm_nT * t->field_norm_nT : INT64_MAX;
 }
 
-/* Validity of the calibrated field: 1 when an output (nT * 2^8, saturated to int32) in whole nT, rounded half away
- * from zero, is beyond its axis' limit (l0, l1, l2), or the sum of their squares beyond nn (the squared magnitude
- * limit). Whole nT are at most 2^23, so the squares' sum is below 2^49. */
+/* Validity of the calibrated field: 1 when an output (nT * 2^8, within int32) in whole nT, rounded half away from
+ * zero, is beyond its axis' limit (l0, l1, l2), or the sum of their squares beyond nn (the squared magnitude
+ * limit). Whole nT are at most 2^23, so the squares' sum is below 2^49; a difference below zero is outside. */
 static unsigned field_outside(int64_t o0, int64_t o1, int64_t o2, int64_t l0, int64_t l1, int64_t l2, int64_t nn)
 {
     int64_t n0 = ((o0 < 0 ? -o0 : o0) + 128) >> 8;
     int64_t n1 = ((o1 < 0 ? -o1 : o1) + 128) >> 8;
     int64_t n2 = ((o2 < 0 ? -o2 : o2) + 128) >> 8;
-    return (unsigned)(n0 > l0) | (unsigned)(n1 > l1) | (unsigned)(n2 > l2) |
-           (unsigned)(n0 * n0 + n1 * n1 + n2 * n2 > nn);
+    return (unsigned)((uint64_t)((l0 - n0) | (l1 - n1) | (l2 - n2) | (nn - (n0 * n0 + n1 * n1 + n2 * n2))) >> 63);
 }
 
 /* One sample with the temperature terms of its dTc: the status bits. b_nT, cur_mA as given (clipped here). */
@@ -446,14 +447,20 @@ typedef struct {
     unsigned base;
 } block_terms;
 
+/* The kernels compute a sample on a fast path: every field input within +-2^23 nT and every current within
+ * +-2^19 mA (inside the clips: nothing clips) and every output within int32 (nothing saturates). A sample off it
+ * is marked SLOW in its status and computed again by sample() once the kernel's loop is done. */
+#define FAST_B 0x800000u /* 2^23 */
+#define FAST_I 0x80000u  /* 2^19 */
+#define SLOW 0x80u
+#define HALF32 ((int64_t)1 << 31) /* o is an int32 when o + 2^31 is within 0..2^32 - 1 */
+
 #define OUTSIDE(v, lim) ((uint32_t)(v) + (uint32_t)(lim) > 2u * (uint32_t)(lim)) /* v < -lim or v > lim */
-#define OUTSIDE32(o) ((uint64_t)(o) + 0x80000000u > 0xFFFFFFFFu)                   /* o not an int32 */
-#define CLAMP(v, lo, hi) ((v) > (hi) ? (hi) : (v) < (lo) ? (lo) : (v))
 
 /* The coefficients every sample uses, in locals (registers). */
 #define BLOCK_LOCALS                                                                                              \
     const int64_t l0 = bt->lim[0], l1 = bt->lim[1], l2 = bt->lim[2], nn = bt->nn;                                 \
-    const int32_t L = MAGSTACK_CAL_B_LIMIT_NT, IL = MAGSTACK_CAL_I_LIMIT_MA;                                       \
+    unsigned slow = 0;                                                                                            \
     int k
 
 /* The terms of a run, in locals. */
@@ -464,24 +471,27 @@ typedef struct {
     const int64_t c0 = bt->tt->c[0], c1 = bt->tt->c[1], c2 = bt->tt->c[2];                                        \
     const unsigned base = bt->base
 
-/* Sample r with K currents, the terms g.., c.. and the temperature's status bits in base: the arithmetic of
- * sample() without a branch. */
+/* Sample r with K currents on the fast path, the terms g.., c.. and the temperature's status bits in base; without
+ * a branch. Off the fast path the inputs are taken as zero and the outputs as zero (no overflow either way). */
 #define SAMPLE(K, r)                                                                                              \
     do {                                                                                                          \
-        int32_t x = b[3u * (r)], y = b[3u * (r) + 1u], z = b[3u * (r) + 2u];                                      \
-        unsigned sat = (unsigned)OUTSIDE(x, L) | (unsigned)OUTSIDE(y, L) | (unsigned)OUTSIDE(z, L);               \
-        unsigned oov = 0;                                                                                         \
-        int64_t a0, a1, a2, o0, o1, o2;                                                                           \
-        x = CLAMP(x, -L, L);                                                                                      \
-        y = CLAMP(y, -L, L);                                                                                      \
-        z = CLAMP(z, -L, L);                                                                                      \
+        int32_t x = b[3u * (r)], y = b[3u * (r) + 1u], z = b[3u * (r) + 2u], mask;                                \
+        uint32_t wide = ((uint32_t)x + FAST_B) | ((uint32_t)y + FAST_B) | ((uint32_t)z + FAST_B), cwide = 0;      \
+        unsigned oov = 0, fast;                                                                                   \
+        int64_t a0, a1, a2, o0, o1, o2, m64;                                                                      \
+        for (k = 0; k < (K); k++) {                                                                               \
+            cwide |= (uint32_t)cur[(size_t)(K) * (r) + (size_t)k] + FAST_I;                                       \
+        }                                                                                                         \
+        fast = (unsigned)(((wide >> 23) | (cwide >> 19)) <= 1u);                                                  \
+        mask = -(int32_t)fast;                                                                                    \
+        x &= mask;                                                                                                \
+        y &= mask;                                                                                                \
+        z &= mask;                                                                                                \
         a0 = g00 * x + g01 * y + g02 * z + c0;                                                                    \
         a1 = g10 * x + g11 * y + g12 * z + c1;                                                                    \
         a2 = g20 * x + g21 * y + g22 * z + c2;                                                                    \
         for (k = 0; k < (K); k++) {                                                                               \
-            int32_t c = cur[(size_t)(K) * (r) + (size_t)k];                                                       \
-            sat |= (unsigned)OUTSIDE(c, IL);                                                                      \
-            c = CLAMP(c, -IL, IL);                                                                                \
+            int32_t c = cur[(size_t)(K) * (r) + (size_t)k] & mask;                                                \
             oov |= (unsigned)((uint32_t)c - (uint32_t)bt->lo[k] > (uint32_t)bt->hi[k] - (uint32_t)bt->lo[k]);     \
             a0 += bt->d[k][0] * c;                                                                                \
             a1 += bt->d[k][1] * c;                                                                                \
@@ -490,42 +500,50 @@ typedef struct {
         o0 = rshift_round19(a0);                                                                                  \
         o1 = rshift_round19(a1);                                                                                  \
         o2 = rshift_round19(a2);                                                                                  \
-        sat |= (unsigned)OUTSIDE32(o0) | (unsigned)OUTSIDE32(o1) | (unsigned)OUTSIDE32(o2);                       \
-        o0 = CLAMP(o0, INT32_MIN, INT32_MAX);                                                                     \
-        o1 = CLAMP(o1, INT32_MIN, INT32_MAX);                                                                     \
-        o2 = CLAMP(o2, INT32_MIN, INT32_MAX);                                                                     \
-        oov |= field_outside(o0, o1, o2, l0, l1, l2, nn);                                                         \
+        fast &= (unsigned)((((uint64_t)(o0 + HALF32) | (uint64_t)(o1 + HALF32) | (uint64_t)(o2 + HALF32)) >> 32) == \
+                           0u);                                                                                   \
+        m64 = -(int64_t)fast;                                                                                     \
+        o0 &= m64;                                                                                                \
+        o1 &= m64;                                                                                                \
+        o2 &= m64;                                                                                                \
         out[3u * (r)] = (int32_t)o0;                                                                              \
         out[3u * (r) + 1u] = (int32_t)o1;                                                                         \
         out[3u * (r) + 2u] = (int32_t)o2;                                                                         \
-        status[r] = (uint8_t)(base | (sat << 2) | (oov << 1));                                                    \
+        oov |= field_outside(o0, o1, o2, l0, l1, l2, nn);                                                         \
+        slow |= fast ^ 1u;                                                                                        \
+        status[r] = (uint8_t)(base | (oov << 1) | ((fast ^ 1u) << 7));                                            \
     } while (0)
 
-/* m samples at the temperature of bt->tt (a loop a compiler may vectorise), and m samples whose temperatures
- * vary (each sample's terms from the cache, computed on a miss). */
-#define KERNELS(RUN, MIXED, K)                                                                                    \
-    static void RUN(const block_terms *bt, size_t m, const int32_t *restrict b, const int32_t *restrict cur,       \
-                    int32_t *restrict out, uint8_t *restrict status)                                               \
-    {                                                                                                             \
-        size_t r;                                                                                                 \
-        BLOCK_LOCALS;                                                                                             \
-        RUN_LOCALS;                                                                                               \
-        for (r = 0; r < m; r++) {                                                                                 \
-            SAMPLE(K, r);                                                                                         \
-        }                                                                                                         \
-    }                                                                                                             \
-    static void MIXED(const magstack_cal_table *t, terms_cache *cache, const block_terms *bt, size_t m,            \
-                      const int32_t *restrict b, const int32_t *restrict temp, const int32_t *restrict cur,       \
-                      int32_t *restrict out, uint8_t *restrict status)                                             \
-    {                                                                                                             \
-        size_t r;                                                                                                 \
+/* The samples of m marked SLOW, computed by sample(). */
+static void slow_samples(const magstack_cal_table *t, terms_cache *cache, size_t m, const int32_t *b,
+                         const int32_t *temp, const int32_t *cur, int32_t *out, uint8_t *status)
+{
+    size_t r, nk = t->n_currents;
+    for (r = 0; r < m; r++) {
+        if (status[r] & SLOW) {
+            unsigned sat = 0;
+            int32_t tc = clip(temp[r], MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
+            status[r] = (uint8_t)sample(t, cached_terms(t, cache, tc), b + 3u * r, tc, nk ? cur + nk * r : NULL, sat,
+                                        out + 3u * r);
+        }
+    }
+}
+
+/* A run of at least RUN_MIN samples of one temperature goes to a run kernel; otherwise the next MIXED_CHUNK samples
+ * go to a mixed kernel. */
+#define RUN_MIN 8u
+#define MIXED_CHUNK 32u
+
+#ifndef MAGSTACK_CAL_VECTOR
+/* m samples whose temperatures vary: each sample's terms from the cache (computed on a miss), in the loop. */
+#define MIXED_LOOP(K)                                                                                             \
+    do {                                                                                                          \
         const int32_t TL = MAGSTACK_CAL_T_LIMIT_CDEG, t_lo = bt->t_lo, t_hi = bt->t_hi;                           \
-        BLOCK_LOCALS;                                                                                             \
         for (r = 0; r < m; r++) {                                                                                 \
             int32_t tc = temp[r];                                                                                 \
             unsigned base = (unsigned)OUTSIDE(tc, TL) << 2;                                                       \
             const temperature_terms *tt;                                                                          \
-            tc = CLAMP(tc, -TL, TL);                                                                              \
+            tc = tc > TL ? TL : tc < -TL ? -TL : tc;                                                              \
             base |= (unsigned)((uint32_t)tc - (uint32_t)t_lo > (uint32_t)t_hi - (uint32_t)t_lo) << 1;             \
             tt = cached_terms(t, cache, tc);                                                                      \
             {                                                                                                     \
@@ -536,6 +554,67 @@ typedef struct {
                 SAMPLE(K, r);                                                                                     \
             }                                                                                                     \
         }                                                                                                         \
+    } while (0)
+#else
+/* m samples whose temperatures vary: each sample's terms from the cache copied into arrays first, then a loop a
+ * compiler may vectorise (MAGSTACK_CAL_VECTOR: for targets with 64-bit vector multiplies). */
+#define MIXED_LOOP(K)                                                                                             \
+    do {                                                                                                          \
+        const int32_t TL = MAGSTACK_CAL_T_LIMIT_CDEG, t_lo = bt->t_lo, t_hi = bt->t_hi;                           \
+        int64_t G[12][MIXED_CHUNK];                                                                               \
+        uint8_t tbase[MIXED_CHUNK];                                                                               \
+        for (r = 0; r < m; r++) {                                                                                 \
+            int32_t tc = temp[r];                                                                                 \
+            unsigned tb = (unsigned)OUTSIDE(tc, TL) << 2;                                                         \
+            const temperature_terms *tt;                                                                          \
+            tc = tc > TL ? TL : tc < -TL ? -TL : tc;                                                              \
+            tb |= (unsigned)((uint32_t)tc - (uint32_t)t_lo > (uint32_t)t_hi - (uint32_t)t_lo) << 1;               \
+            tbase[r] = (uint8_t)tb;                                                                               \
+            tt = cached_terms(t, cache, tc);                                                                      \
+            for (k = 0; k < 3; k++) {                                                                             \
+                G[3 * k][r] = tt->g[k][0];                                                                        \
+                G[3 * k + 1][r] = tt->g[k][1];                                                                    \
+                G[3 * k + 2][r] = tt->g[k][2];                                                                    \
+                G[9 + k][r] = tt->c[k];                                                                           \
+            }                                                                                                     \
+        }                                                                                                         \
+        for (r = 0; r < m; r++) {                                                                                 \
+            const unsigned base = tbase[r];                                                                       \
+            const int64_t g00 = G[0][r], g01 = G[1][r], g02 = G[2][r], g10 = G[3][r], g11 = G[4][r];              \
+            const int64_t g12 = G[5][r], g20 = G[6][r], g21 = G[7][r], g22 = G[8][r];                             \
+            const int64_t c0 = G[9][r], c1 = G[10][r], c2 = G[11][r];                                             \
+            SAMPLE(K, r);                                                                                         \
+        }                                                                                                         \
+    } while (0)
+#endif
+
+/* m samples at the temperature of bt->tt (a loop a compiler may vectorise), and m <= MIXED_CHUNK samples whose
+ * temperatures vary; the samples off the fast path computed again by sample(). */
+#define KERNELS(RUN, MIXED, K)                                                                                    \
+    static void RUN(const magstack_cal_table *t, terms_cache *cache, const block_terms *bt, size_t m,             \
+                    const int32_t *restrict b, const int32_t *restrict temp, const int32_t *restrict cur,         \
+                    int32_t *restrict out, uint8_t *restrict status)                                               \
+    {                                                                                                             \
+        size_t r;                                                                                                 \
+        BLOCK_LOCALS;                                                                                             \
+        RUN_LOCALS;                                                                                               \
+        for (r = 0; r < m; r++) {                                                                                 \
+            SAMPLE(K, r);                                                                                         \
+        }                                                                                                         \
+        if (slow) {                                                                                               \
+            slow_samples(t, cache, m, b, temp, cur, out, status);                                                 \
+        }                                                                                                         \
+    }                                                                                                             \
+    static void MIXED(const magstack_cal_table *t, terms_cache *cache, const block_terms *bt, size_t m,           \
+                      const int32_t *restrict b, const int32_t *restrict temp, const int32_t *restrict cur,       \
+                      int32_t *restrict out, uint8_t *restrict status)                                             \
+    {                                                                                                             \
+        size_t r;                                                                                                 \
+        BLOCK_LOCALS;                                                                                             \
+        MIXED_LOOP(K);                                                                                            \
+        if (slow) {                                                                                               \
+            slow_samples(t, cache, m, b, temp, cur, out, status);                                                 \
+        }                                                                                                         \
     }
 
 KERNELS(run0, mixed0, 0)
@@ -544,8 +623,20 @@ KERNELS(run2, mixed2, 2)
 KERNELS(run3, mixed3, 3)
 KERNELS(run4, mixed4, 4)
 
-/* Samples a mixed-temperature kernel takes at a time before the block looks for a run of one temperature again. */
-#define MIXED_CHUNK 32u
+/* The end of the run of one temperature that starts at r (eight samples a step, then one). */
+static size_t run_end(const int32_t *temp, size_t r, size_t n)
+{
+    const int32_t v = temp[r];
+    size_t e = r + 1u;
+    while (n - e >= 8u && ((temp[e] ^ v) | (temp[e + 1u] ^ v) | (temp[e + 2u] ^ v) | (temp[e + 3u] ^ v) |
+                           (temp[e + 4u] ^ v) | (temp[e + 5u] ^ v) | (temp[e + 6u] ^ v) | (temp[e + 7u] ^ v)) == 0) {
+        e += 8u;
+    }
+    while (e < n && temp[e] == v) {
+        e++;
+    }
+    return e;
+}
 
 void magstack_cal_apply_block(const magstack_cal_table *table, size_t n, const int32_t *b_nT,
                               const int32_t *temp_cdeg, const int32_t *currents_mA, int32_t *out,
@@ -572,33 +663,30 @@ void magstack_cal_apply_block(const magstack_cal_table *table, size_t n, const i
     bt.tt = NULL;
     bt.base = 0;
     while (r < n) {
-        int32_t raw = temp_cdeg[r];
         const int32_t *c = nk ? currents_mA + nk * r : NULL;
-        /* a run of one temperature (its first, second, 8th and 16th samples equal) goes to the run kernel;
-         * otherwise the next MIXED_CHUNK samples to the mixed kernel */
-        if (r + 16u <= n && ((temp_cdeg[r + 1u] == raw) & (temp_cdeg[r + 7u] == raw) & (temp_cdeg[r + 15u] == raw))) {
+        const int32_t *b = b_nT + 3u * r, *t = temp_cdeg + r;
+        end = run_end(temp_cdeg, r, n);
+        if (end - r >= RUN_MIN) { /* a run of one temperature */
             unsigned sat = 0;
-            int32_t tc = clip(raw, MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
-            for (end = r + 2u; end < n && temp_cdeg[end] == raw; end++) {
-            }
+            int32_t tc = clip(temp_cdeg[r], MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
             bt.tt = cached_terms(table, &cache, tc);
             bt.base = (sat ? MAGSTACK_CAL_SATURATED : 0u) |
                       ((unsigned)(tc < bt.t_lo) | (unsigned)(tc > bt.t_hi) ? MAGSTACK_CAL_OUT_OF_VALIDITY : 0u);
             switch (nk) {
-            case 0: run0(&bt, end - r, b_nT + 3u * r, c, out + 3u * r, status + r); break;
-            case 1: run1(&bt, end - r, b_nT + 3u * r, c, out + 3u * r, status + r); break;
-            case 2: run2(&bt, end - r, b_nT + 3u * r, c, out + 3u * r, status + r); break;
-            case 3: run3(&bt, end - r, b_nT + 3u * r, c, out + 3u * r, status + r); break;
-            default: run4(&bt, end - r, b_nT + 3u * r, c, out + 3u * r, status + r); break;
+            case 0: run0(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
+            case 1: run1(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
+            case 2: run2(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
+            case 3: run3(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
+            default: run4(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
             }
-        } else {
-            end = n - r < MIXED_CHUNK ? n : r + MIXED_CHUNK;
+        } else { /* a short run: the next MIXED_CHUNK samples */
+            end = n - r > MIXED_CHUNK ? r + MIXED_CHUNK : n;
             switch (nk) {
-            case 0: mixed0(table, &cache, &bt, end - r, b_nT + 3u * r, temp_cdeg + r, c, out + 3u * r, status + r); break;
-            case 1: mixed1(table, &cache, &bt, end - r, b_nT + 3u * r, temp_cdeg + r, c, out + 3u * r, status + r); break;
-            case 2: mixed2(table, &cache, &bt, end - r, b_nT + 3u * r, temp_cdeg + r, c, out + 3u * r, status + r); break;
-            case 3: mixed3(table, &cache, &bt, end - r, b_nT + 3u * r, temp_cdeg + r, c, out + 3u * r, status + r); break;
-            default: mixed4(table, &cache, &bt, end - r, b_nT + 3u * r, temp_cdeg + r, c, out + 3u * r, status + r); break;
+            case 0: mixed0(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
+            case 1: mixed1(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
+            case 2: mixed2(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
+            case 3: mixed3(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
+            default: mixed4(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
             }
         }
         r = end;

@@ -308,8 +308,9 @@ def image_of(fx: fp.FixedPointTable, names, device_id: str = "dut:1", source_crc
 
 def random_samples(rng: np.random.Generator, n: int, fx: fp.FixedPointTable | None = None):
     """(b (n,3), temp (n,), cur (n,4)) int32. Rows of three kinds: anywhere in int32 (every scale, the clips
-    and the int32 limits), inside ``fx``'s validity box, and on its edges (each limit and one past it).
-    Temperatures come in runs (the C block path computes its temperature terms once per run)."""
+    and the int32 limits), inside ``fx``'s input ranges (field limit, temperature and current ranges), and on
+    their edges (each limit and one past it). Temperatures change on every sample, in runs of 4, and in runs of
+    8..64 (the C block path's mixed and run kernels)."""
     lo, hi = int(I32.min), int(I32.max)
     B, T, I = fp.B_LIMIT_nT, fp.T_LIMIT_cdeg, fp.I_LIMIT_mA
     b = _pick(rng, (n, 3), lo, hi, (lo, hi, B, B + 1, -B, -B - 1, 0))
@@ -333,6 +334,9 @@ def random_samples(rng: np.random.Generator, n: int, fx: fp.FixedPointTable | No
         for j, (a, c) in enumerate(fx.current_ranges_mA):
             cur[inside, j] = rng.integers(a, c, int(inside.sum()), endpoint=True)
             cur[edge, j] = np.array([a - 1, a, c, c + 1])[rng.integers(0, 4, int(edge.sum()))]
+    for _ in range(max(1, n // 100)):   # runs of one temperature of 8..64 samples (the block path's run kernel)
+        a, m = int(rng.integers(0, n)), int(rng.integers(8, 65))
+        temp[a:a + m] = temp[a]
     return b.astype(np.int32), temp.astype(np.int32), cur.astype(np.int32)
 
 
@@ -379,8 +383,8 @@ def fixed_tables(draw):
         zero3 = ((0, 0, 0),) * 3
         g = draw(st.tuples(*[st.sampled_from([2 ** 27, -(2 ** 27), 2 ** 26, -(2 ** 26)])] * 3))
         fx = fp.FixedPointTable(
-            S=((g[0], 0, 0), (0, g[1], 0), (0, 0, g[2])), K_S=zero3, O=draw(st.tuples(*[st.sampled_from(
-                [0, 128, -128, 384, -384])] * 3)), K_O=(0, 0, 0), D=((0, 0, 0),) * k,
+            S=((g[0], 0, 0), (0, g[1], 0), (0, 0, g[2])), K_S=zero3, O=draw(st.one_of(st.just((0, 0, 0)), st.tuples(
+                *[st.sampled_from([0, 128, -128, 384, -384])] * 3))), K_O=(0, 0, 0), D=((0, 0, 0),) * k,
             t0_cdeg=draw(_limited(fp.T_LIMIT_cdeg)), field_limit_nT=field, temp_range_cdeg=None,
             current_ranges_mA=tuple(draw(cur_iv) for _ in range(k)), field_limits_nT=axes, field_norm_nT=norm)
         return fx, [f"c{j}" for j in range(k)]

@@ -214,9 +214,11 @@ def test_a_version_1_image_is_refused_by_both_loaders(clib):
 
 
 @pytest.mark.parametrize("flags", [("-O2", "-DMAGSTACK_CAL_COMPACT"), ("-Os", "-DMAGSTACK_CAL_TERMS_CACHE=1u"),
-                                   ("-O3", "-march=native")])
+                                   ("-O3", "-march=native"), ("-O3", "-march=native", "-DMAGSTACK_CAL_VECTOR"),
+                                   ("-O2", "-DMAGSTACK_CAL_VECTOR", "-DMAGSTACK_CAL_TERMS_CACHE=2u")])
 def test_other_builds_are_the_same(build_dir, clib, flags):
-    """The compact block path, a one-entry terms cache, and the vectorised kernels of -O3 -march=native."""
+    """The compact block path, a one-entry terms cache, the vectorised kernels of -O3 -march=native, and the mixed
+    kernels of MAGSTACK_CAL_VECTOR; temperatures in long runs, in short runs and on every sample."""
     r = subprocess.run(["gcc", *flags, "-x", "c", "-c", "-o", "/dev/null", "-"], input="int x;\n", capture_output=True,
                        text=True, timeout=60)
     if r.returncode != 0:
@@ -229,6 +231,8 @@ def test_other_builds_are_the_same(build_dir, clib, flags):
         fx, names = cb.random_fixed(rng)
         b, t, c = cb.random_samples(rng, 600, fx)
         t[:300] = np.repeat(t[:300:50], 50)       # long runs of one temperature (the vector kernel)
+        t[300:400] = np.repeat(t[300:400:4], 4)   # short runs (the mixed kernel)
+        fx = cb.limits_at_outputs(rng, fx, b, t, c)
         rc, table = lib.load(cb.image_of(fx, names))
         assert rc == 0
         _same(fx, names, b, t, c, *lib.apply_block(table, b, t, c))
@@ -306,9 +310,11 @@ def test_no_floating_point_no_heap_and_divisions_by_constants_only(build_dir, cl
         for word in ("float", "double", "math.h", "malloc", "calloc", "realloc", "free", "alloca", "setjmp"):
             assert not re.search(rf"\b{re.escape(word)}\b", code), (path.name, word)
     code = _code(cb.SOURCE)
-    # every '/' or '%' is in rdiv's body, and every rdiv call divides by a positive literal
+    # every '/' or '%' is in rdiv's body, dividing by its divisor d (or d by 2), and every rdiv call divides by a
+    # positive literal
     body = re.search(r"static int64_t rdiv\(int64_t a, uint64_t d\)\s*\{(.*?)\n\}", code, re.S)
-    assert body and re.findall(r"[/%]", body.group(1)) == ["/", "/"]
+    assert body and "%" not in body.group(1)
+    assert sorted(re.findall(r"/\s*(\w+)", body.group(1))) == ["2u", "d", "d"]
     rest = code.replace(body.group(0), "")
     assert not re.findall(r"[/%]", rest)
     divisors = [_last_argument(code, m.end()) for m in re.finditer(r"\brdiv\(", code)
