@@ -7,11 +7,14 @@
  *   G_ii += rdiv(rdiv(K_S2,i * dTc, 100) * dTc, 819200)
  *   acc_i = sum_j G_ij * B_j + O_i * 2^19 + rdiv(K_O,i * dTc * 2^11, 100) + sum_k D_k,i * I_k * 2^7
  *   out_i = sat_int32(rshift_round(acc_i, 19))
+ *   OUT_OF_VALIDITY: n_i = rshift_round(out_i, 8) (whole nT), |n_i| > lim_i or n_0^2 + n_1^2 + n_2^2 > norm^2,
+ *                    or the temperature or a current outside its range
  *
  * rdiv and rshift_round round half away from zero; they work in unsigned arithmetic (no shift or
  * division of a negative number). The accumulator bound |acc| < 2^61.3
  * holds for every image the loader accepts (|K_S2| < 2^28, |t0| <= 2^15, the input clips), so no
- * product or sum overflows; only the final int32 conversion can, and it saturates.
+ * product or sum overflows; only the final int32 conversion can, and it saturates. |n_i| <= 2^23, so the
+ * squares' sum is below 2^49.
  */
 #include "magstack_cal.h"
 

@@ -13,11 +13,13 @@
  * any image the loader accepts.
  *
  * Build options (preprocessor): MAGSTACK_CAL_COMPACT gives magstack_cal_apply_block a plain loop over
- * samples (smallest code; otherwise one branch-free kernel per number of currents, which a compiler can
+ * samples (smallest code; otherwise branch-free kernels per number of currents, which a compiler can
  * vectorise over runs of one temperature); MAGSTACK_CAL_TERMS_CACHE (a power of two, default 8) is how
- * many temperatures' terms magstack_cal_apply_block keeps on its stack (about 100 bytes each). The functions keep no state: a table is read-only once loaded (to
- * replace the active table, load the new image into a second table and swap the pointer between
- * samples).
+ * many temperatures' terms magstack_cal_apply_block keeps on its stack (about 100 bytes each);
+ * MAGSTACK_CAL_VECTOR (hosts with 64-bit vector multiplies, -O3) lets a compiler vectorise samples whose
+ * temperatures vary as well (3 KiB more stack; slower in scalar builds). The functions keep no state: a
+ * table is read-only once loaded (to replace the active table, load the new image into a second table and
+ * swap the pointer between samples).
  */
 #ifndef MAGSTACK_CAL_H
 #define MAGSTACK_CAL_H
