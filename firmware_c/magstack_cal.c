@@ -287,7 +287,7 @@ const char *magstack_cal_result_name(int code)
     case MAGSTACK_CAL_OK: return "ok";
     case MAGSTACK_CAL_E_SIZE: return "wrong size";
     case MAGSTACK_CAL_E_MAGIC: return "not a table image";
-    case MAGSTACK_CAL_E_VERSION: return "unknown format version";
+    case MAGSTACK_CAL_E_VERSION: return "not image format version 2 (export the table again)";
     case MAGSTACK_CAL_E_CRC: return "CRC-32 mismatch";
     case MAGSTACK_CAL_E_RESERVED: return "reserved bits set";
     case MAGSTACK_CAL_E_TERMS: return "bad terms";
