@@ -10,16 +10,18 @@ need Debian's gcc-arm-linux-gnueabihf and qemu-user, the Cortex-M4 size gcc-arm-
   the host library through ctypes (``magstack_cal_apply_block`` and ``magstack_cal_apply`` on every row), and the
   harness cross-compiled for 32-bit ARM run by qemu-arm (``magstack_cal_apply`` on every row, and the block
   path checked against it inside the harness).
-* ``speed``: CPU time per sample of ``magstack_cal_apply_block`` (ctypes, one call per block; built with gcc -O2
-  and with -O3 -march=native) against ``FixedPointTable.apply_block`` (numpy) on the same block, in this process,
-  best of ``--repeat``; three temperature patterns (``PATTERNS``). ns per sample on emulated ARM from the
-  harness's own clock under qemu-arm (wall time, so it includes the host's load).
+* ``speed``: CPU time per sample of ``magstack_cal_apply_block`` (ctypes, one call per block; the builds of
+  ``HOST_BUILDS``) against ``FixedPointTable.apply_block`` (numpy) on the same block, in this process, best of
+  ``--repeat``; four temperature patterns (``PATTERNS``); the table has per-axis and magnitude limits. ns per
+  sample on emulated ARM from the harness's own clock under qemu-arm (wall time, so it includes the host's
+  load).
 * ``size``: the library's code size (``size`` of the object file) for the host, 32-bit ARM Linux and Cortex-M4,
   and the table image's size.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import subprocess
 import sys
@@ -68,6 +70,7 @@ def equality(args, build: Path) -> None:
         refs.append(cb.python_reference(fx, b, t, c, per_sample=not args.no_per_sample))
     print(f"Python reference: {time.perf_counter() - t0:.1f} s "
           f"({'apply_block and apply_sample' if not args.no_per_sample else 'apply_block'} on every row)")
+    print("field limits: " + _limit_counts(cases, refs))
     flags: dict[int, int] = {}
     bad_host = 0
     t0 = time.perf_counter()
@@ -102,22 +105,53 @@ def equality(args, build: Path) -> None:
           f"{bad_block} block-path samples differ from the per-sample path [{time.perf_counter() - t0:.1f} s]")
 
 
+def _limit_counts(cases, refs) -> str:
+    """How the cases meet their field limits: tables with per-axis and magnitude limits, samples whose whole-nT
+    output is on its axis' limit or 1 nT past it (and of those, outputs on a half nT), whose magnitude is on its
+    limit or past it by less than 1 nT, and saturated outputs."""
+    k = dict.fromkeys(("axes", "norm", "on", "past", "half", "norm_on", "norm_past", "saturated"), 0)
+    for (fx, *_), (q, _s) in zip(cases, refs, strict=True):
+        nt, lim = cb.whole_nT(q), np.array(fx.axis_limits_nT, np.int64)
+        k["axes"] += fx.field_limits_nT is not None
+        on, past = nt == lim, nt == lim + 1
+        k["on"] += int(np.count_nonzero(on.any(axis=1)))
+        k["past"] += int(np.count_nonzero(past.any(axis=1)))
+        k["half"] += int(np.count_nonzero(((on | past) & (np.abs(q) % 256 == 128)).any(axis=1)))
+        k["saturated"] += int(np.count_nonzero(((q == fp.INT32_MAX) | (q == fp.INT32_MIN)).any(axis=1)))
+        if fx.field_norm_nT is not None:
+            k["norm"] += 1
+            ss, n2 = (nt ** 2).sum(axis=1), fx.field_norm_nT ** 2
+            k["norm_on"] += int(np.count_nonzero(ss == n2))
+            k["norm_past"] += int(np.count_nonzero((ss > n2) & (ss < (fx.field_norm_nT + 1) ** 2)))
+    return (f"{k['axes']} tables with per-axis limits, {k['norm']} with a magnitude limit; samples with an output on "
+            f"its axis limit {k['on']}, 1 nT past it {k['past']} ({k['half']} of these on a half nT); magnitude on "
+            f"its limit {k['norm_on']}, past it by less than 1 nT {k['norm_past']}; saturated outputs "
+            f"{k['saturated']}")
+
+
 #: Temperature patterns of the speed part: (label, how the temperature of sample r is drawn).
 PATTERNS = ("steady: a +-15 degC swing over the block (a new value every ~170 samples)",
-            "noisy: the same swing with +-0.02 degC noise on every sample",
+            "slow: a random walk of 0.01 degC steps, one every 4 samples (a flight thermistor)",
+            "noisy: the +-15 degC swing with +-0.02 degC noise on every sample",
             "random: a new temperature every sample, -40..85 degC (worst case)")
 
 
 def _stream(n: int, pattern: int, rng: np.random.Generator):
-    """A sensor stream: |B| <= 100 uT, one current, the temperature by ``pattern`` (index into PATTERNS)."""
+    """A sensor stream: |B| <= 100 uT, one current, the temperature by ``pattern`` (index into PATTERNS); the table
+    has per-axis and magnitude limits (as a table fitted with a posterior has)."""
     fx, names = cb.random_fixed(rng, realistic=True)
     while len(fx.D) != 1:
         fx, names = cb.random_fixed(rng, realistic=True)
+    f = fx.field_limit_nT
+    fx = dataclasses.replace(fx, field_limits_nT=tuple(int(x) for x in np.round(f * rng.uniform(0.7, 1.0, 3))),
+                             field_norm_nT=int(1.3 * f))
     b = rng.integers(-100_000, 100_001, (n, 3)).astype(np.int32)
     swing = np.round(fx.t0_cdeg + 1500 * np.sin(2 * np.pi * np.arange(n) / n)).astype(np.int64)
     if pattern == 0:
         t = swing
     elif pattern == 1:
+        t = fx.t0_cdeg + np.cumsum(np.where(np.arange(n) % 4 == 0, rng.choice([-1, 1], n), 0))
+    elif pattern == 2:
         t = swing + rng.integers(-2, 3, n)
     else:
         t = rng.integers(-4000, 8501, n)
@@ -137,7 +171,8 @@ def _best_cpu(repeat: int, fn, *a) -> float:
 
 #: The host builds timed: flags, what they are.
 HOST_BUILDS = (("-O2 -DMAGSTACK_CAL_COMPACT", "gcc -O2 -DMAGSTACK_CAL_COMPACT"), ("-O2", "gcc -O2 (generic x86-64)"),
-               ("-O3 -march=native", "gcc -O3 -march=native"))
+               ("-O3 -march=native", "gcc -O3 -march=native"),
+               ("-O3 -march=native -DMAGSTACK_CAL_VECTOR", "gcc -O3 -march=native -DMAGSTACK_CAL_VECTOR"))
 
 
 def speed(args, build: Path) -> None:

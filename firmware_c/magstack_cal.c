@@ -7,11 +7,14 @@
  *   G_ii += rdiv(rdiv(K_S2,i * dTc, 100) * dTc, 819200)
  *   acc_i = sum_j G_ij * B_j + O_i * 2^19 + rdiv(K_O,i * dTc * 2^11, 100) + sum_k D_k,i * I_k * 2^7
  *   out_i = sat_int32(rshift_round(acc_i, 19))
+ *   OUT_OF_VALIDITY: n_i = rshift_round(out_i, 8) (whole nT), |n_i| > lim_i or n_0^2 + n_1^2 + n_2^2 > norm^2,
+ *                    or the temperature or a current outside its range
  *
  * rdiv and rshift_round round half away from zero; they work in unsigned arithmetic (no shift or
  * division of a negative number). The accumulator bound |acc| < 2^61.3
  * holds for every image the loader accepts (|K_S2| < 2^28, |t0| <= 2^15, the input clips), so no
- * product or sum overflows; only the final int32 conversion can, and it saturates.
+ * product or sum overflows; only the final int32 conversion can, and it saturates. |n_i| <= 2^23, so the
+ * squares' sum is below 2^49.
  */
 #include "magstack_cal.h"
 
@@ -27,20 +30,22 @@
 #define OFF_DEVICE_ID 16u
 #define OFF_T0 48u
 #define OFF_FIELD_LIMIT 52u
-#define OFF_TEMP_LO 56u
-#define OFF_TEMP_HI 60u
-#define OFF_S 64u
-#define OFF_K_S 100u
-#define OFF_K_S2 136u
-#define OFF_O 148u
-#define OFF_K_O 160u
-#define OFF_D 172u
-#define OFF_CURRENT_RANGES 220u
-#define OFF_CURRENT_NAMES 252u
-#define OFF_CRC 316u
+#define OFF_FIELD_AXES 56u
+#define OFF_FIELD_NORM 68u
+#define OFF_TEMP_LO 72u
+#define OFF_TEMP_HI 76u
+#define OFF_S 80u
+#define OFF_K_S 116u
+#define OFF_K_S2 152u
+#define OFF_O 164u
+#define OFF_K_O 176u
+#define OFF_D 188u
+#define OFF_CURRENT_RANGES 236u
+#define OFF_CURRENT_NAMES 268u
+#define OFF_CRC 332u
 
 #define KNOWN_TERMS 0x3Fu
-#define KNOWN_OPTIONS 0x01u
+#define KNOWN_OPTIONS 0x07u
 
 static uint32_t rd_u16(const uint8_t *p)
 {
@@ -178,10 +183,26 @@ static int decode(magstack_cal_table *t, const uint8_t *img)
         }
     }
     t->field_limit_nT = rd_i32(img + OFF_FIELD_LIMIT);
+    t->field_norm_nT = rd_i32(img + OFF_FIELD_NORM);
     t->temp_lo_cdeg = rd_i32(img + OFF_TEMP_LO);
     t->temp_hi_cdeg = rd_i32(img + OFF_TEMP_HI);
     t->has_temp_range = (uint8_t)(options & MAGSTACK_CAL_OPT_TEMP_RANGE);
+    t->has_field_axes = (uint8_t)((options & MAGSTACK_CAL_OPT_FIELD_AXES) != 0u);
+    t->has_field_norm = (uint8_t)((options & MAGSTACK_CAL_OPT_FIELD_NORM) != 0u);
     if (t->field_limit_nT < 0 || t->field_limit_nT > MAGSTACK_CAL_B_LIMIT_NT) {
+        return MAGSTACK_CAL_E_VALIDITY;
+    }
+    /* per-axis limits within 0..field_limit_nT, each equal to it without their option bit */
+    for (i = 0; i < 3u; i++) {
+        t->field_axes_nT[i] = rd_i32(img + OFF_FIELD_AXES + 4u * i);
+        if (t->field_axes_nT[i] < 0 || t->field_axes_nT[i] > t->field_limit_nT ||
+            (!t->has_field_axes && t->field_axes_nT[i] != t->field_limit_nT)) {
+            return MAGSTACK_CAL_E_VALIDITY;
+        }
+    }
+    /* magnitude limit within 0..MAGSTACK_CAL_B_NORM_LIMIT_NT, zero without its option bit */
+    if (t->field_norm_nT < 0 || t->field_norm_nT > MAGSTACK_CAL_B_NORM_LIMIT_NT ||
+        (!t->has_field_norm && t->field_norm_nT != 0)) {
         return MAGSTACK_CAL_E_VALIDITY;
     }
     if (t->has_temp_range) {
@@ -266,7 +287,7 @@ const char *magstack_cal_result_name(int code)
     case MAGSTACK_CAL_OK: return "ok";
     case MAGSTACK_CAL_E_SIZE: return "wrong size";
     case MAGSTACK_CAL_E_MAGIC: return "not a table image";
-    case MAGSTACK_CAL_E_VERSION: return "unknown format version";
+    case MAGSTACK_CAL_E_VERSION: return "not image format version 2 (export the table again)";
     case MAGSTACK_CAL_E_CRC: return "CRC-32 mismatch";
     case MAGSTACK_CAL_E_RESERVED: return "reserved bits set";
     case MAGSTACK_CAL_E_TERMS: return "bad terms";
@@ -281,12 +302,14 @@ const char *magstack_cal_result_name(int code)
 }
 
 /* ------------------------------------------------------------------ arithmetic */
-/* a / d rounded half away from zero (d > 0, |a| < 2^63) */
+/* a / d rounded half away from zero (d > 0 even, |a| < 2^62), without a branch: floor((a + d/2 - [a < 0]) / d),
+ * the floor taken on a + q0 d in unsigned arithmetic (q0 d, the largest multiple of d up to 2^63, keeps it
+ * positive) */
 static int64_t rdiv(int64_t a, uint64_t d)
 {
-    uint64_t m = a < 0 ? (uint64_t)0 - (uint64_t)a : (uint64_t)a;
-    uint64_t q = (m + d / 2u) / d;
-    return a < 0 ? -(int64_t)q : (int64_t)q;
+    uint64_t q0 = ((uint64_t)1 << 63) / d;
+    uint64_t u = (uint64_t)a + q0 * d + d / 2u - (uint64_t)(a < 0);
+    return (int64_t)(u / d) - (int64_t)q0;
 }
 
 /* a / 2^19 rounded half away from zero (|a| < 2^62), without a branch: floor((a + 2^18 - [a < 0]) / 2^19),
@@ -322,18 +345,32 @@ static void make_terms(const magstack_cal_table *t, int64_t dtc, temperature_ter
     }
 }
 
+/* The squared magnitude limit (nT^2), or one above any output's square sum when the table has none. */
+static int64_t norm2_limit(const magstack_cal_table *t)
+{
+    return t->has_field_norm ? (int64_t)t->field_norm_nT * t->field_norm_nT : INT64_MAX;
+}
+
+/* Validity of the calibrated field: 1 when an output (nT * 2^8, within int32) in whole nT, rounded half away from
+ * zero, is beyond its axis' limit (l0, l1, l2), or the sum of their squares beyond nn (the squared magnitude
+ * limit). Whole nT are at most 2^23, so the squares' sum is below 2^49; a difference below zero is outside. */
+static unsigned field_outside(int64_t o0, int64_t o1, int64_t o2, int64_t l0, int64_t l1, int64_t l2, int64_t nn)
+{
+    int64_t n0 = ((o0 < 0 ? -o0 : o0) + 128) >> 8;
+    int64_t n1 = ((o1 < 0 ? -o1 : o1) + 128) >> 8;
+    int64_t n2 = ((o2 < 0 ? -o2 : o2) + 128) >> 8;
+    return (unsigned)((uint64_t)((l0 - n0) | (l1 - n1) | (l2 - n2) | (nn - (n0 * n0 + n1 * n1 + n2 * n2))) >> 63);
+}
+
 /* One sample with the temperature terms of its dTc: the status bits. b_nT, cur_mA as given (clipped here). */
 static unsigned sample(const magstack_cal_table *t, const temperature_terms *tt, const int32_t *b_nT,
                        int32_t tc, const int32_t *cur_mA, unsigned sat, int32_t out[3])
 {
     unsigned oov = 0, i, k;
-    int32_t f = t->field_limit_nT;
     int32_t bx = clip(b_nT[0], MAGSTACK_CAL_B_LIMIT_NT, &sat);
     int32_t by = clip(b_nT[1], MAGSTACK_CAL_B_LIMIT_NT, &sat);
     int32_t bz = clip(b_nT[2], MAGSTACK_CAL_B_LIMIT_NT, &sat);
     int64_t acc[3];
-    oov |= (unsigned)(bx > f) | (unsigned)(bx < -f) | (unsigned)(by > f) | (unsigned)(by < -f) |
-           (unsigned)(bz > f) | (unsigned)(bz < -f);
     oov |= (unsigned)t->has_temp_range & ((unsigned)(tc < t->temp_lo_cdeg) | (unsigned)(tc > t->temp_hi_cdeg));
     for (i = 0; i < 3u; i++) {
         acc[i] = tt->g[i][0] * bx + tt->g[i][1] * by + tt->g[i][2] * bz + tt->c[i];
@@ -348,8 +385,11 @@ static unsigned sample(const magstack_cal_table *t, const temperature_terms *tt,
     for (i = 0; i < 3u; i++) {
         int64_t o = rshift_round19(acc[i]);
         sat |= (unsigned)(o > INT32_MAX) | (unsigned)(o < INT32_MIN);
-        out[i] = (int32_t)(o > INT32_MAX ? INT32_MAX : o < INT32_MIN ? INT32_MIN : o);
+        acc[i] = o > INT32_MAX ? INT32_MAX : o < INT32_MIN ? INT32_MIN : o;
+        out[i] = (int32_t)acc[i];
     }
+    oov |= field_outside(acc[0], acc[1], acc[2], t->field_axes_nT[0], t->field_axes_nT[1], t->field_axes_nT[2],
+                         norm2_limit(t));
     return (sat ? MAGSTACK_CAL_SATURATED : 0u) | (oov ? MAGSTACK_CAL_OUT_OF_VALIDITY : 0u);
 }
 
@@ -365,161 +405,291 @@ unsigned magstack_cal_apply(const magstack_cal_table *table, const int32_t b_nT[
 
 /* ------------------------------------------------------------------ blocks */
 /* Temperature terms kept for this many recent temperatures (direct-mapped on the temperature's low bits) by
- * magstack_cal_apply_block: a temperature that toggles between a few values costs no recomputation. A power of
- * two; the cache lives on the stack (about 100 bytes an entry). */
+ * magstack_cal_apply_block: a temperature that toggles between a few values, or steps by 0.01 degC now and then,
+ * costs no recomputation. A power of two; the cache lives on the stack (about 100 bytes an entry). */
 #ifndef MAGSTACK_CAL_TERMS_CACHE
 #define MAGSTACK_CAL_TERMS_CACHE 8u
 #endif
 
+/* The terms of the last MAGSTACK_CAL_TERMS_CACHE clipped temperatures (a tag outside the clip range: empty). */
+typedef struct {
+    temperature_terms tt[MAGSTACK_CAL_TERMS_CACHE];
+    int32_t tag[MAGSTACK_CAL_TERMS_CACHE];
+} terms_cache;
+
+static void cache_init(terms_cache *cache)
+{
+    unsigned i;
+    for (i = 0; i < MAGSTACK_CAL_TERMS_CACHE; i++) {
+        cache->tag[i] = INT32_MIN;
+    }
+}
+
 /* The terms of clipped temperature tc from the cache (computed on a miss). */
-static const temperature_terms *cached_terms(const magstack_cal_table *t, temperature_terms *cache, int32_t *tag,
-                                             uint32_t *valid, int32_t tc)
+static const temperature_terms *cached_terms(const magstack_cal_table *t, terms_cache *cache, int32_t tc)
 {
     uint32_t slot = (uint32_t)tc & (MAGSTACK_CAL_TERMS_CACHE - 1u);
-    if (!valid[slot] || tag[slot] != tc) {
-        make_terms(t, (int64_t)tc - t->t0_cdeg, &cache[slot]);
-        tag[slot] = tc;
-        valid[slot] = 1;
+    if (cache->tag[slot] != tc) {
+        make_terms(t, (int64_t)tc - t->t0_cdeg, &cache->tt[slot]);
+        cache->tag[slot] = tc;
     }
-    return &cache[slot];
+    return &cache->tt[slot];
 }
 
 #ifndef MAGSTACK_CAL_COMPACT /* a kernel per number of currents, vectorisable over runs of one temperature */
 
-/* What a run of samples at one temperature shares: the terms, the currents' coefficients (x 2^7) and ranges,
- * the field limit and the status bits of the temperature itself. */
+/* What every sample of a block shares: the currents' coefficients (x 2^7) and ranges, the field limits, the
+ * temperature range (the clip range without one); and, for a run of one temperature, its terms and the status
+ * bits of the temperature itself. */
 typedef struct {
-    const temperature_terms *tt;
     int64_t d[MAGSTACK_CAL_MAX_CURRENTS][3];
     int32_t lo[MAGSTACK_CAL_MAX_CURRENTS], hi[MAGSTACK_CAL_MAX_CURRENTS];
-    int32_t field;
+    int64_t lim[3], nn;
+    int32_t t_lo, t_hi;
+    const temperature_terms *tt;
     unsigned base;
-} run_terms;
+} block_terms;
+
+/* The kernels compute a sample on a fast path: every field input within +-2^23 nT and every current within
+ * +-2^19 mA (inside the clips: nothing clips) and every output within int32 (nothing saturates). A sample off it
+ * is marked SLOW in its status and computed again by sample() once the kernel's loop is done. */
+#define FAST_B 0x800000u /* 2^23 */
+#define FAST_I 0x80000u  /* 2^19 */
+#define SLOW 0x80u
+#define HALF32 ((int64_t)1 << 31) /* o is an int32 when o + 2^31 is within 0..2^32 - 1 */
 
 #define OUTSIDE(v, lim) ((uint32_t)(v) + (uint32_t)(lim) > 2u * (uint32_t)(lim)) /* v < -lim or v > lim */
-#define OUTSIDE32(o) ((uint64_t)(o) + 0x80000000u > 0xFFFFFFFFu)                   /* o not an int32 */
-#define CLAMP(v, lo, hi) ((v) > (hi) ? (hi) : (v) < (lo) ? (lo) : (v))
 
-/* The coefficients of a run, in locals (registers). */
-#define RUN_LOCALS                                                                                                \
-    const int64_t g00 = rt->tt->g[0][0], g01 = rt->tt->g[0][1], g02 = rt->tt->g[0][2];                            \
-    const int64_t g10 = rt->tt->g[1][0], g11 = rt->tt->g[1][1], g12 = rt->tt->g[1][2];                            \
-    const int64_t g20 = rt->tt->g[2][0], g21 = rt->tt->g[2][1], g22 = rt->tt->g[2][2];                            \
-    const int64_t c0 = rt->tt->c[0], c1 = rt->tt->c[1], c2 = rt->tt->c[2];                                        \
-    const int32_t f = rt->field, L = MAGSTACK_CAL_B_LIMIT_NT, IL = MAGSTACK_CAL_I_LIMIT_MA;                         \
-    const unsigned base = rt->base;                                                                               \
+/* The coefficients every sample uses, in locals (registers). */
+#define BLOCK_LOCALS                                                                                              \
+    const int64_t l0 = bt->lim[0], l1 = bt->lim[1], l2 = bt->lim[2], nn = bt->nn;                                 \
+    unsigned slow = 0;                                                                                            \
     int k
 
-/* Sample r of a run with K currents: the arithmetic of sample() without a branch. */
-#define RUN_SAMPLE(K, r)                                                                                          \
+/* The terms of a run, in locals. */
+#define RUN_LOCALS                                                                                                \
+    const int64_t g00 = bt->tt->g[0][0], g01 = bt->tt->g[0][1], g02 = bt->tt->g[0][2];                            \
+    const int64_t g10 = bt->tt->g[1][0], g11 = bt->tt->g[1][1], g12 = bt->tt->g[1][2];                            \
+    const int64_t g20 = bt->tt->g[2][0], g21 = bt->tt->g[2][1], g22 = bt->tt->g[2][2];                            \
+    const int64_t c0 = bt->tt->c[0], c1 = bt->tt->c[1], c2 = bt->tt->c[2];                                        \
+    const unsigned base = bt->base
+
+/* Sample r with K currents on the fast path, the terms g.., c.. and the temperature's status bits in base; without
+ * a branch. Off the fast path the inputs are taken as zero and the outputs as zero (no overflow either way). */
+#define SAMPLE(K, r)                                                                                              \
     do {                                                                                                          \
-        int32_t x = b[3u * (r)], y = b[3u * (r) + 1u], z = b[3u * (r) + 2u];                                      \
-        unsigned sat = (unsigned)OUTSIDE(x, L) | (unsigned)OUTSIDE(y, L) | (unsigned)OUTSIDE(z, L);               \
-        unsigned oov;                                                                                             \
-        int64_t a0, a1, a2, o0, o1, o2;                                                                           \
-        x = CLAMP(x, -L, L);                                                                                      \
-        y = CLAMP(y, -L, L);                                                                                      \
-        z = CLAMP(z, -L, L);                                                                                      \
-        oov = (unsigned)OUTSIDE(x, f) | (unsigned)OUTSIDE(y, f) | (unsigned)OUTSIDE(z, f);                        \
+        int32_t x = b[3u * (r)], y = b[3u * (r) + 1u], z = b[3u * (r) + 2u], mask;                                \
+        uint32_t wide = ((uint32_t)x + FAST_B) | ((uint32_t)y + FAST_B) | ((uint32_t)z + FAST_B), cwide = 0;      \
+        unsigned oov = 0, fast;                                                                                   \
+        int64_t a0, a1, a2, o0, o1, o2, m64;                                                                      \
+        for (k = 0; k < (K); k++) {                                                                               \
+            cwide |= (uint32_t)cur[(size_t)(K) * (r) + (size_t)k] + FAST_I;                                       \
+        }                                                                                                         \
+        fast = (unsigned)(((wide >> 23) | (cwide >> 19)) <= 1u);                                                  \
+        mask = -(int32_t)fast;                                                                                    \
+        x &= mask;                                                                                                \
+        y &= mask;                                                                                                \
+        z &= mask;                                                                                                \
         a0 = g00 * x + g01 * y + g02 * z + c0;                                                                    \
         a1 = g10 * x + g11 * y + g12 * z + c1;                                                                    \
         a2 = g20 * x + g21 * y + g22 * z + c2;                                                                    \
         for (k = 0; k < (K); k++) {                                                                               \
-            int32_t c = cur[(size_t)(K) * (r) + (size_t)k];                                                       \
-            sat |= (unsigned)OUTSIDE(c, IL);                                                                      \
-            c = CLAMP(c, -IL, IL);                                                                                \
-            oov |= (unsigned)((uint32_t)c - (uint32_t)rt->lo[k] > (uint32_t)rt->hi[k] - (uint32_t)rt->lo[k]);     \
-            a0 += rt->d[k][0] * c;                                                                                \
-            a1 += rt->d[k][1] * c;                                                                                \
-            a2 += rt->d[k][2] * c;                                                                                \
+            int32_t c = cur[(size_t)(K) * (r) + (size_t)k] & mask;                                                \
+            oov |= (unsigned)((uint32_t)c - (uint32_t)bt->lo[k] > (uint32_t)bt->hi[k] - (uint32_t)bt->lo[k]);     \
+            a0 += bt->d[k][0] * c;                                                                                \
+            a1 += bt->d[k][1] * c;                                                                                \
+            a2 += bt->d[k][2] * c;                                                                                \
         }                                                                                                         \
         o0 = rshift_round19(a0);                                                                                  \
         o1 = rshift_round19(a1);                                                                                  \
         o2 = rshift_round19(a2);                                                                                  \
-        sat |= (unsigned)OUTSIDE32(o0) | (unsigned)OUTSIDE32(o1) | (unsigned)OUTSIDE32(o2);                       \
-        out[3u * (r)] = (int32_t)CLAMP(o0, INT32_MIN, INT32_MAX);                                                 \
-        out[3u * (r) + 1u] = (int32_t)CLAMP(o1, INT32_MIN, INT32_MAX);                                            \
-        out[3u * (r) + 2u] = (int32_t)CLAMP(o2, INT32_MIN, INT32_MAX);                                            \
-        status[r] = (uint8_t)(base | (sat << 2) | (oov << 1));                                                    \
+        fast &= (unsigned)((((uint64_t)(o0 + HALF32) | (uint64_t)(o1 + HALF32) | (uint64_t)(o2 + HALF32)) >> 32) == \
+                           0u);                                                                                   \
+        m64 = -(int64_t)fast;                                                                                     \
+        o0 &= m64;                                                                                                \
+        o1 &= m64;                                                                                                \
+        o2 &= m64;                                                                                                \
+        out[3u * (r)] = (int32_t)o0;                                                                              \
+        out[3u * (r) + 1u] = (int32_t)o1;                                                                         \
+        out[3u * (r) + 2u] = (int32_t)o2;                                                                         \
+        oov |= field_outside(o0, o1, o2, l0, l1, l2, nn);                                                         \
+        slow |= fast ^ 1u;                                                                                        \
+        status[r] = (uint8_t)(base | (oov << 1) | ((fast ^ 1u) << 7));                                            \
     } while (0)
 
-/* m samples at the temperature of *rt (a loop a compiler may vectorise), or one sample (no vector set-up). */
-#define RUN_KERNEL(NAME, ONE, K)                                                                                  \
-    static void NAME(const run_terms *rt, size_t m, const int32_t *restrict b, const int32_t *restrict cur,        \
-                     int32_t *restrict out, uint8_t *restrict status)                                              \
-    {                                                                                                             \
-        size_t r;                                                                                                 \
-        RUN_LOCALS;                                                                                               \
+/* The samples of m marked SLOW, computed by sample(). */
+static void slow_samples(const magstack_cal_table *t, terms_cache *cache, size_t m, const int32_t *b,
+                         const int32_t *temp, const int32_t *cur, int32_t *out, uint8_t *status)
+{
+    size_t r, nk = t->n_currents;
+    for (r = 0; r < m; r++) {
+        if (status[r] & SLOW) {
+            unsigned sat = 0;
+            int32_t tc = clip(temp[r], MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
+            status[r] = (uint8_t)sample(t, cached_terms(t, cache, tc), b + 3u * r, tc, nk ? cur + nk * r : NULL, sat,
+                                        out + 3u * r);
+        }
+    }
+}
+
+/* A run of at least RUN_MIN samples of one temperature goes to a run kernel; otherwise the next MIXED_CHUNK samples
+ * go to a mixed kernel. */
+#define RUN_MIN 8u
+#define MIXED_CHUNK 32u
+
+#ifndef MAGSTACK_CAL_VECTOR
+/* m samples whose temperatures vary: each sample's terms from the cache (computed on a miss), in the loop. */
+#define MIXED_LOOP(K)                                                                                             \
+    do {                                                                                                          \
+        const int32_t TL = MAGSTACK_CAL_T_LIMIT_CDEG, t_lo = bt->t_lo, t_hi = bt->t_hi;                           \
         for (r = 0; r < m; r++) {                                                                                 \
-            RUN_SAMPLE(K, r);                                                                                     \
+            int32_t tc = temp[r];                                                                                 \
+            unsigned base = (unsigned)OUTSIDE(tc, TL) << 2;                                                       \
+            const temperature_terms *tt;                                                                          \
+            tc = tc > TL ? TL : tc < -TL ? -TL : tc;                                                              \
+            base |= (unsigned)((uint32_t)tc - (uint32_t)t_lo > (uint32_t)t_hi - (uint32_t)t_lo) << 1;             \
+            tt = cached_terms(t, cache, tc);                                                                      \
+            {                                                                                                     \
+                const int64_t g00 = tt->g[0][0], g01 = tt->g[0][1], g02 = tt->g[0][2];                            \
+                const int64_t g10 = tt->g[1][0], g11 = tt->g[1][1], g12 = tt->g[1][2];                            \
+                const int64_t g20 = tt->g[2][0], g21 = tt->g[2][1], g22 = tt->g[2][2];                            \
+                const int64_t c0 = tt->c[0], c1 = tt->c[1], c2 = tt->c[2];                                        \
+                SAMPLE(K, r);                                                                                     \
+            }                                                                                                     \
         }                                                                                                         \
-    }                                                                                                             \
-    static void ONE(const run_terms *rt, const int32_t *restrict b, const int32_t *restrict cur,                   \
+    } while (0)
+#else
+/* m samples whose temperatures vary: each sample's terms from the cache copied into arrays first, then a loop a
+ * compiler may vectorise (MAGSTACK_CAL_VECTOR: for targets with 64-bit vector multiplies). */
+#define MIXED_LOOP(K)                                                                                             \
+    do {                                                                                                          \
+        const int32_t TL = MAGSTACK_CAL_T_LIMIT_CDEG, t_lo = bt->t_lo, t_hi = bt->t_hi;                           \
+        int64_t G[12][MIXED_CHUNK];                                                                               \
+        uint8_t tbase[MIXED_CHUNK];                                                                               \
+        for (r = 0; r < m; r++) {                                                                                 \
+            int32_t tc = temp[r];                                                                                 \
+            unsigned tb = (unsigned)OUTSIDE(tc, TL) << 2;                                                         \
+            const temperature_terms *tt;                                                                          \
+            tc = tc > TL ? TL : tc < -TL ? -TL : tc;                                                              \
+            tb |= (unsigned)((uint32_t)tc - (uint32_t)t_lo > (uint32_t)t_hi - (uint32_t)t_lo) << 1;               \
+            tbase[r] = (uint8_t)tb;                                                                               \
+            tt = cached_terms(t, cache, tc);                                                                      \
+            for (k = 0; k < 3; k++) {                                                                             \
+                G[3 * k][r] = tt->g[k][0];                                                                        \
+                G[3 * k + 1][r] = tt->g[k][1];                                                                    \
+                G[3 * k + 2][r] = tt->g[k][2];                                                                    \
+                G[9 + k][r] = tt->c[k];                                                                           \
+            }                                                                                                     \
+        }                                                                                                         \
+        for (r = 0; r < m; r++) {                                                                                 \
+            const unsigned base = tbase[r];                                                                       \
+            const int64_t g00 = G[0][r], g01 = G[1][r], g02 = G[2][r], g10 = G[3][r], g11 = G[4][r];              \
+            const int64_t g12 = G[5][r], g20 = G[6][r], g21 = G[7][r], g22 = G[8][r];                             \
+            const int64_t c0 = G[9][r], c1 = G[10][r], c2 = G[11][r];                                             \
+            SAMPLE(K, r);                                                                                         \
+        }                                                                                                         \
+    } while (0)
+#endif
+
+/* m samples at the temperature of bt->tt (a loop a compiler may vectorise), and m <= MIXED_CHUNK samples whose
+ * temperatures vary; the samples off the fast path computed again by sample(). */
+#define KERNELS(RUN, MIXED, K)                                                                                    \
+    static void RUN(const magstack_cal_table *t, terms_cache *cache, const block_terms *bt, size_t m,             \
+                    const int32_t *restrict b, const int32_t *restrict temp, const int32_t *restrict cur,         \
                     int32_t *restrict out, uint8_t *restrict status)                                               \
     {                                                                                                             \
+        size_t r;                                                                                                 \
+        BLOCK_LOCALS;                                                                                             \
         RUN_LOCALS;                                                                                               \
-        RUN_SAMPLE(K, 0u);                                                                                        \
+        for (r = 0; r < m; r++) {                                                                                 \
+            SAMPLE(K, r);                                                                                         \
+        }                                                                                                         \
+        if (slow) {                                                                                               \
+            slow_samples(t, cache, m, b, temp, cur, out, status);                                                 \
+        }                                                                                                         \
+    }                                                                                                             \
+    static void MIXED(const magstack_cal_table *t, terms_cache *cache, const block_terms *bt, size_t m,           \
+                      const int32_t *restrict b, const int32_t *restrict temp, const int32_t *restrict cur,       \
+                      int32_t *restrict out, uint8_t *restrict status)                                             \
+    {                                                                                                             \
+        size_t r;                                                                                                 \
+        BLOCK_LOCALS;                                                                                             \
+        MIXED_LOOP(K);                                                                                            \
+        if (slow) {                                                                                               \
+            slow_samples(t, cache, m, b, temp, cur, out, status);                                                 \
+        }                                                                                                         \
     }
 
-RUN_KERNEL(run0, one0, 0)
-RUN_KERNEL(run1, one1, 1)
-RUN_KERNEL(run2, one2, 2)
-RUN_KERNEL(run3, one3, 3)
-RUN_KERNEL(run4, one4, 4)
+KERNELS(run0, mixed0, 0)
+KERNELS(run1, mixed1, 1)
+KERNELS(run2, mixed2, 2)
+KERNELS(run3, mixed3, 3)
+KERNELS(run4, mixed4, 4)
+
+/* The end of the run of one temperature that starts at r (eight samples a step, then one). */
+static size_t run_end(const int32_t *temp, size_t r, size_t n)
+{
+    const int32_t v = temp[r];
+    size_t e = r + 1u;
+    while (n - e >= 8u && ((temp[e] ^ v) | (temp[e + 1u] ^ v) | (temp[e + 2u] ^ v) | (temp[e + 3u] ^ v) |
+                           (temp[e + 4u] ^ v) | (temp[e + 5u] ^ v) | (temp[e + 6u] ^ v) | (temp[e + 7u] ^ v)) == 0) {
+        e += 8u;
+    }
+    while (e < n && temp[e] == v) {
+        e++;
+    }
+    return e;
+}
 
 void magstack_cal_apply_block(const magstack_cal_table *table, size_t n, const int32_t *b_nT,
                               const int32_t *temp_cdeg, const int32_t *currents_mA, int32_t *out,
                               uint8_t *status)
 {
-    run_terms rt;
-    temperature_terms cache[MAGSTACK_CAL_TERMS_CACHE];
-    int32_t tag[MAGSTACK_CAL_TERMS_CACHE];
-    uint32_t valid[MAGSTACK_CAL_TERMS_CACHE];
+    block_terms bt;
+    terms_cache cache;
     unsigned i, k, nk = table->n_currents;
     size_t r = 0, end;
-    for (i = 0; i < MAGSTACK_CAL_TERMS_CACHE; i++) {
-        valid[i] = 0;
-        tag[i] = 0;
-    }
+    cache_init(&cache);
     for (k = 0; k < MAGSTACK_CAL_MAX_CURRENTS; k++) {
         for (i = 0; i < 3u; i++) {
-            rt.d[k][i] = (int64_t)table->D[k][i] * 128;
+            bt.d[k][i] = (int64_t)table->D[k][i] * 128;
         }
-        rt.lo[k] = table->current_lo_mA[k];
-        rt.hi[k] = table->current_hi_mA[k];
+        bt.lo[k] = table->current_lo_mA[k];
+        bt.hi[k] = table->current_hi_mA[k];
     }
-    rt.field = table->field_limit_nT;
+    for (i = 0; i < 3u; i++) {
+        bt.lim[i] = table->field_axes_nT[i];
+    }
+    bt.nn = norm2_limit(table);
+    bt.t_lo = table->has_temp_range ? table->temp_lo_cdeg : -MAGSTACK_CAL_T_LIMIT_CDEG;
+    bt.t_hi = table->has_temp_range ? table->temp_hi_cdeg : MAGSTACK_CAL_T_LIMIT_CDEG;
+    bt.tt = NULL;
+    bt.base = 0;
     while (r < n) {
-        unsigned sat = 0;
-        int32_t raw = temp_cdeg[r];
-        int32_t tc = clip(raw, MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
-        const temperature_terms *tt = cached_terms(table, cache, tag, valid, tc);
-        /* a run of one temperature (its first, second, 8th and 16th samples equal) goes to the vector kernel at
-         * once; otherwise one sample */
-        unsigned oov = (unsigned)table->has_temp_range &
-                       ((unsigned)(tc < table->temp_lo_cdeg) | (unsigned)(tc > table->temp_hi_cdeg));
-        end = r + 1u;
-        if (r + 16u <= n && ((temp_cdeg[r + 1u] == raw) & (temp_cdeg[r + 7u] == raw) & (temp_cdeg[r + 15u] == raw))) {
-            for (end = r + 2u; end < n && temp_cdeg[end] == raw; end++) {
-            }
-        }
-        rt.tt = tt;
-        rt.base = (sat ? MAGSTACK_CAL_SATURATED : 0u) | (oov ? MAGSTACK_CAL_OUT_OF_VALIDITY : 0u);
-        if (end - r == 1u) {
+        const int32_t *c = nk ? currents_mA + nk * r : NULL;
+        const int32_t *b = b_nT + 3u * r, *t = temp_cdeg + r;
+        end = run_end(temp_cdeg, r, n);
+        if (end - r >= RUN_MIN) { /* a run of one temperature */
+            unsigned sat = 0;
+            int32_t tc = clip(temp_cdeg[r], MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
+            bt.tt = cached_terms(table, &cache, tc);
+            bt.base = (sat ? MAGSTACK_CAL_SATURATED : 0u) |
+                      ((unsigned)(tc < bt.t_lo) | (unsigned)(tc > bt.t_hi) ? MAGSTACK_CAL_OUT_OF_VALIDITY : 0u);
             switch (nk) {
-            case 0: one0(&rt, b_nT + 3u * r, NULL, out + 3u * r, status + r); break;
-            case 1: one1(&rt, b_nT + 3u * r, currents_mA + r, out + 3u * r, status + r); break;
-            case 2: one2(&rt, b_nT + 3u * r, currents_mA + 2u * r, out + 3u * r, status + r); break;
-            case 3: one3(&rt, b_nT + 3u * r, currents_mA + 3u * r, out + 3u * r, status + r); break;
-            default: one4(&rt, b_nT + 3u * r, currents_mA + 4u * r, out + 3u * r, status + r); break;
+            case 0: run0(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
+            case 1: run1(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
+            case 2: run2(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
+            case 3: run3(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
+            default: run4(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
             }
-        } else {
+        } else { /* a short run: the next MIXED_CHUNK samples */
+            end = n - r > MIXED_CHUNK ? r + MIXED_CHUNK : n;
             switch (nk) {
-            case 0: run0(&rt, end - r, b_nT + 3u * r, NULL, out + 3u * r, status + r); break;
-            case 1: run1(&rt, end - r, b_nT + 3u * r, currents_mA + r, out + 3u * r, status + r); break;
-            case 2: run2(&rt, end - r, b_nT + 3u * r, currents_mA + 2u * r, out + 3u * r, status + r); break;
-            case 3: run3(&rt, end - r, b_nT + 3u * r, currents_mA + 3u * r, out + 3u * r, status + r); break;
-            default: run4(&rt, end - r, b_nT + 3u * r, currents_mA + 4u * r, out + 3u * r, status + r); break;
+            case 0: mixed0(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
+            case 1: mixed1(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
+            case 2: mixed2(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
+            case 3: mixed3(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
+            default: mixed4(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
             }
         }
         r = end;
@@ -532,19 +702,13 @@ void magstack_cal_apply_block(const magstack_cal_table *table, size_t n, const i
                               const int32_t *temp_cdeg, const int32_t *currents_mA, int32_t *out,
                               uint8_t *status)
 {
-    temperature_terms cache[MAGSTACK_CAL_TERMS_CACHE];
-    int32_t tag[MAGSTACK_CAL_TERMS_CACHE];
-    uint32_t valid[MAGSTACK_CAL_TERMS_CACHE];
+    terms_cache cache;
     size_t r, nk = table->n_currents;
-    unsigned i;
-    for (i = 0; i < MAGSTACK_CAL_TERMS_CACHE; i++) {
-        valid[i] = 0;
-        tag[i] = 0;
-    }
+    cache_init(&cache);
     for (r = 0; r < n; r++) {
         unsigned sat = 0;
         int32_t tc = clip(temp_cdeg[r], MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
-        status[r] = (uint8_t)sample(table, cached_terms(table, cache, tag, valid, tc), b_nT + 3u * r, tc,
+        status[r] = (uint8_t)sample(table, cached_terms(table, &cache, tc), b_nT + 3u * r, tc,
                                     nk ? currents_mA + nk * r : NULL, sat, out + 3u * r);
     }
 }

@@ -13,11 +13,13 @@
  * any image the loader accepts.
  *
  * Build options (preprocessor): MAGSTACK_CAL_COMPACT gives magstack_cal_apply_block a plain loop over
- * samples (smallest code; otherwise one branch-free kernel per number of currents, which a compiler can
+ * samples (smallest code; otherwise branch-free kernels per number of currents, which a compiler can
  * vectorise over runs of one temperature); MAGSTACK_CAL_TERMS_CACHE (a power of two, default 8) is how
- * many temperatures' terms magstack_cal_apply_block keeps on its stack (about 100 bytes each). The functions keep no state: a table is read-only once loaded (to
- * replace the active table, load the new image into a second table and swap the pointer between
- * samples).
+ * many temperatures' terms magstack_cal_apply_block keeps on its stack (about 100 bytes each);
+ * MAGSTACK_CAL_VECTOR (hosts with 64-bit vector multiplies, -O3) lets a compiler vectorise samples whose
+ * temperatures vary as well (3 KiB more stack; slower in scalar builds). The functions keep no state: a
+ * table is read-only once loaded (to replace the active table, load the new image into a second table and
+ * swap the pointer between samples).
  */
 #ifndef MAGSTACK_CAL_H
 #define MAGSTACK_CAL_H
@@ -30,8 +32,8 @@ extern "C" {
 #endif
 
 /* ---- binary table image (little-endian, packed) ---- */
-#define MAGSTACK_CAL_IMAGE_VERSION 1u
-#define MAGSTACK_CAL_IMAGE_SIZE 320u
+#define MAGSTACK_CAL_IMAGE_VERSION 2u
+#define MAGSTACK_CAL_IMAGE_SIZE 336u
 #define MAGSTACK_CAL_MAX_CURRENTS 4u
 #define MAGSTACK_CAL_DEVICE_ID_BYTES 32u
 #define MAGSTACK_CAL_CURRENT_NAME_BYTES 16u
@@ -45,10 +47,12 @@ extern "C" {
 #define MAGSTACK_CAL_TERM_CURRENTS 0x20u
 
 /* option bits of the image's "options" byte */
-#define MAGSTACK_CAL_OPT_TEMP_RANGE 0x01u
+#define MAGSTACK_CAL_OPT_TEMP_RANGE 0x01u /* the validity region has a temperature range */
+#define MAGSTACK_CAL_OPT_FIELD_AXES 0x02u /* per-axis field limits of their own (else each is field_limit_nT) */
+#define MAGSTACK_CAL_OPT_FIELD_NORM 0x04u /* a limit on the calibrated field's magnitude */
 
 /* ---- status bits of one sample (magstack.firmware.float_applier.ApplyFlag) ---- */
-#define MAGSTACK_CAL_OUT_OF_VALIDITY 2u /* temperature, field or current outside the validity box */
+#define MAGSTACK_CAL_OUT_OF_VALIDITY 2u /* temperature, current or calibrated field outside the validity region */
 #define MAGSTACK_CAL_SATURATED 4u       /* an input clipped or an output saturated */
 
 /* ---- input clips and limits (magstack.firmware.fixed_point) ---- */
@@ -56,13 +60,14 @@ extern "C" {
 #define MAGSTACK_CAL_T_LIMIT_CDEG 32768L   /* 2^15 centi-degC */
 #define MAGSTACK_CAL_I_LIMIT_MA 1048576L   /* 2^20 mA */
 #define MAGSTACK_CAL_K_S2_LIMIT 268435455L /* 2^28 - 1 */
+#define MAGSTACK_CAL_B_NORM_LIMIT_NT 29058990L /* largest magnitude limit, nT (sqrt(3) 2^24, rounded down) */
 
 /* ---- loader result codes ---- */
 enum magstack_cal_result {
     MAGSTACK_CAL_OK = 0,
     MAGSTACK_CAL_E_SIZE = 1,       /* length or size field is not MAGSTACK_CAL_IMAGE_SIZE */
     MAGSTACK_CAL_E_MAGIC = 2,      /* not a magstack table image */
-    MAGSTACK_CAL_E_VERSION = 3,    /* a format version this loader does not know */
+    MAGSTACK_CAL_E_VERSION = 3,    /* not format version 2 (a version-1 image included: re-export it) */
     MAGSTACK_CAL_E_CRC = 4,        /* CRC-32 mismatch: corrupt */
     MAGSTACK_CAL_E_RESERVED = 5,   /* a reserved byte or bit is set */
     MAGSTACK_CAL_E_TERMS = 6,      /* unknown term bit, no gain matrix, or a coefficient of an undeclared term */
@@ -70,7 +75,7 @@ enum magstack_cal_result {
     MAGSTACK_CAL_E_CURRENTS = 8,   /* more than 4 currents, a bad or repeated name, an unused slot not zero */
     MAGSTACK_CAL_E_T0 = 9,         /* |t0| > 2^15 centi-degC */
     MAGSTACK_CAL_E_K_S2 = 10,      /* |K_S2| > 2^28 - 1 */
-    MAGSTACK_CAL_E_VALIDITY = 11,  /* field limit, temperature or current range out of bounds */
+    MAGSTACK_CAL_E_VALIDITY = 11,  /* a field, magnitude, temperature or current limit out of bounds */
     MAGSTACK_CAL_E_ARGUMENT = 12   /* a NULL pointer */
 };
 
@@ -80,11 +85,15 @@ typedef struct {
     uint32_t source_crc32;  /* crc32 of the JSON table the image was made from */
     uint8_t terms;          /* MAGSTACK_CAL_TERM_* bits */
     uint8_t n_currents;     /* 0..MAGSTACK_CAL_MAX_CURRENTS */
-    uint8_t has_temp_range; /* 1: the validity box has a temperature range */
+    uint8_t has_temp_range; /* 1: the validity region has a temperature range */
+    uint8_t has_field_axes; /* 1: the table gives per-axis field limits (field_axes_nT; else each field_limit_nT) */
+    uint8_t has_field_norm; /* 1: the validity region has a magnitude limit (field_norm_nT) */
     char device_id[MAGSTACK_CAL_DEVICE_ID_BYTES + 1u];
     char current_names[MAGSTACK_CAL_MAX_CURRENTS][MAGSTACK_CAL_CURRENT_NAME_BYTES + 1u];
     int32_t t0_cdeg;
-    int32_t field_limit_nT;                 /* validity: |B_j| <= this */
+    int32_t field_limit_nT;                 /* the table's field limit, nT */
+    int32_t field_axes_nT[3];               /* validity: calibrated |B_i| <= this[i], nT (whole nT of the output) */
+    int32_t field_norm_nT;                  /* validity: |B|^2 <= this^2, nT (when has_field_norm; else 0) */
     int32_t temp_lo_cdeg, temp_hi_cdeg;     /* validity (when has_temp_range) */
     int32_t S[3][3];                        /* Q4.27 */
     int32_t K_S[3][3];                      /* 2^-34 /degC */

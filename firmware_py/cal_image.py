@@ -1,9 +1,13 @@
 """Binary image of a calibration table: the fixed-point table, packed for the C applier and for uplink.
 
-One fixed-size record (``SIZE`` = 320 bytes, little-endian, packed) holding the integers of
-:class:`~magstack.firmware.fixed_point.FixedPointTable` (the Q formats of that module), the table's flight
-terms, device id, current names and validity box, the CRC-32 of the JSON table it was made from, and a
-CRC-32 (``zlib.crc32``) of everything before it. ``FIELDS`` is the layout (docs/cal-table.md prints it).
+One fixed-size record (``SIZE`` = 336 bytes, little-endian, packed; format ``VERSION`` 2) holding the integers
+of :class:`~magstack.firmware.fixed_point.FixedPointTable` (the Q formats of that module), the table's flight
+terms, device id, current names and validity region (per-axis and magnitude limits of the calibrated field,
+temperature and current ranges), the CRC-32 of the JSON table it was made from, and a CRC-32 (``zlib.crc32``)
+of everything before it. ``FIELDS`` is the layout (docs/cal-table.md prints it).
+
+A version-1 image is refused (``E_VERSION``): its field limit was on the measured field and it had no per-axis
+or magnitude limits, so it cannot say the validity region of this applier; export the JSON table again.
 
 The checks of :func:`check_image` are those of the C loader ``magstack_cal_load`` (``firmware_c/``), in
 the same order and with the same result codes (:class:`ImageResult`): size, magic, version, CRC, then
@@ -30,13 +34,18 @@ from magstack.firmware.cal_terms import FLIGHT_TERMS, GROUND_ONLY_TERMS
 from magstack.firmware.errors import CalTableInvalid
 
 MAGIC = b"MCAL"
-VERSION = 1
-SIZE = 320
+VERSION = 2
+SIZE = 336
 DEVICE_ID_BYTES = 32
 CURRENT_NAME_BYTES = 16
 #: Term bits of the ``terms`` byte, in :data:`~magstack.firmware.cal_terms.FLIGHT_TERMS` order.
 TERM_BITS = {name: 1 << i for i, name in enumerate(FLIGHT_TERMS)}
 OPT_TEMP_RANGE = 0x01
+#: The table gives per-axis field limits (``field_axes_nT``); without it each equals ``field_limit_nT``.
+OPT_FIELD_AXES = 0x02
+#: The validity region has a magnitude limit (``field_norm_nT``; 0 without it).
+OPT_FIELD_NORM = 0x04
+OPTIONS = OPT_TEMP_RANGE | OPT_FIELD_AXES | OPT_FIELD_NORM
 #: The C sources shipped with the package (``magstack.firmware.c_applier``).
 C_SOURCES = ("magstack_cal.c", "magstack_cal.h")
 C_PACKAGE = "magstack.firmware.c_applier"
@@ -54,17 +63,21 @@ class ImageField:
 def _layout() -> tuple[ImageField, ...]:
     spec = (
         ("magic", "4s", "char[4]", '"MCAL"'),
-        ("version", "H", "uint16", "image format version (1)"),
-        ("size", "H", "uint16", "image size in bytes (320)"),
+        ("version", "H", "uint16", "image format version (2)"),
+        ("size", "H", "uint16", "image size in bytes (336)"),
         ("source_crc32", "I", "uint32", "crc32 of the JSON table the image was made from"),
         ("terms", "B", "uint8", "flight terms: 1 gain_matrix, 2 temperature_gain, 4 temperature_gain2, 8 offset, "
                                 "16 temperature_offset, 32 currents"),
         ("n_currents", "B", "uint8", "number of currents k, 0..4"),
-        ("options", "B", "uint8", "1: the validity box has a temperature range"),
+        ("options", "B", "uint8", "1: a temperature range; 2: per-axis field limits; 4: a magnitude limit"),
         ("reserved", "B", "uint8", "0"),
         ("device_id", "32s", "char[32]", "device id, printable ASCII, NUL-padded, not empty"),
         ("t0_cdeg", "i", "int32", "t0, centi-degC, |t0| <= 2^15"),
-        ("field_limit_nT", "i", "int32", "validity: field per axis within +-this, nT, 0..2^24"),
+        ("field_limit_nT", "i", "int32", "the table's field limit (JSON field_uT), nT, 0..2^24"),
+        ("field_axes_nT", "3i", "int32[3]", "validity: calibrated field of axis i within +-this[i], whole nT, "
+                                            "0..field_limit_nT; each field_limit_nT without option 2"),
+        ("field_norm_nT", "i", "int32", "validity: calibrated field's magnitude <= this, whole nT, "
+                                        "0..29058990 with option 4, else 0"),
         ("temp_lo_cdeg", "i", "int32", "validity temperature low, centi-degC (0 without a range)"),
         ("temp_hi_cdeg", "i", "int32", "validity temperature high, centi-degC, >= low (0 without a range)"),
         ("S", "9i", "int32[3][3]", "S, row-major, value * 2^27"),
@@ -76,7 +89,7 @@ def _layout() -> tuple[ImageField, ...]:
         ("current_ranges_mA", "8i", "int32[4][2]", "validity [lo, hi] of current k, mA, within +-2^20; rows >= k "
                                                    "zero"),
         ("current_names", "64s", "char[4][16]", "name of current k, printable ASCII, NUL-padded; rows >= k zero"),
-        ("crc32", "I", "uint32", "zlib CRC-32 of bytes 0..315"),
+        ("crc32", "I", "uint32", "zlib CRC-32 of bytes 0..331"),
     )
     out, off = [], 0
     for name, fmt, c_type, meaning in spec:
@@ -166,6 +179,10 @@ def _decode(raw: bytes) -> TableImage:
     if len(raw) < 8:
         raise ImageInvalid(f"{len(raw)} bytes, an image has {SIZE}", R.E_SIZE)
     version, size = struct.unpack_from("<HH", raw, 4)
+    if version == 1:
+        raise ImageInvalid("format version 1 (its field limit is on the measured field, without per-axis or "
+                           f"magnitude limits): this loader reads version {VERSION}; export the table again",
+                           R.E_VERSION)
     if version != VERSION:
         raise ImageInvalid(f"format version {version}, this loader reads version {VERSION}", R.E_VERSION)
     if size != SIZE or len(raw) != SIZE:
@@ -175,7 +192,7 @@ def _decode(raw: bytes) -> TableImage:
     if crc != v["crc32"]:
         raise ImageInvalid(f"CRC-32 mismatch: image says 0x{v['crc32']:08x}, content gives 0x{crc:08x} (corrupt)",
                            R.E_CRC)
-    if v["reserved"] or v["options"] & ~OPT_TEMP_RANGE:
+    if v["reserved"] or v["options"] & ~OPTIONS:
         raise ImageInvalid("reserved byte or option bits set", R.E_RESERVED)
     bits = v["terms"]
     if bits & ~sum(TERM_BITS.values()) or not bits & TERM_BITS["gain_matrix"]:
@@ -195,11 +212,20 @@ def _decode(raw: bytes) -> TableImage:
                          ("temperature_offset", KO)):
         if any(coeffs) and term not in terms:
             raise ImageInvalid(f"non-zero coefficients of the undeclared term {term}", R.E_TERMS)
-    field = v["field_limit_nT"]
+    field, axes, norm = v["field_limit_nT"], v["field_axes_nT"], v["field_norm_nT"]
     lo, hi = v["temp_lo_cdeg"], v["temp_hi_cdeg"]
     has_t = bool(v["options"] & OPT_TEMP_RANGE)
+    has_axes, has_norm = bool(v["options"] & OPT_FIELD_AXES), bool(v["options"] & OPT_FIELD_NORM)
     if not 0 <= field <= fp.B_LIMIT_nT:
         raise ImageInvalid(f"field limit {field} nT outside 0..{fp.B_LIMIT_nT}", R.E_VALIDITY)
+    for a in axes:
+        if not 0 <= a <= field or (not has_axes and a != field):
+            raise ImageInvalid(f"per-axis field limits {list(axes)} nT not within 0..{field} (the field limit)"
+                               + ("" if has_axes else ", or not each equal to it without their option bit"),
+                               R.E_VALIDITY)
+    if not 0 <= norm <= fp.B_NORM_LIMIT_nT or (not has_norm and norm):
+        raise ImageInvalid(f"magnitude limit {norm} nT outside 0..{fp.B_NORM_LIMIT_nT}"
+                           + ("" if has_norm else ", or set without its option bit"), R.E_VALIDITY)
     if has_t and not (abs(lo) <= fp.T_LIMIT_cdeg and abs(hi) <= fp.T_LIMIT_cdeg and lo <= hi):
         raise ImageInvalid(f"temperature range [{lo}, {hi}] centi-degC not an interval within "
                            f"+-{fp.T_LIMIT_cdeg}", R.E_VALIDITY)
@@ -224,7 +250,8 @@ def _decode(raw: bytes) -> TableImage:
     fixed = fp.FixedPointTable(
         S=(S[0:3], S[3:6], S[6:9]), K_S=(KS[0:3], KS[3:6], KS[6:9]), O=O, K_O=KO, D=tuple(d_rows),
         t0_cdeg=v["t0_cdeg"], field_limit_nT=field, temp_range_cdeg=(lo, hi) if has_t else None,
-        current_ranges_mA=tuple(r_rows), K_S2=K2)
+        current_ranges_mA=tuple(r_rows), K_S2=K2, field_limits_nT=axes if has_axes else None,
+        field_norm_nT=norm if has_norm else None)
     return TableImage(fixed, device_id, terms, tuple(name_list), v["source_crc32"], v["crc32"])
 
 
@@ -259,8 +286,10 @@ def pack_fixed(fixed: fp.FixedPointTable, *, device_id: str, terms, current_name
     rows = [x for r in fixed.D for x in r] + [0] * 3 * (fp.MAX_CURRENTS - k)
     ranges = [x for r in fixed.current_ranges_mA for x in r] + [0] * 2 * (fp.MAX_CURRENTS - k)
     tr = fixed.temp_range_cdeg
+    options = ((OPT_TEMP_RANGE if tr is not None else 0) | (OPT_FIELD_AXES if fixed.field_limits_nT is not None else 0)
+               | (OPT_FIELD_NORM if fixed.field_norm_nT is not None else 0))
     values = [MAGIC, VERSION, SIZE, int(source_crc32) & 0xFFFFFFFF, sum(TERM_BITS[t] for t in set(terms)), k,
-              OPT_TEMP_RANGE if tr is not None else 0, 0, dev, fixed.t0_cdeg, fixed.field_limit_nT,
+              options, 0, dev, fixed.t0_cdeg, fixed.field_limit_nT, *fixed.axis_limits_nT, fixed.field_norm_nT or 0,
               *(tr if tr is not None else (0, 0)), *(x for r in fixed.S for x in r),
               *(x for r in fixed.K_S for x in r), *fixed.K_S2, *fixed.O, *fixed.K_O, *rows, *ranges,
               name_bytes.ljust(CURRENT_NAME_BYTES * fp.MAX_CURRENTS, b"\0"), 0]
@@ -324,6 +353,9 @@ def table_from_image(raw: bytes, source: str = "<image>") -> CalTable:
         K_O=[x / 2 ** fp.K_O_FRAC / 1e3 for x in fx.K_O],
         D=tuple((n, [x / 2 ** fp.D_FRAC for x in r]) for n, r in zip(img.current_names, fx.D, strict=True)),
         t0_c=fx.t0_cdeg / 100, validity_temp_c=temp, validity_field_uT=_just(fx.field_limit_nT, 1e3, math.floor),
+        validity_field_axes_uT=None if fx.field_limits_nT is None else tuple(
+            _just(a, 1e3, math.floor) for a in fx.field_limits_nT),
+        validity_field_norm_uT=None if fx.field_norm_nT is None else _just(fx.field_norm_nT, 1e3, math.floor),
         validity_currents_A=tuple((n, (_just(a, 1e3, math.floor), _just(b, 1e3, math.ceil)))
                                   for n, (a, b) in zip(img.current_names, fx.current_ranges_mA, strict=True)),
         description=f"table image v{VERSION}, image CRC-32 0x{img.image_crc32:08x}", crc32=img.source_crc32)

@@ -50,7 +50,8 @@ OUT_FRAC = 8
 ACC_FRAC = 27
 INT32_MIN, INT32_MAX = -(2 ** 31), 2 ** 31 - 1
 B_LIMIT_nT = 2 ** 24
-#: Largest field-magnitude limit: |B| of clipped inputs is below sqrt(3) 2**24 nT (squares sum < 2**49.6).
+#: Largest field-magnitude limit (nT, sqrt(3) 2**24 rounded down; a calibrated output's magnitude is below
+#: sqrt(3) 2**23 nT): its square and the squares' sum of whole-nT outputs fit an int64.
 B_NORM_LIMIT_nT = 29_058_990
 T_LIMIT_cdeg = 2 ** 15
 I_LIMIT_mA = 2 ** 20

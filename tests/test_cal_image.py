@@ -48,6 +48,7 @@ def _valid_tables(draw):
         draw(st.lists(f(-0.3, 0.3), min_size=9, max_size=9))).reshape(3, 3) * (1 - np.eye(3))
     lo = draw(f(-55, 20))
     t0 = round(draw(f(-20, 60)), 2)
+    field = draw(f(0.001, 120))
     terms = ["gain_matrix", "offset"] + draw(st.sets(st.sampled_from(["temperature_gain", "temperature_gain2",
                                                                        "temperature_offset"])).map(sorted))
     return ct.table_from_document(ct.CalTable(
@@ -60,7 +61,9 @@ def _valid_tables(draw):
         K_O=draw(st.lists(f(-5, 5), min_size=3, max_size=3)) if "temperature_offset" in terms else [0, 0, 0],
         D=tuple((f"c{j}", draw(st.lists(f(-200, 200), min_size=3, max_size=3))) for j in range(k)), t0_c=t0,
         validity_temp_c=(lo, draw(f(max(lo, t0), 125))) if lo <= t0 else (t0, 125.0),
-        validity_field_uT=draw(f(0.001, 120)),
+        validity_field_uT=field, validity_field_axes_uT=draw(st.one_of(st.none(), st.tuples(
+            *[st.one_of(f(0.001, field), st.just(field))] * 3))),
+        validity_field_norm_uT=draw(st.one_of(st.none(), f(0.001, 200))),
         validity_currents_A=tuple((f"c{j}", (-draw(f(0, 5)), draw(f(0, 5)))) for j in range(k))).to_document())
 
 
@@ -95,6 +98,37 @@ def test_what_an_image_carries_and_what_it_does_not():
     assert "time_skew" not in img.terms and set(img.terms) == set(t.terms) - {"time_skew"}
     back = cal_image.table_from_image(cal_image.image_from_table(t))
     assert back.posterior is None and not back.fit_stats and not back.ground_only and back.created_utc == ""
+
+
+def test_per_axis_and_magnitude_limits_travel_in_the_image(tmp_path, capsys):
+    """The validity region's per-axis and magnitude limits (on the calibrated field) are in the image, come back in
+    its table, and flag the same samples in the flight store as the JSON table does."""
+    t = _table(validity_field_axes_uT=(100.0, 80.5, 90.0004), validity_field_norm_uT=120.0)
+    raw = cal_image.image_from_table(t)
+    img = cal_image.decode_image(raw)
+    assert img.fixed.field_limits_nT == (100_000, 80_500, 90_000) and img.fixed.field_norm_nT == 120_000
+    assert raw[14] == cal_image.OPT_TEMP_RANGE | cal_image.OPT_FIELD_AXES | cal_image.OPT_FIELD_NORM
+    back = cal_image.table_from_image(raw)
+    assert fp.FixedPointTable.from_table(back) == fp.FixedPointTable.from_table(t) == img.fixed
+    assert back.validity_field_norm_uT == 120.0 and back.validity_field_axes_uT[1] == 80.5
+    plain = cal_image.decode_image(cal_image.image_from_table(_table()))
+    assert plain.fixed.field_limits_nT is None and plain.fixed.field_norm_nT is None
+    ct.save_table(t, tmp_path / "cal.json")
+    (tmp_path / "cal.mcal").write_bytes(raw)
+    outs = []
+    for name in ("cal.json", "cal.mcal"):
+        store = FlightTableStore("hmc1053:sn1", "hmc1053", [tmp_path], tmp_path)
+        store.load_and_activate(name)
+        corr = TableCorrector(store)
+        # calibrated: (14.0, 78.7, 16.5), (14.2, 84.3, 16.8) uT: y beyond 80.5; (90.1, 68.8, 38.0) |B| 119.5 uT,
+        # (90.0, 69.0, 43.5) |B| 121.4 uT: beyond 120
+        outs.append([corr.correct(b, 25.0, {"heater": 0.0}) for b in ((10.0, 70.0, 10.0), (10.0, 75.0, 10.0),
+                                                                       (80.0, 60.0, 30.0), (80.0, 60.0, 35.0))])
+    assert outs[0] == outs[1]
+    assert [c.status for c in outs[0]] == ["ok", "out_of_validity", "ok", "out_of_validity"]
+    assert main(["table", "show", str(tmp_path / "cal.mcal"), "--json"]) == 0
+    ints = json.loads(capsys.readouterr().out)["image"]["integers"]
+    assert ints["field_limits_nT"] == [100_000, 80_500, 90_000] and ints["field_norm_nT"] == 120_000
 
 
 @pytest.mark.parametrize("kw, match", [
@@ -184,7 +218,7 @@ def test_cli_export_show_validate(tmp_path, capsys):
     img = tmp_path / "cal.mcal"
     assert main(["table", "export", str(src), "--image", str(img), "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
-    assert doc["image_bytes"] == 320 and doc["source_crc32"] == f"0x{ct.load_table(src).crc32:08x}"
+    assert doc["image_bytes"] == cal_image.SIZE == 336 and doc["source_crc32"] == f"0x{ct.load_table(src).crc32:08x}"
     assert img.read_bytes() == cal_image.image_from_table(ct.load_table(src))
     assert main(["table", "validate", str(img)]) == 0
     assert "valid: worst-case output" in capsys.readouterr().out
@@ -193,7 +227,8 @@ def test_cli_export_show_validate(tmp_path, capsys):
     assert doc["format"] == "image" and doc["valid"] and doc["image"]["integers"]["t0_cdeg"] == 2500
     assert main(["table", "show", str(img)]) == 0
     out = capsys.readouterr().out
-    assert "image v1, 320 bytes" in out and "K_S2 (2^-40 /degC^2)" in out and "not carried" in out
+    assert "image v2, 336 bytes" in out and "calibrated field per axis within +-[100000, 100000, 100000] nT" in out
+    assert "K_S2 (2^-40 /degC^2)" in out and "not carried" in out
     bad = bytearray(img.read_bytes())
     bad[200] ^= 1
     img.write_bytes(bytes(bad))

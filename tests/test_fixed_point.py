@@ -94,8 +94,8 @@ def _random_valid_table(data):
 def test_property_fixed_point_within_half_nT_of_float(data):
     table = _random_valid_table(data)
     res = validate(table)
-    if not res.ok:  # a random draw can be ill-conditioned: then it must be refused, nothing to compare
-        assert any("condition" in p for p in res.problems), res.problems
+    if not res.ok:  # an ill-conditioned draw or one without output headroom is refused: nothing to compare
+        assert any("condition" in p or "would saturate" in p for p in res.problems), res.problems
         return
     f = fp.FixedPointTable.from_table(table)
     rng = np.random.default_rng(data.draw(st.integers(0, 2 ** 32 - 1)))

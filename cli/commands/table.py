@@ -115,7 +115,8 @@ def _show_lines(t) -> list[str]:
             p(f"P (1/uT; columns xy, xz, yz) =\n{t.P}")
     if t.ground_only:
         p(f"ground-only terms (not applied): {', '.join(t.ground_only)}")
-    p(f"validity: temp_c {t.validity_temp_c}, |B| <= {t.validity_field_uT:g} uT"
+    p(f"validity: temp_c {t.validity_temp_c}, calibrated field per axis within +-{list(t.field_limits_uT)} uT"
+      + ("" if t.validity_field_norm_uT is None else f", |B| <= {t.validity_field_norm_uT:g} uT")
       + "".join(f", I_{k} in {r} A" for k, r in t.validity_currents_A))
     fs = t.fit_stats
     for key in ("n_used", "raw_rmse_norm_uT", "rmse_norm_uT", "holdout_blocks_rmse_norm_uT",
@@ -158,6 +159,7 @@ def _image_data(raw: bytes) -> dict:
             "source_crc32": f"0x{img.source_crc32:08x}", "current_names": list(img.current_names),
             "integers": {"S": fx.S, "K_S": fx.K_S, "K_S2": fx.K_S2, "O": fx.O, "K_O": fx.K_O, "D": fx.D,
                          "t0_cdeg": fx.t0_cdeg, "field_limit_nT": fx.field_limit_nT,
+                         "field_limits_nT": fx.axis_limits_nT, "field_norm_nT": fx.field_norm_nT,
                          "temp_range_cdeg": fx.temp_range_cdeg, "current_ranges_mA": fx.current_ranges_mA}}
 
 
@@ -171,9 +173,11 @@ def _image_lines(raw: bytes) -> list[str]:
             f"  K_S2 (2^-40 /degC^2) {list(fx.K_S2)}", f"  O (2^-8 nT) {list(fx.O)}",
             f"  K_O (2^-16 nT/degC) {list(fx.K_O)}",
             *(f"  D_{n} (2^-20 nT/mA) {list(d)}" for n, d in zip(img.current_names, fx.D, strict=True)),
-            f"  t0 {fx.t0_cdeg} centi-degC, |B| <= {fx.field_limit_nT} nT, temperature {fx.temp_range_cdeg} "
-            f"centi-degC" + "".join(f", I_{n} in {r} mA" for n, r in zip(img.current_names, fx.current_ranges_mA,
-                                                                             strict=True))]
+            f"  t0 {fx.t0_cdeg} centi-degC, field limit {fx.field_limit_nT} nT, calibrated field per axis within "
+            f"+-{list(fx.axis_limits_nT)} nT, "
+            + ("no magnitude limit" if fx.field_norm_nT is None else f"|B| <= {fx.field_norm_nT} nT")
+            + f", temperature {fx.temp_range_cdeg} centi-degC"
+            + "".join(f", I_{n} in {r} mA" for n, r in zip(img.current_names, fx.current_ranges_mA, strict=True))]
 
 
 #: The files ``export --c DIR`` writes besides the C sources.

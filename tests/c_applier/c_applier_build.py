@@ -9,6 +9,8 @@
 from __future__ import annotations
 
 import ctypes
+import dataclasses
+import math
 import shutil
 import struct
 import subprocess
@@ -64,9 +66,11 @@ class CTable(ctypes.Structure):
     """``magstack_cal_table`` (magstack_cal.h)."""
 
     _fields_ = [("image_crc32", ctypes.c_uint32), ("source_crc32", ctypes.c_uint32), ("terms", ctypes.c_uint8),
-                ("n_currents", ctypes.c_uint8), ("has_temp_range", ctypes.c_uint8),
-                ("device_id", ctypes.c_char * 33), ("current_names", (ctypes.c_char * 17) * 4),
-                ("t0_cdeg", ctypes.c_int32), ("field_limit_nT", ctypes.c_int32), ("temp_lo_cdeg", ctypes.c_int32),
+                ("n_currents", ctypes.c_uint8), ("has_temp_range", ctypes.c_uint8), ("has_field_axes", ctypes.c_uint8),
+                ("has_field_norm", ctypes.c_uint8), ("device_id", ctypes.c_char * 33),
+                ("current_names", (ctypes.c_char * 17) * 4), ("t0_cdeg", ctypes.c_int32),
+                ("field_limit_nT", ctypes.c_int32), ("field_axes_nT", ctypes.c_int32 * 3),
+                ("field_norm_nT", ctypes.c_int32), ("temp_lo_cdeg", ctypes.c_int32),
                 ("temp_hi_cdeg", ctypes.c_int32), ("S", (ctypes.c_int32 * 3) * 3), ("K_S", (ctypes.c_int32 * 3) * 3),
                 ("K_S2", ctypes.c_int32 * 3), ("O", ctypes.c_int32 * 3), ("K_O", ctypes.c_int32 * 3),
                 ("D", (ctypes.c_int32 * 3) * 4), ("current_lo_mA", ctypes.c_int32 * 4),
@@ -81,7 +85,8 @@ class CTable(ctypes.Structure):
             field_limit_nT=self.field_limit_nT,
             temp_range_cdeg=(self.temp_lo_cdeg, self.temp_hi_cdeg) if self.has_temp_range else None,
             current_ranges_mA=tuple((self.current_lo_mA[j], self.current_hi_mA[j]) for j in range(k)),
-            K_S2=tuple(self.K_S2))
+            K_S2=tuple(self.K_S2), field_limits_nT=tuple(self.field_axes_nT) if self.has_field_axes else None,
+            field_norm_nT=self.field_norm_nT if self.has_field_norm else None)
 
 
 _P32 = ctypes.POINTER(ctypes.c_int32)
@@ -231,6 +236,13 @@ def random_fixed(rng: np.random.Generator, realistic: bool | None = None) -> tup
             a, b = sorted(int(x) for x in _pick(rng, 2, -fp.T_LIMIT_cdeg, fp.T_LIMIT_cdeg))
             tr = (a, b)
         ranges = tuple(tuple(sorted(int(x) for x in _pick(rng, 2, -fp.I_LIMIT_mA, fp.I_LIMIT_mA))) for _ in range(k))
+    axes = norm = None
+    if rng.random() < 0.5:
+        axes = tuple(int(x) for x in (np.round(field * rng.uniform(0.5, 1.0, 3)) if realistic
+                                      else _pick(rng, 3, 0, field)))
+    if rng.random() < 0.5:
+        norm = (int(field * rng.uniform(0.8, 1.8)) if realistic
+                else int(_pick(rng, 1, 0, fp.B_NORM_LIMIT_nT, (0, fp.B_NORM_LIMIT_nT, 2 ** 23))[0]))
 
     def ints(a) -> tuple[int, ...]:
         return tuple(int(x) for x in np.asarray(a).ravel())
@@ -238,8 +250,54 @@ def random_fixed(rng: np.random.Generator, realistic: bool | None = None) -> tup
     fx = fp.FixedPointTable(
         S=(ints(S[0:3]), ints(S[3:6]), ints(S[6:9])), K_S=(ints(KS[0:3]), ints(KS[3:6]), ints(KS[6:9])),
         O=ints(O), K_O=ints(KO), D=tuple(ints(r) for r in np.asarray(D).reshape(k, 3)), t0_cdeg=t0,
-        field_limit_nT=field, temp_range_cdeg=tr, current_ranges_mA=ranges, K_S2=ints(K2))
+        field_limit_nT=field, temp_range_cdeg=tr, current_ranges_mA=ranges, K_S2=ints(K2), field_limits_nT=axes,
+        field_norm_nT=norm)
     return fx, [f"i{j}" for j in range(k)]
+
+
+def whole_nT(q) -> np.ndarray:
+    """|output| in whole nT, rounded half away from zero (the applier's validity test of its output)."""
+    return (np.abs(np.asarray(q, np.int64)) + (1 << (fp.OUT_FRAC - 1))) >> fp.OUT_FRAC
+
+
+def limits_at_outputs(rng: np.random.Generator, fx: fp.FixedPointTable, b, t, c) -> fp.FixedPointTable:
+    """``fx`` with field limits on the calibrated outputs of these samples, so that outputs fall on the limits and
+    one past them: each axis' limit the whole-nT output of a row, or one below it (the row mostly one whose output
+    is on a half nT, which rounds away from zero); the magnitude limit the square root (rounded down) of a row's
+    sum of squares, or one below it (the row mostly one whose sum is a square, so on the limit exactly); the field
+    limit the largest axis limit, or above it to 2^24. Saturated outputs are 2^23 whole nT."""
+    k = len(fx.D)
+    q, _ = fx.apply_block(np.asarray(b, np.int64), np.asarray(t, np.int64), np.asarray(c, np.int64)[:, :k])
+    nt = whole_nT(q)
+    n = nt.shape[0]
+
+    def row(good: np.ndarray) -> int:
+        idx = np.flatnonzero(good)
+        return int(rng.choice(idx)) if idx.size and rng.random() < 0.7 else int(rng.integers(0, n))
+
+    half = np.abs(q) % 256 == 128
+    axes = tuple(max(0, int(nt[row(half[:, i]), i]) - int(rng.integers(0, 2))) for i in range(3))
+    field = max(axes) if rng.random() < 0.7 else int(rng.integers(max(axes), fp.B_LIMIT_nT, endpoint=True))
+    sums = [int(x) for x in (nt ** 2).sum(axis=1)]
+    root = [math.isqrt(x) for x in sums]
+    r = row(np.array([a * a == x for a, x in zip(root, sums, strict=True)]))
+    norm = min(fp.B_NORM_LIMIT_nT, max(0, root[r] - int(rng.integers(0, 2))))
+    return dataclasses.replace(fx, field_limit_nT=field, field_limits_nT=axes if rng.random() < 0.8 else None,
+                               field_norm_nT=norm if rng.random() < 0.8 else None)
+
+
+#: Integer triples whose squares sum to a square (1 + 4 + 4 = 9, ...): through a gain of one they put the
+#: calibrated field's magnitude exactly on an integer.
+QUADRUPLES = np.array([(1, 2, 2), (2, 3, 6), (1, 4, 8), (4, 4, 7), (2, 6, 9), (0, 3, 4), (2, 10, 11)], np.int64)
+
+
+def quadruple_rows(rng: np.random.Generator, n: int, fx: fp.FixedPointTable):
+    """(b, temp, cur): ``n`` rows of QUADRUPLES scaled (1..2^20), permuted and signed at random, at t0 with zero
+    currents."""
+    q = QUADRUPLES[rng.integers(0, len(QUADRUPLES), n)] * rng.integers(1, 2 ** 20, (n, 1))
+    q = np.take_along_axis(q, rng.permuted(np.tile(np.arange(3), (n, 1)), axis=1), axis=1)
+    b = q * rng.choice([-1, 1], (n, 3))
+    return b.astype(np.int32), np.full(n, fx.t0_cdeg, np.int32), np.zeros((n, 4), np.int32)
 
 
 def image_of(fx: fp.FixedPointTable, names, device_id: str = "dut:1", source_crc32: int = 0) -> bytes:
@@ -250,8 +308,9 @@ def image_of(fx: fp.FixedPointTable, names, device_id: str = "dut:1", source_crc
 
 def random_samples(rng: np.random.Generator, n: int, fx: fp.FixedPointTable | None = None):
     """(b (n,3), temp (n,), cur (n,4)) int32. Rows of three kinds: anywhere in int32 (every scale, the clips
-    and the int32 limits), inside ``fx``'s validity box, and on its edges (each limit and one past it).
-    Temperatures come in runs (the C block path computes its temperature terms once per run)."""
+    and the int32 limits), inside ``fx``'s input ranges (field limit, temperature and current ranges), and on
+    their edges (each limit and one past it). Temperatures change on every sample, in runs of 4, and in runs of
+    8..64 (the C block path's mixed and run kernels)."""
     lo, hi = int(I32.min), int(I32.max)
     B, T, I = fp.B_LIMIT_nT, fp.T_LIMIT_cdeg, fp.I_LIMIT_mA
     b = _pick(rng, (n, 3), lo, hi, (lo, hi, B, B + 1, -B, -B - 1, 0))
@@ -275,6 +334,9 @@ def random_samples(rng: np.random.Generator, n: int, fx: fp.FixedPointTable | No
         for j, (a, c) in enumerate(fx.current_ranges_mA):
             cur[inside, j] = rng.integers(a, c, int(inside.sum()), endpoint=True)
             cur[edge, j] = np.array([a - 1, a, c, c + 1])[rng.integers(0, 4, int(edge.sum()))]
+    for _ in range(max(1, n // 100)):   # runs of one temperature of 8..64 samples (the block path's run kernel)
+        a, m = int(rng.integers(0, n)), int(rng.integers(8, 65))
+        temp[a:a + m] = temp[a]
     return b.astype(np.int32), temp.astype(np.int32), cur.astype(np.int32)
 
 
@@ -304,24 +366,41 @@ def _limited(lim: int):
 
 @st.composite
 def fixed_tables(draw):
-    """A FixedPointTable within the image's bounds: half physical calibrations, half any int32 coefficients
-    with every limit (K_S2 +-(2^28 - 1), t0 +-2^15, field 0..2^24, ranges to the input clips)."""
-    if draw(st.booleans()):
+    """A FixedPointTable within the image's bounds: 3 in 10 physical calibrations, 2 in 10 exact gains (+-1 or
+    +-1/2 on the diagonal, offsets of 0, +-1/2 or +-3/2 nT, no other term: outputs on whole and half nT), half any
+    int32 coefficients with every limit (K_S2 +-(2^28 - 1), t0 +-2^15, field 0..2^24, per-axis limits
+    0..field, magnitude limits 0..B_NORM_LIMIT_nT, ranges to the input clips)."""
+    kind = draw(st.integers(0, 9))
+    if kind < 3:
         return random_fixed(np.random.default_rng(draw(st.integers(0, 2 ** 32 - 1))), realistic=True)
     k = draw(st.integers(0, fp.MAX_CURRENTS))
+    field = draw(st.one_of(st.integers(0, fp.B_LIMIT_nT), st.sampled_from([0, 2 ** 23, fp.B_LIMIT_nT])))
+    axes = draw(st.one_of(st.none(), st.tuples(*[st.one_of(st.integers(0, field), st.sampled_from([0, field]))] * 3)))
+    norm = draw(st.one_of(st.none(), st.integers(0, fp.B_NORM_LIMIT_nT),
+                          st.sampled_from([0, 2 ** 23, fp.B_NORM_LIMIT_nT])))
+    cur_iv = st.tuples(_limited(fp.I_LIMIT_mA), _limited(fp.I_LIMIT_mA)).map(lambda p: tuple(sorted(p)))
+    if kind in (3, 4):
+        zero3 = ((0, 0, 0),) * 3
+        g = draw(st.tuples(*[st.sampled_from([2 ** 27, -(2 ** 27), 2 ** 26, -(2 ** 26)])] * 3))
+        fx = fp.FixedPointTable(
+            S=((g[0], 0, 0), (0, g[1], 0), (0, 0, g[2])), K_S=zero3, O=draw(st.one_of(st.just((0, 0, 0)), st.tuples(
+                *[st.sampled_from([0, 128, -128, 384, -384])] * 3))), K_O=(0, 0, 0), D=((0, 0, 0),) * k,
+            t0_cdeg=draw(_limited(fp.T_LIMIT_cdeg)), field_limit_nT=field, temp_range_cdeg=None,
+            current_ranges_mA=tuple(draw(cur_iv) for _ in range(k)), field_limits_nT=axes, field_norm_nT=norm)
+        return fx, [f"c{j}" for j in range(k)]
     s_row = st.tuples(_coeff((2 ** 27, -(2 ** 27), *TIES["S"])), _coeff(TIES["S"]), _coeff(TIES["S"]))
     k_row = st.tuples(*[_coeff(TIES["K_S"])] * 3)
     interval = st.tuples(_limited(fp.T_LIMIT_cdeg), _limited(fp.T_LIMIT_cdeg)).map(lambda p: tuple(sorted(p)))
-    cur_iv = st.tuples(_limited(fp.I_LIMIT_mA), _limited(fp.I_LIMIT_mA)).map(lambda p: tuple(sorted(p)))
     fx = fp.FixedPointTable(
         S=draw(st.tuples(s_row, s_row, s_row)), K_S=draw(st.tuples(k_row, k_row, k_row)),
         O=draw(st.tuples(_coeff(), _coeff(), _coeff())),
         K_O=draw(st.tuples(_coeff(), _coeff(), _coeff())),
         D=tuple(draw(st.tuples(_coeff(), _coeff(), _coeff())) for _ in range(k)),
-        t0_cdeg=draw(_limited(fp.T_LIMIT_cdeg)), field_limit_nT=draw(st.integers(0, fp.B_LIMIT_nT)),
+        t0_cdeg=draw(_limited(fp.T_LIMIT_cdeg)), field_limit_nT=field,
         temp_range_cdeg=draw(st.one_of(st.none(), interval)),
         current_ranges_mA=tuple(draw(cur_iv) for _ in range(k)),
-        K_S2=draw(st.tuples(*[st.one_of(_limited(fp.K_S2_INT_LIMIT), st.sampled_from(TIES["K_S2"]))] * 3)))
+        K_S2=draw(st.tuples(*[st.one_of(_limited(fp.K_S2_INT_LIMIT), st.sampled_from(TIES["K_S2"]))] * 3)),
+        field_limits_nT=axes, field_norm_nT=norm)
     return fx, [f"c{j}" for j in range(k)]
 
 
@@ -335,10 +414,17 @@ _ROW = st.tuples(st.one_of(_I32, st.sampled_from(_EDGE_B)), st.one_of(_I32, st.s
 
 @st.composite
 def cases(draw, n_random: int = 200):
-    """(table, names, b, temp, cur): hypothesis rows (edges) then ``n_random`` rows from
-    :func:`random_samples` (inside, on and beyond the table's validity box)."""
+    """(table, names, b, temp, cur): hypothesis rows (edges), 8 rows of :data:`QUADRUPLES`, then ``n_random`` rows
+    from :func:`random_samples` (inside, on and beyond the table's input ranges); in 2 cases of 3 the table's field
+    limits are then put on these samples' outputs (:func:`limits_at_outputs`)."""
     fx, names = draw(fixed_tables())
     rows = np.array(draw(st.lists(_ROW, min_size=1, max_size=12)), np.int64)
-    b, t, c = random_samples(np.random.default_rng(draw(st.integers(0, 2 ** 32 - 1))), n_random, fx)
-    return (fx, names, np.vstack([rows[:, :3], b]).astype(np.int32), np.concatenate([rows[:, 3], t]).astype(np.int32),
-            np.vstack([rows[:, 4:], c]).astype(np.int32))
+    rng = np.random.default_rng(draw(st.integers(0, 2 ** 32 - 1)))
+    qb, qt, qc = quadruple_rows(rng, 8, fx)
+    b, t, c = random_samples(rng, n_random, fx)
+    b = np.vstack([rows[:, :3], qb, b]).astype(np.int32)
+    t = np.concatenate([rows[:, 3], qt, t]).astype(np.int32)
+    c = np.vstack([rows[:, 4:], qc, c]).astype(np.int32)
+    if draw(st.integers(0, 2)):
+        fx = limits_at_outputs(rng, fx, b, t, c)
+    return fx, names, b, t, c

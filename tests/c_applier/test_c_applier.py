@@ -136,10 +136,89 @@ def test_roundings_on_a_half_go_away_from_zero(clib):
         _same(fx, [], b, t, np.zeros((6, 0)), *clib.apply_block(table, b, t, np.zeros((6, 0))))
 
 
+def _diag(g, O=(0, 0, 0), axes=None, norm=None, field=None) -> fp.FixedPointTable:
+    """A gain-only table (diagonal S, offsets O in nT * 2^8) with the given field limits (nT)."""
+    zero3 = ((0, 0, 0),) * 3
+    field = max(axes) if field is None and axes is not None else field
+    return fp.FixedPointTable(S=((g[0], 0, 0), (0, g[1], 0), (0, 0, g[2])), K_S=zero3, O=O, K_O=(0, 0, 0), D=(),
+                              t0_cdeg=0, field_limit_nT=field, temp_range_cdeg=None, current_ranges_mA=(),
+                              field_limits_nT=axes, field_norm_nT=norm)
+
+
+ONE, HALF = 2 ** 27, 2 ** 26
+OOV, SAT = int(ApplyFlag.OUT_OF_VALIDITY), int(ApplyFlag.SATURATED)
+#: (table, input rows, expected status of each row): the validity region is on the calibrated output, in whole nT
+#: rounded half away from zero, per axis and in magnitude; written out by hand (not from the Python applier).
+VALIDITY_CASES = [
+    # gain 2: an input inside the limit whose output is beyond it; gain 1/2: the other way round
+    (_diag((2 * ONE, ONE, ONE), axes=(100, 100, 100)), [(50, 0, 0), (51, 0, 0), (-51, 100, -100), (0, 101, 0)],
+     [0, OOV, OOV, OOV]),
+    (_diag((HALF, HALF, HALF), axes=(100, 100, 100)), [(150, 0, 0), (200, -200, 200), (199, 0, 0), (201, 0, 0),
+                                                       (-201, 0, 0), (0, -202, 0), (0, 0, -203)],
+     [0, 0, 0, OOV, OOV, OOV, OOV]),                    # 201 -> 100.5 nT -> 101: the half rounds away from zero
+    # an offset of +0.5 nT: 100 + 0.5 -> 101 on x; -100 + 0.5 = -99.5 -> -100 on y
+    (_diag((ONE, ONE, ONE), O=(128, 128, -128), axes=(100, 100, 100)), [(100, 0, 0), (99, -100, 0), (0, -101, 0),
+                                                                         (0, 0, 100), (0, 0, -100)],
+     [OOV, 0, OOV, 0, OOV]),
+    # per-axis limits of their own
+    (_diag((ONE, ONE, ONE), axes=(10, 20, 0)), [(10, -20, 0), (11, 0, 0), (0, 21, 0), (0, 0, 1), (-10, 20, 0)],
+     [0, OOV, OOV, OOV, 0]),
+    # magnitude: 1 + 4 + 4 = 9 = 3^2 on the limit; 1 + 4 + 9 = 14 beyond it
+    (_diag((ONE, ONE, ONE), axes=(100, 100, 100), norm=3), [(1, 2, 2), (-2, 1, -2), (1, 2, 3), (0, 0, 3), (0, 0, 4),
+                                                             (3, 0, 0)],
+     [0, 0, OOV, 0, OOV, 0]),
+    (_diag((ONE, ONE, ONE), axes=(10 ** 6,) * 3, norm=11 * 2 ** 16), [(2 * 2 ** 16, 6 * 2 ** 16, 9 * 2 ** 16),
+                                                                       (2 * 2 ** 16, 6 * 2 ** 16, 9 * 2 ** 16 + 1)],
+     [0, OOV]),
+    # magnitude on whole nT: 1.5 nT -> 2 (gain 1/2 of 3): 2, 2, 2 is beyond 3^2, 2, 2, -1 on it
+    (_diag((HALF, HALF, HALF), axes=(100, 100, 100), norm=3), [(3, 3, 3), (2, 2, 2), (3, 3, -2)], [OOV, 0, 0]),
+    # saturated outputs: INT32_MAX and INT32_MIN are 2^23 nT in whole nT
+    (_diag((fp.INT32_MAX, fp.INT32_MIN, ONE), axes=(2 ** 23, 2 ** 23, 2 ** 23)), [(2 ** 24, 2 ** 24, 0)], [SAT]),
+    (_diag((fp.INT32_MAX, fp.INT32_MIN, ONE), axes=(2 ** 23, 2 ** 23 - 1, 2 ** 23)), [(2 ** 24, 2 ** 24, 0)],
+     [SAT | OOV]),
+    (_diag((fp.INT32_MAX, fp.INT32_MIN, fp.INT32_MIN), axes=(2 ** 23,) * 3, norm=14_529_495, field=2 ** 24),
+     [(2 ** 24, 2 ** 24, -(2 ** 24)), (fp.INT32_MAX, fp.INT32_MIN, fp.INT32_MIN)], [SAT | OOV, SAT | OOV]),
+    (_diag((fp.INT32_MAX, fp.INT32_MIN, fp.INT32_MIN), axes=(2 ** 23,) * 3, norm=14_529_496, field=2 ** 24),
+     [(2 ** 24, 2 ** 24, -(2 ** 24)), (fp.INT32_MAX, fp.INT32_MIN, fp.INT32_MIN)], [SAT, SAT]),
+    (_diag((fp.INT32_MAX, fp.INT32_MIN, ONE), axes=(2 ** 23,) * 3, norm=fp.B_NORM_LIMIT_nT, field=2 ** 24),
+     [(fp.INT32_MAX, fp.INT32_MAX, 0), (fp.INT32_MIN, fp.INT32_MIN, 5)], [SAT, SAT]),
+]
+
+
+@pytest.mark.parametrize("case", range(len(VALIDITY_CASES)))
+def test_validity_is_on_the_calibrated_output(clib, case):
+    """Per-axis and magnitude limits on the output (inputs only clip): the status bits written out by hand, from
+    both C entry points and both Python ones. 14_529_495^2 < 3 * 2^46 <= 14_529_496^2 (the saturated magnitude)."""
+    fx, rows, want = VALIDITY_CASES[case]
+    rc, table = clib.load(cb.image_of(fx, []))
+    assert rc == 0 and table.as_fixed() == fx
+    b = np.array(rows, np.int64)
+    n = b.shape[0]
+    t, c = np.zeros(n, np.int64), np.zeros((n, 0), np.int64)
+    _, s = cb.python_reference(fx, b, t, c, per_sample=True)
+    assert s.tolist() == want
+    out, st_ = clib.apply_block(table, b, t, c)
+    assert st_.tolist() == want
+    assert [clib.apply(table, b[r], 0, ())[1] for r in range(n)] == want
+    _same(fx, [], b, t, c, out, st_)
+
+
+def test_a_version_1_image_is_refused_by_both_loaders(clib):
+    """A version-1 image (320 bytes, its field limit on the measured field) gets E_VERSION and a reason."""
+    old = bytearray(320)
+    old[:8] = b"MCAL" + struct.pack("<HH", 1, 320)
+    struct.pack_into("<I", old, 316, zlib.crc32(bytes(old[:316])))
+    assert clib.load(bytes(old))[0] == R.E_VERSION == cal_image.check_image(bytes(old))
+    with pytest.raises(cal_image.ImageInvalid, match="format version 1 .* export the table again"):
+        cal_image.decode_image(bytes(old), "old.mcal")
+
+
 @pytest.mark.parametrize("flags", [("-O2", "-DMAGSTACK_CAL_COMPACT"), ("-Os", "-DMAGSTACK_CAL_TERMS_CACHE=1u"),
-                                   ("-O3", "-march=native")])
+                                   ("-O3", "-march=native"), ("-O3", "-march=native", "-DMAGSTACK_CAL_VECTOR"),
+                                   ("-O2", "-DMAGSTACK_CAL_VECTOR", "-DMAGSTACK_CAL_TERMS_CACHE=2u")])
 def test_other_builds_are_the_same(build_dir, clib, flags):
-    """The compact block path, a one-entry terms cache, and the vectorised kernels of -O3 -march=native."""
+    """The compact block path, a one-entry terms cache, the vectorised kernels of -O3 -march=native, and the mixed
+    kernels of MAGSTACK_CAL_VECTOR; temperatures in long runs, in short runs and on every sample."""
     r = subprocess.run(["gcc", *flags, "-x", "c", "-c", "-o", "/dev/null", "-"], input="int x;\n", capture_output=True,
                        text=True, timeout=60)
     if r.returncode != 0:
@@ -152,6 +231,8 @@ def test_other_builds_are_the_same(build_dir, clib, flags):
         fx, names = cb.random_fixed(rng)
         b, t, c = cb.random_samples(rng, 600, fx)
         t[:300] = np.repeat(t[:300:50], 50)       # long runs of one temperature (the vector kernel)
+        t[300:400] = np.repeat(t[300:400:4], 4)   # short runs (the mixed kernel)
+        fx = cb.limits_at_outputs(rng, fx, b, t, c)
         rc, table = lib.load(cb.image_of(fx, names))
         assert rc == 0
         _same(fx, names, b, t, c, *lib.apply_block(table, b, t, c))
@@ -229,9 +310,11 @@ def test_no_floating_point_no_heap_and_divisions_by_constants_only(build_dir, cl
         for word in ("float", "double", "math.h", "malloc", "calloc", "realloc", "free", "alloca", "setjmp"):
             assert not re.search(rf"\b{re.escape(word)}\b", code), (path.name, word)
     code = _code(cb.SOURCE)
-    # every '/' or '%' is in rdiv's body, and every rdiv call divides by a positive literal
+    # every '/' or '%' is in rdiv's body, dividing by its divisor d (or d by 2), and every rdiv call divides by a
+    # positive literal
     body = re.search(r"static int64_t rdiv\(int64_t a, uint64_t d\)\s*\{(.*?)\n\}", code, re.S)
-    assert body and re.findall(r"[/%]", body.group(1)) == ["/", "/"]
+    assert body and "%" not in body.group(1)
+    assert sorted(re.findall(r"/\s*(\w+)", body.group(1))) == ["2u", "d", "d"]
     rest = code.replace(body.group(0), "")
     assert not re.findall(r"[/%]", rest)
     divisors = [_last_argument(code, m.end()) for m in re.finditer(r"\brdiv\(", code)
@@ -261,15 +344,19 @@ def test_header_constants_and_offsets_are_the_python_ones(clib):
     assert defines["MAGSTACK_CAL_T_LIMIT_CDEG"] == fp.T_LIMIT_cdeg
     assert defines["MAGSTACK_CAL_I_LIMIT_MA"] == fp.I_LIMIT_mA
     assert defines["MAGSTACK_CAL_K_S2_LIMIT"] == fp.K_S2_INT_LIMIT
+    assert defines["MAGSTACK_CAL_B_NORM_LIMIT_NT"] == fp.B_NORM_LIMIT_nT
     assert {k.removeprefix("MAGSTACK_CAL_TERM_").lower(): v for k, v in hexes.items() if "_TERM_" in k} == \
         cal_image.TERM_BITS
-    assert hexes["MAGSTACK_CAL_OPT_TEMP_RANGE"] == cal_image.OPT_TEMP_RANGE
+    assert (hexes["MAGSTACK_CAL_OPT_TEMP_RANGE"], hexes["MAGSTACK_CAL_OPT_FIELD_AXES"],
+            hexes["MAGSTACK_CAL_OPT_FIELD_NORM"]) == (cal_image.OPT_TEMP_RANGE, cal_image.OPT_FIELD_AXES,
+                                                      cal_image.OPT_FIELD_NORM)
     enum = dict(re.findall(r"MAGSTACK_CAL_(OK|E_\w+) = (\d+)", h))
     assert {k: int(v) for k, v in enum.items() if k != "E_ARGUMENT"} == {r.name: int(r) for r in R}
     offsets = dict(re.findall(r"#define OFF_(\w+) (\d+)u", cb.SOURCE.read_text()))
     names = {"MAGIC": "magic", "VERSION": "version", "SIZE": "size", "SOURCE_CRC": "source_crc32", "TERMS": "terms",
              "N_CURRENTS": "n_currents", "OPTIONS": "options", "RESERVED": "reserved", "DEVICE_ID": "device_id",
-             "T0": "t0_cdeg", "FIELD_LIMIT": "field_limit_nT", "TEMP_LO": "temp_lo_cdeg", "TEMP_HI": "temp_hi_cdeg",
+             "T0": "t0_cdeg", "FIELD_LIMIT": "field_limit_nT", "FIELD_AXES": "field_axes_nT",
+             "FIELD_NORM": "field_norm_nT", "TEMP_LO": "temp_lo_cdeg", "TEMP_HI": "temp_hi_cdeg",
              "S": "S", "K_S": "K_S", "K_S2": "K_S2", "O": "O", "K_O": "K_O", "D": "D",
              "CURRENT_RANGES": "current_ranges_mA", "CURRENT_NAMES": "current_names", "CRC": "crc32"}
     assert {names[k]: int(v) for k, v in offsets.items()} == {f.name: f.offset for f in cal_image.FIELDS}
@@ -282,8 +369,8 @@ def _table() -> CalTable:
                     S=[[1.1, 0.05, -0.02], [0.01, 1.12, 0.03], [0.0, 0.07, 1.11]], K_S=np.full((3, 3), 1e-3),
                     K_S2=[1e-5, -2e-5, 3e-6], O=[-0.34, -0.09, 0.46], K_O=[0.01, -0.02, 0.16],
                     D=(("heater", [1.0, 2.0, -3.0]), ("torquer", [0.5, 0, 0])), validity_temp_c=(-40.0, 85.0),
-                    validity_field_uT=100.0, validity_currents_A=(("heater", (0.0, 2.0)), ("torquer", (-1.0, 1.0))),
-                    crc32=0x12345678)
+                    validity_field_uT=100.0, validity_field_axes_uT=(100.0, 80.0, 90.5), validity_field_norm_uT=120.0,
+                    validity_currents_A=(("heater", (0.0, 2.0)), ("torquer", (-1.0, 1.0))), crc32=0x12345678)
 
 
 def test_every_single_bit_flip_of_an_image_is_refused(clib):
@@ -313,9 +400,9 @@ def _loader_cases():
     zero_d = [0] * 12
     return base, [
         (base[:-1], R.E_SIZE), (base + b"\0", R.E_SIZE), (base[:3], R.E_SIZE), (b"MCAL\x01\x00", R.E_SIZE),
-        (b"{" + base[1:], R.E_MAGIC), (_with(base, version=2), R.E_VERSION), (_with(base, size=321), R.E_SIZE),
-        (base[:-4] + b"\0\0\0\0", R.E_CRC), (_with(base, reserved=1), R.E_RESERVED),
-        (_with(base, options=3), R.E_RESERVED),
+        (b"{" + base[1:], R.E_MAGIC), (_with(base, version=3), R.E_VERSION), (_with(base, version=1), R.E_VERSION),
+        (_with(base, size=337), R.E_SIZE), (base[:-4] + b"\0\0\0\0", R.E_CRC), (_with(base, reserved=1), R.E_RESERVED),
+        (_with(base, options=8 | 7), R.E_RESERVED), (_with(base, options=0x80 | 7), R.E_RESERVED),
         (_with(base, terms=0x7F), R.E_TERMS), (_with(base, terms=0x3E), R.E_TERMS),
         (_with(base, terms=0x3D), R.E_TERMS),                    # K_S without temperature_gain
         (_with(base, terms=0x3B), R.E_TERMS),                    # K_S2 without temperature_gain2
@@ -331,7 +418,14 @@ def _loader_cases():
         (_with(base, field_limit_nT=-1), R.E_VALIDITY), (_with(base, field_limit_nT=2 ** 24 + 1), R.E_VALIDITY),
         (_with(base, temp_lo_cdeg=100, temp_hi_cdeg=99), R.E_VALIDITY),
         (_with(base, temp_hi_cdeg=2 ** 15 + 1), R.E_VALIDITY),
-        (_with(base, options=0), R.E_VALIDITY),                  # a range without its bit
+        (_with(base, options=0 | 6), R.E_VALIDITY),              # a range without its bit
+        (_with(base, field_axes_nT=[100_000, 100_001, 0]), R.E_VALIDITY),   # beyond the field limit
+        (_with(base, field_axes_nT=[-1, 0, 0]), R.E_VALIDITY),
+        (_with(base, options=5), R.E_VALIDITY),                  # per-axis limits without their bit
+        (_with(base, options=3), R.E_VALIDITY),                  # a magnitude limit without its bit
+        (_with(base, field_norm_nT=-1), R.E_VALIDITY),
+        (_with(base, field_norm_nT=fp.B_NORM_LIMIT_nT + 1), R.E_VALIDITY),
+        (_with(base, field_limit_nT=89_999), R.E_VALIDITY),      # below an axis limit
         (_with(base, current_ranges_mA=[1, 0, 0, 0, 0, 0, 0, 0]), R.E_VALIDITY),
         (_with(base, current_ranges_mA=[0, 2 ** 20 + 1, -1, 1, 0, 0, 0, 0]), R.E_VALIDITY),
         (_with(base, current_ranges_mA=[0, 1, -1, 1, 0, 7, 0, 0]), R.E_CURRENTS),
@@ -339,6 +433,10 @@ def _loader_cases():
         # accepted at the limits
         (_with(base, t0_cdeg=2 ** 15), R.OK), (_with(base, t0_cdeg=-(2 ** 15)), R.OK),
         (_with(base, K_S2=[2 ** 28 - 1, -(2 ** 28 - 1), 0]), R.OK), (_with(base, field_limit_nT=2 ** 24), R.OK),
+        (_with(base, field_axes_nT=[0, 100_000, 100_000]), R.OK), (_with(base, field_norm_nT=0), R.OK),
+        (_with(base, field_norm_nT=fp.B_NORM_LIMIT_nT), R.OK),
+        (_with(base, options=5, field_axes_nT=[100_000] * 3), R.OK),   # one limit for every axis
+        (_with(base, options=1, field_axes_nT=[100_000] * 3, field_norm_nT=0), R.OK),   # and no magnitude limit
         (_with(base, temp_lo_cdeg=-(2 ** 15), temp_hi_cdeg=2 ** 15), R.OK), (base, R.OK),
     ]
 
