@@ -17,8 +17,9 @@ drifts by ``+o`` per degC in the reading gives ``K_O = -o``. A value the sources
 or that is inferred (``[I]``) gets a wider sd than the source's own spread.
 
 Source keys: [F:...] fact from a source, [F2:...] secondary, [I] inference, [U] unverified
-(/work/shared/hardware-facts.md, section given); [LAB T1] = Table 1 of the three-chip lab study
-(seeds/amr-digital-magnetometers-lab-study.txt); [B ...] = Belsten et al. (seeds/belsten-hmc1053-24param.txt).
+(the datasheet behind each section of the hardware notes, docs/sources.md); [LAB T1] = Table 1 of the three-chip
+lab study (Sensors 2019, 19(8), 1850, doi:10.3390/s19081850); [B ...] = Belsten et al., Geosci. Instrum. Method.
+Data Syst. 12, 2023, doi:10.5194/gi-12-201-2023.
 """
 from __future__ import annotations
 

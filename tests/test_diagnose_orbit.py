@@ -1,4 +1,4 @@
-"""Orbit telemetry in the diagnosis (issue 22 item 4): the refit's reference and its error budget."""
+"""Orbit telemetry in the diagnosis: the refit's reference and its error budget."""
 from __future__ import annotations
 
 import json

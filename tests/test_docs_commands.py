@@ -1,4 +1,4 @@
-"""Issue 26 "Docs that did not hold": every ``magstack ...`` command line quoted in README.md, hil/README.md
+"""Every ``magstack ...`` command line quoted in README.md, hil/README.md
 and docs/*.md (inline code and code blocks) names a command that exists and only options that command
 has; its ``--help`` runs. Docs cannot drift from the parser again."""
 from __future__ import annotations

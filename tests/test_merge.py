@@ -1,4 +1,4 @@
-"""``magstack merge``: ADCS position/attitude + magnetometer-only telemetry -> refit input (issue 23 seam 5)."""
+"""``magstack merge``: ADCS position/attitude + magnetometer-only telemetry -> refit input."""
 from __future__ import annotations
 
 import json
