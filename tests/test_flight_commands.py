@@ -87,7 +87,7 @@ def test_hostile_command_files_are_rejected_once_without_blocking(tmp_path):
     _cmd(root, "11-load-good.json", {"cmd": "load_table", "channel": "lis3mdl", "path": "tables/good.json"})
     _cmd(root, "12-linked-table.json", {"cmd": "load_table", "channel": "lis3mdl", "path": "tables/link.json"})
     os.symlink("/etc/passwd", root / "tables" / "link.json")
-    unblock = threading.Timer(60.0, lambda: open(fifo_table, "wb").close())   # only a reader that opens a FIFO would wait for this
+    unblock = threading.Timer(60.0, lambda: open(fifo_table, "wb").close())   # a reader opening the FIFO waits
     unblock.start()
     app = _app(root, run_id=1)
     try:

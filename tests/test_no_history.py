@@ -18,7 +18,8 @@ benchmark and CI file (``.py``, ``.c``, ``.h``, ``.sh``, ``.toml``, ``.yml``, ``
 * narrative of change: ``used to``, ``previously``, ``formerly``, ``no longer`` (as in "the reader used to ...").
   A sentence says what the product does now.
 * development-machine paths: ``/work/...``, ``../shared/...``, a helper's virtualenv (``venv-NAME``),
-  ``/home/...`` (``/home/pi``, the Raspberry Pi's user, is a target path). A source is cited as the datasheet, paper or data set it is (title, section, DOI or URL).
+  ``/home/...`` (``/home/pi``, the Raspberry Pi's user, is a target path). A source is cited as the datasheet,
+  paper or data set it is (title, section, DOI or URL).
 
 The ``/tmp`` rule: ``/tmp/...`` may appear only where a user or the product writes there at run time - an
 option value in an example command (``--out /tmp/x``, ``--workdir /tmp/w``) or the run directory of
@@ -129,9 +130,11 @@ def test_the_patterns_catch_history_and_spare_the_product_words():
                "the reader used to take it", "previously 3 s", "no longer shows", "see /tmp/notes.txt"]
     product = ["session 0 = frame", "session 1 -> 2", "mount rotations relative to session 0",
                "room-temperature sweeps (session 1, +-50 uT steps)",
-               "sweeps at room temperature (session 1), then", "s.temp_c = 20 + x   # session 1 starts warmer", "session 5 left out: the other sessions",
+               "sweeps at room temperature (session 1), then", "s.temp_c = 20 + x   # session 1 starts warmer",
+               "session 5 left out: the other sessions",
                "--sessions 4", "magstack bench --seconds 60 --out /tmp/s.csv", "0x1E", "0b00001",
                "the bias used to check the sign", "rundir=/tmp/magstack-pi-check", "a 1598371866.645 epoch"]
+
     def hit(s):
         return any(rx.search(s) for k, rx in PATTERNS.items()
                    if not (k.startswith("/tmp") and TMP_AS_OPTION.search(s)))
