@@ -8,7 +8,7 @@ Sources (every value below cites its table):
   noise sigma and density, offsets, sensitivity and offset temperature drift.
 * ``[B Tn]`` / ``[B s.x]`` = Belsten et al. (HMC1053; Geosci. Instrum. Method. Data Syst. 12, 2023,
   doi:10.5194/gi-12-201-2023).
-* ``[HF n]`` = hardware notes section n: the datasheet it cites (LSB, range, timing); docs/sources.md.
+* ``[HF n]`` = hardware notes section n: the datasheet it cites (LSB, range, timing); docs/reference/sources.md.
 
 Conventions. Presets describe the sensor's reported value in uT *as the driver converts it with the
 datasheet LSB*. The lab study's "sensitivity" is the true field per count, so the gain in reported

@@ -1,0 +1,109 @@
+"""MkDocs hooks of the manual (mkdocs.yml ``hooks:``): the pages generated from the code, and the API sources.
+
+* ``reference/cli.md``: every command's usage, options and help, written from the argparse parser
+  (``magstack.cli.main.build_parser``), so the reference is the parser.
+* ``reference/flight-dictionary.md``: the flight dictionary's tables, as ``magstack tm dictionary`` prints them.
+* ``how-to/raspberry-pi.md``: hil/README.md (the Pi set-up lives beside the code it describes).
+* ``build/docs-api/magstack``: a tree of symbolic links that lays the repository's layer folders (``drivers/``,
+  ``firmware_py/``, ...) out as the ``magstack`` package they install as, for mkdocstrings' static analysis.
+* RST roles left in docstrings (``:func:`x```) are shown as the code they name.
+
+Build: ``python -m mkdocs build --strict`` (the ``docs`` extra); tests/test_docs_build.py runs it."""
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shutil
+from pathlib import Path
+
+from mkdocs.structure.files import File
+
+ROOT = Path(__file__).resolve().parents[1]
+API_TREE = ROOT / "build" / "docs-api"
+#: package -> repository folder (pyproject's [tool.setuptools.package-dir], without the C applier's data folder)
+PACKAGE_DIRS = {"drivers": "drivers", "data": "data", "firmware": "firmware_py", "sim": "sim", "ground": "ground",
+                "hil": "hil", "cli": "cli"}
+
+
+def on_config(config, **kwargs):
+    _api_tree()
+    return config
+
+
+def _api_tree() -> None:
+    """build/docs-api/magstack/...: links to magstack/'s files and to each layer's folder."""
+    pkg = API_TREE / "magstack"
+    if API_TREE.exists():
+        shutil.rmtree(API_TREE)
+    pkg.mkdir(parents=True)
+    for f in (ROOT / "magstack").iterdir():
+        if f.suffix == ".py":
+            os.symlink(f, pkg / f.name)
+    for name, folder in PACKAGE_DIRS.items():
+        os.symlink(ROOT / folder, pkg / name, target_is_directory=True)
+
+
+def on_files(files, config, **kwargs):
+    for uri, text in (("reference/cli.md", cli_reference()),
+                      ("reference/flight-dictionary.md", dictionary_page()),
+                      ("how-to/raspberry-pi.md", pi_page())):
+        files.append(File.generated(config, uri, content=text))
+    return files
+
+
+def cli_reference() -> str:
+    """The CLI reference page: the top-level usage, then each command (and sub-command) with its options."""
+    from magstack.cli.main import ALL, build_parser
+
+    parser = build_parser(ALL)
+    out = ["# Command-line reference", "",
+           "Generated from the argparse parser of `magstack` (`magstack.cli.main.build_parser`) when the manual is "
+           "built, so it is what `magstack COMMAND --help` prints. Conventions shared by every command (`--json`, "
+           "`-v`, `-q`, exit status, output paths): [CLI conventions](../cli.md).", "",
+           "```text", parser.format_help().rstrip(), "```", ""]
+    for name, sub in _subcommands(parser):
+        out += _command_section(f"magstack {name}", sub, level=2)
+    return "\n".join(out) + "\n"
+
+
+def _subcommands(parser: argparse.ArgumentParser) -> list[tuple[str, argparse.ArgumentParser]]:
+    for a in parser._actions:
+        if isinstance(a, argparse._SubParsersAction):
+            return sorted(a.choices.items())
+    return []
+
+
+def _command_section(title: str, parser: argparse.ArgumentParser, level: int) -> list[str]:
+    lines = [f"{'#' * level} `{title}`", "", "```text", parser.format_help().rstrip(), "```", ""]
+    for name, sub in _subcommands(parser):
+        lines += _command_section(f"{title} {name}", sub, level + 1)
+    return lines
+
+
+def dictionary_page() -> str:
+    from magstack.data.dictionary_doc import dictionary_markdown
+
+    return ("# Flight dictionary\n\nThe packets, events, commands and counters of the flight application, as "
+            "`magstack tm dictionary` prints them (generated from `magstack.data.dictionary` when the manual is "
+            "built). How they travel: [CCSDS packets and telecommands](../ccsds.md).\n\n"
+            + _demote_headings(dictionary_markdown()))
+
+
+def _demote_headings(md: str) -> str:
+    """Headings one level down, so the page keeps one title."""
+    return re.sub(r"^(#{1,5}) ", lambda m: "#" + m.group(1) + " ", md, flags=re.M)
+
+
+def pi_page() -> str:
+    """hil/README.md as a page, its links to the repository's files made plain text (they are not in the site)."""
+    text = (ROOT / "hil" / "README.md").read_text(encoding="utf-8")
+    return re.sub(r"\[([^\]]+)\]\((?!https?:)([^)]+)\)", r"\1 (`\2`)", text)
+
+
+ROLE = re.compile(r":(?:py:)?(?:func|class|mod|meth|data|attr|exc|obj|const):(<code>)~?")
+
+
+def on_page_content(html, page, config, files, **kwargs):
+    """``:func:`x``` left by an RST docstring: show the code alone."""
+    return ROLE.sub(r"\1", html)
