@@ -140,3 +140,13 @@ def test_the_patterns_catch_history_and_spare_the_product_words():
                    if not (k.startswith("/tmp") and TMP_AS_OPTION.search(s)))
     assert [s for s in history if not hit(s)] == []
     assert [s for s in product if hit(s)] == []
+
+
+def test_the_rule_covers_every_page_of_the_manual_and_its_build():
+    """Every Markdown page under docs/ (the how-to, reference and explanation folders included), mkdocs.yml and the
+    hooks that generate pages are scanned."""
+    scanned = {p.relative_to(ROOT).as_posix() for p in scanned_files()}
+    pages = {p.relative_to(ROOT).as_posix() for p in (ROOT / "docs").rglob("*.md")}
+    assert {"docs/tutorial.md", "docs/how-to/add-a-sensor.md", "docs/reference/index.md",
+            "docs/explanation/index.md"} <= pages
+    assert pages <= scanned and {"mkdocs.yml", "tools/mkdocs_hooks.py", "hil/README.md"} <= scanned

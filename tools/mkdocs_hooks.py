@@ -17,6 +17,7 @@ import re
 import shutil
 from pathlib import Path
 
+from mkdocs.plugins import event_priority
 from mkdocs.structure.files import File
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -26,22 +27,30 @@ PACKAGE_DIRS = {"drivers": "drivers", "data": "data", "firmware": "firmware_py",
                 "hil": "hil", "cli": "cli"}
 
 
+@event_priority(100)     # before mkdocstrings reads its handler paths
 def on_config(config, **kwargs):
     _api_tree()
     return config
 
 
 def _api_tree() -> None:
-    """build/docs-api/magstack/...: links to magstack/'s files and to each layer's folder."""
+    """build/docs-api/magstack/...: links to magstack/'s files and to each layer's folder. Idempotent (a link
+    already in place is kept), so two builds at once do not pull the tree from under each other."""
     pkg = API_TREE / "magstack"
-    if API_TREE.exists():
-        shutil.rmtree(API_TREE)
-    pkg.mkdir(parents=True)
-    for f in (ROOT / "magstack").iterdir():
-        if f.suffix == ".py":
-            os.symlink(f, pkg / f.name)
-    for name, folder in PACKAGE_DIRS.items():
-        os.symlink(ROOT / folder, pkg / name, target_is_directory=True)
+    pkg.mkdir(parents=True, exist_ok=True)
+    links = {pkg / f.name: f for f in (ROOT / "magstack").iterdir() if f.suffix == ".py"}
+    links.update({pkg / name: ROOT / folder for name, folder in PACKAGE_DIRS.items()})
+    for link, target in links.items():
+        if link.is_symlink() and Path(os.readlink(link)) == target:
+            continue
+        if link.is_symlink() or link.is_file():
+            link.unlink()
+        elif link.is_dir():
+            shutil.rmtree(link)
+        try:
+            os.symlink(target, link, target_is_directory=target.is_dir())
+        except FileExistsError:     # made by a build running at the same time
+            pass
 
 
 def on_files(files, config, **kwargs):
@@ -86,7 +95,9 @@ def dictionary_page() -> str:
 
     return ("# Flight dictionary\n\nThe packets, events, commands and counters of the flight application, as "
             "`magstack tm dictionary` prints them (generated from `magstack.data.dictionary` when the manual is "
-            "built). How they travel: [CCSDS packets and telecommands](../ccsds.md).\n\n"
+            "built). How they travel: [CCSDS packets and telecommands](../ccsds.md). For a ground system, the "
+            "packets a flight configuration produces as an XTCE 1.2 document: "
+            "`magstack tm xtce --config flight.toml`.\n\n"
             + _demote_headings(dictionary_markdown()))
 
 
