@@ -23,6 +23,8 @@ from mkdocs.structure.files import File
 ROOT = Path(__file__).resolve().parents[1]
 API_TREE = ROOT / "build" / "docs-api"
 #: package -> repository folder (pyproject's [tool.setuptools.package-dir], without the C applier's data folder)
+#: the width the help texts are wrapped to on the CLI reference page
+HELP_COLUMNS = 100
 PACKAGE_DIRS = {"drivers": "drivers", "data": "data", "firmware": "firmware_py", "sim": "sim", "ground": "ground",
                 "hil": "hil", "cli": "cli"}
 
@@ -65,7 +67,18 @@ def cli_reference() -> str:
     """The CLI reference page: the top-level usage, then each command (and sub-command) with its options."""
     from magstack.cli.main import ALL, build_parser
 
-    parser = build_parser(ALL)
+    old = os.environ.get("COLUMNS")
+    os.environ["COLUMNS"] = str(HELP_COLUMNS)     # argparse wraps to the terminal: the page must not depend on it
+    try:
+        return _cli_reference(build_parser(ALL))
+    finally:
+        if old is None:
+            del os.environ["COLUMNS"]
+        else:
+            os.environ["COLUMNS"] = old
+
+
+def _cli_reference(parser: argparse.ArgumentParser) -> str:
     out = ["# Command-line reference", "",
            "Generated from the argparse parser of `magstack` (`magstack.cli.main.build_parser`) when the manual is "
            "built, so it is what `magstack COMMAND --help` prints. Conventions shared by every command (`--json`, "
@@ -109,6 +122,8 @@ def _demote_headings(md: str) -> str:
 def pi_page() -> str:
     """hil/README.md as a page, its links to the repository's files made plain text (they are not in the site)."""
     text = (ROOT / "hil" / "README.md").read_text(encoding="utf-8")
+    text = re.sub(r"\A# [^\n]*\n", "# Run on a Raspberry Pi\n\nThis page is the repository's `hil/README.md`: the "
+                  "set-up, wiring and service recipe live beside the code they describe.\n", text)
     return re.sub(r"\[([^\]]+)\]\((?!https?:)([^)]+)\)", r"\1 (`\2`)", text)
 
 
