@@ -11,8 +11,8 @@ With ``--mageval-memory`` it writes an AV-MagEval-shaped pair (DUT_ROWS rows at 
 1,000,000; reference at 4 Hz, 4 h - 0.3 s behind) and runs ``magstack import-mageval`` and
 ``magstack align DATA REF --json`` on it, printing exit code, wall time and peak RSS.
 
-DIR holds dataN.csv/refN.csv (default: tests/data/av-mageval, the shipped subset; the full
-copy is ../shared/realdata/av-mageval with testN/ sub-folders, also accepted). For each of
+DIR holds dataN.csv/refN.csv (default: tests/data/av-mageval, the shipped subset; a full
+copy of MIT-STARLab/AV-MagEval-Data with testN/ sub-folders is also accepted). For each of
 tests 5, 6, 7 it prints:
 
 * wall time of :func:`magstack.ground.alignment.align_streams` (offset + skew + axis map + RMSE), best of
@@ -27,7 +27,7 @@ tests 5, 6, 7 it prints:
 the temperature is passed as ``magstack align`` does.)
 
 Then a simulated thermally cycled session (HMC1053 error model, -20..60 degC, 600 s, known
-clock offset, several seeds): offset error and sigma of the plain model (the old behaviour),
+clock offset, several seeds): offset error and sigma of the plain model (no temperature terms),
 of the belsten Eq. 3 temperature terms and of Eq. 3 + dT^2 terms (the default), and the time of
 ``align_streams`` with each relative to the plain model.
 """

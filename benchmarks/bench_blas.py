@@ -1,4 +1,4 @@
-"""Benchmark for issue 25: small solves with BLAS on its default threads and on one thread.
+"""Benchmark: small solves with BLAS on its default threads and on one thread.
 
 Run: ``python benchmarks/bench_blas.py [--repeat 30]``. Same matrices, same process, alternating:
 numpy's QR (R only) of a 16,384 x 14 block (the refit's per-block factorisation) and scipy's Cholesky

@@ -1,10 +1,10 @@
-"""Benchmarks for issues 6 and 13: speed/memory of the fits and appliers; accuracy on real and simulated benches.
+"""Benchmarks of the calibration: speed/memory of the fits and appliers; accuracy on real and simulated benches.
 
 Run: ``python benchmarks/bench_calibration.py [--n 1000000] [--part speed|applier|accuracy|all]``. Peak memory is
 measured with tracemalloc (numpy allocations included), time with perf_counter; ratios are against
 baselines measured in the same process.
 
-``accuracy`` (issue 13): AV-MagEval tests 3-7 (tests/data/av-mageval, the authors' pairing, transition
+``accuracy``: AV-MagEval tests 3-7 (tests/data/av-mageval, the authors' pairing, transition
 samples excluded) held out by 60 s time blocks per axis and norm for gain+offset, eq3, eq3 with mount
 rotations (and with session offsets), leave-one-session-out for the sessions the others cover, each
 session's own linear map (upper bound); the degeneracy rule on simulated thermal runs; a simulated
@@ -130,14 +130,14 @@ def appliers(res, data, n) -> None:
     print(f"float64 numpy arithmetic alone (no flags): {m / dt_bare:,.0f} samples/s; fixed-point vectorised "
           f"{v_rate * dt_bare / m:.3f}x of it; max |bare - apply_float| {np.abs(bare() - ref).max():.1e} uT")
     print(f"fixed-point vectorised  : {v_rate:,.0f} samples/s  ({v_rate / f_rate:.3f}x baseline)")
-    print(f"fixed-point vectorised before issue 25 (baselines/fixed_point_before.py): {m / dt_b:,.0f} samples/s "
+    print(f"fixed-point vectorised, plain baseline (baselines/fixed_point_before.py): {m / dt_b:,.0f} samples/s "
           f"({m / dt_b / f_rate:.3f}x baseline); identical output: {np.array_equal(q, q_before)}")
     print(f"fixed-point per sample  : {s_rate:,.0f} samples/s  ({s_rate / f_rate:.5f}x baseline), "
           f"{dt_s * 1e6:.1f} us/sample in CPython")
     print(f"max |fixed - float| over {m} samples: {err:.4f} nT")
 
 
-# ---------------------------------------------------------------------------------------- issue 13
+# ---------------------------------------------------------------------------------------- accuracy
 REAL = Path(__file__).resolve().parent.parent / "tests" / "data" / "av-mageval"
 PAIRS = {3: ("data2.csv", "ref3.csv"), 4: ("data3.csv", "ref4.csv"), 5: ("data5.csv", "ref5.csv"),
          6: ("data6.csv", "ref6.csv"), 7: ("data7.csv", "ref7.csv")}

@@ -1,4 +1,4 @@
-"""Benchmarks for issue 14: ``diagnose`` time on 4 sessions x 900 samples, and time / peak memory at
+"""Benchmarks of ``diagnose``: time on 4 sessions x 900 samples, and time / peak memory at
 large N (default 2.5e5 and 1e6 rows).
 
 Run: ``python benchmarks/bench_diagnose.py [--big 250000,1000000] [--repeat 7]``. Small case: wall time
@@ -77,7 +77,7 @@ def main() -> None:
           f"BLAS threads {blas_threads()}")
     print(f"  calibration fit with held-out blocks (baseline): {base:.3f} s wall, {base_c:.3f} s CPU")
     print(f"  diagnose: {t_d:.3f} s wall, {c_d:.3f} s CPU (best of {args.repeat} each) = {t_d / base:.1f}x / "
-          f"{c_d / base_c:.1f}x baseline; targets < 10 s (issue 14), <= 0.3 s (issue 25)")
+          f"{c_d / base_c:.1f}x baseline; targets < 10 s and <= 0.3 s")
     for n in [int(x) for x in args.big.split(",") if x]:
         sb = big_case(n)
         _, bt, bc, bm = measure(lambda sb=sb: fit(FitData.from_session(sb), "gain_offset", options=FitOptions()))

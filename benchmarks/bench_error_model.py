@@ -3,7 +3,7 @@
 Run from the repository root: ``python benchmarks/bench_error_model.py [--n 20000] [--n-loop 2000]``.
 
 "before" is the pre-refactor implementation frozen verbatim in
-``benchmarks/baselines/error_model_before.py`` (commit 6ca0cff); both are timed in this process,
+``benchmarks/baselines/error_model_before.py``; both are timed in this process,
 interleaved, best of ``--repeat``, so the printed ratios (now / before, < 1 = faster now) do not
 depend on the machine. Columns:
 

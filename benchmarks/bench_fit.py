@@ -1,4 +1,4 @@
-"""Benchmark for issue 25: ``fit`` with its held-out figures against plain numpy lstsq of the same design.
+"""Benchmark: ``fit`` with its held-out figures against plain numpy lstsq of the same design.
 
 Run: ``python benchmarks/bench_fit.py [--n 1000000] [--refit] [--nan-fraction 0.01]``. Data as
 ``bench_calibration.py`` (Eq. 3 + two currents, 30 parameters, one session, 0.25 s rows, so 5 interleaved 60 s
@@ -7,7 +7,7 @@ time-block folds; ``--nan-fraction``: that share of rows with a NaN DUT reading,
 before tracing starts: the peak is the fit's own memory), also at ``--n-small`` rows (default N / 2) for the
 growth per added row; the baseline (design matrix + ``np.linalg.lstsq``) runs in the same process, with BLAS on
 one thread and on its default threads.
-``--refit`` also times the refit path (every fold refits its rows: the mechanism before issue 25) and prints
+``--refit`` also times the refit path (every fold refits its rows, the plain mechanism) and prints
 how far the cross-fit's parameters and held-out figures are from it.
 """
 from __future__ import annotations
@@ -43,7 +43,7 @@ def peak_mib(fn) -> float:
 
 
 def refit_path(data, opts):
-    """The same fit with every held-out fold refitting its rows (the path before issue 25)."""
+    """The same fit with every held-out fold refitting its rows (the plain path)."""
     keep = crossfit.applies
     crossfit.applies = lambda model, options: False
     try:

@@ -16,7 +16,7 @@ script on the Pi to replace the assumption with a measurement).
 
 Run: ``python benchmarks/bench_flight.py [--cycles N] [--pi-factor F] [--part channels|loop|writer]``.
 
-``--part loop`` (issue 25, "the Pi projection"): the rate groups of a typical board run cycle by cycle
+``--part loop`` ("the Pi projection"): the rate groups of a typical board run cycle by cycle
 on their virtual clocks for ``--seconds`` of flight time, telemetry written to ``--telemetry-dir``
 (default a temporary directory on the working disk; fsync every 50 rows as in flight). Per group,
 per cycle: CPU time of the cycle (``thread_time``), wall time (``perf_counter``: CPU plus I/O waits,
@@ -26,7 +26,7 @@ that wrote a telemetry block (fsync) apart, and a projection to a Pi: CPU figure
 ``--pi-factor`` (an assumption, not a measurement) plus the blocking time (a property of the
 converters, the same on any computer); the fsync cost of an SD card is not measured here.
 
-``--part writer`` (issue 25, fsync off the critical path): the same groups twice in this process, first
+``--part writer`` (fsync off the critical path): the same groups twice in this process, first
 with the telemetry sinks writing inside the cycle (``inline``: the synchronous path, the baseline), then
 behind it (``behind``: the sinks only queue into :class:`~magstack.firmware.flight.writer.WriteBehind`, a
 writer thread writes and fsyncs, as ``magstack run`` does on hardware). ``os.fsync`` is wrapped to time

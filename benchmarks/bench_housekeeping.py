@@ -1,4 +1,4 @@
-"""Benchmark for issue 25: housekeeping-current interpolation over one day of telemetry.
+"""Benchmark: housekeeping-current interpolation over one day of telemetry.
 
 Run: ``python benchmarks/bench_housekeeping.py TELEMETRY.csv [--repeat 25]`` (a day at 1 Hz from
 ``magstack simulate --program orbit_tumbling --seconds 86399 --rate-hz 1``; bench_refit.py writes one).

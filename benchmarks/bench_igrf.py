@@ -1,4 +1,4 @@
-"""Benchmark for issue 25: IGRF-14 field at 86,400 positions (one day at 1 Hz).
+"""Benchmark: IGRF-14 field at 86,400 positions (one day at 1 Hz).
 
 Run: ``python benchmarks/bench_igrf.py [--n 86400] [--repeat 3]``. Same positions (a 97.4 deg, 500 km
 circular orbit), same times (one day from 2026-06-01, 1 s apart), same process:

@@ -1,4 +1,4 @@
-"""What the MAP estimator (issue 21) costs inside ``fit`` and ``refit``, measured in the same process.
+"""What the MAP estimator costs inside ``fit`` and ``refit``, measured in the same process.
 
 ``python benchmarks/bench_map.py [--rows 1000000] [--refit-hours 24]``
 

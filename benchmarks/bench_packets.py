@@ -1,4 +1,4 @@
-"""Telemetry cost of the CCSDS packet stream (issue 23) at the example board's rates.
+"""Telemetry cost of the CCSDS packet stream at the example board's rates.
 
     python benchmarks/bench_packets.py [RECORDS]
 

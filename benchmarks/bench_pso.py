@@ -1,4 +1,4 @@
-"""Benchmark for issue 15: riwanto PSO runtime on paper model 1 next to the least-squares path.
+"""Benchmark: riwanto PSO runtime on paper model 1 next to the least-squares path.
 
 Run: ``python benchmarks/bench_pso.py [--seed 0] [--repeat 3]``. Same data, same process;
 wall times are best-of-``repeat`` (perf_counter); ratios against the least-squares baseline

@@ -1,4 +1,4 @@
-"""Benchmarks for issue 15: on-orbit refit with the IGRF-14 reference (time, peak memory).
+"""Benchmarks of the on-orbit refit with the IGRF-14 reference (time, peak memory).
 
 Run: ``python benchmarks/bench_refit.py [--workdir DIR]``. Simulates one day of 1 Hz telemetry
 (86,400 rows, ``orbit_tumbling``, hmc1053 preset, every effect) with ``magstack simulate``, then
@@ -12,7 +12,7 @@ measures in this process (perf_counter, tracemalloc peak of Python/numpy allocat
 * "30 days streamed": the refit over 1, 10 and 30 links to the one-day file (same rows, separate
   paths), plain least squares without cache (memory should not grow) and with the default cache.
 
-``--part plain`` (issue 25): the refit against the plain pipeline of ``baselines/refit_plain.py``, CPU
+``--part plain``: the refit against the plain pipeline of ``baselines/refit_plain.py``, CPU
 seconds best of ``--repeat`` in this process, with BLAS on its default threads and held to one thread
 (``firmware/blas.single_thread`` around the whole call), then the whole process (``magstack refit`` as
 a child process; its CPU time from the OS). ``--part profile``: cProfile of one refit, shares of the

@@ -1,4 +1,4 @@
-"""Session file I/O against numpy on the same 1e6-row file (issue 11).
+"""Session file I/O against numpy on the same 1e6-row file.
 
     python benchmarks/bench_session_io.py [ROWS]
 

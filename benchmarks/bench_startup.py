@@ -1,4 +1,4 @@
-"""Start-up time of the ``magstack`` command (issue 26 item 3: under 0.5 s for ``--help`` and
+"""Start-up time of the ``magstack`` command (target: under 0.5 s for ``--help`` and
 ``run --example-config``).
 
 Each case runs ``python -m magstack.cli.main ARGS`` in a fresh interpreter ``--runs`` times and
@@ -23,7 +23,7 @@ CASES = {
     "magstack --help": ["-m", "magstack.cli.main", "--help"],
     "magstack run --example-config": ["-m", "magstack.cli.main", "run", "--example-config"],
     "magstack fit --help": ["-m", "magstack.cli.main", "fit", "--help"],
-    # what `magstack --help` cost before issue 26: every command module imported to build the parser
+    # the cost of a parser built from every command module (what `--help` avoids by loading on demand)
     "every command module (old --help)": ["-c", "from magstack.cli.main import ALL, build_parser; "
                                                 "build_parser(ALL).format_help()"],
 }

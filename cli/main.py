@@ -34,7 +34,7 @@ from magstack.cli.progress import set_progress_policy
 from magstack.errors import EXIT_DEVICE, EXIT_USAGE, MagError
 
 #: ``build_parser(load=ALL)``: register every command module (tests, docs); the default of ``main``
-#: loads only the command named on the command line (start-up time, issue 26 item 3).
+#: loads only the command named on the command line (start-up time).
 ALL = "*"
 
 
@@ -237,8 +237,8 @@ class _PipeSafe:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """The ``magstack`` entry point: :func:`_main` under the Unix conventions every command shares (issue 24
-    item 10): a reader closing stdout ends output quietly (:class:`_PipeSafe`); Ctrl-C before a command has
+    """The ``magstack`` entry point: :func:`_main` under the Unix conventions every command shares: a
+    reader closing stdout ends output quietly (:class:`_PipeSafe`); Ctrl-C before a command has
     installed its own handler (while the command modules load) is one line and exit 130, never a traceback;
     SIGTERM / SIGHUP outside a command's own handler raise :class:`~magstack.cli.interrupt.Stopped` (clean-up
     runs: no temporary file or half-made folder is left), one line, exit 143 / 129."""

@@ -17,8 +17,9 @@ drifts by ``+o`` per degC in the reading gives ``K_O = -o``. A value the sources
 or that is inferred (``[I]``) gets a wider sd than the source's own spread.
 
 Source keys: [F:...] fact from a source, [F2:...] secondary, [I] inference, [U] unverified
-(/work/shared/hardware-facts.md, section given); [LAB T1] = Table 1 of the three-chip lab study
-(seeds/amr-digital-magnetometers-lab-study.txt); [B ...] = Belsten et al. (seeds/belsten-hmc1053-24param.txt).
+(the datasheet behind each section of the hardware notes, docs/reference/sources.md); [LAB T1] = Table 1 of the
+three-chip lab study (Sensors 2019, 19(8), 1850, doi:10.3390/s19081850); [B ...] = Belsten et al., Geosci.
+Instrum. Method. Data Syst. 12, 2023, doi:10.5194/gi-12-201-2023.
 """
 from __future__ import annotations
 
@@ -104,7 +105,7 @@ _HMC1053 = CalPriors(
     time_skew_s=_SKEW, session_offset_uT=_SESSION, drift_uT_per_s=_DRIFT,
     operating_temp_c=(-40.0, 125.0),       # [F:HMC1055]
     field_range_uT=600.0,                  # [F:HMC1055] +-6 G
-    source="HMC1053 datasheet figures via hardware-facts.md section 5",
+    source="HMC1053 datasheet figures (hardware notes section 5, docs/reference/sources.md)",
     k_s2_rel_per_c2=PriorValue(7.3e-6, 7.3e-6, "[I] second order of the -2700 ppm/degC sensitivity tempco "
                                                "[F2:SEC-1053]: alpha^2 = 7.3e-6 for s0 (1 + alpha dT); sd reaches the "
                                                "s0 / (1 + alpha dT) form (0) at 1 sd and 2 alpha^2 (3000 ppm) at 1 sd"),

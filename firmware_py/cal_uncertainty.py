@@ -34,6 +34,7 @@ fixed-point applier (docs/cal-table.md).
 """
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 import re
@@ -48,6 +49,7 @@ LINEAR_PARAMS = ("S", "K_S", "K_S2", "K_S3", "O", "K_O")
 _PAIRS = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2)}
 
 
+@functools.lru_cache(maxsize=1024)
 def parse_name(name: str) -> tuple[str, int, str | None]:
     """``'K_S[x,y]'`` -> ("K_S", 0, "y"); ValueError for a name that is not a calibration parameter."""
     m = _NAME.match(name)
@@ -136,7 +138,7 @@ class Predictive:
         with np.errstate(invalid="ignore"):
             for i in range(3):
                 F = features(self.names[i], b, t - self.t0_c, currents_A)
-                out[:, i] = np.maximum(np.einsum("nk,kl,nl->n", F, self.cov[i], F), 0.0)
+                out[:, i] = np.maximum(np.sum((F @ self.cov[i]) * F, axis=1), 0.0)   # f_n^T C f_n per row
             return out
 
     def disc_var_uT2(self, b_uT, temp_c) -> np.ndarray:

@@ -36,7 +36,7 @@ _EFFECTS = (
            "dT_die/dt = (T_board - T_die)/tau. Every temperature effect (temperature_gain, "
            "temperature_offset) acts on T_die; with T_board in the data the residual is those effects "
            "evaluated on T_board - T_die, largest while the temperature changes fast.",
-           "tau in s", "issue 22 (real thermal runs: the residual trails the thermistor by minutes)", None),
+           "tau in s", "real thermal runs (AV-MagEval-Data): the residual trails the thermistor by minutes", None),
     Effect("time_skew", 10, "each axis sampled at its own instant",
            "Sequential conversion (one multiplexed ADC) samples X, Y, Z at different times; "
            "for a changing field the axis reading is B_i(t + dt_i). Residual ~ dB/dt * dt_i.",
@@ -50,8 +50,8 @@ _EFFECTS = (
            "coefficients are body frame) before the sensor's own misalignment. "
            "A property of the bench, not of the sensor: calibration fits the angles as per-session "
            "nuisance parameters and never writes them into the table.",
-           "rad (rotation vector per session)", "issue 13 (real bench: X->Z slope changes sign between "
-           "sessions); belsten sec. 3.2 (power cycles, remounts)", "mount_rotation"),
+           "rad (rotation vector per session)", "real bench (AV-MagEval-Data): X->Z slope changes sign between "
+           "sessions; belsten sec. 3.2 (power cycles, remounts)", "mount_rotation"),
     Effect("misalignment", 30, "sensor axes rotated / non-orthogonal w.r.t. the body frame",
            "Small rotation and non-orthogonality angles mixing the true field into each axis.",
            "rad", "lab study (misalignment); belsten Eq. 1 matrix C", "gain_matrix"),

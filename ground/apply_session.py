@@ -31,7 +31,7 @@ def calibrate_session(table, s: Session, applier: str = "float", extrapolate: bo
     missing = [k for k in table.currents if k not in s.currents_A]
     if missing:
         raise SessionFileError(f"table needs current column(s) {missing}; session has {list(s.currents_A)}")
-    cur = merge_currents(s.t_s, s.session, s.currents_A, table.currents)   # refit's rule (issue 23 seam 3)
+    cur = merge_currents(s.t_s, s.session, s.currents_A, table.currents)   # refit's rule
     if applier == "fixed":
         fx = FixedPointTable.from_table(table)
         need_t = bool(set(TEMPERATURE_TERMS) & set(table.terms))

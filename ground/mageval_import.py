@@ -50,7 +50,7 @@ FLAG_NO_REF = FLAG["NO_REF"].value
 FLAG_NO_DUT = FLAG["NO_DUT"].value
 
 
-#: Physical range of each kind of column; a value outside it is refused with its line (issue 17 item 3).
+#: Physical range of each kind of column; a value outside it is refused with its line.
 #: Field: above every sensor's range on this bench (HMC1053 +-600 uT, FVM400 +-100 uT). Time: Unix
 #: epoch seconds 1970..2100. Temperature: kelvin, -123..177 degC (beyond any electronics on the bench).
 FIELD_LIMIT_UT = 1000.0

@@ -3,10 +3,12 @@
 Sources (every value below cites its table):
 
 * ``[LAB T1]`` = Table 1 of the three-chip lab study
-  (/work/shared/seeds/amr-digital-magnetometers-lab-study.txt): sensitivity (nT/LSB), misalignment,
+  ("Calibration of Off-the-Shelf Anisotropic Magnetoresistance Magnetometers", Sensors 2019, 19(8), 1850,
+  doi:10.3390/s19081850): sensitivity (nT/LSB), misalignment,
   noise sigma and density, offsets, sensitivity and offset temperature drift.
-* ``[B Tn]`` / ``[B s.x]`` = Belsten et al. (HMC1053, /work/shared/seeds/belsten-hmc1053-24param.txt).
-* ``[HF n]`` = /work/shared/hardware-facts.md section n (datasheet LSB, range, timing).
+* ``[B Tn]`` / ``[B s.x]`` = Belsten et al. (HMC1053; Geosci. Instrum. Method. Data Syst. 12, 2023,
+  doi:10.5194/gi-12-201-2023).
+* ``[HF n]`` = hardware notes section n: the datasheet it cites (LSB, range, timing); docs/reference/sources.md.
 
 Conventions. Presets describe the sensor's reported value in uT *as the driver converts it with the
 datasheet LSB*. The lab study's "sensitivity" is the true field per count, so the gain in reported

@@ -234,11 +234,11 @@ def test_driver_refuses_non_finite_or_out_of_range_parameters(kw, word):
     ADS1248(spi, clock, start=model.start_line, drdy=model.drdy_line, ref0_V=2.5, ref1_V=3.3)
 
 
-# ---------------------------------------------------------------- calibration time (issue 12.5)
+# ---------------------------------------------------------------- calibration time
 
 def test_calibration_lasts_the_measured_16_conversion_periods():
-    """No datasheet figure found; users measure ~16 periods (200 ms at 80 SPS, E2E 1158284). The
-    model used to finish in 4."""
+    """No datasheet figure found; users measure ~16 periods (200 ms at 80 SPS, E2E 1158284); the
+    model takes 16."""
     from magstack.drivers.ads1248 import CALIBRATION_PERIODS
 
     clock, model, spi, adc = make({(0, 1): 2e-3}, adc_offset_V=150e-6)
@@ -257,8 +257,8 @@ def test_calibration_lasts_the_measured_16_conversion_periods():
 @pytest.mark.parametrize("sps", [20, 40, 80, 2000])
 @pytest.mark.parametrize("periods", [16, 24, 31])
 def test_driver_calibration_bound_survives_a_slower_part(sps, periods):
-    """The old bound (16 periods + 10 ms) left ~5 % margin at 80 SPS and failed a part 1.5x slower
-    than the forum figure; the driver now allows twice the measured duration."""
+    """The driver allows twice the measured calibration duration: a tighter bound (16 periods + 10 ms) would
+    leave ~5 % margin at 80 SPS and fail a part 1.5x slower than the forum figure."""
     clock, model, spi, adc = make({(0, 1): 2e-3}, adc_offset_V=150e-6, calibration_conversions=periods)
     ch = ChannelConfig(0, 1, pga=64, data_rate_sps=sps)
     assert adc.self_offset_calibration(ch) == round(150e-6 * 64 / 2.048 * (2**23 - 1))
@@ -273,13 +273,13 @@ def test_a_calibration_that_never_ends_is_a_bounded_timeout():
     assert clock.monotonic_s() - t0 < 33 * DATA_RATES[80].first_after_reset_s + 0.011
 
 
-# ---------------------------------------------------------------- non-finite inputs (issue 17.8)
+# ---------------------------------------------------------------- non-finite inputs
 
 @pytest.mark.parametrize("v, code", [(float("nan"), CODE_POS_FS), (float("inf"), CODE_POS_FS),
                                      (float("-inf"), CODE_NEG_FS)])
 def test_non_finite_input_reads_at_the_rail_never_raises(v, code):
-    """An ADC never raises on what its pins present; NaN from a simulated sensor used to raise a
-    plain ValueError inside the model and take down the loop."""
+    """An ADC never raises on what its pins present; NaN from a simulated sensor reads at the rail
+    (clipped), never a ValueError that would take down the loop."""
     clock, model, spi, adc = make({(0, 1): v})
     conv = adc.convert(ChannelConfig(0, 1))
     assert conv.code == code and conv.clipped

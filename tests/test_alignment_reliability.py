@@ -1,4 +1,4 @@
-"""Alignment and AV-MagEval import reliability (issue 17 items 3, 6, 7, 12)."""
+"""Alignment and AV-MagEval import reliability."""
 from __future__ import annotations
 
 import json
@@ -186,8 +186,8 @@ def test_library_progress_drives_a_bar_only_on_a_terminal(monkeypatch):
 
 @pytest.mark.slow
 def test_long_search_work_grows_with_rows_not_with_range_times_rows(monkeypatch):
-    """A wide search on a long session: the medium stage used to evaluate 4 x (range/4000)/h offsets on
-    every row (800 here, ~900 x rows interpolations in all); now passes of at most 81 offsets."""
+    """A wide search on a long session: the medium stage evaluates passes of at most 81 offsets,
+    not 4 x (range/4000)/h offsets on every row (800 here, ~900 x rows interpolations in all)."""
     rng = np.random.default_rng(5)
     freqs, phases = rng.uniform(0.0003, 0.003, (3, 8)), rng.uniform(0, 6.3, (3, 8))   # coarse step 25 s resolves it
 

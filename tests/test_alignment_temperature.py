@@ -37,8 +37,8 @@ def _thermal_pair(offset_s: float, seed: int, *, duration_s: float = 300.0, prog
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_thermal_cycling_offset_within_its_sigma_and_plain_model_is_not(seed):
     """-20..60 degC cycling swings the DUT gain by ~+-11 %: with the temperature terms the offset
-    is found within 3 sigma and sigma is a few ms; the plain model (the old behaviour) is refused
-    or >= 10x less precise (it reported +3.80 +- 0.98 s on a bench session whose true offset was 0)."""
+    is found within 3 sigma and sigma is a few ms; the plain model (no temperature terms) is refused
+    or >= 10x less precise (it can report +3.80 +- 0.98 s on a bench session whose true offset was 0)."""
     true_offset = 1.234 + 0.1 * seed
     t_dut, dut, t_ref, ref, temp = _thermal_pair(true_offset, seed)
     est = estimate_clock_offset(t_dut, dut, t_ref, ref, prior_s=0.0, search_halfwidth_s=10.0, temp_c=temp)

@@ -1,4 +1,4 @@
-"""``apply`` merges housekeeping currents with refit's rule (issue 23 seam 3)."""
+"""``apply`` merges housekeeping currents with refit's rule."""
 from __future__ import annotations
 
 import numpy as np

@@ -213,8 +213,8 @@ def test_stop_request_ends_the_session_with_a_complete_file(tmp_path):
 
 @pytest.mark.parametrize("signame, code", [("SIGTERM", 143), ("SIGHUP", 129)])
 def test_cli_bench_sigterm_stops_with_message_and_complete_file(tmp_path, signame, code):
-    """Issue 17 item 12: SIGTERM used to kill `bench` silently, leaving only the .part file; issue 24
-    item 10: SIGHUP likewise."""
+    """SIGTERM and SIGHUP stop `bench` with a message and a complete file, not silently with only the
+    .part file."""
     import signal
     import subprocess
     import sys

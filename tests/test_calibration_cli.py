@@ -136,7 +136,7 @@ def test_cli_refuses_bad_arguments_and_never_overwrites_good_files(tmp_path, cap
     for extra, msg in ((["--validity-temp", "30,20"], "argument --validity-temp: expected increasing values"),
                        (["--validity-field", "nan"], "argument --validity-field: expected a finite number"),
                        (["--validity-temp=-100,20"], "argument --validity-temp: must be within [-55, 125] degC"),
-                       # issue 17 item 11: an empty --out is a usage error naming the option, not a traceback
+                       # an empty --out is a usage error naming the option, not a traceback
                        (["--out", ""], "argument --out: expected a file name, got an empty string"),
                        (["--t0", "inf"], "argument --t0: expected a finite number"),
                        (["--block-s", "0"], "argument --block-s: must be within (0, 10000000] s")):

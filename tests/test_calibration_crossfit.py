@@ -1,4 +1,4 @@
-"""The cross-fit (issue 25): held-out figures from per-piece R factors equal refitting each fold's rows."""
+"""The cross-fit: held-out figures from per-piece R factors equal refitting each fold's rows."""
 from __future__ import annotations
 
 import tracemalloc

@@ -62,8 +62,8 @@ def test_one_field_thermal_run_prior_splits_the_degenerate_pair_and_other_fields
         X = r.model.design(other.b_meas_uT, other.temp_c)
         pred_sd = float(np.sqrt(np.mean(np.einsum("nk,ikl,nl->n", X, r.posterior.cov, X))))
         assert _rms_out(r, other) <= 1.5 * floor + 2.0 * pred_sd, (level, _rms_out(r, other), floor, pred_sd)
-    # without the physics (generic wide priors) the split goes wrong at zero field, as the old "hold at 0"
-    # rule went wrong in the other direction; --no-priors leaves the pair to the minimum-norm solution
+    # without the physics (generic wide priors) the split goes wrong at zero field, as a "hold at 0"
+    # rule goes wrong in the other direction; --no-priors leaves the pair to the minimum-norm solution
     generic = fit(d, "eq3", options=NO_HOLDOUT)
     assert _rms_out(generic, _at_field((0.0, 0.0, 0.0), np.random.default_rng(7))) > 3 * floor
     with pytest.raises(FitError, match="degenerate"):

@@ -1,4 +1,4 @@
-"""Issue 21: one MAP estimator with datasheet priors, the posterior in the table, validity from it."""
+"""One MAP estimator with datasheet priors, the posterior in the table, validity from it."""
 from __future__ import annotations
 
 import json

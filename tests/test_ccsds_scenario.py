@@ -1,4 +1,4 @@
-"""Issue 23's scenario, end to end: a simulated bench session -> `fit` -> table -> the flight application on
+"""The ground-to-flight scenario, end to end: a simulated bench session -> `fit` -> table -> the flight application on
 simulated buses along an orbit (the truth of `run --sim --sim-program orbit_tumbling`) with that table (samples
 calibrated inside its validity box) -> packets -> `tm decode` -> `merge` with a simulated ADCS log of the same
 orbit -> `refit` -> candidate -> `load_table` + `activate_table` as telecommands while the application keeps

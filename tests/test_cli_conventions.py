@@ -155,7 +155,7 @@ def test_every_command_prints_strict_json_with_stable_keys(tmp_path, capsys, sim
 
 
 def test_align_json_has_no_infinity(capsys, sim_session):
-    """Issue 17 item 12: `align --json` printed `Infinity` (no runner-up minimum), which strict parsers reject."""
+    """`align --json` prints no `Infinity` (no runner-up minimum is null), which strict parsers would reject."""
     assert main(["align", "--json", str(sim_session)]) == 0
     out = capsys.readouterr().out
     assert "Infinity" not in out and "NaN" not in out
@@ -188,7 +188,7 @@ def test_verbosity_controls_library_logging(tmp_path, capsys):
                                   ["import-mageval", "D", "R", "--out", ""],
                                   ["import-mageval", "D", "R", "--out", "x.csv", "--max-gap-s", "nan"]])
 def test_empty_or_non_finite_options_are_usage_errors(tmp_path, capsys, argv, monkeypatch):
-    """Issue 17 item 11: `align --out ''` exited 0 writing nothing; every option is checked at parse time."""
+    """`align --out ''` is a usage error, not a run that writes nothing; every option is checked at parse time."""
     monkeypatch.chdir(tmp_path)
     assert main(argv) == 2
     err = capsys.readouterr().err
@@ -214,8 +214,8 @@ def _nested_table(path, depth: int):
 
 @pytest.mark.parametrize("depth", [100_000, 990])
 def test_deeply_nested_table_is_a_clean_error(tmp_path, capsys, sim_session, depth):
-    """Issue 17 item 11: a deeply nested JSON table raised RecursionError in table validate|show and apply.
-    Not a table document at all: bad input (exit 3, issue 26 item 4), also for `validate`."""
+    """A deeply nested JSON table is one line, not a RecursionError, in table validate|show and apply.
+    Not a table document at all: bad input (exit 3), also for `validate`."""
     t = _nested_table(tmp_path / "deep.json", depth)
     assert main(["table", "validate", str(t)]) == 3
     err = capsys.readouterr().err
@@ -228,8 +228,8 @@ def test_deeply_nested_table_is_a_clean_error(tmp_path, capsys, sim_session, dep
 
 
 def test_simulate_streams_rows_while_generating(tmp_path, monkeypatch):
-    """Issue 17 item 12: `simulate` wrote only at the end, so a kill lost every row. Rows now reach the
-    .part file block by block; an interrupted run keeps an exact prefix of the complete run."""
+    """`simulate` streams its rows: they reach the .part file block by block, so a kill loses at most a
+    block; an interrupted run keeps an exact prefix of the complete run."""
     import magstack.cli.commands.simulate as sim_cmd
 
     monkeypatch.setattr(sim_cmd, "BLOCK_ROWS", 500)

@@ -1,5 +1,5 @@
-"""Issue 24 items 13-14 (ground tools): tracebacks and silently accepted inputs, each now one line
-with the documented exit code."""
+"""Hostile inputs to the ground tools: each is one line with the documented exit code, never a traceback
+and never silently accepted."""
 from __future__ import annotations
 
 import json
@@ -125,7 +125,7 @@ def test_telemetry_with_a_byte_order_mark_is_read(tmp_path):
 
 
 def test_integer_extra_columns_are_written_as_integers(tmp_path):
-    """Issue 26 item 5: flight telemetry wrote `table_crc32` as 3350503024.000000."""
+    """Integer extra columns (flight telemetry's `table_crc32`) are written as integers, not 3350503024.000000."""
     import numpy as np
 
     from magstack.data.session import SessionWriter

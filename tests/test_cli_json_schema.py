@@ -1,4 +1,4 @@
-"""Issue 26 items 1, 4, 5 and issue 24 items 11-12: one ``--json [FILE]`` rule and one output-path
+"""One ``--json [FILE]`` rule and one output-path
 rule for every command, run over every command the parser knows (a new command without a case here
 fails :func:`test_every_command_is_covered`)."""
 from __future__ import annotations
@@ -161,7 +161,7 @@ def test_json_file_dash_and_positional(files, tmp_path, capsys):
 
 
 def test_an_output_is_never_an_input_or_another_output(files, tmp_path, capsys):
-    """Issue 24 item 11: `refit tl.csv --out c.json --json tl.csv` replaced the telemetry with the report."""
+    """`refit tl.csv --out c.json --json tl.csv` is refused: the report never replaces the telemetry."""
     tlm = tmp_path / "tl.csv"
     tlm.write_bytes(files["tlm"].read_bytes())
     tab = tmp_path / "cal.json"
@@ -187,7 +187,7 @@ def test_an_output_is_never_an_input_or_another_output(files, tmp_path, capsys):
 
 
 def test_temporary_outputs_never_follow_a_planted_symlink(tmp_path):
-    """Issue 24 item 12: a pre-existing temp name pointing at a victim was overwritten."""
+    """A pre-existing temporary name pointing at a victim file is never followed or overwritten."""
     import os
 
     from magstack.data.io import atomic_write_text, open_exclusive
@@ -226,7 +226,7 @@ def test_report_and_json_writers_use_exclusive_temp_files(files, tmp_path, capsy
     ('{"schema": 1' + "0" * 400 + "}", "digits"),
 ])
 def test_table_inputs_are_bounded_before_reading(tmp_path, capsys, files, content, what):
-    """Issue 24 item 13 / issue 26 item 4: not a table document at all -> exit 3, one line, for every reader."""
+    """Not a table document at all -> exit 3, one line, for every reader."""
     p = tmp_path / "t.json"
     if content is None:
         p.mkdir()
@@ -313,7 +313,7 @@ def test_import_mageval_numbers_are_numbers(tmp_path, capsys):
 
 
 def test_verbose_logs_the_decisions_and_quiet_silences_warnings(files, tmp_path, capsys):
-    """Issue 26 item 2: -v / -vv printed nothing for the main commands."""
+    """-v / -vv log the decisions of the main commands; -q silences the warnings."""
     s = str(files["session"])
     expect = {("fit", s, "--no-holdout", "--out", str(tmp_path / "c.json")): ["fit: model eq3", "fit: rows used"],
               ("apply", str(files["table"]), s, "--out", str(tmp_path / "a.csv")): ["apply: table 0x",
@@ -333,7 +333,7 @@ def test_verbose_logs_the_decisions_and_quiet_silences_warnings(files, tmp_path,
 
 
 def test_fit_warns_when_the_field_cannot_support_the_table(tmp_path, capsys):
-    """Issue 26 item 6: a zero-field session gave a 'valid' table without a word."""
+    """A zero-field session gives a table with a warning that the field cannot support it."""
     from magstack.data.session import read_session, write_session
 
     src = tmp_path / "s.csv"
@@ -359,7 +359,8 @@ def test_fit_warns_when_the_field_cannot_support_the_table(tmp_path, capsys):
 
 
 def test_a_missing_output_directory_is_a_system_error_for_every_writer(files, tmp_path, capsys):
-    """Issue 26 item 4: `simulate --out no/s.csv` exited 3 (bad input) where file-system errors are 4."""
+    """`simulate --out no/s.csv` and every other writer: a missing directory is a system error (exit 4), not bad
+    input (3)."""
     no = tmp_path / "no"
     for argv in (["simulate", "--program", "steps_x", "--seconds", "20", "--out", str(no / "s.csv")],
                  ["bench", "--dut", "lis3mdl", "--seconds", "2", "--out", str(no / "b.csv")],

@@ -1,5 +1,5 @@
-"""Issue 26 item 8: `simulate` showed 0 % for seconds while rows were already written; the bar now
-advances by rows written, not by finished blocks."""
+"""`simulate`'s progress bar advances by rows written, not by finished blocks (no 0 % while rows are
+already on disk)."""
 from __future__ import annotations
 
 import contextlib

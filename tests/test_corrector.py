@@ -68,7 +68,7 @@ def test_refuses_samples_it_cannot_calibrate(tmp_path):
     ((math.inf, 0.0, 0.0), 25.0, "bad_input"), ((1.0, 2.0, 3.0), 1e308, "no_temperature"),
     ((1.0, 2.0, 3.0), math.inf, "no_temperature")])
 def test_never_raises_on_non_finite_or_overflowing_readings(tmp_path, b, temp, key):
-    """Issue 17 item 8: a 1e308 reading raised OverflowError inside the corrector."""
+    """A 1e308 or non-finite reading is refused by status, never an OverflowError inside the corrector."""
     corr = TableCorrector(_store(tmp_path))
     assert corr.correct(b, temp).b_uT is None
     assert corr.status[key] == 1 and sum(corr.status.values()) == 1

@@ -52,7 +52,7 @@ def _sim_axis_spacing_s() -> tuple[float, float]:
 def test_probe_identifies_every_chip_and_reads_them(demo):
     res, lines = demo
     p = res.probe
-    # a freshly powered HMC5983 reads like an HMC5883L at 0x31/0x32: the probe says so (issue 12.4)
+    # a freshly powered HMC5983 reads like an HMC5883L at 0x31/0x32: the probe says so
     assert sorted(d["chip"] for d in p.devices) == ["hmc5883l_or_hmc5983", "lis3mdl", "lsm303dlhc"]
     # the shared 0x1E address resolved to different chips on the two buses
     assert p.shared_address_chips == {"sim-i2c-1": "hmc5883l_or_hmc5983", "sim-i2c-2": "lsm303dlhc"}
@@ -264,8 +264,8 @@ def test_failing_step_names_itself_and_exits_nonzero(tmp_path, monkeypatch, caps
 
 
 def test_demo_reference_stays_inside_the_fvm400_range(demo, tmp_path, capsys):
-    """Issue 23 seam 6: the demo's simulated FVM400 read up to 150 uT per axis, beyond its +-100 uT
-    range, so `fit` on the demo's own session excluded hundreds of rows as saturated."""
+    """The demo's simulated FVM400 stays inside its +-100 uT range, so `fit` on the demo's own session
+    excludes no rows as saturated."""
     res, _ = demo
     s = read_session(res.bench.path)
     assert np.nanmax(np.abs(s.ref_uT)) < 99.0

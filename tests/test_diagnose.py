@@ -1,4 +1,4 @@
-"""Sim-to-real gap diagnosis (issue 14): ranking on held-out blocks, significance, confounding,
+"""Sim-to-real gap diagnosis: ranking on held-out blocks, significance, confounding,
 not-testable effects, fixed-parameter paths, JSON, report and CLI.
 
 The generators here are written in this file (plain numpy forward models of the catalogue's physics),
@@ -115,7 +115,7 @@ def test_time_skew_parameters_recovered_with_standard_errors():
 
 def test_interference_parameters_in_catalogue_units():
     p = diagnose_model(make("interference"), "gain_offset").parameters
-    # forward (simulator side, issue 22): the field per amp the DUT reads
+    # forward (simulator side): the field per amp the DUT reads
     want = np.array([0.5, -0.4, 0.6])
     got = np.array([p[f"D_heater_A[{a}]"]["value"] for a in "xyz"])
     assert np.allclose(got, want, atol=0.01)
@@ -382,7 +382,7 @@ def test_folds_spread_each_axis_excursions_over_folds_on_a_program_repeated_per_
     for j in range(3):
         assert np.unique(fold[b[:, j] > 100.0]).size >= 2
     old = folds_from_blocks(blocks, sess, 5)
-    assert any(np.unique(old[b[:, j] > 100.0]).size == 1 for j in range(3))   # what the old rule did
+    assert any(np.unique(old[b[:, j] > 100.0]).size == 1 for j in range(3))   # what plain blocks-to-folds gives
 
 
 def test_rows_at_the_edges_of_a_run_are_left_out():
@@ -414,7 +414,7 @@ def test_modelled_mount_rotation_is_fitted_jointly_and_the_other_effect_named():
     assert "mount_rotation" in j["modelled"] and "mount_rotation" not in {t["effect"] for t in j["ranking"]}
     assert j["verdict"] == "temperature_offset", d.text()
     assert j["after_rmse_nT"] <= 1.2 * j["noise_floor_nT"], d.text()
-    # fitted on the simulator side (dut = G ref + o + K_O dT, issue 22's forward gap): the DUT's own slopes
+    # fitted on the simulator side (dut = G ref + o + K_O dT, the forward gap): the DUT's own slopes
     want = np.array([-0.14, 0.02, 0.03])
     for a, v in zip("xyz", want, strict=True):
         p = j["parameters"][f"K_O[{a}]"]
@@ -578,9 +578,9 @@ def test_thermal_lag_is_named_with_its_time_constant():
     assert to["rmse_nT"] > 1.5 * j["after_rmse_nT"]
 
 
-# ----------------------------------------------------------------------------- issue 22 item 1: forward gap
+# ----------------------------------------------------------------------------- forward gap
 def _one_field_thermal(chip="hmc1053", seed=3, seconds=1800.0, tempco=-2.4e-3, k_o=(0.0, 0.0, 0.0)):
-    """X held at 44 uT while the unit cools 80 -> 38 degC (issue 22's real run), this file's own numpy
+    """X held at 44 uT while the unit cools 80 -> 38 degC (like the AV-MagEval thermal run), this file's own numpy
     generator: the sensitivity falls with temperature (``tempco`` /degC on every axis), plus optional
     offset tempcos ``k_o`` uT/degC; DUT noise 30 nT."""
     rng = np.random.default_rng(seed)
@@ -653,7 +653,7 @@ def test_cli_chip_option_reaches_the_priors(tmp_path):
 
 
 def test_one_field_thermal_run_with_a_table_fitted_earlier_gets_a_temperature_verdict():
-    """The (b) path of issue 22 item 1: a gain+offset table from an earlier bench run (this file's generator, same
+    """The table path (b): a gain+offset table from an earlier bench run (this file's generator, same
     part), then the one-field cooling run; the temperature gain the table lacks is named and closes the gap."""
     from magstack.firmware.cal_table import table_from_fit
     from magstack.firmware.calibration import FitData, FitOptions, fit

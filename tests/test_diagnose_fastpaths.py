@@ -1,4 +1,4 @@
-"""The diagnosis's fast paths (issue 25) against the plain computations they replace, on small data.
+"""The diagnosis's fast paths against the plain computations they replace, on small data.
 
 Each fast path must give what the direct least squares gives: the tone fit's per-session 2 x 2 solves
 against lstsq of the full sine/cosine design, the separable delay search against the coordinate
@@ -229,7 +229,7 @@ def test_out_of_fold_over_blocks_in_chunks_equals_the_joined_design(monkeypatch)
     assert np.allclose(out_of_fold_blocks([a, b], Y, fold), want, rtol=0, atol=1e-10)
 
 
-# ---------------------------------------------------------------- session 8: the 4 x 900-row fixed cost
+# ---------------------------------------------------------------- the 4 x 900-row fixed cost
 def test_solve_normal_is_the_checked_cholesky_solve_bit_for_bit_and_falls_back_like_it():
     """solve_normal calls LAPACK without scipy's per-call checks: the same bits as cho_factor/cho_solve of the
     equilibrated system; a singular system and a non-finite one take the pseudo-inverse path as before."""

@@ -1,4 +1,4 @@
-"""Diagnosis memory on long sessions (issue 24 item 15, issue 25): what each added row costs.
+"""Diagnosis memory on long sessions: what each added row costs.
 
 A ~200 MB session (2.2 M rows) did not finish in 15 minutes and was killed at 1.67 GB; 10^6 rows peaked at
 1343 MiB traced (1.3 KB per added row between 2.5e5 and 1e6 rows). The marginal cost per row is measured
@@ -15,8 +15,8 @@ import pytest
 from magstack.data.session import Session
 from magstack.ground.diagnose import diagnose_model, surrogate
 
-#: Bytes per added row allowed: measured 267 B/row here (session 7); 3674 B/row on 69f2e75, before the
-#: surrogate test's row cap, the chunked fold solves and the dropped residuals.
+#: Bytes per added row allowed: measured 267 B/row here (the surrogate test's row cap, the chunked fold solves
+#: and no kept residuals hold it there).
 MAX_BYTES_PER_ROW = 600
 #: The surrogate test's row cap in this test (2^16 in use): both sessions beyond it at a small cost.
 TEST_CAP = 16384

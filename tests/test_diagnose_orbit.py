@@ -1,4 +1,4 @@
-"""Orbit telemetry in the diagnosis (issue 22 item 4): the refit's reference and its error budget."""
+"""Orbit telemetry in the diagnosis: the refit's reference and its error budget."""
 from __future__ import annotations
 
 import json
@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from magstack.ground.diagnose import diagnose_model
+from magstack.ground.diagnose.figures import _bars, headline_rows
 from magstack.ground.diagnose.orbit import reference_budget, without_missing_currents
 from magstack.ground.diagnose.validate import simulate_orbit
 
@@ -57,6 +58,15 @@ def test_the_orbit_floor_states_its_parts_and_compares_the_after_gap_with_their_
     # what remains beyond the white level is the attitude error: within the budget, at least half of it
     assert 0.5 <= f["slow_over_budget"] <= 1.0 and "within the reference's budget" in f["text"]
     assert f["text"].startswith(f"floor {f['total_nT']:.1f} nT = sensor white")
+    # the HTML report's headline and bar chart judge the gap against the same floor, budget included
+    rows = dict(headline_rows(j))
+    assert rows["noise floor: sensor white + reference budget (root sum square)"] == f"{f['total_nT']:.1f}"
+    assert rows["sensor white level (from the data)"] == f"{f['sensor_white_nT']:.1f}"
+    assert "noise floor (from the data)" not in rows
+    fig = _bars(j)
+    floor_lines = [ln for ln in fig.axes[0].get_lines() if "reference budget" in ln.get_label()]
+    assert len(floor_lines) == 1 and floor_lines[0].get_ydata()[0] == pytest.approx(f["total_nT"])
+    assert fig.axes[0].get_ylim()[0] == 0.0
 
 
 def test_orbit_telemetry_with_a_wandering_attitude_error_and_nothing_unmodelled_gives_none():

@@ -1,4 +1,4 @@
-"""``fit`` memory in rows (issue 25: "memory flat in rows"): what each added row costs the fit beyond its inputs.
+"""``fit`` memory in rows ("memory flat in rows"): what each added row costs the fit beyond its inputs.
 
 The fit with held-out figures runs in 64k-row blocks (:mod:`magstack.firmware.calibration.crossfit`); the
 figures that need every residual (noise floor and step threshold medians, step split, RMSE) are streamed
@@ -18,7 +18,7 @@ from magstack.firmware.calibration.model import CalModel, resolve_terms
 from magstack.sim.synthetic_calibration import make_data, random_theta
 
 #: Bytes per added row allowed: measured -0.3 to 1.0 B/row here (the one per-row array is the 1-byte mask of
-#: usable rows; the peak itself is set by fixed per-block buffers); 91 B/row on 505ad2f
+#: usable rows; the peak itself is set by fixed per-block buffers); whole-array figures would cost ~91 B/row
 #: (N x 3 residuals, fold and piece ids, the noise floor's index pairs and differences, the step split's arrays).
 MAX_BYTES_PER_ROW = 8
 CURRENTS = ("solar", "heater")
@@ -46,7 +46,7 @@ def _peak_bytes(n: int, nan_fraction: float = 0.0) -> tuple[int, np.ndarray]:
 @pytest.mark.slow
 @pytest.mark.parametrize("nan_fraction", [0.0, 0.01])
 def test_fit_memory_per_added_row_is_flat(nan_fraction):
-    """Also with 1 % of the rows excluded (NaN): 88 B/row while the kept rows were copied (7bbee44)."""
+    """Also with 1 % of the rows excluded (NaN): copying the kept rows would cost ~88 B/row."""
     n1, n2 = 6 * 65536 + 100, 12 * 65536 + 200
     p1, nf1 = _peak_bytes(n1, nan_fraction)
     p2, nf2 = _peak_bytes(n2, nan_fraction)

@@ -1,4 +1,4 @@
-"""Seeded fault-injection campaign over the whole flight application (issues 16 and 17), in virtual time.
+"""Seeded fault-injection campaign over the whole flight application, in virtual time.
 
 Three channels (HMC1053 on the simulated ADS1248 at 1 Hz, LIS3MDL and LSM303DLHC on simulated I2C at
 10 Hz) run for 700 simulated seconds (> 10,000 cycles). One I2C channel is the victim: a seeded schedule
@@ -249,7 +249,7 @@ def test_telemetry_files_read_back_as_sessions(campaign):
 
 
 # ---------------------------------------------------------------------------------------------------------
-# Issue 24 item 9: register corruptions right after an outage (0.2-0.6 s after the last good sample), when a
+# Register corruptions right after an outage (0.2-0.6 s after the last good sample), when a
 # rate limit that grows with the gap would let them through.
 class OutageThenCorruption:
     """Wraps a driver: on a seeded schedule 1-5 reads fail (NACK), then one sample comes back with a
@@ -326,7 +326,7 @@ def test_corruptions_after_an_outage_are_never_published_as_good(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------------------
-# Issue 24 item 3: a full disk. Telemetry loss is counted, the loop keeps every slot, the event log keeps no
+# A full disk. Telemetry loss is counted, the loop keeps every slot, the event log keeps no
 # partial line, writing resumes by itself when space returns, the summary is written.
 ONE_CHANNEL = {"flight": {"name": "disk", "telemetry_dir": "tlm", "block_rows": 10},
                "rate_group": [{"name": "fast", "rate_hz": 10.0}],
@@ -440,7 +440,7 @@ def test_full_disk_on_a_small_tmpfs(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------------------
-# Issue 24 item 5: a burst of 1,000 commands, each costing the group that handles it 5 ms (virtual time),
+# A burst of 1,000 commands, each costing the group that handles it 5 ms (virtual time),
 # must not make the sensor group skip a slot.
 def test_a_burst_of_commands_does_not_starve_the_fast_group(tmp_path):
     root = tmp_path

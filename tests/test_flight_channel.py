@@ -1,4 +1,4 @@
-"""Magnetometer channel: what may be published as good and calibrated (issue 17 item 1), fault classes,
+"""Magnetometer channel: what may be published as good and calibrated, fault classes,
 re-initialisation (a NACK during re-init is a bus error), degradation and recovery."""
 from __future__ import annotations
 

@@ -89,7 +89,7 @@ def test_fuzzed_configs_raise_only_config_errors(tmp_path, data):
      r"flight.commands_per_cycle: must be an integer"),
 ])
 def test_hostile_configs_are_one_line_errors(tmp_path, edit, match):
-    """Issue 24 (fuzz acceptance): huge integers and deep nesting in flight.toml are config errors, not crashes."""
+    """Fuzzed configs: huge integers and deep nesting in flight.toml are config errors, not crashes."""
     with pytest.raises(FlightConfigError, match=match):
         load_config(_write(tmp_path, edit(example_config_text())))
 

@@ -44,7 +44,7 @@ def test_groups_run_at_their_rates_in_virtual_time():
 
 def test_overrun_skips_slots_and_never_bursts():
     """A read that blocks 3.5 periods: the missed slots are skipped and counted, the schedule
-    re-anchors, and no interval between two runs is shorter than the period (issue 17 item 9)."""
+    re-anchors, and no interval between two runs is shorter than the period."""
     clk = VirtualClock()
     comp = Recorder("c", clk, 0.001)
     comp.block_at = {5: 0.35, 12: 0.35}
@@ -70,8 +70,8 @@ class SteppedSystemClock(SystemClock):
 
 
 def test_threaded_runner_reanchors_after_a_clock_step_back():
-    """Issue 24 item 8: the threaded runner itself (not a hand-forced slot) meets a clock stepped back an
-    hour; before, the group waited out the step (a 5 s step was a 5.1 s gap) and counted nothing."""
+    """The threaded runner itself (not a hand-forced slot) meets a clock stepped back an hour: it re-anchors and
+    counts the step, rather than waiting it out (a 5 s step would be a 5.1 s gap)."""
     clk = SteppedSystemClock()
 
     class Stepper:
@@ -90,7 +90,7 @@ def test_threaded_runner_reanchors_after_a_clock_step_back():
     comp = Stepper()
     g = RateGroup("g", 0.02, clk, [comp])
     ex, ev = _exec(g)
-    watchdog = threading.Timer(30.0, ex.stop)      # only ends the old behaviour's hour-long wait
+    watchdog = threading.Timer(30.0, ex.stop)      # ends an hour-long wait, should the runner wait out the step
     watchdog.start()
     try:
         ex.run_threads(None)

@@ -145,7 +145,7 @@ def test_refit_commands_over_recorded_telemetry(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------------------
-# Issue 23 seam 2: warnings on the console, an exit status that says "degraded", one device-id rule.
+# Warnings on the console, an exit status that says "degraded", one device-id rule.
 def test_a_table_for_another_device_id_is_rejected_loudly_and_the_run_exits_1(tmp_path, capsys):
     cfg = _sim_config(tmp_path, table=False)
     (tmp_path / "tables").mkdir()
@@ -181,10 +181,10 @@ def test_warning_events_reach_the_console_rate_limited(caplog):
 
 
 # ---------------------------------------------------------------------------------------------------------
-# Issue 24 item 10: SIGHUP like SIGTERM, stdout closed by the reader, Ctrl-C at start-up.
+# SIGHUP like SIGTERM, stdout closed by the reader, Ctrl-C at start-up.
 @pytest.mark.slow
 def test_sighup_stops_run_with_complete_files(tmp_path):
-    """SIGHUP (the SSH session went away) killed `run` silently, leaving .part files (`bench`: test_bench.py)."""
+    """SIGHUP (the SSH session went away) stops `run` with complete files, no .part files (`bench`: test_bench.py)."""
     cfg = _sim_config(tmp_path, table=False)
     cfg.write_text(cfg.read_text().replace("block_rows = 50", "block_rows = 5"))
     _stop_cleanly(cfg, tmp_path / "a", signal.SIGHUP, 129)
@@ -213,7 +213,7 @@ def test_ctrl_c_while_the_command_line_loads_is_one_line(monkeypatch, capsys):
 
 
 def test_a_configured_table_with_a_huge_integer_is_a_warning_not_a_crash(tmp_path, capsys):
-    """Issue 24 item 1: a 400-digit integer in the start-up table raised OverflowError out of `run`."""
+    """A 400-digit integer in the start-up table is a warning, never an OverflowError out of `run`."""
     cfg = _sim_config(tmp_path)
     path = tmp_path / "tables/hmc1053.json"
     doc = json.loads(path.read_text())
@@ -228,7 +228,7 @@ def test_a_configured_table_with_a_huge_integer_is_a_warning_not_a_crash(tmp_pat
 
 
 def test_telemetry_table_crc32_is_an_integer(tmp_path, capsys):
-    """Issue 26 item 5: telemetry wrote table_crc32 as 3350503024.000000."""
+    """Telemetry writes table_crc32 as an integer, not 3350503024.000000."""
     cfg = _sim_config(tmp_path)
     assert main(["run", "--config", str(cfg), "--duration", "5", "--out", str(tmp_path / "tlm"), "-q"]) == 0
     f = next(p for p in (tmp_path / "tlm").glob("hmc1053*.csv"))
@@ -242,7 +242,7 @@ def test_telemetry_table_crc32_is_an_integer(tmp_path, capsys):
 def test_an_orbit_programme_drives_the_simulated_run_on_the_run_clock(tmp_path):
     """`run --sim --sim-program orbit_tumbling` was refused ("unknown program": only `simulate` registered the
     orbit programmes), and the orbit would have started at its own epoch, not the run clock's: the field the
-    sensors saw would not belong to the position and attitude at the telemetry's t_s (issue 23 scenario)."""
+    sensors saw would not belong to the position and attitude at the telemetry's t_s."""
     from magstack.cli.commands.run import _sim_options
     from magstack.drivers.clock import VirtualClock
     from magstack.firmware.flight.config import load_config

@@ -1,4 +1,4 @@
-"""`run` telemetry into `refit` (issue 24 item 7): informational flag bits keep a row, bad bits drop it,
+"""`run` telemetry into `refit`: informational flag bits keep a row, bad bits drop it,
 a flag that is not a non-negative integer is bad input (exit 3)."""
 from __future__ import annotations
 

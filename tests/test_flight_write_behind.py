@@ -1,4 +1,4 @@
-"""Write-behind (issue 25, "Also": fsync off the rate group's critical path): the rate groups only queue
+"""Write-behind (fsync off the rate group's critical path): the rate groups only queue
 telemetry rows, packets and event lines; a writer thread (hardware) or the idle slot (virtual time) writes
 and fsyncs them; a full queue drops and counts, never blocks; shutdown drains and closes every file whole;
 a simulated run writes the same bytes as the synchronous path."""
@@ -95,7 +95,7 @@ def test_no_rate_group_cycle_calls_fsync_in_virtual_time(tmp_path, monkeypatch):
     _run_sim(cfg, tmp_path / "behind", write_behind=True)
     assert calls["in_cycle"] == 0 and calls["idle"] > 10
     calls.update(in_cycle=0, idle=0)
-    _run_sim(cfg, tmp_path / "sync", write_behind=False)          # the old path: fsync inside the cycles
+    _run_sim(cfg, tmp_path / "sync", write_behind=False)          # the synchronous path: fsync inside the cycles
     assert calls["in_cycle"] > 0
 
 

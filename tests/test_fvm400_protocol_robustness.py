@@ -1,4 +1,4 @@
-"""FVM400 protocol points the manual does not settle (issue 12.7) and bad replies (issue 17.8):
+"""FVM400 protocol points the manual does not settle and bad replies:
 either GM reading accepted with a warning, no hang on a missing terminator, bounded replies and
 fields, and a fuzz test: whatever the instrument sends, only typed errors leave the driver."""
 from __future__ import annotations
@@ -58,8 +58,8 @@ def test_gm_answering_0_opens_without_a_warning(recwarn):
 
 
 def test_set_replies_without_eot_open_in_bounded_time():
-    """If the instrument sends no EOT after 'A' (unverified either way), the driver used to wait out
-    the 2 s port timeout on every set/get command and then fail with ProtocolError."""
+    """If the instrument sends no EOT after 'A' (unverified either way), the driver does not wait
+    out the 2 s port timeout on every set/get command and fail with ProtocolError."""
     clock = VirtualClock()
     model = FVM400Model(StaticTruth((20.0, -5.0, 40.0)), clock, eot_after_reply=False)
     t0 = clock.monotonic_s()

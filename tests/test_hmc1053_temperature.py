@@ -1,4 +1,4 @@
-"""ADS1248 temperature channel of the HMC1053 front end (issue 12.6): part of the board table,
+"""ADS1248 temperature channel of the HMC1053 front end: part of the board table,
 unverified diode figures marked as such, and a bench calibration against a reference thermometer."""
 from __future__ import annotations
 

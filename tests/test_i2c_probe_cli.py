@@ -18,7 +18,7 @@ from magstack.sim.i2c_register_model import RO, IdealSensor, Reg, RegisterFileMo
 from magstack.sim.lis3mdl_model import LIS3MDLModel
 from magstack.sim.truth_source import StaticTruth
 
-#: every test runs against the part-faithful simulator and against the strict lints (issue 12)
+#: every test runs against the part-faithful simulator and against the strict lints
 pytestmark = pytest.mark.usefixtures("sim_profile")
 
 
@@ -80,8 +80,8 @@ def _hmc5883l(lints=()):
 
 def test_hmc5883l_is_never_reported_as_an_hmc5983():
     """HMC5883L p.11: an invalid address reads 0 and the part ACKs, so 0x31 answers 0 on a real
-    HMC5883L. It used to be identified as an HMC5983 (whose driver then sets the reserved CRA7 and
-    reports a constant fake 25 degC)."""
+    HMC5883L. It is not identified as an HMC5983 (whose driver would set the reserved CRA7 and
+    report a constant fake 25 degC)."""
     bus = SimI2CBus()
     bus.attach(0x1E, _hmc5883l())
     r = identify(bus, 0x1E)

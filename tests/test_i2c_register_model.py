@@ -55,7 +55,7 @@ def test_power_on_values_and_strict_lints():
 
 def test_default_is_the_parts_behaviour_invalid_reads_zero_writes_ignored():
     """HMC5883L p.11 / LSM303DLHC p.21: an invalid address reads 0's; a write to an invalid address
-    or an undefined bit is ignored (and acknowledged). The models used to NACK."""
+    or an undefined bit is ignored (and acknowledged), not NACKed."""
     model = _model()
     bus, dev = _dev(model)
     assert model.lints == frozenset()
@@ -137,7 +137,7 @@ def test_lis3mdl_auto_increment_rules(clock):
 
 def test_lis3mdl_default_auto_increments_without_the_flag_like_the_part(clock):
     """ArduPilot/PX4/Adafruit read 0x28 without SUB bit 7 on I2C; PX4 issue #12514 shows the part
-    incrementing and wrapping 0x2D -> 0x28. The model used to refuse this by default."""
+    incrementing and wrapping 0x2D -> 0x28. The model accepts this by default."""
     m = LIS3MDLModel(clock, StaticTruth(), IdealSensor())
     bus = SimI2CBus()
     bus.attach(0x1C, m)

@@ -1,4 +1,4 @@
-"""The vectorised IGRF-14 evaluation (geomag.igrf_spherical_nT) against ppigrf and pyIGRF14 (issue 25)."""
+"""The vectorised IGRF-14 evaluation (geomag.igrf_spherical_nT) against ppigrf and pyIGRF14."""
 from __future__ import annotations
 
 import datetime as dt

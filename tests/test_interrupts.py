@@ -1,4 +1,4 @@
-"""Issue 26 item 7: an interrupted command keeps what it finished and leaves no half-made output.
+"""An interrupted command keeps what it finished and leaves no half-made output.
 
 `validate-diagnosis` stopped by Ctrl-C (or SIGTERM) writes the sessions completed so far, marked interrupted;
 `diagnose --report` stopped by SIGTERM leaves neither an empty nor a partial report folder. The signals are

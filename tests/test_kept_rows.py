@@ -1,4 +1,4 @@
-"""Rows a fit keeps, not copied (issue 25: fit memory flat in rows when rows are excluded).
+"""Rows a fit keeps, not copied (fit memory flat in rows when rows are excluded).
 
 ``FitData.kept`` numbers the usable rows without copying them (:mod:`magstack.firmware.calibration.kept_rows`);
 what it returns must index exactly as the copied rows do, and a fit through it must equal the fit of the

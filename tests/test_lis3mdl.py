@@ -27,7 +27,7 @@ from magstack.sim.lis3mdl_model import LIS3MDLModel
 from magstack.sim.lsm303dlhc_model import LSM303DLHCModel
 from magstack.sim.truth_source import StaticTruth
 
-#: every test runs against the part-faithful simulator and against the strict lints (issue 12)
+#: every test runs against the part-faithful simulator and against the strict lints
 pytestmark = pytest.mark.usefixtures("sim_profile")
 
 

@@ -1,4 +1,4 @@
-"""``magstack merge``: ADCS position/attitude + magnetometer-only telemetry -> refit input (issue 23 seam 5)."""
+"""``magstack merge``: ADCS position/attitude + magnetometer-only telemetry -> refit input."""
 from __future__ import annotations
 
 import json
@@ -116,3 +116,21 @@ def test_bad_inputs_are_refused_with_the_line(split, tmp_path, capsys):
     assert main(["merge", str(orig), "--adcs", str(d / "adcs.csv"), "--out", str(tmp_path / "o.csv")]) == 3
     assert "already has position/attitude" in capsys.readouterr().err
     assert not (tmp_path / "o.csv").exists()
+
+
+def test_several_telemetry_files_merge_into_an_existing_directory(split, tmp_path, capsys):
+    """`--out DIR/` (docs/how-to/refit-on-orbit.md): one output per input, same name; a missing directory is a
+    one-line usage error that says to create it."""
+    d, _orig, _s = split
+    ins = []
+    for name in ("a.csv", "b.csv"):
+        ins.append(tmp_path / name)
+        ins[-1].write_bytes((d / "mag.csv").read_bytes())
+    out = tmp_path / "merged"
+    assert main(["merge", *map(str, ins), "--adcs", str(d / "adcs.csv"), "--out", f"{out}/"]) == 2
+    assert "create it first" in capsys.readouterr().err
+    out.mkdir()
+    assert main(["merge", *map(str, ins), "--adcs", str(d / "adcs.csv"), "--out", f"{out}/"]) == 0
+    capsys.readouterr()
+    assert sorted(p.name for p in out.iterdir()) == ["a.csv", "b.csv"]
+    assert len(read_session(out / "b.csv")) == len(read_session(ins[1]))

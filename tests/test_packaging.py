@@ -54,8 +54,8 @@ def test_wheel_installs_only_magstack(tmp_path):
 
 
 def test_license_typing_marker_changelog_and_extras():
-    """Issue 26 "Packaging": the MIT licence pyproject names ships, the package is marked typed, the
-    empty `plot` extra is gone."""
+    """The MIT licence pyproject names ships, the package is marked typed, there is no empty `plot`
+    extra."""
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     assert project["license"] == {"text": "MIT"}
     text = (ROOT / "LICENSE").read_text()

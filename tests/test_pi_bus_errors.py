@@ -1,4 +1,4 @@
-"""Issue 26 "On the Raspberry Pi": without lgpio, or with a gpiochip that cannot be opened, the GPIO path
+"""On the Raspberry Pi: without lgpio, or with a gpiochip that cannot be opened, the GPIO path
 is one BusError (exit 4), not a ModuleNotFoundError or lgpio's own exception; the SPI open error names
 /dev/spidevB.C. Fake ``lgpio``/``spidev`` modules stand in for the Pi's."""
 from __future__ import annotations

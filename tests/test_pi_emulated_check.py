@@ -1,4 +1,4 @@
-"""hil/pi-emulated-check.sh (issue 26 "On the Raspberry Pi"): on a machine that cannot run it, it stops at once
+"""hil/pi-emulated-check.sh: on a machine that cannot run it, it stops at once
 with one line naming what is missing, exit 4. (The check itself needs root, mmdebstrap and a qemu-aarch64
 binfmt_misc handler and takes tens of minutes: it is run by hand, hil/README.md.)"""
 from __future__ import annotations

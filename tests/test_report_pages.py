@@ -1,4 +1,4 @@
-"""Issue 26 "Reports": the demo page and ``diagnose --report`` render whole: no label outside its
+"""Reports: the demo page and ``diagnose --report`` render whole: no label outside its
 figure, captions are text (no Python reprs), nothing wider than the page, spectra in one unit.
 
 The layout check runs everywhere (matplotlib text extents after layout); the browser check needs a
@@ -132,7 +132,7 @@ def test_pages_render_in_a_headless_browser_without_overflow(pages, tmp_path, wh
 
 
 def test_interrupted_report_leaves_no_empty_folder(tmp_path, monkeypatch):
-    """Issue 26 item 7: a report stopped before it was written left an empty folder behind."""
+    """A report stopped before it is written leaves no empty folder behind."""
     import magstack.ground.diagnose.figures as figs
 
     s = tmp_path / "s.csv"

@@ -1,4 +1,4 @@
-"""Streamed residual figures (issue 25, memory flat in rows): exact medians of replayed blocks, and the noise
+"""Streamed residual figures (memory flat in rows): exact medians of replayed blocks, and the noise
 floor, step diagnosis and RMSE of ``fit``'s block-wise path equal to the whole-array functions."""
 from __future__ import annotations
 

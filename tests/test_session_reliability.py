@@ -1,4 +1,4 @@
-"""Session file reliability (issue 17 items 3, 4, 5, 12; issue 11 fast reader): strict numbers,
+"""Session file reliability: strict numbers,
 closing line, same file twice, BOM, write errors naming the file, extra columns, and fuzzing
 (only SessionFileError may escape the reader)."""
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Simulators as faithful as the parts (issue 12): what a read returns must not depend on how often
+"""Simulators as faithful as the parts: what a read returns must not depend on how often
 the host touched the bus; the HMC5883L-family LOCK rule; the drivers' first read after open."""
 from __future__ import annotations
 

@@ -75,7 +75,7 @@ def test_effects_option_only_selected_effects(tmp_path):
     (["--program", "nope"], "invalid choice: 'nope'"),
     (["--seed", "-1"], "--seed"),
     (["--seconds", "-5"], "argument --seconds: must be within (0, 7776000] s, got '-5'"),
-    # issue 17 item 11: every option validated at parse time, the option named
+    # every option validated at parse time, the option named
     (["--t0", "inf"], "argument --t0: expected a finite number"),
     (["--t0", "nan"], "argument --t0: expected a finite number"),
     (["--t0", "-1"], "argument --t0: must be within [0, 4102444800] s"),

@@ -1,4 +1,4 @@
-"""Rotation-axis loci from attitude telemetry and the PSO refit on telemetry (issue 15)."""
+"""Rotation-axis loci from attitude telemetry and the PSO refit on telemetry."""
 from __future__ import annotations
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""Issue 26 item 3: start-up pays only for what a command uses. Checked on ``sys.modules`` of a fresh
+"""Start-up pays only for what a command uses. Checked on ``sys.modules`` of a fresh
 interpreter (no timing here; benchmarks/bench_startup.py measures the time)."""
 from __future__ import annotations
 
@@ -38,7 +38,7 @@ def test_on_board_flight_modules_import_no_scipy_stats():
 
 
 def test_a_refit_run_imports_no_statistics_plotting_demo_or_diagnosis(tmp_path):
-    # issue 25: a whole `magstack refit` process pays for the reader (pandas) and the fit, nothing else
+    # a whole `magstack refit` process pays for the reader (pandas) and the fit, nothing else
     from magstack.cli.main import main
 
     tele, out = tmp_path / "t.csv", tmp_path / "c.json"

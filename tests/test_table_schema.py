@@ -1,4 +1,4 @@
-"""Strict table reader (issue 17 item 2): the CRC covers exactly what is applied.
+"""Strict table reader: the CRC covers exactly what is applied.
 
 Each case is an edited table whose CRC was recomputed, so only the schema check can refuse it.
 Before the strict reader these files loaded (a duplicate "S" before the real one kept the CRC

@@ -1,4 +1,4 @@
-"""Widely used third-party drivers' register access sequences against the simulators (issue 12).
+"""Widely used third-party drivers' register access sequences against the simulators.
 
 A simulator is only useful when a driver that works on the real part also works on it. These
 tests replay, transfer by transfer, what two popular open-source drivers do on the bus, written

@@ -1,7 +1,7 @@
 # FROZEN BASELINE - FOR MEASUREMENT ONLY. Do not import from library code, do not edit, do not fix.
 #
-# A verbatim copy of sim/error_model.py at commit 6ca0cff (before the error model was restructured
-# into one stage per effect, sim/error_stages.py). benchmarks/bench_error_model.py times its
+# A verbatim copy of the single-function implementation of sim/error_model.py (the model before it was split
+# into one stage per effect, sim/error_stages.py; the git history holds it). benchmarks/bench_error_model.py times its
 # single-sample ``sense()`` beside the current one in the same process, and
 # tests/test_error_model_refactor.py checks the restructured model against it. Only this header
 # was added; its imports (magstack.drivers.errors, magstack.firmware.effects) resolve unchanged.

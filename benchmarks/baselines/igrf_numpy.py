@@ -1,4 +1,4 @@
-"""Plain vectorised degree-13 IGRF evaluation: the baseline of benchmarks/bench_igrf.py (issue 25).
+"""Plain vectorised degree-13 IGRF evaluation: the baseline of benchmarks/bench_igrf.py.
 
 The textbook form, no tuning: one loop over (n, m) on full-length arrays, Schmidt semi-normalised
 Legendre functions by the standard recursion, each sample's coefficients ``g_a + w (g_b - g_a)``.

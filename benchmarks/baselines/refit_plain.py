@@ -1,4 +1,4 @@
-"""The plain refit pipeline: the baseline of ``bench_refit.py --part plain`` (issue 25).
+"""The plain refit pipeline: the baseline of ``bench_refit.py --part plain``.
 
 What a refit of one telemetry file needs, written straight: pandas reads the whole file; currents
 by ``np.interp`` from their samples; the vectorised IGRF evaluation (``baselines/igrf_numpy.py``);

@@ -165,7 +165,7 @@ def run(args: argparse.Namespace) -> CommandResult:
         doc["windows"] = describe(args.window, args.drop_window, len(session), len(session) if not (
             args.window or args.drop_window) else int(sel.size))
         lines = d.text().splitlines()
-        if args.report:   # the folder appears with its page or not at all (Ctrl-C, SIGTERM: issue 26 item 7)
+        if args.report:   # the folder appears with its page or not at all (Ctrl-C, SIGTERM)
             from magstack.data.io import staged_directory
             from magstack.ground.diagnose.figures import write_report
             with staged_directory(args.report) as stage:

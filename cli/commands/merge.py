@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+from pathlib import Path
 
 from magstack.cli.options import finite_float, nonempty_path
 from magstack.cli.output import CommandResult
@@ -19,6 +21,18 @@ EXTRA = "ground"
 SHOWN_GAPS = 10
 
 
+def file_or_directory(text: str) -> Path:
+    """argparse type of ``--out``: an output file, or an existing directory (one output per input, same name)."""
+    if text.strip() and Path(text).is_dir():
+        return Path(text)
+    if text.endswith(("/", os.sep)):
+        raise argparse.ArgumentTypeError(f"directory {text!r} does not exist: create it first (mkdir -p {text})")
+    return nonempty_path(text)
+
+
+file_or_directory.is_output = True  # type: ignore[attr-defined]
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "merge", help="merge ADCS position/attitude into flight telemetry (refit input)",
@@ -28,7 +42,7 @@ def register(subparsers) -> None:
     p.add_argument("telemetry", nargs="+", metavar="TELEMETRY.csv", help="flight telemetry session files")
     p.add_argument("--adcs", required=True, action="append", metavar="ADCS.csv",
                    help="ADCS file (t_s, pos_ecef_x/y/z_km, q_body_eci_w/x/y/z); repeat for several")
-    p.add_argument("--out", required=True, type=nonempty_path, metavar="PATH",
+    p.add_argument("--out", required=True, type=file_or_directory, metavar="PATH",
                    help="output file (one telemetry file) or existing directory (one output per input, same name)")
     p.add_argument("--method", choices=METHODS, default="interpolate",
                    help="interpolate (position linear, attitude slerp; default) or nearest sample")

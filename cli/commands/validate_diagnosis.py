@@ -47,7 +47,7 @@ def run(args: argparse.Namespace) -> CommandResult:
         s = run_validation(args.out, seeds=args.seeds, n_null=args.nulls, duration_s=args.seconds,
                            on_session=lambda: pb.update(1), quick=args.quick)
     summary = Path(args.out) / "summary.md"
-    if s.get("interrupted"):   # Ctrl-C / SIGTERM / SIGHUP: what was done is written (issue 26 item 7)
+    if s.get("interrupted"):   # Ctrl-C / SIGTERM / SIGHUP: what was done is written
         done = s["sessions_completed"]
         lines = summary.read_text(encoding="utf-8").splitlines() if done else []
         lines.append(f"interrupted by {s['stopped_by']} after {done} of {s['sessions_planned']} sessions: " + (

@@ -1,4 +1,4 @@
-"""The batch fit and its held-out folds from per-piece R factors, in blocks of rows (issue 25).
+"""The batch fit and its held-out folds from per-piece R factors, in blocks of rows.
 
 Rows are cut into *pieces*: (session, time-block fold) pairs. One pass over the rows in blocks of
 :data:`CHUNK_ROWS` accumulates each piece's R factor of the weighted ``[X | Y]`` (QR, never normal

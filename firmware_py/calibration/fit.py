@@ -198,7 +198,7 @@ class FitOptions:
     held-out evidence (:func:`fit`); "off" never adds it (``terms`` can still name it).
 
     ``on_unidentifiable``: "hold" (the prior decides what the data cannot) or "refuse" (FitError naming the
-    parameters the prior determined). The coverage rules below no longer set values: they explain *why* a
+    parameters the prior determined). The coverage rules below set no values: they explain *why* a
     direction is left to the prior. Temperature terms need ``min_temp_span_c`` degC:
     ``temperature_gain`` on input axis j counts only samples with ``|B_j| >=
     field_present_uT`` (field and temperature must vary together), ``temperature_offset``

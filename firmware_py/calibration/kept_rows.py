@@ -1,4 +1,4 @@
-"""The rows of a fit's input that a mask keeps, without copying them (issue 25: fit memory flat in rows).
+"""The rows of a fit's input that a mask keeps, without copying them (fit memory flat in rows).
 
 A fit drops rows (NaN, a disqualifying flag, zero weight, a saturated reference, a reference step). Copying the
 kept rows of every column costs ~90 B per row; :class:`KeptRows` instead numbers the kept rows 0 .. n-1 and

@@ -12,7 +12,7 @@ sensor's, in the frame session's mount; the rotations are reported (with standar
 never written into the table. A new session (or a left-out one) gets the identity.
 
 Solver: Gauss-Newton on the stacked three-axis problem (the angles couple the output axes, so
-the per-axis problems of :mod:`fit` no longer separate). With the current rotations,
+the per-axis problems of :mod:`fit` do not separate). With the current rotations,
 ``b' = R_s^T B_ref`` is linear in a small correction ``delta_s``: ``b' = X theta + delta_s x b'``;
 the stacked system (rows of axis i weighted by 1/sigma_i, the per-axis residual RMS) is solved
 by least squares and ``R_s <- R_s R(delta_s)`` (``scipy.spatial.transform.Rotation``) until the

@@ -1,4 +1,4 @@
-"""Exact medians of a stream that can be replayed, in memory bounded independently of its length (issue 25).
+"""Exact medians of a stream that can be replayed, in memory bounded independently of its length.
 
 Radix selection on the bits of the values: float64 values map to unsigned 64-bit keys in the same order
 (:func:`order_keys`). The first pass counts the keys' top 16 bits (65,536 bins) and finds the bin holding the

@@ -1,4 +1,4 @@
-"""The fit's figures that need every residual, from residuals that arrive in blocks of rows (issue 25).
+"""The fit's figures that need every residual, from residuals that arrive in blocks of rows.
 
 In-sample and raw sums of squares, the noise floor (:func:`.fit.noise_floor`: MAD of residual differences
 ``lag_s`` apart within a session) and the step diagnosis (:func:`.steps.diagnose_steps`: a median threshold

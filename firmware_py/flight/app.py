@@ -6,7 +6,7 @@ the chip factory (``magstack.drivers.registry.open_chip``: the same code on the 
 buses), a calibration-table store and fixed-point corrector per channel, telemetry files per channel,
 the event log (``events.jsonl``), and the command spool. Telemetry rows, packets and event lines are
 written behind the rate groups (:mod:`.writer`): a writer thread on hardware, the idle slot between two
-slots in virtual time; ``write_behind=False`` writes them inside the cycle (the old path, kept as the
+slots in virtual time; ``write_behind=False`` writes them inside the cycle (the synchronous path: the
 benchmark's baseline and the tests' reference).
 """
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Sim-to-real gap diagnosis (issue 14): where the gap lies, which unmodelled catalogue effect causes
+"""Sim-to-real gap diagnosis: where the gap lies, which unmodelled catalogue effect causes
 it, how far it shrinks (docs/diagnosis.md).
 
 The core (every module here except ``validate`` and ``sim_adapter``) never imports the simulator's

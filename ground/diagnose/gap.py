@@ -1,9 +1,9 @@
 """The gap between a session and "the simulator", and the linear machinery to explain it.
 
-Two ways to say what the simulator is (issue 14):
+Two ways to say what the simulator is:
 
 * ``model`` (a): a set of calibration terms whose parameters are fitted to the session. The gap is
-  measured the way a simulator works, truth to sensor (issue 22): what remains of
+  measured the way a simulator works, truth to sensor: what remains of
   ``dut - model(ref, temp, currents)``; the target is the DUT reading and the base design holds the
   model's columns built by :class:`magstack.firmware.calibration.model.CalModel` from the *reference*
   (the forward form of the same terms). Without ``gain_matrix`` the gain is held at identity (target

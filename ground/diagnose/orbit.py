@@ -1,4 +1,4 @@
-"""Orbit telemetry as a diagnosis session (issue 22 item 4): the refit's reference and its error budget.
+"""Orbit telemetry as a diagnosis session: the refit's reference and its error budget.
 
 On orbit there is no reference magnetometer: the reference is the IGRF field at the GPS position rotated
 into the body frame by the attitude, exactly as ``refit`` computes it

@@ -1,4 +1,4 @@
-"""Datasheet priors in the diagnosis (issue 22 item 1): the calibration's chip priors and MAP estimator.
+"""Datasheet priors in the diagnosis: the calibration's chip priors and MAP estimator.
 
 A session cannot always determine the simulator's base parameters (one field level: gain and offset are one
 number per axis) nor tell two candidate effects apart (at one field level ``B_x dT`` *is* ``44 uT x dT``, so a

@@ -92,7 +92,7 @@ STRENGTHS: dict[str, tuple[Callable[[ErrorParams, float], ErrorParams], str]] = 
     "mount_rotation": (_scaled(1, mount_rotation_rad=lambda s: {1: s * np.array([2.0e-3, -1.5e-3, 1.0e-3]),
                                                                 2: s * np.array([-1.0e-3, 2.0e-3, -1.5e-3])}),
                        "assumed: a unit re-seated in a printed mount between power cycles, 1-2 mrad per axis "
-                       "(~0.1 uT at 50 uT); issue 13: the X->Z slope changed sign between real sessions"),
+                       "(~0.1 uT at 50 uT); on the AV-MagEval bench the X->Z slope changes sign between sessions"),
 }
 
 
@@ -101,7 +101,7 @@ STRENGTHS: dict[str, tuple[Callable[[ErrorParams, float], ErrorParams], str]] = 
 #: terms on the lagged temperature) must beat the same terms on the board temperature. (With eq3 as the model
 #: its first-order temperature gain alone already leaves 110 nT against a 31 nT floor on these sessions.)
 THERMAL_LAG_TAU_S = 180.0
-THERMAL_LAG_SOURCE = ("assumed: a die behind the board thermistor by 3 min (issue 22: real thermal runs show a lag of "
+THERMAL_LAG_SOURCE = ("assumed: a die behind the board thermistor by 3 min (real thermal runs show a lag of "
                       "minutes); temperature effects of the HMC1053 preset (-2700 ppm/degC, -140 nT/degC on X)")
 
 
@@ -111,7 +111,7 @@ def _thermal_lag_params(scale: float) -> ErrorParams:
 
 
 def _one_field_thermal(duration_s: float) -> ProgramTruth:
-    """X held at 44 uT while the unit cools from 80 to 38 degC (issue 22's real thermal run), one session."""
+    """X held at 44 uT while the unit cools from 80 to 38 degC (as in the AV-MagEval thermal run), one session."""
     tk = np.linspace(0.0, duration_s, 40)
     temp = 38.0 + 42.0 * np.exp(-3.0 * tk / duration_s)
     return ProgramTruth("one_field_thermal", duration_s, constant_field((44.0, 0.0, 0.0)), piecewise_linear(tk, temp),
@@ -162,7 +162,7 @@ SCENARIOS = {
 }
 
 
-#: Orbit telemetry cases (issue 22 item 4): the effects orbit data can show, diagnosed through the refit's
+#: Orbit telemetry cases: the effects orbit data can show, diagnosed through the refit's
 #: reference (IGRF at the position rotated by the attitude; ground/diagnose/orbit.py), two orbits of the
 #: tumbling programme at 0.5 Hz, three power cycles, housekeeping currents at their own rates.
 ORBIT_EFFECTS = ("temperature_gain", "temperature_offset", "interference", "drift", "time_skew")

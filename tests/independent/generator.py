@@ -23,7 +23,7 @@ import numpy as np
 
 #: Catalogue effects this generator can switch on (one at a time, on top of gain matrix + offset).
 #: ``gain`` and ``misalignment`` replace the always-on matrix by a pure scale / pure rotation.
-#: ``mount_rotation`` is in the catalogue on main since fe58249 (not yet on every branch).
+#: Each name is an effect of magstack's catalogue (firmware_py/effects.py).
 EFFECTS = ("time_skew", "interference", "mount_rotation", "misalignment", "gain", "cross_axis", "nonlinearity",
            "temperature_gain", "hysteresis", "temperature_offset", "drift", "session_offset")
 

@@ -1,10 +1,10 @@
 """Cross-check harness: independent sessions (generator.py) -> ``magstack diagnose --json`` -> judged
 against the generator's truth. Used by test_diagnosis_independent.py and run_matrix.py.
 
-Only magstack's public entry point is used (``magstack.cli.main.main``) and only the JSON keys issue 14
-fixes (``verdict``, ``baseline_rmse_nT``, ``after_rmse_nT``, ``noise_floor_nT``, ``ranking``,
+Only magstack's public entry point is used (``magstack.cli.main.main``) and only the JSON keys the diagnosis
+documents (``verdict``, ``baseline_rmse_nT``, ``after_rmse_nT``, ``noise_floor_nT``, ``ranking``,
 ``not_testable``, ``where``, ``parameters``); ``runner_up`` and ``distinguishable`` are read when present
-(the issue asks the diagnosis to name its runner-up and say how sure it is).
+(the diagnosis names its runner-up and says how sure it is).
 """
 from __future__ import annotations
 
@@ -22,12 +22,12 @@ from generator import Scenario, make_session
 MODEL_FOR = {"gain": "offset", "misalignment": "offset"}
 DEFAULT_MODEL = "gain_offset"
 
-#: JSON keys issue 14 fixes (top level and per ranking entry).
+#: JSON keys the diagnosis documents (top level and per ranking entry).
 STABLE_KEYS = ("verdict", "baseline_rmse_nT", "after_rmse_nT", "noise_floor_nT", "ranking", "not_testable", "where",
                "parameters")
 RANKING_KEYS = ("effect", "rmse_nT", "shrink", "significant")
 
-#: Targets (issue 14 asks 1.2x on the project's own generator; the brief for this harness 1.3x).
+#: Targets (1.2x on the project's own generator; 1.3x on this harness's).
 AFTER_OVER_NOISE_MAX = 1.3
 
 

@@ -1,4 +1,4 @@
-"""An orbit telemetry generator that shares no code with magstack (issue 22 item 4's independent check).
+"""An orbit telemetry generator that shares no code with magstack (the independent check of the orbit diagnosis).
 
 Circular 97.4 deg orbit at 520 km in GCRS; the Earth-fixed position by ERFA's celestial-to-terrestrial matrix
 (IAU 2006/2000A, UT1 = UTC, no polar motion); geodetic coordinates by ERFA; the field by ppigrf (IGRF, one date

@@ -1,5 +1,5 @@
 """``magstack diagnose`` on sessions from an independent generator (generator.py: pure numpy, its own
-physics, stimulus and CSV writer; nothing from magstack.sim). Issue 14: the diagnosis is judged on
+physics, stimulus and CSV writer; nothing from magstack.sim). The diagnosis is judged on
 sessions from generators that are not ours; here the truth is known.
 
 For every catalogue effect the generator can switch on: a session with that effect at a realistic
@@ -20,8 +20,8 @@ try:
 except ModuleNotFoundError as exc:   # only "the command does not exist" skips; any other import error fails
     if exc.name != "magstack.cli.commands.diagnose":
         raise
-    pytest.skip("magstack diagnose (issue 14) does not exist in this checkout: magstack.cli.commands.diagnose "
-                "is not importable; run against the diag branch (docs/diagnosis-independent.md)",
+    pytest.skip("magstack diagnose does not exist in this checkout: magstack.cli.commands.diagnose "
+                "is not importable (docs/diagnosis-independent.md)",
                 allow_module_level=True)
 
 from generator import EFFECTS as GENERATOR_EFFECTS  # noqa: E402
@@ -62,12 +62,6 @@ def _explain(o) -> str:
 #: Each is a known limit under work, run and reported as xfail (not strict: a fix shows as XPASS); remove the
 #: entry when it is fixed. Keyed by (test name, effect); effect None = any parameter.
 KNOWN_LIMITS: dict = {
-    # (session 4) the hysteresis case at seed 1 (109 -> 56 nT, ~6 grouped test units: not significant) is
-    # named since the block test uses one-block units next to the surrogate null model (surrogate.py)
-    # (session 5) after the data-chosen block length and the pinned-reference guard (issue 22 items 2, 10):
-    # nonlinearity at seed 3, x1, oracle excess 41 nT against a 47.6 nT floor, closes 71.2 -> 67.2 nT but is
-    # not significant (verdict none, not a wrong effect); named in session 4.
-    # (session 6) named again with the forward gap and sensor-space cubic columns: the known limit is gone.
 }
 
 

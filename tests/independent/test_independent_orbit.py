@@ -1,5 +1,5 @@
 """Orbit telemetry from a generator that shares no code with magstack (ppigrf + ERFA directly), diagnosed by the
-CLI through the refit's reference path (issue 22 item 4)."""
+CLI through the refit's reference path."""
 from __future__ import annotations
 
 import json
