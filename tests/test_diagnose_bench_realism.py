@@ -133,16 +133,18 @@ def _sweep_only_table():
 
 
 def test_a_thermal_run_against_a_sweep_only_table_keeps_the_temperature_gain_despite_a_prior_conflict():
-    """temperature_gain closes the gap (needing K_S[y,x] ~6 prior sd to carry Y's offset tempco); drift is
-    plausible but leaves three times the floor. A veto would hand the verdict to drift (whose held-out residual is
-    not kept while searching: it must be evaluated again). Weighed, the conflict leaves temperature_gain named."""
+    """temperature_gain closes the gap (needing Y's offset tempco K_O[y] a little beyond 3 prior sd of the hmc1053
+    prior); drift is plausible but leaves three times the floor. A veto would hand the verdict to drift (whose
+    held-out residual is not kept while searching: it must be evaluated again). Weighed, the conflict leaves
+    temperature_gain named; held within the prior it still closes the gap, so the conflict costs nothing here."""
     from test_diagnose import _table_diagnosis
     j = _table_diagnosis(_thermal_run(), _sweep_only_table()).to_dict()
     assert j["verdict"] == "temperature_gain", j["notes"]
     assert j["after_rmse_nT"] <= 1.2 * j["noise_floor_nT"]
     checks = {c["effect"]: c for c in j["prior_check"]}
     assert not checks["temperature_gain"]["plausible"] and checks["drift"]["plausible"]
-    assert checks["temperature_gain"]["constrained_rmse_nT"] > j["after_rmse_nT"]
+    assert checks["temperature_gain"]["constrained_rmse_nT"] <= 1.2 * j["noise_floor_nT"]
+    assert checks["drift"]["constrained_rmse_nT"] > 2 * j["noise_floor_nT"]
     assert any("prior conflict weighed, not a veto" in n and "data's verdict stands" in n for n in j["notes"]), \
         j["notes"]
 

@@ -7,6 +7,17 @@ drift or a thermal transient spans several), so the blocks are grouped into cons
 correlation) and the mean difference is tested against zero with a one-sided t test on the batch means.
 A candidate is adopted only when its improvement is significant at ``ALPHA`` *and* at least ``MIN_GAIN`` of the
 base's held-out sum of squares: within the noise, the simpler model stays.
+
+``scale_free=True`` (the refit's comparison of a candidate with the active table) adds the same t test on the log
+ratio of the batches' sums of squares: where the error's scale differs from block to block (an orbit's attitude and
+field change along it) the differences are dominated by the largest blocks, and with a handful of blocks a large but
+uneven improvement is not significant on them; the log ratios are. The two p values are combined by Bonferroni
+(twice the smaller), so the level stays ``ALPHA``.
+
+With fewer than ``MIN_BATCHES`` held-out blocks (an orbit refit over an hour or two) the blocks alone cannot carry
+the test; :func:`paired_test_over_parts` then pairs the blocks' ``PARTS_PER_BLOCK`` consecutive parts instead and the
+result says so (``parts_of``): the parts of one block are not independent, so such a result speaks for these blocks,
+not for time in general.
 """
 from __future__ import annotations
 
@@ -23,6 +34,8 @@ MIN_GAIN = 0.01
 MIN_BATCHES = 10
 #: Largest number of batches (more blocks: batches of several blocks).
 MAX_BATCHES = 40
+#: Parts a held-out block is scored in, so a test over few blocks can pair their parts.
+PARTS_PER_BLOCK = 10
 
 
 @dataclass(frozen=True)
@@ -36,10 +49,15 @@ class PairedTest:
     batches: int
     blocks: int
     significant: bool
+    scale_free: bool = False
+    parts_of: int = 0
 
     def describe(self) -> str:
-        return (f"held-out sum of squares {self.gain:+.1%} over {self.blocks} time blocks in {self.batches} batches, "
-                f"one-sided p = {self.p:.3g} (adopted when p <= {ALPHA:g} and the gain >= {MIN_GAIN:.0%})")
+        how = "differences and log ratios, Bonferroni" if self.scale_free else "differences"
+        over = (f"{self.blocks} parts of {self.parts_of} time blocks" if self.parts_of
+                else f"{self.blocks} time blocks")
+        return (f"held-out sum of squares {self.gain:+.1%} over {over} in {self.batches} batches, "
+                f"one-sided p = {self.p:.3g} ({how}; adopted when p <= {ALPHA:g} and the gain >= {MIN_GAIN:.0%})")
 
 
 class BlockSSE:
@@ -60,28 +78,61 @@ class BlockSSE:
             self.sse[kk] = self.sse.get(kk, 0.0) + v
 
 
-def paired_block_test(base: Mapping[tuple[int, int], float], cand: Mapping[tuple[int, int], float]) -> PairedTest:
-    """The paired test of ``cand`` against ``base`` over the blocks both predicted (see the module docstring)."""
-    from scipy.stats import t as student_t
+def _one_sided_t(x: np.ndarray) -> tuple[float, float]:
+    """t statistic of mean(x) > 0 and its one-sided p (Student, len(x) - 1 degrees of freedom)."""
+    from scipy.special import stdtr
 
+    sd, mean, n = float(np.std(x, ddof=1)), float(x.mean()), x.size
+    if sd == 0.0:
+        t = np.inf if mean > 0 else (0.0 if mean == 0 else -np.inf)
+    else:
+        t = mean / (sd / np.sqrt(n))
+    p = float(stdtr(n - 1, -t)) if np.isfinite(t) else (0.0 if t > 0 else 1.0)
+    return float(t), p
+
+
+def paired_block_test(base: Mapping[tuple[int, int], float], cand: Mapping[tuple[int, int], float],
+                      scale_free: bool = False) -> PairedTest:
+    """The paired test of ``cand`` against ``base`` over the blocks both predicted (see the module docstring)."""
     keys = sorted(set(base) & set(cand))
     if len(keys) < 3:
-        return PairedTest(0.0, 0.0, 1.0, 0, len(keys), False)
+        return PairedTest(0.0, 0.0, 1.0, 0, len(keys), False, scale_free)
     b = np.array([base[k] for k in keys])
     c = np.array([cand[k] for k in keys])
     d = b - c
     total = float(b.sum())
     gain = float(d.sum() / total) if total > 0 else 0.0
     nb = min(MAX_BATCHES, max(MIN_BATCHES, 1), len(keys))
-    batches = np.array([x.sum() for x in np.array_split(d, nb)])
-    sd = float(np.std(batches, ddof=1))
-    mean = float(batches.mean())
-    if sd == 0.0:
-        t = np.inf if mean > 0 else (0.0 if mean == 0 else -np.inf)
-    else:
-        t = mean / (sd / np.sqrt(nb))
-    p = float(student_t.sf(t, nb - 1)) if np.isfinite(t) else (0.0 if t > 0 else 1.0)
-    return PairedTest(gain, float(t), p, int(nb), len(keys), bool(p <= ALPHA and gain >= MIN_GAIN))
+    parts = np.array_split(np.arange(len(keys)), nb)
+    t, p = _one_sided_t(np.array([d[i].sum() for i in parts]))
+    if scale_free:
+        tiny = np.finfo(float).tiny
+        ratio = np.array([np.log(max(b[i].sum(), tiny) / max(c[i].sum(), tiny)) for i in parts])
+        t2, p2 = _one_sided_t(ratio)
+        if p2 < p:
+            t = t2
+        p = min(1.0, 2.0 * min(p, p2))
+    return PairedTest(gain, t, p, int(nb), len(keys), bool(p <= ALPHA and gain >= MIN_GAIN), scale_free)
+
+
+def paired_test_over_parts(base: Mapping[tuple[int, int], float], cand: Mapping[tuple[int, int], float],
+                           scale_free: bool = False) -> PairedTest:
+    """:func:`paired_block_test` on sums of squares keyed by block *part* (``(session, part)``, ``part //
+    PARTS_PER_BLOCK`` the block): over whole blocks when there are at least ``MIN_BATCHES`` of them, else over
+    their parts (``parts_of`` then holds the number of blocks)."""
+    def by_block(d: Mapping[tuple[int, int], float]) -> dict[tuple[int, int], float]:
+        out: dict[tuple[int, int], float] = {}
+        for (sess, part), v in d.items():
+            k = (sess, part // PARTS_PER_BLOCK)
+            out[k] = out.get(k, 0.0) + v
+        return out
+
+    b, c = by_block(base), by_block(cand)
+    n_blocks = len(set(b) & set(c))
+    if n_blocks >= MIN_BATCHES:
+        return paired_block_test(b, c, scale_free)
+    r = paired_block_test(base, cand, scale_free)
+    return PairedTest(r.gain, r.t, r.p, r.batches, r.blocks, r.significant, r.scale_free, n_blocks)
 
 
 class BlockGrams:

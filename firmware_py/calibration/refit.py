@@ -30,8 +30,10 @@ attitude coverage is reported (it explains which directions the orbit data could
 
 A candidate is proposed only if it passes :func:`cal_table.validate`, its held-out RMS (vector norm of the
 per-axis values) is below the active table's by more than ``min_improvement``, and the improvement is
-significant: a paired test over the held-out time blocks (:func:`.heldout_test.paired_block_test`, one-sided
-at ``ALPHA`` and at least ``MIN_GAIN`` of the active table's held-out sum of squares), from per-block Grams of
+significant: a paired test over the held-out time blocks (over their parts when there are few:
+:func:`.heldout_test.paired_test_over_parts`; on the
+differences and the log ratios of the blocks' sums of squares, one-sided at ``ALPHA`` with Bonferroni, and at least
+``MIN_GAIN`` of the active table's held-out sum of squares), from per-block Grams of
 the held-out rows (:class:`.heldout_test.BlockGrams`), so both tables are scored on the same blocks without
 another pass. A refit of the data a proposed table came from proposes nothing: within the noise, the active
 table stays.
@@ -58,7 +60,13 @@ from magstack.firmware import cal_table
 from magstack.firmware.calibration.coverage_bins import N_BINS, AttitudeCoverage
 from magstack.firmware.calibration.estimator import Prior, model_prior
 from magstack.firmware.calibration.fit import FitOptions, FitResult
-from magstack.firmware.calibration.heldout_test import BlockGrams, BlockSSE, PairedTest, paired_block_test
+from magstack.firmware.calibration.heldout_test import (
+    PARTS_PER_BLOCK,
+    BlockGrams,
+    BlockSSE,
+    PairedTest,
+    paired_test_over_parts,
+)
 from magstack.firmware.calibration.housekeeping import MAX_GAP_S, interpolate_currents
 from magstack.firmware.calibration.model import FLIGHT_TERMS, FLOAT_ONLY_TERMS, CalModel, resolve_terms
 from magstack.firmware.calibration.predictive import from_holdout
@@ -369,7 +377,7 @@ def _block_pass(st: PassStats, blk: telemetry.TelemetryBlock, plan: Plan, theta,
         st.hold.add(*held)
         if held[0].shape[0]:
             X = plan.model.design(held[0], held[2], held[3], held[4], held[5])
-            st.hold_blocks.add(np.zeros(X.shape[0], np.int64), holdout_block(held[5], plan.options), X, held[1])
+            st.hold_blocks.add(np.zeros(X.shape[0], np.int64), holdout_part(held[5], plan.options), X, held[1])
         if cache is not None:
             cache.add(blk.path, arrays)
     else:
@@ -379,6 +387,12 @@ def _block_pass(st: PassStats, blk: telemetry.TelemetryBlock, plan: Plan, theta,
 def holdout_block(t_s: np.ndarray, options: RefitOptions) -> np.ndarray:
     """The held-out time block of each row (absolute time: independent of files and blocks)."""
     return np.floor(np.asarray(t_s) / options.holdout_block_s).astype(np.int64)
+
+
+def holdout_part(t_s: np.ndarray, options: RefitOptions) -> np.ndarray:
+    """The part of its held-out block each row falls in (``PARTS_PER_BLOCK`` per block; ``part //
+    PARTS_PER_BLOCK`` is :func:`holdout_block`), the unit of the paired held-out test."""
+    return np.floor(np.asarray(t_s) / (options.holdout_block_s / PARTS_PER_BLOCK)).astype(np.int64)
 
 
 def holdout_rms(R: np.ndarray, theta: np.ndarray, model: CalModel, n: int) -> np.ndarray:
@@ -622,8 +636,8 @@ def refit(paths: Sequence[str], active: cal_table.CalTable | None = None, option
         reasons.append(f"only {hold.n_used} held-out rows (need {options.min_holdout_rows})")
     nc, na = float(np.linalg.norm(h_cand)), float(np.linalg.norm(h_act))
     mask = plan.model.axis_mask()
-    test = paired_block_test(first.hold_blocks.sse(np.where(mask, plan.theta_active, 0.0)),
-                             first.hold_blocks.sse(np.where(mask, res.theta, 0.0)))
+    test = paired_test_over_parts(first.hold_blocks.sse(np.where(mask, plan.theta_active, 0.0)),
+                                  first.hold_blocks.sse(np.where(mask, res.theta, 0.0)), scale_free=True)
     stats_doc["paired_test"] = _test_dict(test)
     table = dataclasses.replace(table, fit_stats=stats_doc)
     if not nc < na * (1.0 - options.min_improvement):
@@ -648,7 +662,8 @@ def _test_dict(test: PairedTest | None) -> dict | None:
     from magstack.firmware.calibration.heldout_test import ALPHA, MIN_GAIN
 
     return {"gain": test.gain, "t": test.t, "p": test.p, "blocks": test.blocks, "batches": test.batches,
-            "significant": test.significant, "alpha": ALPHA, "min_gain": MIN_GAIN}
+            "significant": test.significant, "scale_free": test.scale_free, "parts_of_blocks": test.parts_of,
+            "alpha": ALPHA, "min_gain": MIN_GAIN}
 
 
 __all__ = ["RefitOptions", "RefitResult", "Selection", "Plan", "PassStats", "refit", "file_pass", "make_plan",
@@ -818,12 +833,12 @@ def refit_scalar_telemetry(paths: Sequence[str], active: cal_table.CalTable | No
         ea = (np.linalg.norm(plan.model.predict(plan.theta_active, xh), axis=1) - r) ** 2
         cand_sq += float(np.sum(ec))
         act_sq += float(np.sum(ea))
-        blk = holdout_block(th, options)
+        blk = holdout_part(th, options)
         cand_blocks.add(np.zeros(blk.size, np.int64), blk, ec)
         act_blocks.add(np.zeros(blk.size, np.int64), blk, ea)
     hc = math.sqrt(cand_sq / max(n_hold, 1))
     ha = math.sqrt(act_sq / max(n_hold, 1))
-    test = paired_block_test(act_blocks.sse, cand_blocks.sse)
+    test = paired_test_over_parts(act_blocks.sse, cand_blocks.sse, scale_free=True)
     table = fit.to_table(device, description=f"on-orbit refit ({method}, IGRF-14 magnitude) vs {active_name}")
     reasons = []
     val = cal_table.validate(table)
