@@ -58,38 +58,45 @@ def parse_name(name: str) -> tuple[str, int, str | None]:
     return m.group(1), AXES.index(m.group(2)), m.group(3)
 
 
-def features(names: Sequence[str], b_uT: np.ndarray, dT: np.ndarray,
-             currents_A: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
-    """(N, k) values of the features that multiply the parameters ``names`` (one axis's)."""
-    b = np.asarray(b_uT, dtype=float).reshape(-1, 3)
-    n = b.shape[0]
+def features_t(names: Sequence[str], b_uT: np.ndarray, dT: np.ndarray,
+               currents_A: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
+    """(k, N) values of the features that multiply the parameters ``names`` (one axis's), one row per feature
+    (each written and read contiguously)."""
+    bt = np.ascontiguousarray(np.asarray(b_uT, dtype=float).reshape(-1, 3).T)
+    n = bt.shape[1]
     dT = np.broadcast_to(np.asarray(dT, dtype=float), (n,))
-    out = np.empty((n, len(names)))
+    out = np.empty((len(names), n))
     for k, nm in enumerate(names):
         p, i, j = parse_name(nm)
         if p == "S":
-            out[:, k] = b[:, AXES.index(j)]
+            out[k] = bt[AXES.index(j)]
         elif p == "K_S":
-            out[:, k] = b[:, AXES.index(j)] * dT
+            np.multiply(bt[AXES.index(j)], dT, out=out[k])
         elif p == "K_S2":
-            out[:, k] = b[:, i] * dT * dT
+            out[k] = bt[i] * dT * dT
         elif p == "K_S3":
-            out[:, k] = b[:, i] * dT * dT * dT
+            out[k] = bt[i] * dT * dT * dT
         elif p == "O":
-            out[:, k] = 1.0
+            out[k] = 1.0
         elif p == "K_O":
-            out[:, k] = dT
+            out[k] = dT
         elif p == "c3":
-            out[:, k] = b[:, i] ** 3
+            out[k] = bt[i] ** 3
         elif p == "P":
             a, c = _PAIRS[j]
-            out[:, k] = b[:, a] * b[:, c]
+            np.multiply(bt[a], bt[c], out=out[k])
         else:
             cur = (currents_A or {}).get(p[2:])
             if cur is None:
                 raise ValueError(f"current {p[2:]!r} needed for {nm}")
-            out[:, k] = np.broadcast_to(np.asarray(cur, dtype=float), (n,))
+            out[k] = np.broadcast_to(np.asarray(cur, dtype=float), (n,))
     return out
+
+
+def features(names: Sequence[str], b_uT: np.ndarray, dT: np.ndarray,
+             currents_A: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
+    """(N, k) values of the features that multiply the parameters ``names`` (one axis's)."""
+    return features_t(names, b_uT, dT, currents_A).T
 
 
 def _chol(C: np.ndarray) -> np.ndarray:
@@ -137,8 +144,8 @@ class Predictive:
         out = np.empty((n, 3))
         with np.errstate(invalid="ignore"):
             for i in range(3):
-                F = features(self.names[i], b, t - self.t0_c, currents_A)
-                out[:, i] = np.maximum(np.sum((F @ self.cov[i]) * F, axis=1), 0.0)   # f_n^T C f_n per row
+                Ft = features_t(self.names[i], b, t - self.t0_c, currents_A)
+                out[:, i] = np.maximum(np.einsum("kn,kn->n", self.cov[i] @ Ft, Ft), 0.0)   # f_n^T C f_n per row
             return out
 
     def disc_var_uT2(self, b_uT, temp_c) -> np.ndarray:
@@ -234,10 +241,54 @@ class Predictive:
         out = sorted(out, key=lambda kv: -abs(kv[1]))[:top]
         return [(k, float(np.sign(v) * np.sqrt(abs(v)) * 1e3)) for k, v in out]
 
+    def to_readings(self, b_cal_uT: np.ndarray, temps_c: np.ndarray) -> np.ndarray:
+        """(n_T, m, 3) the readings that calibrate to ``b_cal_uT`` (m, 3) at each of ``temps_c`` (n_T,):
+        :meth:`to_reading` for many temperatures at once."""
+        b = np.asarray(b_cal_uT, dtype=float).reshape(-1, 3)
+        t = np.asarray(temps_c, dtype=float).reshape(-1)
+        if self.calibration is None:
+            return np.broadcast_to(b, (t.size, *b.shape))
+        S, K_S, K_S2, O, K_O = self.calibration
+        dT = (t - self.t0_c)[:, None, None]
+        G = S[None] + K_S[None] * dT + np.diag(K_S2)[None] * dT * dT
+        rhs = b[None, :, :] - (O[None, :] + K_O[None, :] * dT[:, :, 0])[:, None, :]
+        return np.linalg.solve(G, np.swapaxes(rhs, 1, 2)).swapaxes(1, 2)
+
     def worst_over_region_uT(self, temps_c: Sequence[float], field_axes_uT: Sequence[float],
                              field_norm_uT: float = math.inf,
-                             currents_A: Mapping[str, tuple[float, float]] | None = None) -> float:
-        return max(self.worst_vector_sd_uT(t, field_axes_uT, field_norm_uT, currents_A) for t in temps_c)
+                             currents_A: Mapping[str, tuple[float, float]] | None = None,
+                             stop_above_uT: float = math.inf) -> float:
+        """:meth:`worst_vector_sd_uT`'s largest value over the temperatures ``temps_c`` (uT), the same points
+        evaluated for all temperatures in a few vectorised passes: the interval's ends first, then every 16th
+        temperature, then the rest. ``stop_above_uT``: return as soon as a value above it is found (the value
+        returned is then only known to exceed it)."""
+        t_all = np.asarray(temps_c, dtype=float).reshape(-1)
+        n = t_all.size
+        order = np.r_[[0, n - 1], np.arange(0, n, 16), np.arange(n)]
+        order = order[np.sort(np.unique(order, return_index=True)[1])]
+        cal = self._region_cal_points(field_axes_uT, field_norm_uT)
+        m = cal.shape[0]
+        corners = self._current_corners(currents_A)
+        noise = float(np.sum(self.noise_uT ** 2))
+        limit = stop_above_uT * stop_above_uT
+        worst = -np.inf
+        step = max(1, _ROWS_PER_PASS // max(m, 1))
+        cuts = sorted({0, min(2, n), min(2 + (n + 15) // 16, n), *range(2 + (n + 15) // 16, n, step), n})
+        for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+            t = t_all[order[a:b]]
+            pts = self.to_readings(cal, t).reshape(-1, 3)
+            tt = np.repeat(t, m)
+            base = self.disc_var_uT2(pts, tt).sum(axis=1) + noise
+            for corner in corners:
+                cur = {k: np.full(pts.shape[0], v) for k, v in corner.items()}
+                worst = max(worst, float(np.max(base + self.param_var_uT2(pts, tt, cur).sum(axis=1))))
+                if worst > limit:
+                    return float(np.sqrt(worst))
+        return float(np.sqrt(worst))
+
+
+#: Rows evaluated per vectorised pass of :meth:`Predictive.worst_over_region_uT` (memory ~ rows x features x 8 B).
+_ROWS_PER_PASS = 65536
 
 
 def _sphere(n: int) -> np.ndarray:
@@ -293,7 +344,7 @@ TEMP_STEP_C = 0.25
 
 def _ok(pred: Predictive, lo: float, hi: float, F, R: float, sd_max: float, currents) -> bool:
     n = max(2, int(math.ceil((hi - lo) / TEMP_STEP_C)) + 1)
-    return pred.worst_over_region_uT(np.linspace(lo, hi, n), F, R, currents) <= sd_max
+    return pred.worst_over_region_uT(np.linspace(lo, hi, n), F, R, currents, stop_above_uT=sd_max) <= sd_max
 
 
 def _bisect(ok, lo: float, hi: float, tol: float) -> float:
