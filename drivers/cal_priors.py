@@ -49,8 +49,9 @@ class CalPriors:
     K_S[i,j] (1/degC), ``k_o_uT_per_c`` K_O (uT/degC), ``current_uT_per_A`` D (uT/A), ``cubic_per_uT2`` c3,
     ``cross_products_per_uT`` P, ``k_s2_rel_per_c2`` the on-axis second-order sensitivity tempco relative to
     the fitted S (1/degC^2: K_S2[i] ~ k_s2_rel S[i,i]), ``k_s3_rel_per_c3`` its third order (1/degC^3; no table
-    term: it bounds, with the priors of the other terms a model leaves out, how far a table may extrapolate
-    in temperature), and the nuisance terms (``time_skew_s``, ``session_offset_uT``,
+    term: it bounds, with ``k_o2_uT_per_c2`` (the offset's second order, derived from the two tempcos) and the
+    priors of the other terms a model leaves out, how far a table may extrapolate in temperature), and the
+    nuisance terms (``time_skew_s``, ``session_offset_uT``,
     ``drift_uT_per_s``). ``operating_temp_c`` and ``field_range_uT`` bound a table's validity box.
     """
 
@@ -74,6 +75,17 @@ class CalPriors:
                                                         "small, its square smaller (1e-6 /degC^2 = 100 ppm at 10 degC)")
     k_s3_rel_per_c3: PriorValue = PriorValue(0.0, 1e-8, "[I] temperature-compensated part: third order of the "
                                                         "sensitivity tempco (1e-8 /degC^3 = 10 ppm at 10 degC)")
+
+    @property
+    def k_o2_uT_per_c2(self) -> PriorValue:
+        """The offset's second order in temperature (uT/degC^2; no table term: like ``k_s3_rel_per_c3`` it bounds
+        how far a table may extrapolate in temperature). An offset tempco ``k_o`` read through the sensitivity's
+        ``1/(1 + alpha dT)`` curves by ``alpha k_o dT^2``: sd = (|alpha| + its sd) x the K_O prior's sd."""
+        ks, ko = self.k_s_rel_per_c, self.k_o_uT_per_c
+        return PriorValue(0.0, (abs(ks.mean) + ks.sd) * ko.sd,
+                          "[I] second order of the offset: an offset tempco through the sensitivity tempco's "
+                          f"1/(1 + alpha dT) curves by alpha k_o dT^2; sd ({abs(ks.mean):.3g} + {ks.sd:.3g}) /degC "
+                          f"x {ko.sd:.3g} uT/degC")
 
 
 # Nuisance terms of bench sessions: loose on every part (the data decide them whenever they can).

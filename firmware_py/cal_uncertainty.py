@@ -7,7 +7,8 @@ sum of three parts, each per axis (uT^2):
 
 * **parameters** ``f_i^T C_i f_i``: the posterior covariance ``C_i`` of the table's flight parameters, its
   per-parameter inflation for slowly correlated residuals already applied by the fit, extended by the catalogue
-  terms the model *leaves out* (``left_out`` names such as ``K_S2[x]``, ``K_S3[x]``, ``c3[x]``, ``P[x,xy]``:
+  terms the model *leaves out* (``left_out`` names such as ``K_S2[x]``, ``K_S3[x]``, ``K_O2[x]``, ``c3[x]``,
+  ``P[x,xy]``:
   value 0 in the table, covariance = their prior, capped by what the data would have shown, projected past what
   the fitted terms absorb: :mod:`magstack.firmware.calibration.predictive`). Inside the data that part is
   small; beyond it, it is what grows with distance (the physics decides).
@@ -43,9 +44,9 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 AXES = ("x", "y", "z")
-_NAME = re.compile(r"^(S|K_S3|K_S2|K_S|O|K_O|c3|P|D_[A-Za-z0-9_]+)\[([xyz])(?:,(x|y|z|xy|xz|yz))?\]$")
+_NAME = re.compile(r"^(S|K_S3|K_S2|K_S|O|K_O2|K_O|c3|P|D_[A-Za-z0-9_]+)\[([xyz])(?:,(x|y|z|xy|xz|yz))?\]$")
 #: Parameters whose feature is affine in the field at a fixed temperature.
-LINEAR_PARAMS = ("S", "K_S", "K_S2", "K_S3", "O", "K_O")
+LINEAR_PARAMS = ("S", "K_S", "K_S2", "K_S3", "O", "K_O", "K_O2")
 _PAIRS = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2)}
 
 
@@ -80,6 +81,8 @@ def features_t(names: Sequence[str], b_uT: np.ndarray, dT: np.ndarray,
             out[k] = 1.0
         elif p == "K_O":
             out[k] = dT
+        elif p == "K_O2":
+            out[k] = dT * dT
         elif p == "c3":
             out[k] = bt[i] ** 3
         elif p == "P":

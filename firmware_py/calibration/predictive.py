@@ -24,7 +24,8 @@ block by block by the passes of the cross-fit (or once with whole arrays by the 
   on a one-field run is then correlated with the offset as it should be: right at the field the data had,
   uncertain by the gain's prior away from it.
 * **Terms the model leaves out** (:func:`left_out_terms`): catalogue terms not in the model (the sensitivity
-  tempco's second and third order, cubic nonlinearity, cross products), each with the part's prior. A left-out
+  tempco's second and third order, the offset's second order in temperature, cubic nonlinearity, cross
+  products), each with the part's prior. A left-out
   term ``c g(x)`` is partly absorbed by the fitted parameters, ``beta = C lam X'W g``; what remains at ``x`` is
   ``c h(x)``, ``h = g - f' beta``: small where the data pinned the model, growing beyond (two temperature
   plateaus absorb a tempco's curvature at the plateaus, not between or beyond them). The data cap ``c``: a term
@@ -343,6 +344,9 @@ def left_out_terms(model: CalModel, chip, s_diag: np.ndarray) -> list[LeftOut]:
                 out.append(LeftOut(f"K_S2[{a}]", i, pv.mean * s, pv.sd * s))
             pv = chip.k_s3_rel_per_c3
             out.append(LeftOut(f"K_S3[{a}]", i, pv.mean * s, pv.sd * s))
+        if "temperature_offset" in terms:
+            pv = chip.k_o2_uT_per_c2
+            out.append(LeftOut(f"K_O2[{a}]", i, pv.mean, pv.sd))
         if "cubic" not in terms:
             pv = chip.cubic_per_uT2
             out.append(LeftOut(f"c3[{a}]", i, pv.mean, pv.sd))
