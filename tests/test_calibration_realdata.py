@@ -21,7 +21,7 @@ DATA = Path(__file__).parent / "data" / "av-mageval"
 
 
 @pytest.fixture(scope="module")
-def bench():
+def session():
     from magstack.data.session import Session
     from magstack.ground import mageval_import as mi
     parts = []
@@ -29,7 +29,12 @@ def bench():
         dp, rp = DATA / d, DATA / r
         # the authors' pairing: fixed 4 h - 0.5 s clock correction, both onto a 0.25 s grid
         parts.append(mi.import_mageval(dp, rp, session_id=n, onto=0.25, clock_offset_s=mi.AUTHORS_OFFSET_S))
-    return FitData.from_session(Session.concatenate(parts))
+    return Session.concatenate(parts)
+
+
+@pytest.fixture(scope="module")
+def bench(session):
+    return FitData.from_session(session)
 
 
 @pytest.fixture(scope="module")
@@ -109,3 +114,24 @@ def test_mount_rotations_are_not_identifiable_on_single_axis_sweeps_and_say_why(
     assert r.rmse_norm_uT == pytest.approx(fits["eq3"].rmse_norm_uT, rel=1e-3)
     t = table_from_fit(r, "hmc1053:av-mageval-edu")
     assert "mount_rotation" not in t.terms and validate(t).ok
+
+
+def test_the_predictive_sd_states_the_error_of_a_steady_row_within_a_factor_1_5(fits, session):
+    """``cal_sigma_nT`` (parameters + discrepancy + noise, the sd of a calibrated sample's vector error) against
+    the error measured on the bench's steady rows (no reference change above 0.1 uT next to them, the rows the
+    fit used), in sample and on the fit's held-out time blocks: within a factor 1.5 both ways."""
+    from magstack.ground.apply_session import calibrate_session
+
+    r = fits["eq3"]
+    cal = calibrate_session(table_from_fit(r, "hmc1053:av-mageval-edu"), session, extrapolate=True)
+    step = np.r_[True, np.any(np.abs(np.diff(session.ref_uT, axis=0)) > 0.1, axis=1)]
+    steady = ~(step | np.r_[step[1:], True])
+    err = cal.dut_uT - session.ref_uT
+    ok = steady & np.all(np.isfinite(err), axis=1)
+    measured = float(np.sqrt(np.mean(np.sum(err[ok] ** 2, axis=1)))) * 1e3
+    held_out = float(np.linalg.norm(r.holdout_blocks_uT)) * 1e3
+    claimed = float(np.median(cal.extra["cal_sigma_nT"][ok]))
+    for figure in (measured, held_out):
+        assert 1 / 1.5 <= claimed / figure <= 1.5, (claimed, measured, held_out)
+    # the parameter part alone is what it says: far below a single sample's error
+    assert float(np.median(cal.extra["cal_param_sd_nT"][ok])) < 0.3 * measured
