@@ -151,6 +151,29 @@ class Predictive:
                 out[:, i] = np.maximum(np.einsum("kn,kn->n", self.cov[i] @ Ft, Ft), 0.0)   # f_n^T C f_n per row
             return out
 
+    def _param_var_corners(self, b_uT: np.ndarray, temp_c: np.ndarray, corners: Sequence[Mapping[str, float]]
+                           ) -> np.ndarray:
+        """(n_corners, N) the parameter part of the vector variance (summed over axes, uT^2) at each current corner.
+        A current enters only through its own feature, so per axis ``v(c) = f'C_ff f + 2 c'(C_cf f) + c'C_cc c``:
+        the field and temperature features are formed once for every corner."""
+        b = np.asarray(b_uT, dtype=float).reshape(-1, 3)
+        dT = np.asarray(temp_c, dtype=float).reshape(-1) - self.t0_c
+        out = np.zeros((len(corners), b.shape[0]))
+        for i in range(3):
+            names = self.names[i]
+            kinds = [parse_name(nm)[0] for nm in names]
+            jc = [k for k, p in enumerate(kinds) if p.startswith("D_")]
+            jf = [k for k, p in enumerate(kinds) if not p.startswith("D_")]
+            C = self.cov[i]
+            Ft = features_t([names[k] for k in jf], b, dT)
+            Cff = C[np.ix_(jf, jf)]
+            out += np.maximum(np.einsum("kn,kn->n", Cff @ Ft, Ft), 0.0)[None, :]
+            if jc:
+                cv = np.array([[c[kinds[k][2:]] for k in jc] for c in corners])          # (n_corners, n_cur)
+                cross = C[np.ix_(jc, jf)] @ Ft                                              # (n_cur, N)
+                out += 2.0 * cv @ cross + np.einsum("ck,kl,cl->c", cv, C[np.ix_(jc, jc)], cv)[:, None]
+        return out
+
     def disc_var_uT2(self, b_uT, temp_c) -> np.ndarray:
         """(N, 3) discrepancy part, uT^2 (0 when the table has none)."""
         b = np.asarray(b_uT, dtype=float).reshape(-1, 3)
@@ -261,10 +284,19 @@ class Predictive:
                              field_norm_uT: float = math.inf,
                              currents_A: Mapping[str, tuple[float, float]] | None = None,
                              stop_above_uT: float = math.inf) -> float:
-        """:meth:`worst_vector_sd_uT`'s largest value over the temperatures ``temps_c`` (uT), the same points
-        evaluated for all temperatures in a few vectorised passes: the interval's ends first, then every 16th
-        temperature, then the rest. ``stop_above_uT``: return as soon as a value above it is found (the value
-        returned is then only known to exceed it)."""
+        """:meth:`worst_vector_sd_uT`'s largest value over the temperatures ``temps_c`` (uT); ``stop_above_uT``:
+        return as soon as a value above it is found (see :meth:`worst_per_temperature_uT`)."""
+        v = self.worst_per_temperature_uT(temps_c, field_axes_uT, field_norm_uT, currents_A, stop_above_uT)
+        return max(v.values())
+
+    def worst_per_temperature_uT(self, temps_c: Sequence[float], field_axes_uT: Sequence[float],
+                                 field_norm_uT: float = math.inf,
+                                 currents_A: Mapping[str, tuple[float, float]] | None = None,
+                                 stop_above_uT: float = math.inf) -> dict[float, float]:
+        """``{temperature: worst predictive vector sd there (uT)}``, :meth:`worst_vector_sd_uT` for many
+        temperatures in a few vectorised passes (every current corner at once): the interval's ends first, then
+        every 16th temperature, then the rest. ``stop_above_uT``: stop after the first pass with a value above it
+        (the temperatures not reached are left out)."""
         t_all = np.asarray(temps_c, dtype=float).reshape(-1)
         n = t_all.size
         order = np.r_[[0, n - 1], np.arange(0, n, 16), np.arange(n)]
@@ -272,22 +304,22 @@ class Predictive:
         cal = self._region_cal_points(field_axes_uT, field_norm_uT)
         m = cal.shape[0]
         corners = self._current_corners(currents_A)
+        nc = len(corners)
         noise = float(np.sum(self.noise_uT ** 2))
-        limit = stop_above_uT * stop_above_uT
-        worst = -np.inf
-        step = max(1, _ROWS_PER_PASS // max(m, 1))
+        out: dict[float, float] = {}
+        step = max(1, _ROWS_PER_PASS // max(m * nc, 1))
         cuts = sorted({0, min(2, n), min(2 + (n + 15) // 16, n), *range(2 + (n + 15) // 16, n, step), n})
         for a, b in zip(cuts[:-1], cuts[1:], strict=True):
             t = t_all[order[a:b]]
             pts = self.to_readings(cal, t).reshape(-1, 3)
             tt = np.repeat(t, m)
             base = self.disc_var_uT2(pts, tt).sum(axis=1) + noise
-            for corner in corners:
-                cur = {k: np.full(pts.shape[0], v) for k, v in corner.items()}
-                worst = max(worst, float(np.max(base + self.param_var_uT2(pts, tt, cur).sum(axis=1))))
-                if worst > limit:
-                    return float(np.sqrt(worst))
-        return float(np.sqrt(worst))
+            var = (base[None, :] + self._param_var_corners(pts, tt, corners)).reshape(nc, t.size, m).max(axis=(0, 2))
+            sd = np.sqrt(np.maximum(var, 0.0))
+            out.update(zip(t.tolist(), sd.tolist(), strict=True))
+            if sd.max() > stop_above_uT:
+                break
+        return out
 
 
 #: Rows evaluated per vectorised pass of :meth:`Predictive.worst_over_region_uT` (memory ~ rows x features x 8 B).
@@ -345,9 +377,25 @@ def norm_sd_uT(sd_axes_uT: np.ndarray, b_cal_uT: np.ndarray) -> np.ndarray:
 TEMP_STEP_C = 0.25
 
 
-def _ok(pred: Predictive, lo: float, hi: float, F, R: float, sd_max: float, currents) -> bool:
-    n = max(2, int(math.ceil((hi - lo) / TEMP_STEP_C)) + 1)
-    return pred.worst_over_region_uT(np.linspace(lo, hi, n), F, R, currents, stop_above_uT=sd_max) <= sd_max
+def _grid(lo: float, hi: float) -> np.ndarray:
+    """The interval's ends and the multiples of ``TEMP_STEP_C`` between them (spacing <= TEMP_STEP_C), so the
+    grids of overlapping intervals share their temperatures."""
+    k0, k1 = math.ceil(lo / TEMP_STEP_C - 1e-9), math.floor(hi / TEMP_STEP_C + 1e-9)
+    return np.unique(np.r_[lo, TEMP_STEP_C * np.arange(k0, k1 + 1), hi])
+
+
+def _ok(pred: Predictive, lo: float, hi: float, F, R: float, sd_max: float, currents,
+        memo: dict | None = None) -> bool:
+    """Whether twice the worst predictive vector sd stays within the bound over ``[lo, hi]`` x the field
+    region; ``memo`` keeps each field region's per-temperature values between calls."""
+    temps = _grid(lo, hi)
+    seen = {} if memo is None else memo.setdefault((tuple(np.asarray(F, dtype=float).tolist()), float(R)), {})
+    if any(seen.get(t, -math.inf) > sd_max for t in temps.tolist()):
+        return False
+    todo = [t for t in temps.tolist() if t not in seen]
+    if todo:
+        seen.update(pred.worst_per_temperature_uT(todo, F, R, currents, stop_above_uT=sd_max))
+    return all(seen[t] <= sd_max for t in temps.tolist() if t in seen) and all(t in seen for t in todo)
 
 
 def _bisect(ok, lo: float, hi: float, tol: float) -> float:
@@ -388,6 +436,7 @@ def validity_region(pred: Predictive, bound_uT: float, *, centre_c: float, data_
     beyond it)."""
     sd_max = 0.5 * bound_uT
     notes: list[str] = []
+    memo: dict = {}                 # per field region, the worst sd at each temperature evaluated so far
     extremes = {k: max(abs(lo), abs(hi)) for k, (lo, hi) in (currents_A or {}).items()}
     tlo_lim, thi_lim = temp_limits_c
     c = min(max(centre_c, tlo_lim), thi_lim)
@@ -406,21 +455,21 @@ def validity_region(pred: Predictive, bound_uT: float, *, centre_c: float, data_
                      "parts there, nT: "
                      + ", ".join(f"{k} {v:.0f}" for k, v in pred.parts_nT(np.zeros(3), c, extremes)))
         return None, None, None, notes
-    if _ok(pred, dlo, dhi, Fm, Rm, sd_max, currents_A):
+    if _ok(pred, dlo, dhi, Fm, Rm, sd_max, currents_A, memo):
         Fd, Rd = Fm, Rm
-    elif _ok(pred, dlo, dhi, Fd, Rd, sd_max, currents_A):     # towards the largest fields the data had
-        u = _bisect(lambda u: _ok(pred, dlo, dhi, Fd + u * (Fm - Fd), Rd + u * (Rm - Rd), sd_max, currents_A),
+    elif _ok(pred, dlo, dhi, Fd, Rd, sd_max, currents_A, memo):     # towards the largest fields the data had
+        u = _bisect(lambda u: _ok(pred, dlo, dhi, Fd + u * (Fm - Fd), Rd + u * (Rm - Rd), sd_max, currents_A, memo),
                     0.0, 1.0, 0.01)
         Fd, Rd = Fd + u * (Fm - Fd), Rd + u * (Rm - Rd)
     else:
         t_w, b_w = pred.worst_point(np.linspace(dlo, dhi, 21), Fd, Rd, currents_A)
-        if _ok(pred, c, c, Fd, Rd, sd_max, currents_A):     # the data's fields hold at the centre: narrow T only
-            s = _bisect(lambda s: _ok(pred, c + s * (dlo - c), c + s * (dhi - c), Fd, Rd, sd_max, currents_A),
+        if _ok(pred, c, c, Fd, Rd, sd_max, currents_A, memo):     # the data's fields hold at the centre: narrow T only
+            s = _bisect(lambda s: _ok(pred, c + s * (dlo - c), c + s * (dhi - c), Fd, Rd, sd_max, currents_A, memo),
                         0.0, 1.0, 1e-3)
             what = f"{s:.0%} of its temperature half-width, its fields kept"
             dlo, dhi = c + s * (dlo - c), c + s * (dhi - c)
         else:                                                 # fields too, towards zero field at the centre
-            s = _bisect(lambda s: _ok(pred, c, c, s * Fd, s * Rd, sd_max, currents_A), 0.0, 1.0, 1e-3)
+            s = _bisect(lambda s: _ok(pred, c, c, s * Fd, s * Rd, sd_max, currents_A, memo), 0.0, 1.0, 1e-3)
             what = f"its centre temperature only, {s:.0%} of its fields"
             dlo, dhi, Fd, Rd = c, c, s * Fd, s * Rd
         parts = ", ".join(f"{k} {v:.0f}" for k, v in pred.parts_nT(b_w, t_w, extremes))
@@ -438,21 +487,21 @@ def validity_region(pred: Predictive, bound_uT: float, *, centre_c: float, data_
     def scaled(u: float) -> tuple[float, float, np.ndarray, float]:
         return dlo + u * t_span[0], dhi + u * t_span[1], Fd + u * (F_cap - Fd), Rd + u * (R_cap - Rd)
 
-    u = _bisect(lambda u: _ok(pred, *scaled(u), sd_max, currents_A), 0.0, 1.0, 1e-3)   # every direction at once
+    u = _bisect(lambda u: _ok(pred, *scaled(u), sd_max, currents_A, memo), 0.0, 1.0, 1e-3)   # every direction at once
     lo, hi, F, R = scaled(u)
     if has_temperature:                                        # then what is left, one direction at a time
-        lo = lo + _bisect(lambda v: _ok(pred, lo + v * (tlo_lim - lo), hi, F, R, sd_max, currents_A), 0.0, 1.0,
+        lo = lo + _bisect(lambda v: _ok(pred, lo + v * (tlo_lim - lo), hi, F, R, sd_max, currents_A, memo), 0.0, 1.0,
                           TEMP_STEP_C / max(lo - tlo_lim, 1e-9)) * (tlo_lim - lo)
-        hi = hi + _bisect(lambda v: _ok(pred, lo, hi + v * (thi_lim - hi), F, R, sd_max, currents_A), 0.0, 1.0,
+        hi = hi + _bisect(lambda v: _ok(pred, lo, hi + v * (thi_lim - hi), F, R, sd_max, currents_A, memo), 0.0, 1.0,
                           TEMP_STEP_C / max(thi_lim - hi, 1e-9)) * (thi_lim - hi)
     for j in range(3):
         def grow(x: float, j: int = j) -> bool:
             trial = F.copy()
             trial[j] = x
-            return _ok(pred, lo, hi, trial, R, sd_max, currents_A)
+            return _ok(pred, lo, hi, trial, R, sd_max, currents_A, memo)
         F[j] = _bisect(grow, F[j], F_cap[j], 0.5)
-    R = _bisect(lambda r: _ok(pred, lo, hi, F, r, sd_max, currents_A), R, max(R, min(R_cap, float(np.linalg.norm(F)))),
-                0.5)
+    R = _bisect(lambda r: _ok(pred, lo, hi, F, r, sd_max, currents_A, memo), R,
+                max(R, min(R_cap, float(np.linalg.norm(F)))), 0.5)
     if has_temperature:
         lo, hi = math.ceil(min(lo, dlo) * 100 - 1e-9) / 100, math.floor(max(hi, dhi) * 100 + 1e-9) / 100
     F = np.maximum(np.floor(F + 1e-9), np.ceil(Fd * 100 - 1e-9) / 100)

@@ -391,6 +391,12 @@ class LeftOutMoments:
         self.GtWG += G.T @ Gw
         self.sum_w += float(G.shape[0] if w is None else np.sum(w))
 
+    def merge(self, other: LeftOutMoments) -> LeftOutMoments:
+        self.XtWG += other.XtWG
+        self.GtWG += other.GtWG
+        self.sum_w += other.sum_w
+        return self
+
 
 def absorbed(post, XtWG: np.ndarray, terms: Sequence[LeftOut]) -> np.ndarray:
     """(m, p) ``beta`` per left-out parameter: what the fitted parameters of its axis absorb of its feature
@@ -601,12 +607,14 @@ def typical_sd(XtWX: np.ndarray, sum_w: float, cov: np.ndarray, noise_uT: np.nda
     return float(np.sqrt(tot))
 
 
-def from_holdout(post, R_hold: np.ndarray, n_hold: int, coverage) -> Uncertainty | None:
+def from_holdout(post, R_hold: np.ndarray, n_hold: int, coverage, terms: Sequence[LeftOut] = (),
+                 moments: LeftOutMoments | None = None, R_fit: np.ndarray | None = None) -> Uncertainty | None:
     """The predictive parts of a fit whose held-out rows are summarised by their R factor ``R_hold`` of the
     unweighted ``[X | Y]`` (the on-orbit refit, which keeps no time-ordered residuals): the posterior as it is
     (no slow-noise sandwich), the noise the fit's residual scale, and one discrepancy level per axis: the
     held-out mean squared residual minus the noise and the posterior's part on those rows, ``tr(C X_h'X_h)/n``.
-    None without held-out rows."""
+    ``terms`` the left-out terms with their ``moments`` over the fit rows and ``R_fit`` the fit rows' R factor:
+    their absorption and data cap as in :func:`assemble`. None without held-out rows."""
     if n_hold <= 0:
         return None
     m = post.model
@@ -633,5 +641,16 @@ def from_holdout(post, R_hold: np.ndarray, n_hold: int, coverage) -> Uncertainty
             "temp_range_c": [float(t_lo), float(t_hi)], "field_max_uT": float(coverage.norm_max_uT),
             "held_out_rows": int(n_hold)}
     ones = np.ones((3, p))
-    return Uncertainty(ones, C, SlowNoise(noise ** 2, np.zeros((3, 0)), np.zeros(3), []), [], np.zeros((0, p)),
-                       np.zeros(0), noise, disc, float(np.sqrt(typical)))
+    terms = list(terms) if moments is not None and R_fit is not None else []
+    beta, var = np.zeros((len(terms), p)), np.zeros(len(terms))
+    if terms:
+        beta = absorbed(post, moments.XtWG, terms)
+        Rf = R_fit[:, :p]
+        XtX_fit = Rf.T @ Rf
+        for k, t in enumerate(terms):      # the data's cap on each left-out term, as in assemble()
+            b = beta[k]
+            h2 = (moments.GtWG[k, k] - 2.0 * b @ moments.XtWG[:, k] + b @ XtX_fit @ b) / max(moments.sum_w, 1e-300)
+            resid2 = noise[t.axis] ** 2 + d0[t.axis]
+            var[k] = t.var if not h2 > 0 or resid2 <= 0 else min(t.var, resid2 / h2)
+    return Uncertainty(ones, C, SlowNoise(noise ** 2, np.zeros((3, 0)), np.zeros(3), []), terms, beta, var, noise,
+                       disc, float(np.sqrt(typical)))

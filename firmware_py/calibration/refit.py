@@ -69,7 +69,12 @@ from magstack.firmware.calibration.heldout_test import (
 )
 from magstack.firmware.calibration.housekeeping import MAX_GAP_S, interpolate_currents
 from magstack.firmware.calibration.model import FLIGHT_TERMS, FLOAT_ONLY_TERMS, CalModel, resolve_terms
-from magstack.firmware.calibration.predictive import from_holdout
+from magstack.firmware.calibration.predictive import (
+    LeftOutMoments,
+    from_holdout,
+    left_out_features,
+    left_out_terms,
+)
 from magstack.firmware.calibration.streaming import StreamingFit
 from magstack.firmware.errors import FitError
 from magstack.firmware.reference import frames, geomag
@@ -164,6 +169,7 @@ class Plan:
     options: RefitOptions
     theta_active: np.ndarray
     prior: Prior | None = None
+    left_out: tuple = ()                         # the catalogue terms the model leaves out (predictive.LeftOut)
 
 
 @dataclass
@@ -177,6 +183,7 @@ class PassStats:
     eclipse_rows: int = 0
     rows: int = 0
     hold_blocks: BlockGrams | None = None        # per held-out time block Grams (first pass)
+    left_moments: LeftOutMoments | None = None   # fit rows' design x left-out features (first pass)
     abs_resid_hist: np.ndarray = field(default_factory=lambda: np.zeros((3, HIST_EDGES_uT.size + 1), np.int64))
 
     def robust_scale_uT(self) -> np.ndarray | None:
@@ -197,6 +204,8 @@ class PassStats:
             self.hold.merge(other.hold)
         if self.hold_blocks is not None and other.hold_blocks is not None:
             self.hold_blocks.merge(other.hold_blocks)
+        if self.left_moments is not None and other.left_moments is not None:
+            self.left_moments.merge(other.left_moments)
         self.bins = self.bins.merge(other.bins)
         for k, v in other.counts.items():
             self.counts[k] = self.counts.get(k, 0) + v
@@ -216,7 +225,9 @@ def merge_stats(parts: Sequence[PassStats]) -> PassStats:
 def _new_stats(plan: Plan, first_pass: bool) -> PassStats:
     fo = FitOptions(holdout=False)
     return PassStats(StreamingFit(plan.model, fo), StreamingFit(plan.model, fo) if first_pass else None,
-                     AttitudeCoverage(), {}, hold_blocks=BlockGrams() if first_pass else None)
+                     AttitudeCoverage(), {}, hold_blocks=BlockGrams() if first_pass else None,
+                     left_moments=LeftOutMoments(plan.model.n_columns, len(plan.left_out))
+                     if first_pass and plan.left_out else None)
 
 
 def reference_block(blk: telemetry.TelemetryBlock, dut1_s: float = 0.0):
@@ -372,6 +383,9 @@ def _block_pass(st: PassStats, blk: telemetry.TelemetryBlock, plan: Plan, theta,
     if theta is None:
         arrays = _rows(blk, b_ref, cur, fit_rows)
         st.fit.add(*arrays)
+        if st.left_moments is not None and arrays[0].shape[0]:
+            X = plan.model.design(arrays[0], arrays[2], arrays[3], arrays[4], arrays[5])
+            st.left_moments.add(X, left_out_features(plan.left_out, arrays[0], arrays[2] - plan.model.t0_c))
         st.bins.update(b_ref[fit_rows], blk.temp_c[fit_rows])
         held = _rows(blk, b_ref, cur, use & held_out)
         st.hold.add(*held)
@@ -564,7 +578,10 @@ def make_plan(paths: Sequence[str], active: cal_table.CalTable, options: RefitOp
     extra = [t for t in active.terms if t in FLIGHT_TERMS + FLOAT_ONLY_TERMS and t != "currents"]
     terms = resolve_terms(options.model, extra, currents)
     model = CalModel(terms, currents, (), active.t0_c, 0.0, options.model)
-    return Plan(model, options, theta_from_table(model, active), prior_from_table(model, active))
+    from magstack.drivers.cal_priors import priors_for
+
+    left_out = tuple(left_out_terms(model, priors_for(active.device_id), np.diag(np.asarray(active.S, dtype=float))))
+    return Plan(model, options, theta_from_table(model, active), prior_from_table(model, active), left_out)
 
 
 def local_mapper(paths: Sequence[str], fn: Callable[[str], PassStats]) -> PassStats:
@@ -621,7 +638,8 @@ def refit(paths: Sequence[str], active: cal_table.CalTable | None = None, option
     h_cand = holdout_rms(hold.R, res.theta, plan.model, hold.n_used)
     h_act = holdout_rms(hold.R, plan.theta_active, plan.model, hold.n_used)
     if res.posterior is not None:
-        res.uncertainty = from_holdout(res.posterior, hold.R, hold.n_used, res.coverage)
+        res.uncertainty = from_holdout(res.posterior, hold.R, hold.n_used, res.coverage, plan.left_out,
+                                       first.left_moments, first.fit.R)
     table = cal_table.table_from_fit(res, device, description=f"on-orbit refit (attitude, IGRF-14) vs {active_name}")
     stats_doc = dict(table.fit_stats)
     stats_doc.update({"refit_method": "attitude", "holdout_rms_candidate_uT": h_cand.tolist(),
