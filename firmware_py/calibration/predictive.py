@@ -30,7 +30,8 @@ block by block by the passes of the cross-fit (or once with whole arrays by the 
   ``c h(x)``, ``h = g - f' beta``: small where the data pinned the model, growing beyond (two temperature
   plateaus absorb a tempco's curvature at the plateaus, not between or beyond them). The data cap ``c``: a term
   whose RMS over the fit rows, ``|c| sqrt(mean h^2)``, reached the residual's own sd (noise and discrepancy)
-  would have shown in the held-out residuals, so ``c_eff^2 = min(prior mean^2 + sd^2, (n^2 + d0) / mean h^2)``.
+  would have shown in the held-out residuals, so ``c_eff^2 = min(prior mean^2 + sd^2, (n^2 + d0) / mean h^2)``,
+  and an axis's terms together may not reach it either (their caps scaled down alike when they would).
   It enters the table's covariance as a rank-one extension over the features ``[f, g]``.
 * **Discrepancy** (:class:`HeldOutBins`, :func:`discrepancy`): held-out residuals of the time-block folds,
   binned by field magnitude and temperature; in each bin the mean squared residual minus the noise and the
@@ -585,13 +586,32 @@ def assemble(post, acc: Accumulated, noise_uT: np.ndarray, coverage, autocorr: b
     typical = typical_sd(acc.XtWX, max(coverage.sum_w, 1e-300), C, noise, disc, acc.bins)
     mo = acc.moments
     beta = absorbed(post, mo.XtWG, acc.terms)
-    var = np.zeros(len(acc.terms))
-    for k, t in enumerate(acc.terms):      # the data's cap on each left-out term (module docstring)
-        b = beta[k]
-        h2 = (mo.GtWG[k, k] - 2.0 * b @ mo.XtWG[:, k] + b @ acc.XtWX @ b) / max(mo.sum_w, 1e-300)
-        resid2 = noise[t.axis] ** 2 + (disc["d0_uT2"][t.axis] if disc else 0.0)
-        var[k] = t.var if not h2 > 0 or resid2 <= 0 else min(t.var, resid2 / h2)
+    resid2 = noise ** 2 + (np.asarray(disc["d0_uT2"], dtype=float) if disc else 0.0)
+    var = capped_left_var(acc.terms, beta, mo, acc.XtWX, resid2)
     return Uncertainty(infl, C, noise_model, list(acc.terms), beta, var, noise, disc, typical)
+
+
+def capped_left_var(terms: Sequence[LeftOut], beta: np.ndarray, mo: LeftOutMoments, XtWX: np.ndarray,
+                    resid2_uT2: np.ndarray) -> np.ndarray:
+    """(m,) ``c_eff^2`` of each left-out parameter: its prior's ``mean^2 + sd^2``, capped so that what the fitted
+    terms leave of it, ``h = g - f'beta``, has an RMS over the fit rows no larger than the residual's own sd
+    (``resid2_uT2`` per axis: noise and discrepancy) -- each term alone, then an axis's terms together (their
+    parts add in the residual: together they may not reach more than it either)."""
+    var = np.zeros(len(terms))
+    h2 = np.zeros(len(terms))
+    for k, t in enumerate(terms):
+        b = beta[k]
+        h2[k] = (mo.GtWG[k, k] - 2.0 * b @ mo.XtWG[:, k] + b @ XtWX @ b) / max(mo.sum_w, 1e-300)
+        r2 = float(resid2_uT2[t.axis])
+        var[k] = t.var if not h2[k] > 0 or r2 <= 0 else min(t.var, r2 / h2[k])
+    for i in range(3):
+        on = [k for k, t in enumerate(terms) if t.axis == i and h2[k] > 0]
+        total = float(sum(var[k] * h2[k] for k in on))
+        r2 = float(resid2_uT2[i])
+        if r2 > 0 and total > r2:
+            for k in on:
+                var[k] *= r2 / total
+    return var
 
 
 def typical_sd(XtWX: np.ndarray, sum_w: float, cov: np.ndarray, noise_uT: np.ndarray, disc: dict | None,
@@ -646,11 +666,6 @@ def from_holdout(post, R_hold: np.ndarray, n_hold: int, coverage, terms: Sequenc
     if terms:
         beta = absorbed(post, moments.XtWG, terms)
         Rf = R_fit[:, :p]
-        XtX_fit = Rf.T @ Rf
-        for k, t in enumerate(terms):      # the data's cap on each left-out term, as in assemble()
-            b = beta[k]
-            h2 = (moments.GtWG[k, k] - 2.0 * b @ moments.XtWG[:, k] + b @ XtX_fit @ b) / max(moments.sum_w, 1e-300)
-            resid2 = noise[t.axis] ** 2 + d0[t.axis]
-            var[k] = t.var if not h2 > 0 or resid2 <= 0 else min(t.var, resid2 / h2)
+        var = capped_left_var(terms, beta, moments, Rf.T @ Rf, noise ** 2 + d0)
     return Uncertainty(ones, C, SlowNoise(noise ** 2, np.zeros((3, 0)), np.zeros(3), []), terms, beta, var, noise,
                        disc, float(np.sqrt(typical)))
