@@ -485,6 +485,19 @@ def typical_sd_uT(result, pred) -> float:
     return pred.worst_vector_sd_uT(centre, F, cov.norm_max_uT / math.sqrt(3.0))
 
 
+def _one_blas_thread():
+    """:func:`magstack.firmware.blas.single_thread` where its libraries are installed (the ground tools), else a
+    no-op."""
+    import contextlib
+
+    try:
+        from magstack.firmware.blas import single_thread
+
+        return single_thread()
+    except ImportError:
+        return contextlib.nullcontext()
+
+
 def _validity_from_posterior(result, block: dict, validity_sd_uT: float | None, part_temp_c, part_field_uT: float,
                              currents: dict):
     """(temperature interval, per-axis field limits, field-magnitude limit, bound, sd limit, notes) where twice the
@@ -519,11 +532,12 @@ def _validity_from_posterior(result, block: dict, validity_sd_uT: float | None, 
         in_data = pred.worst_over_region_uT(temps, *max_region, currents)
         sd = min(max(VALIDITY_SD_FACTOR * typical, VALIDITY_SD_HEADROOM * in_data), VALIDITY_SD_CAP * typical)
     bound = 2.0 * sd
-    t_box, F, R, notes = validity_region(pred, bound, centre_c=centre, data_temp_c=data_t, data_field_uT=data_F,
-                                         data_norm_uT=data_R, temp_limits_c=lim, field_caps_uT=caps,
-                                         norm_cap_uT=norm_cap, currents_A=currents,
-                                         has_temperature=bool(set(TEMPERATURE_TERMS) & set(m.terms)),
-                                         data_field_max_uT=max_F, data_norm_max_uT=max_R)
+    with _one_blas_thread():        # many small products: BLAS threads only wait (firmware/blas.py)
+        t_box, F, R, notes = validity_region(pred, bound, centre_c=centre, data_temp_c=data_t, data_field_uT=data_F,
+                                             data_norm_uT=data_R, temp_limits_c=lim, field_caps_uT=caps,
+                                             norm_cap_uT=norm_cap, currents_A=currents,
+                                             has_temperature=bool(set(TEMPERATURE_TERMS) & set(m.terms)),
+                                             data_field_max_uT=max_F, data_norm_max_uT=max_R)
     if not pred.complete:
         notes.append("the fit gave no noise or discrepancy estimate (no held-out folds): the predictive sd is the "
                      "parameter part only")
