@@ -217,14 +217,9 @@ class Predictive:
         """(m,) the predictive vector variance (uT^2) at the calibrated points ``cal`` (m, 3), worst over the
         current corners, and the readings (m, 3) they map to."""
         pts = self.to_reading(cal, temp_c)
-        m = pts.shape[0]
-        t = np.full(m, temp_c)
-        best = np.full(m, -np.inf)
+        t = np.full(pts.shape[0], temp_c)
         base = self.disc_var_uT2(pts, t).sum(axis=1) + float(np.sum(self.noise_uT ** 2))
-        for corner in self._current_corners(currents_A):
-            cur = {k: np.full(m, v) for k, v in corner.items()}
-            best = np.maximum(best, base + self.param_var_uT2(pts, t, cur).sum(axis=1))
-        return best, pts
+        return base + self._param_var_corners(pts, t, self._current_corners(currents_A)).max(axis=0), pts
 
     # ------------------------------------------------------------------ worst case over a field region
     def worst_vector_sd_uT(self, temp_c: float, field_axes_uT: Sequence[float], field_norm_uT: float = math.inf,

@@ -357,24 +357,8 @@ def map_solve(R: np.ndarray, n: int, model: CalModel, prior: Prior, kappa=None,
     und: list[tuple[int, int]] = []
     with single_thread():
         for i in range(3):
-            var = np.diag(prior.cov[i])
-            if sigma_uT is not None:
-                s = float(sigma_uT[i])
-                fixed_sigma = True
-            else:
-                s0, rank = _min_norm_sse(R, p, i, mask[i], prior.mean[i], var)
-                s = float(np.sqrt(s0 / max(n - rank, 1)))
-                fixed_sigma = False
-            s = s if s > 0 else 1e-9
-            for _ in range(MAX_SIGMA_ITER):
-                sol = _axis_map(R, p, i, mask[i], prior.mean[i], prior.cov[i], 1.0 / (s * s * kap[i]))
-                if fixed_sigma:
-                    break
-                new = float(np.sqrt(sol.sse / max(n - sol.trace_h, 1.0)))
-                new = new if new > 0 else 1e-9
-                if abs(new - s) <= SIGMA_RTOL * s:
-                    break
-                s = new
+            sol, s = _sigma_map(R, p, i, mask[i], prior.mean[i], prior.cov[i], n, kap[i],
+                                None if sigma_uT is None else float(sigma_uT[i]))
             theta[i], cov[i], sse[i], cond[i] = sol.theta, sol.cov, sol.sse, sol.cond
             dof[i] = n - sol.trace_h
             sig[i] = s
@@ -399,21 +383,29 @@ def map_solve_one(R: np.ndarray, n: int, mean: np.ndarray, cov: np.ndarray, kapp
     mask = np.ones(q, dtype=bool)
     kap = max(float(kappa), 1.0)
     with single_thread():
-        if sigma is None:
-            s0, rank = _min_norm_sse(R, q, 0, mask, mean, np.diag(cov))
-            s = float(np.sqrt(s0 / max(n - rank, 1)))
-        else:
-            s = float(sigma)
-        s = s if s > 0 else 1e-9
-        for _ in range(MAX_SIGMA_ITER):
-            sol = _axis_map(R, q, 0, mask, mean, cov, 1.0 / (s * s * kap))
-            if sigma is not None:
-                break
-            new = float(np.sqrt(sol.sse / max(n - sol.trace_h, 1.0)))
-            new = new if new > 0 else 1e-9
-            if abs(new - s) <= SIGMA_RTOL * s:
-                break
-            s = new
+        return _sigma_map(R, q, 0, mask, mean, cov, n, kap, None if sigma is None else float(sigma))
+
+
+def _sigma_map(R: np.ndarray, p: int, i: int, mask: np.ndarray, mean: np.ndarray, cov: np.ndarray, n: int,
+               kap: float, sigma: float | None):
+    """One output's MAP (:func:`_axis_map`) with its residual scale: ``sigma`` when known, else started from the
+    minimum-norm residual and iterated ``sigma^2 = SSE / (n - tr H)`` to ``SIGMA_RTOL``. Returns (solution,
+    sigma)."""
+    if sigma is None:
+        s0, rank = _min_norm_sse(R, p, i, mask, mean, np.diag(cov))
+        s = float(np.sqrt(s0 / max(n - rank, 1)))
+    else:
+        s = sigma
+    s = s if s > 0 else 1e-9
+    for _ in range(MAX_SIGMA_ITER):
+        sol = _axis_map(R, p, i, mask, mean, cov, 1.0 / (s * s * kap))
+        if sigma is not None:
+            break
+        new = float(np.sqrt(sol.sse / max(n - sol.trace_h, 1.0)))
+        new = new if new > 0 else 1e-9
+        if abs(new - s) <= SIGMA_RTOL * s:
+            break
+        s = new
     return sol, s
 
 
