@@ -108,6 +108,35 @@ def _chol(C: np.ndarray) -> np.ndarray:
     return V * np.sqrt(np.maximum(w, 0.0))          # L with L L^T = C (PSD, no jitter needed)
 
 
+#: The polynomial features' monomials of the reading, by component: ``c3`` -> ``b_i^3``, ``P`` -> ``b_a b_c``.
+_MONOMIALS = ((0, 0, 0), (1, 1, 1), (2, 2, 2), (0, 1), (0, 2), (1, 2))
+
+
+def _feature_layout(names_per_axis: Sequence[Sequence[str]]) -> list[dict]:
+    """Per axis, the features sorted by form: ``jf`` the affine ones (``dT^pw`` times entry ``col`` of
+    ``[b_x, b_y, b_z, 1]``), ``jn`` the polynomial ones with their ``mono`` (index into ``_MONOMIALS``), ``jc``
+    the currents with their names."""
+    power = {"S": 0, "K_S": 1, "K_S2": 2, "K_S3": 3, "O": 0, "K_O": 1, "K_O2": 2}
+    out = []
+    for names in names_per_axis:
+        lay: dict = {"col": [], "pw": [], "jf": [], "jn": [], "mono": [], "jc": [], "cur": []}
+        for k, nm in enumerate(names):
+            p, i, j = parse_name(nm)
+            if p.startswith("D_"):
+                lay["jc"].append(k)
+                lay["cur"].append(p[2:])
+            elif p in power:
+                lay["jf"].append(k)
+                lay["pw"].append(power[p])
+                lay["col"].append(3 if p in ("O", "K_O", "K_O2") else AXES.index(j) if p in ("S", "K_S") else i)
+            else:
+                lay["jn"].append(k)
+                lay["mono"].append(_MONOMIALS.index((i, i, i) if p == "c3" else _PAIRS[j]))
+        out.append({k: np.array(v, dtype=np.int64) if k in ("col", "pw", "jf", "jn", "mono") else v
+                    for k, v in lay.items()})
+    return out
+
+
 class Predictive:
     """The predictive variance of a table's calibrated samples, from its ``posterior`` block.
 
@@ -127,6 +156,13 @@ class Predictive:
         self.noise_uT = np.asarray(posterior.get("noise_uT", (0.0, 0.0, 0.0)), dtype=float).reshape(3)
         self.disc = dict(posterior["discrepancy"]) if posterior.get("discrepancy") else None
         self.complete = "noise_uT" in posterior and self.disc is not None
+        self._layout = _feature_layout(self.names)
+        self._qnn = np.zeros((len(_MONOMIALS), len(_MONOMIALS)))     # the polynomial features' form, all axes
+        for C, lay in zip(self.cov, self._layout, strict=True):
+            jf, jn, jc = lay["jf"], lay["jn"], np.array(lay["jc"], dtype=np.int64)
+            lay["blocks"] = {"ff": C[np.ix_(jf, jf)], "fn": C[np.ix_(jf, jn)], "cf": C[np.ix_(jc, jf)],
+                             "cn": C[np.ix_(jc, jn)], "cc": C[np.ix_(jc, jc)]}
+            np.add.at(self._qnn, np.ix_(lay["mono"], lay["mono"]), C[np.ix_(jn, jn)])
 
     def to_reading(self, b_cal_uT: np.ndarray, temp_c: float) -> np.ndarray:
         """(m, 3) the readings that calibrate to ``b_cal_uT`` (m, 3) at ``temp_c`` (the table's affine part)."""
@@ -150,29 +186,6 @@ class Predictive:
                 Ft = features_t(self.names[i], b, t - self.t0_c, currents_A)
                 out[:, i] = np.maximum(np.einsum("kn,kn->n", self.cov[i] @ Ft, Ft), 0.0)   # f_n^T C f_n per row
             return out
-
-    def _param_var_corners(self, b_uT: np.ndarray, temp_c: np.ndarray, corners: Sequence[Mapping[str, float]]
-                           ) -> np.ndarray:
-        """(n_corners, N) the parameter part of the vector variance (summed over axes, uT^2) at each current corner.
-        A current enters only through its own feature, so per axis ``v(c) = f'C_ff f + 2 c'(C_cf f) + c'C_cc c``:
-        the field and temperature features are formed once for every corner."""
-        b = np.asarray(b_uT, dtype=float).reshape(-1, 3)
-        dT = np.asarray(temp_c, dtype=float).reshape(-1) - self.t0_c
-        out = np.zeros((len(corners), b.shape[0]))
-        for i in range(3):
-            names = self.names[i]
-            kinds = [parse_name(nm)[0] for nm in names]
-            jc = [k for k, p in enumerate(kinds) if p.startswith("D_")]
-            jf = [k for k, p in enumerate(kinds) if not p.startswith("D_")]
-            C = self.cov[i]
-            Ft = features_t([names[k] for k in jf], b, dT)
-            Cff = C[np.ix_(jf, jf)]
-            out += np.maximum(np.einsum("kn,kn->n", Cff @ Ft, Ft), 0.0)[None, :]
-            if jc:
-                cv = np.array([[c[kinds[k][2:]] for k in jc] for c in corners])          # (n_corners, n_cur)
-                cross = C[np.ix_(jc, jf)] @ Ft                                              # (n_cur, N)
-                out += 2.0 * cv @ cross + np.einsum("ck,kl,cl->c", cv, C[np.ix_(jc, jc)], cv)[:, None]
-        return out
 
     def disc_var_uT2(self, b_uT, temp_c) -> np.ndarray:
         """(N, 3) discrepancy part, uT^2 (0 when the table has none)."""
@@ -213,15 +226,99 @@ class Predictive:
         ivals = [tuple(sorted({float(x) for x in (currents_A or {}).get(c, (0.0, 0.0))})) for c in used]
         return [dict(zip(used, combo, strict=True)) for combo in itertools.product(*ivals)]
 
-    def _worst_at(self, temp_c: float, cal: np.ndarray, currents_A) -> tuple[np.ndarray, np.ndarray]:
-        """(m,) the predictive vector variance (uT^2) at the calibrated points ``cal`` (m, 3), worst over the
-        current corners, and the readings (m, 3) they map to."""
-        pts = self.to_reading(cal, temp_c)
-        t = np.full(pts.shape[0], temp_c)
-        base = self.disc_var_uT2(pts, t).sum(axis=1) + float(np.sum(self.noise_uT ** 2))
-        return base + self._param_var_corners(pts, t, self._current_corners(currents_A)).max(axis=0), pts
+    def _worst_at(self, temp_c: float, cal: np.ndarray, currents_A) -> np.ndarray:
+        """(m,) the predictive vector variance (uT^2) at the calibrated points ``cal`` (m, 3) at ``temp_c``, worst
+        over the current corners."""
+        return self._worst_var_forms(np.array([float(temp_c)]), cal, self._current_corners(currents_A))[0]
 
     # ------------------------------------------------------------------ worst case over a field region
+    # ------------------------------------------------------------------ the worst case as quadratic forms
+    def _reading_maps(self, temps_c: np.ndarray) -> np.ndarray:
+        """(n_T, 4, 4) ``M(T)`` with ``[b; 1] = M(T) [B_cal; 1]``: the reading that calibrates to ``B_cal`` at each
+        temperature (:meth:`to_reading`, affine)."""
+        t = np.asarray(temps_c, dtype=float).reshape(-1)
+        M = np.zeros((t.size, 4, 4))
+        M[:, 3, 3] = 1.0
+        if self.calibration is None:
+            M[:, :3, :3] = np.eye(3)
+            return M
+        S, K_S, K_S2, O, K_O = self.calibration
+        dT = (t - self.t0_c)[:, None, None]
+        Gi = np.linalg.inv(S[None] + K_S[None] * dT + np.diag(K_S2)[None] * dT * dT)
+        M[:, :3, :3] = Gi
+        M[:, :3, 3] = -np.einsum("tij,tj->ti", Gi, O[None, :] + K_O[None, :] * dT[:, :, 0])
+        return M
+
+    def _worst_var_forms(self, temps_c: np.ndarray, cal: np.ndarray, corners: Sequence[Mapping[str, float]]
+                         ) -> np.ndarray:
+        """(n_T, m) the predictive vector variance (uT^2) at calibrated points ``cal`` (m, 3), worst over the
+        current corners. With ``v = [B_cal; 1]`` and the reading ``b = M(T) v``, each axis's affine features are
+        ``B(T) v`` (k x 4) and its polynomial features (``c3``, ``P``) pick from the six monomials ``n(b)``
+        (``_MONOMIALS``), so the parameter part summed over axes is the quadratic form
+        ``v'Q_vv v + 2 v'Q_vn n + n'Q_nn n`` and each current corner adds a term affine in ``(v, n)``; ``|b|^2``
+        for the discrepancy is a quadratic form in ``v`` too. The same values as evaluating every feature at
+        every mapped reading (:meth:`param_var_uT2`, :meth:`disc_var_uT2`), to rounding, at a fraction of the
+        cost."""
+        t = np.asarray(temps_c, dtype=float).reshape(-1)
+        nt, nc = t.size, len(corners)
+        nm = len(_MONOMIALS)
+        dT = t - self.t0_c
+        M = self._reading_maps(t)
+        v = np.hstack([np.asarray(cal, dtype=float).reshape(-1, 3), np.ones((cal.shape[0], 1))])   # (m, 4)
+        m = v.shape[0]
+        vt = np.ascontiguousarray(v.T)                                                             # (4, m)
+        vv = (v[:, :, None] * v[:, None, :]).reshape(-1, 16)                                       # (m, 16)
+        Qvv = np.zeros((nt, 4, 4))
+        Qvn = np.zeros((nt, 4, nm))
+        lin_v = np.zeros((nt, nc, 4))
+        lin_n = np.zeros((nc, nm))
+        const = np.zeros(nc)
+        Qnn = self._qnn
+        for lay in self._layout:
+            blk = lay["blocks"]
+            B = (dT[:, None] ** lay["pw"][None, :])[:, :, None] * M[:, lay["col"], :]         # (n_T, k_f, 4)
+            Bt = np.swapaxes(B, 1, 2)
+            Qvv += Bt @ blk["ff"] @ B
+            if lay["jn"].size:
+                Qvn[:, :, lay["mono"]] += Bt @ blk["fn"]
+            if lay["jc"]:
+                cv = np.array([[c[name] for name in lay["cur"]] for c in corners])                 # (n_c, n_cur)
+                lin_v += 2.0 * np.einsum("ck,tka->tca", cv @ blk["cf"], B)
+                if lay["jn"].size:
+                    lin_n[:, lay["mono"]] += 2.0 * (cv @ blk["cn"])
+                const += np.einsum("cj,jl,cl->c", cv, blk["cc"], cv)
+        var = Qvv.reshape(nt, 16) @ vv.T                                                          # (n_T, m)
+        n = None
+        if np.any(Qnn) or np.any(Qvn) or np.any(lin_n):
+            b = np.moveaxis(M[:, :3, :] @ vt, 1, 0)                                               # (3, n_T, m)
+            n = np.empty((nm, nt, m))                                                             # (6, n_T, m)
+            for k, mono in enumerate(_MONOMIALS):
+                np.multiply(b[mono[0]], b[mono[1]], out=n[k])
+                if len(mono) == 3:
+                    n[k] *= b[mono[2]]
+            g = (Qnn @ n.reshape(nm, -1)).reshape(n.shape)
+            for k in range(nm):
+                g[k] += 2.0 * (Qvn[:, :, k] @ vt)
+            var += np.einsum("ktm,ktm->tm", n, g)
+        var = np.maximum(var, 0.0) + float(np.sum(self.noise_uT ** 2))
+        if self.disc is not None:
+            d = self.disc
+            Mb = M[:, :3, :]
+            b2 = (np.swapaxes(Mb, 1, 2) @ Mb).reshape(nt, 16) @ vv.T                                # |b|^2 (n_T, m)
+            mag2 = np.minimum(np.sqrt(np.maximum(b2, 0.0)), float(d["field_max_uT"])) ** 2 \
+                / float(d["field_ref_uT"]) ** 2
+            lo, hi = d["temp_range_c"]
+            u = (np.clip(t, lo, hi) - float(d["temp_centre_c"])) / float(d["temp_ref_c"])
+            var += float(np.sum(d["d0_uT2"])) + float(np.sum(d["dB_uT2"])) * mag2 \
+                + float(np.sum(d["dT_uT2"])) * (u * u)[:, None]
+        if not (np.any(lin_v) or np.any(lin_n) or np.any(const)):
+            return var
+        cur = (np.swapaxes(lin_v, 0, 1).reshape(-1, 4) @ vt).reshape(nc, nt, m)                 # (n_c, n_T, m)
+        if n is not None and np.any(lin_n):
+            cur += (lin_n @ n.reshape(nm, -1)).reshape(nc, nt, m)
+        cur += const[:, None, None]
+        return var + cur.max(axis=0)
+
     def worst_vector_sd_uT(self, temp_c: float, field_axes_uT: Sequence[float], field_norm_uT: float = math.inf,
                            currents_A: Mapping[str, tuple[float, float]] | None = None) -> float:
         """The largest predictive vector sd ``sqrt(sum_i sd_i^2)`` (uT) over calibrated fields ``|B_i| <= F_i``,
@@ -229,7 +326,7 @@ class Predictive:
         exactly (the full covariance, correlations included) at the points of :meth:`_region_cal_points`
         mapped to readings by :meth:`to_reading` (affine, so extreme points stay extreme) and at every corner
         of the current box (each feature is affine in each current)."""
-        v, _ = self._worst_at(temp_c, self._region_cal_points(field_axes_uT, field_norm_uT), currents_A)
+        v = self._worst_at(temp_c, self._region_cal_points(field_axes_uT, field_norm_uT), currents_A)
         return float(np.sqrt(v.max()))
 
     def worst_point(self, temps_c: Sequence[float], field_axes_uT: Sequence[float], field_norm_uT: float = math.inf,
@@ -238,7 +335,7 @@ class Predictive:
         best = (-1.0, float(temps_c[0]), np.zeros(3))
         cal = self._region_cal_points(field_axes_uT, field_norm_uT)
         for t in temps_c:
-            v, _ = self._worst_at(float(t), cal, currents_A)
+            v = self._worst_at(float(t), cal, currents_A)
             k = int(np.argmax(v))
             if v[k] > best[0]:
                 best = (float(v[k]), float(t), cal[k])
@@ -300,16 +397,12 @@ class Predictive:
         m = cal.shape[0]
         corners = self._current_corners(currents_A)
         nc = len(corners)
-        noise = float(np.sum(self.noise_uT ** 2))
         out: dict[float, float] = {}
         step = max(1, _ROWS_PER_PASS // max(m * nc, 1))
         cuts = sorted({0, min(2, n), min(2 + (n + 15) // 16, n), *range(2 + (n + 15) // 16, n, step), n})
         for a, b in zip(cuts[:-1], cuts[1:], strict=True):
             t = t_all[order[a:b]]
-            pts = self.to_readings(cal, t).reshape(-1, 3)
-            tt = np.repeat(t, m)
-            base = self.disc_var_uT2(pts, tt).sum(axis=1) + noise
-            var = (base[None, :] + self._param_var_corners(pts, tt, corners)).reshape(nc, t.size, m).max(axis=(0, 2))
+            var = self._worst_var_forms(t, cal, corners).max(axis=1)
             sd = np.sqrt(np.maximum(var, 0.0))
             out.update(zip(t.tolist(), sd.tolist(), strict=True))
             if sd.max() > stop_above_uT:
@@ -317,8 +410,9 @@ class Predictive:
         return out
 
 
-#: Rows evaluated per vectorised pass of :meth:`Predictive.worst_over_region_uT` (memory ~ rows x features x 8 B).
-_ROWS_PER_PASS = 65536
+#: (temperature, point, current corner) triples evaluated per vectorised pass of
+#: :meth:`Predictive.worst_per_temperature_uT` (memory ~ 3 x 8 B each).
+_ROWS_PER_PASS = 1 << 20
 
 
 def _sphere(n: int) -> np.ndarray:
@@ -379,18 +473,46 @@ def _grid(lo: float, hi: float) -> np.ndarray:
     return np.unique(np.r_[lo, TEMP_STEP_C * np.arange(k0, k1 + 1), hi])
 
 
+#: Coarse temperature step of the validity search (degC): the interval's ends and the multiples of it are
+#: evaluated first, the ``TEMP_STEP_C`` grid between two of them only where the coarse values and their
+#: curvature leave room for a value above the limit (:func:`_ok`).
+COARSE_STEP_C = 16 * TEMP_STEP_C
+
+
 def _ok(pred: Predictive, lo: float, hi: float, F, R: float, sd_max: float, currents,
         memo: dict | None = None) -> bool:
     """Whether twice the worst predictive vector sd stays within the bound over ``[lo, hi]`` x the field
-    region; ``memo`` keeps each field region's per-temperature values between calls."""
-    temps = _grid(lo, hi)
+    region; ``memo`` keeps each field region's per-temperature values between calls.
+
+    The interval's ends and the multiples of ``COARSE_STEP_C`` come first; between two neighbours ``a, b`` the
+    fine grid is evaluated unless ``max(s_a, s_b) + K h^2 / 4 + 1 % of the limit`` stays below the limit, where
+    ``K`` is the largest second divided difference of the coarse values next to the gap (the bound on a smooth
+    function's excess over its chord, ``K h^2 / 8``, taken twice)."""
+    temps = _grid(lo, hi).tolist()
     seen = {} if memo is None else memo.setdefault((tuple(np.asarray(F, dtype=float).tolist()), float(R)), {})
-    if any(seen.get(t, -math.inf) > sd_max for t in temps.tolist()):
+    if any(seen.get(t, -math.inf) > sd_max for t in temps):
         return False
-    todo = [t for t in temps.tolist() if t not in seen]
-    if todo:
-        seen.update(pred.worst_per_temperature_uT(todo, F, R, currents, stop_above_uT=sd_max))
-    return all(seen[t] <= sd_max for t in temps.tolist() if t in seen) and all(t in seen for t in todo)
+
+    def need(ts: list[float]) -> bool:
+        todo = [t for t in ts if t not in seen]
+        if todo:
+            seen.update(pred.worst_per_temperature_uT(todo, F, R, currents, stop_above_uT=sd_max))
+        return all(t in seen and seen[t] <= sd_max for t in ts)
+
+    coarse = [t for i, t in enumerate(temps) if i in (0, len(temps) - 1)
+              or abs(t / COARSE_STEP_C - round(t / COARSE_STEP_C)) < 1e-9]
+    if len(coarse) < 3:
+        return need(temps)
+    if not need(coarse):
+        return False
+    c = np.array(coarse)
+    v = np.array([seen[t] for t in coarse])
+    h = np.diff(c)
+    dd = np.abs(2.0 * ((v[2:] - v[1:-1]) / h[1:] - (v[1:-1] - v[:-2]) / h[:-1]) / (h[1:] + h[:-1]))   # |f''| est.
+    k_gap = np.maximum(np.r_[dd, dd[-1]], np.r_[dd[0], dd])          # each gap: the two estimates beside it
+    room = np.maximum(v[:-1], v[1:]) + k_gap * h * h / 4.0 + 0.01 * sd_max
+    fine = [t for t in temps if t not in coarse and room[min(int(np.searchsorted(c, t)) - 1, h.size - 1)] > sd_max]
+    return need(fine) if fine else True
 
 
 def _bisect(ok, lo: float, hi: float, tol: float) -> float:

@@ -57,6 +57,7 @@ import numpy as np
 from magstack.data import telemetry
 from magstack.data.dictionary import usable
 from magstack.firmware import cal_table
+from magstack.firmware.blas import single_thread
 from magstack.firmware.calibration.coverage_bins import N_BINS, AttitudeCoverage
 from magstack.firmware.calibration.estimator import Prior, model_prior
 from magstack.firmware.calibration.fit import FitOptions, FitResult
@@ -596,7 +597,13 @@ def refit(paths: Sequence[str], active: cal_table.CalTable | None = None, option
     """Refit the calibration against the attitude-rotated IGRF reference (see the module docstring).
 
     ``progress(rows, label)`` is called per block; ``mapper(paths, fn)`` runs ``fn`` per file and
-    reduces (default :func:`local_mapper`)."""
+    reduces (default :func:`local_mapper`). BLAS runs on one thread meanwhile (blocks of ~1k rows x 30
+    columns and the validity search's small products: more threads only wait, ``firmware/blas.py``)."""
+    with single_thread():
+        return _refit(paths, active, options, progress, mapper, metadata)
+
+
+def _refit(paths, active, options, progress, mapper, metadata) -> RefitResult:
     t_start = time.perf_counter()
     options = options or RefitOptions()
     paths = [str(p) for p in paths]
