@@ -67,24 +67,30 @@ def features_t(names: Sequence[str], b_uT: np.ndarray, dT: np.ndarray,
     n = bt.shape[1]
     dT = np.broadcast_to(np.asarray(dT, dtype=float), (n,))
     out = np.empty((len(names), n))
+    powers = {1: dT}
+
+    def dT_pow(k: int) -> np.ndarray:                    # dT^k, formed once per call
+        if k not in powers:
+            powers[k] = dT_pow(k - 1) * dT
+        return powers[k]
+
     for k, nm in enumerate(names):
         p, i, j = parse_name(nm)
         if p == "S":
             out[k] = bt[AXES.index(j)]
         elif p == "K_S":
             np.multiply(bt[AXES.index(j)], dT, out=out[k])
-        elif p == "K_S2":
-            out[k] = bt[i] * dT * dT
-        elif p == "K_S3":
-            out[k] = bt[i] * dT * dT * dT
+        elif p in ("K_S2", "K_S3"):
+            np.multiply(bt[i], dT_pow(2 if p == "K_S2" else 3), out=out[k])
         elif p == "O":
             out[k] = 1.0
         elif p == "K_O":
             out[k] = dT
         elif p == "K_O2":
-            out[k] = dT * dT
+            out[k] = dT_pow(2)
         elif p == "c3":
-            out[k] = bt[i] ** 3
+            np.multiply(bt[i], bt[i], out=out[k])
+            out[k] *= bt[i]
         elif p == "P":
             a, c = _PAIRS[j]
             np.multiply(bt[a], bt[c], out=out[k])

@@ -43,3 +43,22 @@ def test_random_walk_gram_is_the_min_kernel_sum():
     for lo in range(0, len(t), 100):
         g.add(x[lo:lo + 100], t[lo:lo + 100], session[lo:lo + 100])
     np.testing.assert_allclose(g.result(), exact, rtol=1e-9, atol=1e-9 * np.abs(exact).max())
+
+
+@pytest.mark.parametrize("bins", [64, 512])
+def test_binned_random_walk_gram_is_within_a_bin_of_the_exact_sum(bins):
+    """Rows summed over bins of span / bins: every entry within 2 bins' share of the span (scaled by the diagonal);
+    the row count and sampling interval stay those of the rows."""
+    x, t, session = _rows(3)
+    g_exact = RandomWalkGram(x.shape[1])
+    g_exact.add(x, t, session)
+    exact = g_exact.result()
+    width = (t[-1] - t[0]) / bins
+    g = RandomWalkGram(x.shape[1], width)
+    for lo in range(0, len(t), 100):
+        g.add(x[lo:lo + 100], t[lo:lo + 100], session[lo:lo + 100])
+    got = g.result()
+    scale = np.sqrt(np.outer(np.diag(exact), np.diag(exact)))
+    err = np.max(np.abs(got - exact) / scale)
+    assert 0 < err <= 2.0 / bins * 3          # sessions span a third of the data or more
+    assert g.n == g_exact.n and g.mean_dt_s == pytest.approx(g_exact.mean_dt_s, rel=1e-12)

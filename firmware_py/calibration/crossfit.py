@@ -145,6 +145,7 @@ class CrossFit:
     notes: list[str] = field(default_factory=list)
     acc: Accumulated | None = None       # what the passes collected for the predictive parts
     block_sse: BlockSSE | None = None    # the time-block folds' squared held-out residuals per time block
+    piece_coverage: list | None = None   # pass 1's coverage per piece (the same for any model of these rows)
 
 
 class _Rows:
@@ -165,18 +166,19 @@ class _Rows:
             yield slice(a, min(a + CHUNK_ROWS, n)) if order is None else order[a:a + CHUNK_ROWS]
 
 
-def cross_fit(d: FitData, model: CalModel, options: FitOptions) -> CrossFit:
+def cross_fit(d: FitData, model: CalModel, options: FitOptions, piece_coverage: list | None = None) -> CrossFit:
     """The fit of ``d`` under ``model`` and, when ``options.holdout``, its held-out figures; see the module
-    docstring. FitError as the refit path (a failing fold is skipped with a note)."""
+    docstring. FitError as the refit path (a failing fold is skipped with a note). ``piece_coverage``: pass 1's
+    coverage per piece from another model's cross-fit of the same rows and options (not recomputed)."""
     with single_thread():          # block QRs and products of ~64k x 30: threads only wait (bench_blas.py)
-        return _cross_fit(d, model, options)
+        return _cross_fit(d, model, options, piece_coverage)
 
 
-def _cross_fit(d: FitData, model: CalModel, options: FitOptions) -> CrossFit:
+def _cross_fit(d: FitData, model: CalModel, options: FitOptions, piece_coverage: list | None) -> CrossFit:
     rows = _Rows(d, model)
     piece = _PieceOf(d, rows, options)
     sessions, n_folds = piece.sessions, piece.n_folds
-    pcs = _pieces(d, rows, piece, sessions, n_folds, model, options)
+    pcs = _pieces(d, rows, piece, sessions, n_folds, model, options, piece_coverage)
     every = pcs.count > 0
     fits = [_make("full", 0, every, ~every, pcs, model)]
     if options.holdout:
@@ -218,6 +220,7 @@ def _cross_fit(d: FitData, model: CalModel, options: FitOptions) -> CrossFit:
     taus, ou, rwg, dt = rw.result()
     out.acc = Accumulated(Rx.T @ Rx, taus, ou + [rwg], levels, dt, terms, moments, bins)
     out.block_sse = block_sse
+    out.piece_coverage = pcs.cov
     if options.holdout:
         _figures(out, fits)
     return out
@@ -260,12 +263,14 @@ def ordered(d: FitData) -> bool:
 
 
 def _pieces(d: FitData, rows: _Rows, piece: _PieceOf, sessions: np.ndarray, n_folds: int, model: CalModel,
-            options: FitOptions) -> _Pieces:
-    """Pass 1: every piece's state (:class:`_Pieces`); piece = session index x n_folds + fold."""
+            options: FitOptions, coverage: list | None = None) -> _Pieces:
+    """Pass 1: every piece's state (:class:`_Pieces`); piece = session index x n_folds + fold. ``coverage``:
+    the pieces' coverage already known (taken as is)."""
     m = model.n_columns + 3
     n_pieces = sessions.size * n_folds
     R = [np.zeros((m, m)) for _ in range(n_pieces)]
-    cov = [Coverage() for _ in range(n_pieces)]
+    known = coverage is not None and len(coverage) == n_pieces
+    cov = list(coverage) if known else [Coverage() for _ in range(n_pieces)]
     count = np.zeros(n_pieces, dtype=np.int64)
     t_sum = np.zeros(n_pieces)
     xy_sum = np.zeros((n_pieces, m))
@@ -285,8 +290,9 @@ def _pieces(d: FitData, rows: _Rows, piece: _PieceOf, sessions: np.ndarray, n_fo
             k = int(pc[a])
             xy_sum[k] += np.ones(e - a) @ Z[a:e]
             R[k] = qr_r(np.vstack([R[k], Z[a:e] if w is None else Z[a:e] * np.sqrt(w[a:e])[:, None]]))
-            cov[k].update(b[a:e], temp[a:e], {c: v[a:e] for c, v in cur.items()}, sess[a:e], t[a:e],
-                          options.field_present_uT, np.ones(e - a) if w is None else w[a:e], ref_uT=Y[a:e])
+            if not known:
+                cov[k].update(b[a:e], temp[a:e], {c: v[a:e] for c, v in cur.items()}, sess[a:e], t[a:e],
+                              options.field_present_uT, np.ones(e - a) if w is None else w[a:e], ref_uT=Y[a:e])
             count[k] += e - a
             t_sum[k] += float(np.sum(t[a:e]))
     return _Pieces(R, cov, count, t_sum, xy_sum, np.repeat(sessions, n_folds), np.tile(np.arange(n_folds),

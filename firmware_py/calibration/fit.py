@@ -869,13 +869,14 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
     present, the model with the second-order tempco is fitted too and adopted when its held-out improvement is
     significant (:func:`.heldout_test.paired_block_test`); ``result.term_choice`` says what was compared."""
     options = options or FitOptions()
-    res, sse = _fit_model(data, model, terms, currents, t0_c, options)
+    res, sse, rows = _fit_model(data, model, terms, currents, t0_c, options)
     terms_now = set(res.model.terms)
     span = max(res.coverage.temp_span_with_field(j) for j in range(3))
     if (options.second_order_tempco != "auto" or "temperature_gain" not in terms_now
             or "temperature_gain2" in terms_now or sse is None or span < TEMPCO2_SPAN_C):
         return res
-    cand, sse2 = _fit_model(data, model, list(terms or []) + ["temperature_gain2"], currents, t0_c, options)
+    cand, sse2, _ = _fit_model(data, model, list(terms or []) + ["temperature_gain2"], currents, t0_c, options,
+                               same_rows=rows)
     test = paired_block_test(sse.sse, sse2.sse) if sse2 is not None else None
     chosen = cand if test is not None and test.significant else res
     chosen.term_choice = {"candidate": "temperature_gain2", "adopted": chosen is cand,
@@ -888,8 +889,10 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
 
 
 def _fit_model(data: FitData, model: str, terms: Sequence[str] | None, currents: Sequence[str], t0_c: float,
-               options: FitOptions) -> tuple[FitResult, BlockSSE | None]:
-    """One model's fit, with the time-block folds' held-out squared residuals per block (None without folds)."""
+               options: FitOptions, same_rows: tuple | None = None) -> tuple[FitResult, BlockSSE | None, tuple]:
+    """One model's fit, with the time-block folds' held-out squared residuals per block (None without folds) and
+    ``(rows used, per-piece coverage)``: given back as ``same_rows`` for another model of the same data, the
+    coverage (which does not depend on the model) is taken over when the rows are the same."""
     all_terms = resolve_terms(model, terms, currents)
     name = model if all_terms == MODELS.get(model) else f"{model}+" + "+".join(
         t for t in all_terms if t not in MODELS[model])
@@ -923,7 +926,8 @@ def _fit_model(data: FitData, model: str, terms: Sequence[str] | None, currents:
                 why.append(f"{label} missing/flagged on {int(bad.sum())} rows")
         raise FitError(f"{len(d)} usable rows of {len(data)} for {cm.n_columns} columns: not enough data"
                        + (f" ({'; '.join(why)})" if why else ""))
-    cross = crossfit.cross_fit(d, cm, options) if crossfit.applies(cm, options) else None
+    coverage = same_rows[1] if same_rows is not None and np.array_equal(same_rows[0], ok) else None
+    cross = crossfit.cross_fit(d, cm, options, coverage) if crossfit.applies(cm, options) else None
     core = cross.core if cross is not None else _fit_core(d, cm, options)
     X, theta, se, held, conds, cov, mount = (core.X, core.theta, core.se, core.held, core.conds, core.coverage,
                                              core.mount)
@@ -979,7 +983,7 @@ def _fit_model(data: FitData, model: str, terms: Sequence[str] | None, currents:
                                  d.b_ref_uT - _rotate_from_frame(cm.predict(theta, X), d.session, mount),
                                  options, block_folds(d, options) if options.holdout else None,
                                  res.holdout_blocks_uT)
-    return res, block_sse
+    return res, block_sse, (ok, cross.piece_coverage if cross is not None else None)
 
 
 def _accumulate_whole(d: FitData, model: CalModel, core: CoreFit, resid: np.ndarray,

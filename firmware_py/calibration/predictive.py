@@ -59,14 +59,27 @@ MIN_PAIRS = 8
 
 
 # ---------------------------------------------------------------------- random walk
+def bin_rows(x: np.ndarray, t_s: np.ndarray, width_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Rows ``x`` (m, p) at times ``t_s`` (sorted) summed over bins of ``width_s`` from the first row, each bin at
+    its rows' mean time: ``(sums (k, p), times (k,))``."""
+    k = np.floor((t_s - t_s[0]) / width_s).astype(np.int64)
+    starts = np.r_[0, np.flatnonzero(k[1:] != k[:-1]) + 1]
+    if starts.size == t_s.size:
+        return x, t_s
+    counts = np.diff(np.r_[starts, t_s.size])
+    return np.add.reduceat(x, starts, axis=0), np.add.reduceat(t_s, starts) / counts
+
+
 class RandomWalkGram:
     """``G = sum_sessions sum_k dt_k U_k U_k^T`` (p x p), ``U_k`` the tail sum of ``w x`` from row ``k`` to the
     session's end, ``dt_k`` the time since the previous row (0 at a session's first row): the covariance of the
     score ``X'W u`` per unit rate of a random walk ``u`` that starts at each session's first row. Rows arrive
-    in (session, time) order, possibly over many calls; memory ``O(p^2)``."""
+    in (session, time) order, possibly over many calls; memory ``O(p^2)``. ``bin_s`` > 0: rows are first summed
+    over bins of that width (at the bin's mean time), which moves each pair's shared time by less than a bin:
+    relative error about ``bin_s`` over the session's span."""
 
-    def __init__(self, p: int) -> None:
-        self.p = p
+    def __init__(self, p: int, bin_s: float = 0.0) -> None:
+        self.p, self.bin_s = p, float(bin_s)
         self.G = np.zeros((p, p))
         self.dt_sum = 0.0
         self.n = 0
@@ -79,6 +92,7 @@ class RandomWalkGram:
         self._v = np.zeros(self.p)
         self._W = np.zeros((self.p, self.p))
         self._t = None
+        self._t_row = None                # the last row's own time (the binned rows carry mean times)
 
     def _close(self) -> None:
         T = self._P
@@ -99,6 +113,11 @@ class RandomWalkGram:
                     self._close()
                 self._session = s[a]
             x, tt = xw[a:b], t[a:b]
+            self.dt_sum += float(tt[-1] - (tt[0] if self._t_row is None else self._t_row))
+            self.n += b - a
+            self._t_row = float(tt[-1])
+            if self.bin_s > 0 and tt.size > 1:
+                x, tt = bin_rows(x, tt, self.bin_s)
             dt = np.diff(tt, prepend=tt[0] if self._t is None else self._t)
             excl = np.cumsum(x, axis=0) - x + self._P            # prefix before each row
             self._D += float(dt.sum())
@@ -106,8 +125,6 @@ class RandomWalkGram:
             self._W += (excl * dt[:, None]).T @ excl
             self._P = self._P + x.sum(axis=0)
             self._t = float(tt[-1])
-            self.dt_sum += float(dt.sum())
-            self.n += b - a
 
     def result(self) -> np.ndarray:
         """The Gram matrix (closes the last session)."""
@@ -125,12 +142,12 @@ class OUGram:
     """``G_tau = sum_t sum_s x_t x_s^T exp(-|t_t - t_s| / tau)`` over each session's rows (``x`` = weights x design):
     the covariance of the score ``X'W u`` per unit variance of an exponentially correlated (Ornstein-Uhlenbeck)
     residual ``u`` with correlation time ``tau`` (s). Rows in (session, time) order, possibly over many calls;
-    the causal sums ``h_t = sum_{s <= t} x_s exp(-(t_t - t_s)/tau)`` are formed by cumulative sums over stretches of
-    at most ``20 tau`` (no overflow), carried between them and between calls; ``G = H + H^T - D`` with
-    ``H = sum x_t h_t^T`` and ``D = sum x_t x_t^T``. Rows are first summed over bins of ``tau / BINS_PER_TAU``
-    (at the bin's mean time): pairs inside a bin count with correlation 1 instead of ``exp(-|dt|/tau) >=
-    exp(-1/BINS_PER_TAU)``, so ``G`` is within about ``1/BINS_PER_TAU`` of the exact sum and costs a bin's
-    rows less."""
+    the causal sums ``h_t = sum_{s <= t} x_s exp(-(t_t - t_s)/tau)`` are formed by cumulative sums over stretches
+    of at most ``STRETCH_TAUS`` tau (``exp`` stays far below overflow), carried between them and between calls;
+    ``G = H + H^T - D`` with ``H = sum x_t h_t^T`` and ``D = sum x_t x_t^T``. Rows are first summed over bins of
+    ``tau / BINS_PER_TAU`` (at the bin's mean time): pairs inside a bin count with correlation 1 instead of
+    ``exp(-|dt|/tau) >= exp(-1/BINS_PER_TAU)``, so ``G`` is within about ``1/BINS_PER_TAU`` of the exact sum and
+    costs a bin's rows less."""
 
     def __init__(self, p: int, tau_s: float) -> None:
         self.p, self.tau = p, float(tau_s)
@@ -151,16 +168,11 @@ class OUGram:
 
     def _run(self, x: np.ndarray, t: np.ndarray) -> None:
         if t.size > 1:
-            k = np.floor((t - t[0]) * (BINS_PER_TAU / self.tau)).astype(np.int64)
-            starts = np.r_[0, np.flatnonzero(k[1:] != k[:-1]) + 1]
-            if starts.size < t.size:
-                counts = np.diff(np.r_[starts, t.size])
-                x = np.add.reduceat(x, starts, axis=0)
-                t = np.add.reduceat(t, starts) / counts
+            x, t = bin_rows(x, t, self.tau / BINS_PER_TAU)
         self.D += x.T @ x
         i = 0
         while i < t.size:
-            j = i + int(np.searchsorted(t[i:], t[i] + 20.0 * self.tau, side="right"))
+            j = i + int(np.searchsorted(t[i:], t[i] + STRETCH_TAUS * self.tau, side="right"))
             j = max(j, i + 1)
             t0 = t[i]
             e = np.exp((t[i:j] - t0) / self.tau)[:, None]
@@ -177,11 +189,12 @@ class OUGram:
 class SlowNoiseGrams:
     """The score Grams of every slow-noise component the fit can weigh: exponentially correlated residuals with
     correlation times ``tau_k`` = 32, 128, 512, ... rows (up to 4x the data's time span) and a random walk; the
-    grid is set from the first rows' sampling interval. Feed rows with :meth:`add` in (session, time) order."""
+    grid is set from the first rows' sampling interval; the random walk's rows are summed over ``RW_BINS`` bins of
+    the span. Feed rows with :meth:`add` in (session, time) order."""
 
     def __init__(self, p: int, span_s: float) -> None:
         self.p, self.span_s = p, max(float(span_s), 0.0)
-        self.rw = RandomWalkGram(p)
+        self.rw = RandomWalkGram(p, self.span_s / RW_BINS)
         self.ou: list[OUGram] | None = None
 
     def add(self, xw: np.ndarray, t_s: np.ndarray, session: np.ndarray) -> None:
@@ -205,6 +218,10 @@ class SlowNoiseGrams:
 MAX_OU = 6
 #: Bins per correlation time in which :class:`OUGram` sums rows before its kernel sums.
 BINS_PER_TAU = 16
+#: Bins over the data's time span in which :class:`SlowNoiseGrams` sums rows for the random-walk Gram.
+RW_BINS = 4096
+#: Longest stretch of one cumulative sum in :class:`OUGram`, in correlation times (``exp(200)`` ~ 7e86).
+STRETCH_TAUS = 200.0
 
 
 def ou_block_difference(L: int, dt_s: float, tau_s: float) -> float:
