@@ -76,10 +76,16 @@ enum magstack_cal_result {
     MAGSTACK_CAL_E_T0 = 9,         /* |t0| > 2^15 centi-degC */
     MAGSTACK_CAL_E_K_S2 = 10,      /* |K_S2| > 2^28 - 1 */
     MAGSTACK_CAL_E_VALIDITY = 11,  /* a field, magnitude, temperature or current limit out of bounds */
-    MAGSTACK_CAL_E_ARGUMENT = 12   /* a NULL pointer */
+    MAGSTACK_CAL_E_ARGUMENT = 12   /* a NULL pointer (or a bad argument of magstack_cal_precompute) */
 };
 
-/* A loaded table (fill it with magstack_cal_load; do not edit it). */
+/* The temperature terms of one temperature (storage for magstack_cal_precompute; 96 bytes, no fields to read). */
+typedef struct {
+    int64_t g[3][3];
+    uint64_t c[3];
+} magstack_cal_terms;
+
+/* A loaded table (fill it with magstack_cal_load, optionally magstack_cal_precompute; do not edit it). */
 typedef struct {
     uint32_t image_crc32;   /* CRC-32 of the image */
     uint32_t source_crc32;  /* crc32 of the JSON table the image was made from */
@@ -102,6 +108,9 @@ typedef struct {
     int32_t K_O[3];                         /* Q15.16 nT/degC */
     int32_t D[MAGSTACK_CAL_MAX_CURRENTS][3]; /* Q11.20 nT/mA */
     int32_t current_lo_mA[MAGSTACK_CAL_MAX_CURRENTS], current_hi_mA[MAGSTACK_CAL_MAX_CURRENTS];
+    const magstack_cal_terms *pre; /* precomputed terms of pre_lo_cdeg.. (magstack_cal_precompute), or NULL */
+    int32_t pre_lo_cdeg;
+    uint32_t pre_count;            /* temperatures with precomputed terms (0: none) */
 } magstack_cal_table;
 
 /* CRC-32 (the zlib / IEEE 802.3 one). */
@@ -110,6 +119,16 @@ uint32_t magstack_cal_crc32(const uint8_t *data, size_t len);
 /* Check an image (size, magic, version, CRC, every field's bounds) and decode it into *table.
  * Returns MAGSTACK_CAL_OK, or an error code with *table zeroed. */
 int magstack_cal_load(magstack_cal_table *table, const uint8_t *image, size_t len);
+
+/* Precompute the temperature terms of every temperature lo_cdeg..hi_cdeg (centi-degC, within
+ * +-MAGSTACK_CAL_T_LIMIT_CDEG) into storage[0 .. hi_cdeg - lo_cdeg] (count entries available), for a loaded table:
+ * its samples at these temperatures then cost no terms computation (for a computer with the memory: 96 bytes a
+ * temperature, 1.2 MB for -40..85 degC). Call it after magstack_cal_load and before applying; storage must stay
+ * while the table is used, and magstack_cal_load forgets it. storage NULL with count 0: no precomputed terms.
+ * Returns MAGSTACK_CAL_OK, or MAGSTACK_CAL_E_ARGUMENT (a NULL table, lo_cdeg > hi_cdeg, a temperature beyond the
+ * clip, count too small) with no precomputed terms. The outputs are the same integers either way. */
+int magstack_cal_precompute(magstack_cal_table *table, magstack_cal_terms *storage, size_t count, int32_t lo_cdeg,
+                            int32_t hi_cdeg);
 
 /* A short English name of a loader result code. */
 const char *magstack_cal_result_name(int code);
