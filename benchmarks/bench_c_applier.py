@@ -11,10 +11,11 @@ need Debian's gcc-arm-linux-gnueabihf and qemu-user, the Cortex-M4 size gcc-arm-
   harness cross-compiled for 32-bit ARM run by qemu-arm (``magstack_cal_apply`` on every row, and the block
   path checked against it inside the harness).
 * ``speed``: CPU time per sample of ``magstack_cal_apply_block`` (ctypes, one call per block; the builds of
-  ``HOST_BUILDS``) against ``FixedPointTable.apply_block`` (numpy) on the same block, in this process, best of
-  ``--repeat``; four temperature patterns (``PATTERNS``); the table has per-axis and magnitude limits. ns per
-  sample on emulated ARM from the harness's own clock under qemu-arm (wall time, so it includes the host's
-  load).
+  ``HOST_BUILDS``, with and without terms precomputed for the streams' -40..85 degC by ``magstack_cal_precompute``)
+  against ``FixedPointTable.apply_block`` (numpy) on the same block, in this process, best of ``--repeat``; four
+  temperature patterns (``PATTERNS``); the table has per-axis and magnitude limits; a summary of the ratios per
+  pattern at the end. ns per sample on emulated ARM from the harness's own clock under qemu-arm (wall time, so it
+  includes the host's load).
 * ``size``: the library's code size (``size`` of the object file) for the host, 32-bit ARM Linux and Cortex-M4,
   and the table image's size.
 """
@@ -169,26 +170,36 @@ def _best_cpu(repeat: int, fn, *a) -> float:
     return best
 
 
-#: The host builds timed: flags, what they are.
-HOST_BUILDS = (("-O2 -DMAGSTACK_CAL_COMPACT", "gcc -O2 -DMAGSTACK_CAL_COMPACT"), ("-O2", "gcc -O2 (generic x86-64)"),
-               ("-O3 -march=native", "gcc -O3 -march=native"),
-               ("-O3 -march=native -DMAGSTACK_CAL_VECTOR", "gcc -O3 -march=native -DMAGSTACK_CAL_VECTOR"))
+#: The host builds timed: flags, what they are, and whether the table gets precomputed terms for PRECOMPUTED_CDEG.
+HOST_BUILDS = (("-O2 -DMAGSTACK_CAL_COMPACT", "gcc -O2 -DMAGSTACK_CAL_COMPACT", False),
+               ("-O2", "gcc -O2 (generic x86-64)", False),
+               ("-O2", "gcc -O2 (generic x86-64), terms precomputed", True),
+               ("-O3 -march=native", "gcc -O3 -march=native", False),
+               ("-O3 -march=native", "gcc -O3 -march=native, terms precomputed", True),
+               ("-O3 -march=native -DMAGSTACK_CAL_VECTOR", "gcc -O3 -march=native -DMAGSTACK_CAL_VECTOR", False))
+#: The temperatures (centi-degC) given precomputed terms (``magstack_cal_precompute``): the streams' -40..85 degC.
+PRECOMPUTED_CDEG = (-4000, 8500)
 
 
 def speed(args, build: Path) -> None:
     """CPU time (``time.process_time``, best of ``--repeat``) of each applier on the same block in this process."""
-    libs = []
-    for flags, label in HOST_BUILDS:
-        sub = build / flags.replace(" ", "").replace("=", "").replace("-", "_")
-        sub.mkdir(exist_ok=True)
-        libs.append((label, cb.CApplier(cb.compile_c("gcc", [*flags.split(), "-fPIC", "-shared", str(cb.SOURCE)],
-                                                     sub / "libmagstack_cal.so"))))
+    libs, built = [], {}
+    for flags, label, pre in HOST_BUILDS:
+        if flags not in built:
+            sub = build / flags.replace(" ", "").replace("=", "").replace("-", "_")
+            sub.mkdir(exist_ok=True)
+            built[flags] = cb.CApplier(cb.compile_c("gcc", [*flags.split(), "-fPIC", "-shared", str(cb.SOURCE)],
+                                                    sub / "libmagstack_cal.so"))
+        libs.append((label, built[flags], pre))
     rng = np.random.default_rng(7)
     n = args.block
-    print(f"load average {os.getloadavg()[0]:.1f}; block {n} samples; CPU time, best of {args.repeat}")
+    print(f"load average {os.getloadavg()[0]:.1f}; block {n} samples; CPU time, best of {args.repeat}; precomputed "
+          f"terms: {PRECOMPUTED_CDEG[0] / 100:g}..{PRECOMPUTED_CDEG[1] / 100:g} degC "
+          f"({(PRECOMPUTED_CDEG[1] - PRECOMPUTED_CDEG[0] + 1) * cb.TERMS_BYTES / 1e6:.1f} MB)")
     arm = None
     if cb.tool(cb.ARM_CC) and cb.tool(cb.QEMU_ARM):
         arm = cb.build_harness(build, "harness_arm_bench", cc=cb.ARM_CC, extra=("-static",))
+    summary = []
     for p, label in enumerate(PATTERNS):
         fx, names, b, t, c = _stream(n, p, rng)
         raw = cb.image_of(fx, names)
@@ -199,14 +210,22 @@ def speed(args, build: Path) -> None:
         py = _best_cpu(args.repeat, fx.apply_block, b64, t64, c64)
         print(f"{label} ({len(np.unique(t))} distinct temperatures): Python apply_block {py / n * 1e9:.1f} ns per "
               f"sample ({n / py / 1e6:.1f} M samples/s)")
-        for name, lib in libs:
+        ratios = []
+        for name, lib, pre in libs:
             rc, table = lib.load(raw)
             assert rc == 0
+            storage = None
+            if pre:
+                rc, storage = lib.precompute(table, *PRECOMPUTED_CDEG)
+                assert rc == 0
             lib.apply_block_into(table, b, t, c, out, st)
             assert np.array_equal(out, q) and np.array_equal(st, s)
             ct = _best_cpu(args.repeat, lib.apply_block_into, table, b, t, c, out, st)
+            del storage
             print(f"  C {name}: {ct / n * 1e9:.2f} ns per sample ({n / ct / 1e6:.0f} M samples/s), "
                   f"{py / ct:.1f}x Python")
+            ratios.append(py / ct)
+        summary.append((label.split(":")[0], ratios))
         if arm is not None:
             m = min(n, 200_000)
             rec = cb.Record(raw, b[:m], t[:m], np.pad(c[:m], ((0, 0), (0, 3))))
@@ -214,6 +233,9 @@ def speed(args, build: Path) -> None:
                      for _ in range(args.repeat))
             print(f"  C on 32-bit ARM (arm-linux-gnueabihf-gcc -O2) emulated by qemu-arm on this host: "
                   f"{ns / (3 * m):.1f} ns per sample")
+    print("ratio to Python per pattern (" + "; ".join(label for label, _, _ in libs) + "):")
+    for pattern, ratios in summary:
+        print(f"  {pattern}: " + ", ".join(f"{r:.1f}x" for r in ratios))
 
 
 def size(args, build: Path) -> None:

@@ -346,7 +346,7 @@ static void make_terms(const magstack_cal_table *t, int64_t dtc, magstack_cal_te
 }
 
 /* The precomputed terms of clipped temperature tc (magstack_cal_precompute), or NULL. */
-static const magstack_cal_terms *precomputed_terms(const magstack_cal_table *t, int32_t tc)
+static inline const magstack_cal_terms *precomputed_terms(const magstack_cal_table *t, int32_t tc)
 {
     uint32_t i = (uint32_t)tc - (uint32_t)t->pre_lo_cdeg;
     return i < t->pre_count ? t->pre + i : NULL;
@@ -473,7 +473,7 @@ static void cache_init(terms_cache *cache)
 }
 
 /* The terms of clipped temperature tc: precomputed, or from the cache (computed on a miss). */
-static const magstack_cal_terms *terms_of(const magstack_cal_table *t, terms_cache *cache, int32_t tc)
+static inline const magstack_cal_terms *terms_of(const magstack_cal_table *t, terms_cache *cache, int32_t tc)
 {
     const magstack_cal_terms *p = precomputed_terms(t, tc);
     uint32_t slot = (uint32_t)tc & (MAGSTACK_CAL_TERMS_CACHE - 1u);
@@ -523,6 +523,12 @@ typedef struct {
 /* round19(u) - OUT_OFFSET is out + 2^31: within 0..2^32 - 1 when out is an int32 */
 #define OUT_OFFSET (((uint64_t)1 << 44) - ((uint64_t)1 << 31))
 
+/* The int32 whose two's complement is the low 32 bits of v (v = out + 2^44: out, as 2^44 is a multiple of 2^32) */
+static inline int32_t low_int32(uint64_t v)
+{
+    return (int32_t)((int64_t)((v + 0x80000000u) & 0xFFFFFFFFu) - ((int64_t)1 << 31));
+}
+
 /* The terms of p in locals. */
 #define TERMS_LOCALS(p)                                                                                           \
     const uint64_t g00 = (uint64_t)(p)->g[0][0], g01 = (uint64_t)(p)->g[0][1], g02 = (uint64_t)(p)->g[0][2];    \
@@ -545,13 +551,13 @@ typedef struct {
             u1 += bt->d[k][1] * c;                                                                                \
             u2 += bt->d[k][2] * c;                                                                                \
         }                                                                                                         \
-        u0 = round19(u0) - OUT_OFFSET;                                                                            \
-        u1 = round19(u1) - OUT_OFFSET;                                                                            \
-        u2 = round19(u2) - OUT_OFFSET;                                                                            \
-        chk |= u0 | u1 | u2;                                                                                      \
-        o[0][r] = out[3u * (r)] = (int32_t)((int64_t)(u0 & 0xFFFFFFFFu) - ((int64_t)1 << 31));                   \
-        o[1][r] = out[3u * (r) + 1u] = (int32_t)((int64_t)(u1 & 0xFFFFFFFFu) - ((int64_t)1 << 31));              \
-        o[2][r] = out[3u * (r) + 2u] = (int32_t)((int64_t)(u2 & 0xFFFFFFFFu) - ((int64_t)1 << 31));              \
+        u0 = round19(u0);                                                                                         \
+        u1 = round19(u1);                                                                                         \
+        u2 = round19(u2);                                                                                         \
+        chk |= (u0 - OUT_OFFSET) | (u1 - OUT_OFFSET) | (u2 - OUT_OFFSET);                                         \
+        o[0][r] = out[3u * (r)] = low_int32(u0);                                                                  \
+        o[1][r] = out[3u * (r) + 1u] = low_int32(u1);                                                             \
+        o[2][r] = out[3u * (r) + 2u] = low_int32(u2);                                                             \
     } while (0)
 
 /* Whether m samples' inputs are inside the kernel bounds (wide, twide, cwide below 2^24, 2^16, 2^20), and whether
@@ -592,13 +598,35 @@ typedef struct {
     } while (0)
 
 #ifndef MAGSTACK_CAL_VECTOR
-/* m samples whose temperatures vary: each sample's terms precomputed or from the cache, in the loop. */
+/* m samples whose temperatures vary. With precomputed terms for every one of them: their addresses first, each
+ * entry's two cache lines read as they are found (so that they arrive while the loop works), then the loop; otherwise
+ * each sample's terms precomputed or from the cache, in the loop. */
 #define MIXED_LOOP(K)                                                                                             \
     do {                                                                                                          \
-        for (r = 0; r < m; r++) {                                                                                 \
-            const magstack_cal_terms *p = terms_of(t, cache, temp[r]);                                            \
-            TERMS_LOCALS(p);                                                                                      \
-            OUTPUTS(K, r);                                                                                        \
+        const magstack_cal_terms *tp[CHUNK];                                                                      \
+        uint32_t missing = 1;                                                                                     \
+        if (t->pre_count != 0u) {                                                                                 \
+            missing = 0;                                                                                          \
+            for (r = 0; r < m; r++) {                                                                             \
+                const uint32_t i = (uint32_t)temp[r] - (uint32_t)t->pre_lo_cdeg;                                 \
+                const uint32_t in = (uint32_t)(i < t->pre_count);                                                 \
+                tp[r] = t->pre + (i & (0u - in));                                                                 \
+                missing |= in ^ 1u;                                                                               \
+                (void)*(const volatile int64_t *)&tp[r]->g[0][0];                                                 \
+                (void)*(const volatile uint64_t *)&tp[r]->c[2];                                                   \
+            }                                                                                                     \
+        }                                                                                                         \
+        if (!missing) {                                                                                           \
+            for (r = 0; r < m; r++) {                                                                             \
+                TERMS_LOCALS(tp[r]);                                                                              \
+                OUTPUTS(K, r);                                                                                    \
+            }                                                                                                     \
+        } else {                                                                                                  \
+            for (r = 0; r < m; r++) {                                                                             \
+                const magstack_cal_terms *p = terms_of(t, cache, temp[r]);                                        \
+                TERMS_LOCALS(p);                                                                                  \
+                OUTPUTS(K, r);                                                                                    \
+            }                                                                                                     \
         }                                                                                                         \
     } while (0)
 #else

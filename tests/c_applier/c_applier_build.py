@@ -91,6 +91,8 @@ class CTable(ctypes.Structure):
 
 
 _P32 = ctypes.POINTER(ctypes.c_int32)
+#: Bytes of one temperature's precomputed terms (``magstack_cal_terms``: 9 int64 gains, 3 uint64 constants).
+TERMS_BYTES = 96
 
 
 class CApplier:
@@ -110,10 +112,20 @@ class CApplier:
         L.magstack_cal_apply_block.argtypes = [ctypes.POINTER(CTable), ctypes.c_size_t, _P32, _P32, _P32, _P32,
                                                ctypes.POINTER(ctypes.c_uint8)]
         L.magstack_cal_apply_block.restype = None
+        L.magstack_cal_precompute.argtypes = [ctypes.POINTER(CTable), ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int32,
+                                              ctypes.c_int32]
+        L.magstack_cal_precompute.restype = ctypes.c_int
 
     def load(self, raw: bytes) -> tuple[int, CTable]:
         t = CTable()
         return self.lib.magstack_cal_load(ctypes.byref(t), raw, len(raw)), t
+
+    def precompute(self, t: CTable, lo_cdeg: int, hi_cdeg: int, count: int | None = None) -> tuple[int, np.ndarray]:
+        """``magstack_cal_precompute`` into a new buffer (``count`` entries; enough when None); the buffer must be kept
+        while ``t`` is used."""
+        n = max(hi_cdeg - lo_cdeg + 1, 1) if count is None else count
+        storage = np.zeros(n * TERMS_BYTES // 8 + 1, np.int64)
+        return self.lib.magstack_cal_precompute(ctypes.byref(t), storage.ctypes.data, n, lo_cdeg, hi_cdeg), storage
 
     def apply(self, t: CTable, b, temp: int, cur) -> tuple[tuple[int, int, int], int]:
         bb = (ctypes.c_int32 * 3)(*b)
