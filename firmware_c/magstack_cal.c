@@ -355,7 +355,7 @@ static inline const magstack_cal_terms *precomputed_terms(const magstack_cal_tab
 int magstack_cal_precompute(magstack_cal_table *table, magstack_cal_terms *storage, size_t count, int32_t lo_cdeg,
                             int32_t hi_cdeg)
 {
-    uint32_t i, m;
+    uint32_t k, m;
     if (table == NULL) {
         return MAGSTACK_CAL_E_ARGUMENT;
     }
@@ -373,8 +373,8 @@ int magstack_cal_precompute(magstack_cal_table *table, magstack_cal_terms *stora
     if (count < m) {
         return MAGSTACK_CAL_E_ARGUMENT;
     }
-    for (i = 0; i < m; i++) {
-        make_terms(table, (int64_t)lo_cdeg + (int64_t)i - table->t0_cdeg, &storage[i]);
+    for (k = 0; k < m; k++) {
+        make_terms(table, (int64_t)lo_cdeg + (int64_t)k - table->t0_cdeg, &storage[k]);
     }
     table->pre = storage;
     table->pre_lo_cdeg = lo_cdeg;
@@ -395,21 +395,12 @@ static inline uint32_t whole_nT(int32_t o)
     return (((a ^ s) - s) + 128u) >> 8;
 }
 
-/* Validity of the calibrated field: 1 when an output in whole nT is beyond its axis' limit (l0, l1, l2), or the sum of
- * their squares beyond nn (the squared magnitude limit). Whole nT are at most 2^23, so the squares' sum is below
- * 2^48. */
-static inline unsigned field_outside(int32_t o0, int32_t o1, int32_t o2, uint32_t l0, uint32_t l1, uint32_t l2, uint64_t nn)
-{
-    uint32_t n0 = whole_nT(o0), n1 = whole_nT(o1), n2 = whole_nT(o2);
-    return (unsigned)(n0 > l0) | (unsigned)(n1 > l1) | (unsigned)(n2 > l2) |
-           (unsigned)((uint64_t)n0 * n0 + (uint64_t)n1 * n1 + (uint64_t)n2 * n2 > nn);
-}
-
 /* One sample with the terms of its temperature: the status bits. b_nT, cur_mA as given (clipped here). */
 static unsigned sample(const magstack_cal_table *t, const magstack_cal_terms *tt, const int32_t *b_nT, int32_t tc,
                        const int32_t *cur_mA, unsigned sat, int32_t out[3])
 {
     unsigned oov = 0, i, k;
+    uint32_t n[3];
     uint64_t b[3], u[3];
     for (i = 0; i < 3u; i++) {
         b[i] = (uint64_t)(int64_t)clip(b_nT[i], MAGSTACK_CAL_B_LIMIT_NT, &sat);
@@ -429,9 +420,11 @@ static unsigned sample(const magstack_cal_table *t, const magstack_cal_terms *tt
         int64_t o = (int64_t)round19(u[i]) - ((int64_t)1 << 44);
         sat |= (unsigned)(o > INT32_MAX) | (unsigned)(o < INT32_MIN);
         out[i] = (int32_t)(o > INT32_MAX ? INT32_MAX : o < INT32_MIN ? INT32_MIN : o);
+        n[i] = whole_nT(out[i]);
+        oov |= (unsigned)(n[i] > (uint32_t)t->field_axes_nT[i]);
     }
-    oov |= field_outside(out[0], out[1], out[2], (uint32_t)t->field_axes_nT[0], (uint32_t)t->field_axes_nT[1],
-                         (uint32_t)t->field_axes_nT[2], norm2_limit(t));
+    /* whole nT are at most 2^23: the squares' sum is below 2^48 */
+    oov |= (unsigned)((uint64_t)n[0] * n[0] + (uint64_t)n[1] * n[1] + (uint64_t)n[2] * n[2] > norm2_limit(t));
     return (sat ? MAGSTACK_CAL_SATURATED : 0u) | (oov ? MAGSTACK_CAL_OUT_OF_VALIDITY : 0u);
 }
 
@@ -451,9 +444,8 @@ unsigned magstack_cal_apply(const magstack_cal_table *table, const int32_t b_nT[
 
 /* ------------------------------------------------------------------ blocks */
 /* Temperature terms kept for this many recent temperatures (direct-mapped on the temperature's low bits) by
- * magstack_cal_apply_block, for temperatures without precomputed terms: a temperature that toggles between a few
- * values, or steps by 0.01 degC now and then, costs no recomputation. A power of two; the cache lives on the stack
- * (about 100 bytes an entry). */
+ * magstack_cal_apply_block: a temperature that toggles between a few values, or steps by 0.01 degC now and then,
+ * costs no recomputation. A power of two; the cache lives on the stack (about 100 bytes an entry). */
 #ifndef MAGSTACK_CAL_TERMS_CACHE
 #define MAGSTACK_CAL_TERMS_CACHE 8u
 #endif
@@ -487,7 +479,7 @@ static inline const magstack_cal_terms *terms_of(const magstack_cal_table *t, te
     return &cache->tt[slot];
 }
 
-/* Samples first..first+m-1 of a block, one at a time. */
+/* m samples of a block, one at a time. */
 static void samples(const magstack_cal_table *t, terms_cache *cache, size_t m, const int32_t *b, const int32_t *temp,
                     const int32_t *cur, int32_t *out, uint8_t *status)
 {
@@ -515,13 +507,15 @@ typedef struct {
 /* A block goes in chunks of CHUNK samples. A chunk whose inputs are all inside these bounds (nothing clips) goes to a
  * kernel: fields within +-(2^23 - 1) nT, temperatures within +-(2^15 - 1) centi-degC, currents within +-(2^19 - 1)
  * mA. The kernel computes the outputs, then, when every output is within int32 (nothing saturates), the status bits
- * in a second loop; otherwise the chunk is computed a sample at a time. */
+ * in loops of their own (vectorised by a compiler where it can); otherwise the chunk is computed a sample at a time. */
 #define CHUNK 32u
 #define FAST_B 0x800000u /* 2^23 */
 #define FAST_T 0x8000u   /* 2^15 */
 #define FAST_I 0x80000u  /* 2^19 */
 /* round19(u) - OUT_OFFSET is out + 2^31: within 0..2^32 - 1 when out is an int32 */
 #define OUT_OFFSET (((uint64_t)1 << 44) - ((uint64_t)1 << 31))
+/* precomputed terms are read ahead of their use when a chunk's temperatures are more than FAR entries apart */
+#define FAR 64u
 
 /* The int32 whose two's complement is the low 32 bits of v (v = out + 2^44: out, as 2^44 is a multiple of 2^32) */
 static inline int32_t low_int32(uint64_t v)
@@ -531,10 +525,11 @@ static inline int32_t low_int32(uint64_t v)
 
 /* The terms of p in locals. */
 #define TERMS_LOCALS(p)                                                                                           \
-    const uint64_t g00 = (uint64_t)(p)->g[0][0], g01 = (uint64_t)(p)->g[0][1], g02 = (uint64_t)(p)->g[0][2];    \
-    const uint64_t g10 = (uint64_t)(p)->g[1][0], g11 = (uint64_t)(p)->g[1][1], g12 = (uint64_t)(p)->g[1][2];    \
-    const uint64_t g20 = (uint64_t)(p)->g[2][0], g21 = (uint64_t)(p)->g[2][1], g22 = (uint64_t)(p)->g[2][2];    \
-    const uint64_t c0 = (p)->c[0], c1 = (p)->c[1], c2 = (p)->c[2]
+    const uint64_t g00 = (uint64_t)(int64_t)(p)->g[0][0], g01 = (uint64_t)(int64_t)(p)->g[0][1];                 \
+    const uint64_t g02 = (uint64_t)(int64_t)(p)->g[0][2], g10 = (uint64_t)(int64_t)(p)->g[1][0];                 \
+    const uint64_t g11 = (uint64_t)(int64_t)(p)->g[1][1], g12 = (uint64_t)(int64_t)(p)->g[1][2];                 \
+    const uint64_t g20 = (uint64_t)(int64_t)(p)->g[2][0], g21 = (uint64_t)(int64_t)(p)->g[2][1];                 \
+    const uint64_t g22 = (uint64_t)(int64_t)(p)->g[2][2], c0 = (p)->c[0], c1 = (p)->c[1], c2 = (p)->c[2]
 
 /* The outputs of sample r with K currents, inputs inside the kernel bounds, from the terms g.., c..; without a branch.
  * chk collects out + 2^31 of every output (an int32 output: below 2^32); o[] keeps the outputs by axis. */
@@ -560,6 +555,27 @@ static inline int32_t low_int32(uint64_t v)
         o[2][r] = out[3u * (r) + 2u] = low_int32(u2);                                                             \
     } while (0)
 
+/* The outputs of samples 0..m-1, two a step; TERMS(R) declares the terms of sample R in locals. */
+#define OUTPUTS_LOOP(K, TERMS)                                                                                    \
+    do {                                                                                                          \
+        for (r = 0; r + 1u < m; r += 2u) {                                                                        \
+            {                                                                                                     \
+                TERMS(r)                                                                                          \
+                OUTPUTS(K, r);                                                                                    \
+            }                                                                                                     \
+            {                                                                                                     \
+                TERMS(r + 1u)                                                                                     \
+                OUTPUTS(K, r + 1u);                                                                               \
+            }                                                                                                     \
+        }                                                                                                         \
+        if (r < m) {                                                                                              \
+            TERMS(r)                                                                                              \
+            OUTPUTS(K, r);                                                                                        \
+        }                                                                                                         \
+    } while (0)
+#define PRE_TERMS(R) TERMS_LOCALS(t->pre + idx[R]);
+#define CACHED_TERMS(R) TERMS_LOCALS(terms_of(t, cache, temp[R]));
+
 /* Whether m samples' inputs are inside the kernel bounds (wide, twide, cwide below 2^24, 2^16, 2^20), and whether
  * their temperatures are all one (diff 0); loops a compiler may vectorise when M is a constant. */
 #define INSIDE(M, K)                                                                                              \
@@ -573,6 +589,19 @@ static inline int32_t low_int32(uint64_t v)
         }                                                                                                         \
         for (k = 0; k < (K) * (int)(M); k++) {                                                                    \
             cwide |= (uint32_t)cur[k] + FAST_I;                                                                   \
+        }                                                                                                         \
+    } while (0)
+
+/* The index of each of m samples' precomputed terms (0 where it has none: missing not 0), and whether two of them are
+ * more than FAR entries apart (far / 2^7 not 0); a loop a compiler may vectorise when M is a constant. */
+#define PRECOMPUTED(M)                                                                                            \
+    do {                                                                                                          \
+        const uint32_t lo = (uint32_t)t->pre_lo_cdeg, count = t->pre_count, i0 = (uint32_t)temp[0] - lo;         \
+        for (r = 0; r < (M); r++) {                                                                               \
+            const uint32_t i = (uint32_t)temp[r] - lo, in = (uint32_t)(i < count);                                \
+            idx[r] = i & (0u - in);                                                                               \
+            missing |= in ^ 1u;                                                                                   \
+            far |= i - i0 + FAR;                                                                                  \
         }                                                                                                         \
     } while (0)
 
@@ -598,35 +627,29 @@ static inline int32_t low_int32(uint64_t v)
     } while (0)
 
 #ifndef MAGSTACK_CAL_VECTOR
-/* m samples whose temperatures vary. With precomputed terms for every one of them: their addresses first, each
- * entry's two cache lines read as they are found (so that they arrive while the loop works), then the loop; otherwise
- * each sample's terms precomputed or from the cache, in the loop. */
+/* m samples whose temperatures vary: from their precomputed terms when all have them (read first when far apart, so
+ * that they arrive while the loop works: a read of each entry, a C99 way to prefetch), else from the cache. */
 #define MIXED_LOOP(K)                                                                                             \
     do {                                                                                                          \
-        const magstack_cal_terms *tp[CHUNK];                                                                      \
-        uint32_t missing = 1;                                                                                     \
+        uint32_t idx[CHUNK], missing = 1, far = 0;                                                                \
         if (t->pre_count != 0u) {                                                                                 \
             missing = 0;                                                                                          \
-            for (r = 0; r < m; r++) {                                                                             \
-                const uint32_t i = (uint32_t)temp[r] - (uint32_t)t->pre_lo_cdeg;                                 \
-                const uint32_t in = (uint32_t)(i < t->pre_count);                                                 \
-                tp[r] = t->pre + (i & (0u - in));                                                                 \
-                missing |= in ^ 1u;                                                                               \
-                (void)*(const volatile int64_t *)&tp[r]->g[0][0];                                                 \
-                (void)*(const volatile uint64_t *)&tp[r]->c[2];                                                   \
+            if (m == CHUNK) {                                                                                     \
+                PRECOMPUTED(CHUNK);                                                                               \
+            } else {                                                                                              \
+                PRECOMPUTED(m);                                                                                   \
             }                                                                                                     \
         }                                                                                                         \
-        if (!missing) {                                                                                           \
-            for (r = 0; r < m; r++) {                                                                             \
-                TERMS_LOCALS(tp[r]);                                                                              \
-                OUTPUTS(K, r);                                                                                    \
+        if (missing == 0u) {                                                                                      \
+            if (far >> 7) {                                                                                       \
+                for (r = 0; r < m; r++) {                                                                         \
+                    (void)*(const volatile int64_t *)&t->pre[idx[r]].g[0][0];                                     \
+                    (void)*(const volatile uint64_t *)&t->pre[idx[r]].c[2];                                       \
+                }                                                                                                 \
             }                                                                                                     \
+            OUTPUTS_LOOP(K, PRE_TERMS);                                                                           \
         } else {                                                                                                  \
-            for (r = 0; r < m; r++) {                                                                             \
-                const magstack_cal_terms *p = terms_of(t, cache, temp[r]);                                        \
-                TERMS_LOCALS(p);                                                                                  \
-                OUTPUTS(K, r);                                                                                    \
-            }                                                                                                     \
+            OUTPUTS_LOOP(K, CACHED_TERMS);                                                                        \
         }                                                                                                         \
     } while (0)
 #else

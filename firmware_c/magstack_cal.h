@@ -79,11 +79,17 @@ enum magstack_cal_result {
     MAGSTACK_CAL_E_ARGUMENT = 12   /* a NULL pointer (or a bad argument of magstack_cal_precompute) */
 };
 
-/* The temperature terms of one temperature (storage for magstack_cal_precompute; 96 bytes, no fields to read). */
+/* The temperature terms of one temperature (storage for magstack_cal_precompute; 96 bytes, no fields to read). GCC
+ * and Clang align it to 32 bytes, so that each lies in two cache lines of 64 bytes. */
+#if defined(__GNUC__)
+#define MAGSTACK_CAL_ALIGN32 __attribute__((aligned(32)))
+#else
+#define MAGSTACK_CAL_ALIGN32
+#endif
 typedef struct {
     int64_t g[3][3];
     uint64_t c[3];
-} magstack_cal_terms;
+} MAGSTACK_CAL_ALIGN32 magstack_cal_terms;
 
 /* A loaded table (fill it with magstack_cal_load, optionally magstack_cal_precompute; do not edit it). */
 typedef struct {

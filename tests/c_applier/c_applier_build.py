@@ -91,8 +91,9 @@ class CTable(ctypes.Structure):
 
 
 _P32 = ctypes.POINTER(ctypes.c_int32)
-#: Bytes of one temperature's precomputed terms (``magstack_cal_terms``: 9 int64 gains, 3 uint64 constants).
-TERMS_BYTES = 96
+#: Bytes of one temperature's precomputed terms (``magstack_cal_terms``: 9 int64 gains, 3 uint64 constants), and their
+#: alignment.
+TERMS_BYTES, TERMS_ALIGN = 96, 32
 
 
 class CApplier:
@@ -121,10 +122,12 @@ class CApplier:
         return self.lib.magstack_cal_load(ctypes.byref(t), raw, len(raw)), t
 
     def precompute(self, t: CTable, lo_cdeg: int, hi_cdeg: int, count: int | None = None) -> tuple[int, np.ndarray]:
-        """``magstack_cal_precompute`` into a new buffer (``count`` entries; enough when None); the buffer must be kept
-        while ``t`` is used."""
+        """``magstack_cal_precompute`` into a new buffer of ``count`` entries (enough when None), aligned as the C type
+        is (32 bytes); the buffer must be kept while ``t`` is used."""
         n = max(hi_cdeg - lo_cdeg + 1, 1) if count is None else count
-        storage = np.zeros(n * TERMS_BYTES // 8 + 1, np.int64)
+        raw = np.zeros(n * TERMS_BYTES + TERMS_ALIGN, np.uint8)
+        skip = -raw.ctypes.data % TERMS_ALIGN
+        storage = raw[skip:skip + n * TERMS_BYTES]
         return self.lib.magstack_cal_precompute(ctypes.byref(t), storage.ctypes.data, n, lo_cdeg, hi_cdeg), storage
 
     def apply(self, t: CTable, b, temp: int, cur) -> tuple[tuple[int, int, int], int]:
