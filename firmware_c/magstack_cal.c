@@ -577,33 +577,18 @@ static inline int32_t low_int32(uint64_t v)
 #define CACHED_TERMS(R) TERMS_LOCALS(terms_of(t, cache, temp[R]));
 
 /* Whether m samples' inputs are inside the kernel bounds (wide, twide, cwide below 2^24, 2^16, 2^20), and whether
- * their temperatures are all one (diff 0); INSIDE_CHUNK for m = CHUNK (each loop over two halves: vectorised, two
- * vectors a step). */
-#define INSIDE(K)                                                                                                 \
+ * their temperatures are all one (diff 0); loops a compiler may vectorise when M is a constant. */
+#define INSIDE(M, K)                                                                                              \
     do {                                                                                                          \
-        for (r = 0; r < 3u * m; r++) {                                                                            \
+        for (r = 0; r < 3u * (M); r++) {                                                                          \
             wide |= (uint32_t)b[r] + FAST_B;                                                                      \
         }                                                                                                         \
-        for (r = 0; r < m; r++) {                                                                                 \
+        for (r = 0; r < (M); r++) {                                                                               \
             twide |= (uint32_t)temp[r] + FAST_T;                                                                  \
             diff |= (uint32_t)temp[r] ^ (uint32_t)temp[0];                                                        \
         }                                                                                                         \
-        for (k = 0; k < (K) * (int)m; k++) {                                                                      \
+        for (k = 0; k < (K) * (int)(M); k++) {                                                                    \
             cwide |= (uint32_t)cur[k] + FAST_I;                                                                   \
-        }                                                                                                         \
-    } while (0)
-#define INSIDE_CHUNK(K)                                                                                           \
-    do {                                                                                                          \
-        const uint32_t t0 = (uint32_t)temp[0];                                                                    \
-        for (r = 0; r < 3u * CHUNK / 2u; r++) {                                                                   \
-            wide |= ((uint32_t)b[r] + FAST_B) | ((uint32_t)b[r + 3u * CHUNK / 2u] + FAST_B);                      \
-        }                                                                                                         \
-        for (r = 0; r < CHUNK / 2u; r++) {                                                                        \
-            twide |= ((uint32_t)temp[r] + FAST_T) | ((uint32_t)temp[r + CHUNK / 2u] + FAST_T);                    \
-            diff |= ((uint32_t)temp[r] ^ t0) | ((uint32_t)temp[r + CHUNK / 2u] ^ t0);                             \
-        }                                                                                                         \
-        for (k = 0; k < (K) * (int)CHUNK / 2; k++) {                                                              \
-            cwide |= ((uint32_t)cur[k] + FAST_I) | ((uint32_t)cur[k + (K) * (int)CHUNK / 2] + FAST_I);           \
         }                                                                                                         \
     } while (0)
 
@@ -691,59 +676,51 @@ static inline int32_t low_int32(uint64_t v)
     } while (0)
 #endif
 
-/* n samples with K currents, in chunks of CHUNK: a chunk goes through a kernel when its inputs are inside the kernel
- * bounds (one temperature: its terms in locals, a loop a compiler may vectorise; else each sample's own terms) and
- * every output is an int32; else a sample at a time. */
-#define BLOCK_KERNEL(NAME, K)                                                                                     \
-    static void NAME(const magstack_cal_table *t, terms_cache *cache, const block_terms *bt, size_t n,            \
-                     const int32_t *b_nT, const int32_t *temp_cdeg, const int32_t *cur_mA, int32_t *out_nT,       \
-                     uint8_t *status_all)                                                                         \
+/* m <= CHUNK samples with K currents: through a kernel when their inputs are inside the kernel bounds (one
+ * temperature: its terms in locals, a loop a compiler may vectorise; else each sample's own terms) and every output is
+ * an int32; else a sample at a time. */
+#define CHUNK_KERNEL(NAME, K)                                                                                     \
+    static void NAME(const magstack_cal_table *t, terms_cache *cache, const block_terms *bt, size_t m,            \
+                     const int32_t *restrict b, const int32_t *restrict temp, const int32_t *restrict cur,         \
+                     int32_t *restrict out, uint8_t *restrict status)                                              \
     {                                                                                                             \
-        size_t r0;                                                                                                \
-        for (r0 = 0; r0 < n; r0 += CHUNK) {                                                                       \
-            const size_t m = n - r0 < CHUNK ? n - r0 : CHUNK;                                                     \
-            const int32_t *restrict b = b_nT + 3u * r0, *restrict temp = temp_cdeg + r0;                          \
-            const int32_t *restrict cur = (K) ? cur_mA + (size_t)(K) * r0 : cur_mA;                               \
-            int32_t *restrict out = out_nT + 3u * r0;                                                             \
-            uint8_t *restrict status = status_all + r0;                                                           \
-            uint32_t wide = 0, twide = 0, cwide = 0, diff = 0, flag[CHUNK];                                       \
-            int32_t o[3][CHUNK];                                                                                  \
-            uint64_t chk = 0;                                                                                     \
-            size_t r;                                                                                             \
-            int k;                                                                                                \
-            if (m == CHUNK) {                                                                                     \
-                INSIDE_CHUNK(K);                                                                                  \
-            } else {                                                                                              \
-                INSIDE(K);                                                                                        \
-            }                                                                                                     \
-            if (((wide >> 24) | (twide >> 16) | (cwide >> 20)) == 0u) {                                           \
-                if (diff == 0u) {                                                                                 \
-                    const magstack_cal_terms *tt = terms_of(t, cache, temp[0]);                                   \
-                    TERMS_LOCALS(tt);                                                                             \
-                    for (r = 0; r < m; r++) {                                                                     \
-                        OUTPUTS(K, r);                                                                            \
-                    }                                                                                             \
-                } else {                                                                                          \
-                    MIXED_LOOP(K);                                                                                \
-                }                                                                                                 \
-                if (chk >> 32 == 0u) {                                                                            \
-                    if (m == CHUNK) {                                                                             \
-                        STATUS(CHUNK, K);                                                                         \
-                    } else {                                                                                      \
-                        STATUS(m, K);                                                                             \
-                    }                                                                                             \
-                    continue;                                                                                     \
-                }                                                                                                 \
-            }                                                                                                     \
-            samples(t, cache, m, b, temp, cur, out, status);                                                      \
+        uint32_t wide = 0, twide = 0, cwide = 0, diff = 0, flag[CHUNK];                                           \
+        int32_t o[3][CHUNK];                                                                                      \
+        uint64_t chk = 0;                                                                                         \
+        size_t r;                                                                                                 \
+        int k;                                                                                                    \
+        if (m == CHUNK) {                                                                                         \
+            INSIDE(CHUNK, K);                                                                                     \
+        } else {                                                                                                  \
+            INSIDE(m, K);                                                                                         \
         }                                                                                                         \
+        if (((wide >> 24) | (twide >> 16) | (cwide >> 20)) == 0u) {                                               \
+            if (diff == 0u) {                                                                                     \
+                const magstack_cal_terms *tt = terms_of(t, cache, temp[0]);                                       \
+                TERMS_LOCALS(tt);                                                                                 \
+                for (r = 0; r < m; r++) {                                                                         \
+                    OUTPUTS(K, r);                                                                                \
+                }                                                                                                 \
+            } else {                                                                                              \
+                MIXED_LOOP(K);                                                                                    \
+            }                                                                                                     \
+            if (chk >> 32 == 0u) {                                                                                \
+                if (m == CHUNK) {                                                                                 \
+                    STATUS(CHUNK, K);                                                                             \
+                } else {                                                                                          \
+                    STATUS(m, K);                                                                                 \
+                }                                                                                                 \
+                return;                                                                                           \
+            }                                                                                                     \
+        }                                                                                                         \
+        samples(t, cache, m, b, temp, cur, out, status);                                                          \
     }
 
-BLOCK_KERNEL(block0, 0)
-BLOCK_KERNEL(block1, 1)
-BLOCK_KERNEL(block2, 2)
-BLOCK_KERNEL(block3, 3)
-BLOCK_KERNEL(block4, 4)
+CHUNK_KERNEL(chunk0, 0)
+CHUNK_KERNEL(chunk1, 1)
+CHUNK_KERNEL(chunk2, 2)
+CHUNK_KERNEL(chunk3, 3)
+CHUNK_KERNEL(chunk4, 4)
 
 void magstack_cal_apply_block(const magstack_cal_table *table, size_t n, const int32_t *b_nT,
                               const int32_t *temp_cdeg, const int32_t *currents_mA, int32_t *out,
@@ -752,6 +729,7 @@ void magstack_cal_apply_block(const magstack_cal_table *table, size_t n, const i
     block_terms bt;
     terms_cache cache;
     unsigned i, k;
+    size_t r, nk = table->n_currents;
     cache_init(&cache);
     for (k = 0; k < MAGSTACK_CAL_MAX_CURRENTS; k++) {
         for (i = 0; i < 3u; i++) {
@@ -766,12 +744,16 @@ void magstack_cal_apply_block(const magstack_cal_table *table, size_t n, const i
     bt.nn = norm2_limit(table);
     bt.t_lo = (uint32_t)(table->has_temp_range ? table->temp_lo_cdeg : -MAGSTACK_CAL_T_LIMIT_CDEG);
     bt.t_span = (uint32_t)(table->has_temp_range ? table->temp_hi_cdeg : MAGSTACK_CAL_T_LIMIT_CDEG) - bt.t_lo;
-    switch (table->n_currents) {
-    case 0: block0(table, &cache, &bt, n, b_nT, temp_cdeg, currents_mA, out, status); break;
-    case 1: block1(table, &cache, &bt, n, b_nT, temp_cdeg, currents_mA, out, status); break;
-    case 2: block2(table, &cache, &bt, n, b_nT, temp_cdeg, currents_mA, out, status); break;
-    case 3: block3(table, &cache, &bt, n, b_nT, temp_cdeg, currents_mA, out, status); break;
-    default: block4(table, &cache, &bt, n, b_nT, temp_cdeg, currents_mA, out, status); break;
+    for (r = 0; r < n; r += CHUNK) {
+        const size_t m = n - r < CHUNK ? n - r : CHUNK;
+        const int32_t *b = b_nT + 3u * r, *t = temp_cdeg + r, *c = nk ? currents_mA + nk * r : NULL;
+        switch (nk) {
+        case 0: chunk0(table, &cache, &bt, m, b, t, c, out + 3u * r, status + r); break;
+        case 1: chunk1(table, &cache, &bt, m, b, t, c, out + 3u * r, status + r); break;
+        case 2: chunk2(table, &cache, &bt, m, b, t, c, out + 3u * r, status + r); break;
+        case 3: chunk3(table, &cache, &bt, m, b, t, c, out + 3u * r, status + r); break;
+        default: chunk4(table, &cache, &bt, m, b, t, c, out + 3u * r, status + r); break;
+        }
     }
 }
 
