@@ -573,7 +573,8 @@ static inline int32_t low_int32(uint64_t v)
             OUTPUTS(K, r);                                                                                        \
         }                                                                                                         \
     } while (0)
-#define PRE_TERMS(R) TERMS_LOCALS(t->pre + idx[R]);
+#define PRE_AT(R) ((const magstack_cal_terms *)(pre_bytes + idx[R])) /* idx: byte offsets */
+#define PRE_TERMS(R) TERMS_LOCALS(PRE_AT(R));
 #define CACHED_TERMS(R) TERMS_LOCALS(terms_of(t, cache, temp[R]));
 
 /* Whether m samples' inputs are inside the kernel bounds (wide, twide, cwide below 2^24, 2^16, 2^20), and whether
@@ -592,14 +593,15 @@ static inline int32_t low_int32(uint64_t v)
         }                                                                                                         \
     } while (0)
 
-/* The index of each of m samples' precomputed terms (0 where it has none: missing not 0), and whether two of them are
+/* The byte offset of each of m samples' precomputed terms (0 where it has none: missing not 0), and whether two of
+ * them are
  * more than FAR entries apart (far / 2^7 not 0); a loop a compiler may vectorise when M is a constant. */
 #define PRECOMPUTED(M)                                                                                            \
     do {                                                                                                          \
         const uint32_t lo = (uint32_t)t->pre_lo_cdeg, count = t->pre_count, i0 = (uint32_t)temp[0] - lo;         \
         for (r = 0; r < (M); r++) {                                                                               \
             const uint32_t i = (uint32_t)temp[r] - lo, in = (uint32_t)(i < count);                                \
-            idx[r] = i & (0u - in);                                                                               \
+            idx[r] = (i & (0u - in)) * (uint32_t)sizeof(magstack_cal_terms); /* below 2^23 */                   \
             missing |= in ^ 1u;                                                                                   \
             far |= i - i0 + FAR;                                                                                  \
         }                                                                                                         \
@@ -631,6 +633,7 @@ static inline int32_t low_int32(uint64_t v)
  * that they arrive while the loop works: a read of each entry, a C99 way to prefetch), else from the cache. */
 #define MIXED_LOOP(K)                                                                                             \
     do {                                                                                                          \
+        const unsigned char *pre_bytes = (const unsigned char *)t->pre;                                           \
         uint32_t idx[CHUNK], missing = 1, far = 0;                                                                \
         if (t->pre_count != 0u) {                                                                                 \
             missing = 0;                                                                                          \
@@ -643,8 +646,8 @@ static inline int32_t low_int32(uint64_t v)
         if (missing == 0u) {                                                                                      \
             if (far >> 7) {                                                                                       \
                 for (r = 0; r < m; r++) {                                                                         \
-                    (void)*(const volatile int64_t *)&t->pre[idx[r]].g[0][0];                                     \
-                    (void)*(const volatile uint64_t *)&t->pre[idx[r]].c[2];                                       \
+                    (void)*(const volatile int64_t *)&PRE_AT(r)->g[0][0];                                         \
+                    (void)*(const volatile uint64_t *)&PRE_AT(r)->c[2];                                           \
                 }                                                                                                 \
             }                                                                                                     \
             OUTPUTS_LOOP(K, PRE_TERMS);                                                                           \
