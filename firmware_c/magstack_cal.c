@@ -594,8 +594,7 @@ static inline int32_t low_int32(uint64_t v)
     } while (0)
 
 /* The byte offset of each of m samples' precomputed terms (0 where it has none: missing not 0), and whether two of
- * them are
- * more than FAR entries apart (far / 2^7 not 0); a loop a compiler may vectorise when M is a constant. */
+ * them are more than FAR entries apart (far / 2^7 not 0); a loop a compiler may vectorise when M is a constant. */
 #define PRECOMPUTED(M)                                                                                            \
     do {                                                                                                          \
         const uint32_t lo = (uint32_t)t->pre_lo_cdeg, count = t->pre_count, i0 = (uint32_t)temp[0] - lo;         \
