@@ -345,6 +345,24 @@ static void make_terms(const magstack_cal_table *t, int64_t dtc, magstack_cal_te
     }
 }
 
+/* |v| of an int64 as uint64 */
+static uint64_t mag64(int64_t v)
+{
+    return v < 0 ? 0u - (uint64_t)v : (uint64_t)v;
+}
+
+/* How far the accumulators of terms p reach, per axis: reach[0][i] = sum_j |G_ij|, reach[1][i] = |constant_i|
+ * (below 2^36.4 and 2^52). */
+static void reach_of(const magstack_cal_terms *p, uint64_t reach[2][3])
+{
+    unsigned i;
+    for (i = 0; i < 3u; i++) {
+        const uint64_t c = p->c[i] - ROUND_BIAS;
+        reach[0][i] = mag64(p->g[i][0]) + mag64(p->g[i][1]) + mag64(p->g[i][2]);
+        reach[1][i] = c >> 63 ? 0u - c : c;
+    }
+}
+
 /* The precomputed terms of clipped temperature tc (magstack_cal_precompute), or NULL. */
 static inline const magstack_cal_terms *precomputed_terms(const magstack_cal_table *t, int32_t tc)
 {
@@ -362,6 +380,10 @@ int magstack_cal_precompute(magstack_cal_table *table, magstack_cal_terms *stora
     table->pre = NULL;
     table->pre_lo_cdeg = 0;
     table->pre_count = 0;
+    for (k = 0; k < 3u; k++) {
+        table->pre_reach[0][k] = 0;
+        table->pre_reach[1][k] = 0;
+    }
     if (storage == NULL && count == 0u) {
         return MAGSTACK_CAL_OK;
     }
@@ -374,7 +396,15 @@ int magstack_cal_precompute(magstack_cal_table *table, magstack_cal_terms *stora
         return MAGSTACK_CAL_E_ARGUMENT;
     }
     for (k = 0; k < m; k++) {
+        uint64_t reach[2][3];
+        unsigned i, j;
         make_terms(table, (int64_t)lo_cdeg + (int64_t)k - table->t0_cdeg, &storage[k]);
+        reach_of(&storage[k], reach);
+        for (i = 0; i < 2u; i++) {
+            for (j = 0; j < 3u; j++) {
+                table->pre_reach[i][j] = reach[i][j] > table->pre_reach[i][j] ? reach[i][j] : table->pre_reach[i][j];
+            }
+        }
     }
     table->pre = storage;
     table->pre_lo_cdeg = lo_cdeg;
@@ -453,6 +483,7 @@ unsigned magstack_cal_apply(const magstack_cal_table *table, const int32_t b_nT[
 /* The terms of the last MAGSTACK_CAL_TERMS_CACHE clipped temperatures (a tag outside the clip range: empty). */
 typedef struct {
     magstack_cal_terms tt[MAGSTACK_CAL_TERMS_CACHE];
+    uint64_t reach[MAGSTACK_CAL_TERMS_CACHE][2][3];
     int32_t tag[MAGSTACK_CAL_TERMS_CACHE];
 } terms_cache;
 
@@ -464,19 +495,31 @@ static void cache_init(terms_cache *cache)
     }
 }
 
-/* The terms of clipped temperature tc: precomputed, or from the cache (computed on a miss). */
-static inline const magstack_cal_terms *terms_of(const magstack_cal_table *t, terms_cache *cache, int32_t tc)
+/* The terms of clipped temperature tc: precomputed, or from the cache (computed on a miss); *reach: how far they
+ * reach (reach_of; for precomputed terms, the largest of them all). */
+static inline const magstack_cal_terms *terms_reach(const magstack_cal_table *t, terms_cache *cache, int32_t tc,
+                                                    const uint64_t (**reach)[3])
 {
     const magstack_cal_terms *p = precomputed_terms(t, tc);
     uint32_t slot = (uint32_t)tc & (MAGSTACK_CAL_TERMS_CACHE - 1u);
     if (p != NULL) {
+        *reach = t->pre_reach;
         return p;
     }
     if (cache->tag[slot] != tc) {
         make_terms(t, (int64_t)tc - t->t0_cdeg, &cache->tt[slot]);
+        reach_of(&cache->tt[slot], cache->reach[slot]);
         cache->tag[slot] = tc;
     }
+    *reach = (const uint64_t(*)[3])cache->reach[slot];
     return &cache->tt[slot];
+}
+
+/* The terms of clipped temperature tc: precomputed, or from the cache (computed on a miss). */
+static inline const magstack_cal_terms *terms_of(const magstack_cal_table *t, terms_cache *cache, int32_t tc)
+{
+    const uint64_t(*reach)[3];
+    return terms_reach(t, cache, tc, &reach);
 }
 
 /* m samples of a block, one at a time. */
@@ -495,13 +538,15 @@ static void samples(const magstack_cal_table *t, terms_cache *cache, size_t m, c
 #ifndef MAGSTACK_CAL_COMPACT /* chunks of samples through kernels per number of currents */
 
 /* What every sample of a block shares: the currents' coefficients (x 2^7, modulo 2^64) and ranges (lower end, width),
- * the field limits, the temperature range (lower end, width; the clip range without one). */
+ * the field limits, the temperature range (lower end, width; the clip range without one), how far the currents
+ * reach. */
 typedef struct {
     uint64_t d[MAGSTACK_CAL_MAX_CURRENTS][3];
     uint32_t c_lo[MAGSTACK_CAL_MAX_CURRENTS], c_span[MAGSTACK_CAL_MAX_CURRENTS];
     uint32_t lim[3];
     uint64_t nn;
     uint32_t t_lo, t_span;
+    uint64_t dsum[3]; /* sum_k |D_k,i| 2^7 */
 } block_terms;
 
 /* A block goes in chunks of CHUNK samples. A chunk whose inputs are all inside these bounds (nothing clips) goes to a
@@ -509,9 +554,7 @@ typedef struct {
  * mA. The kernel computes the outputs, then, when every output is within int32 (nothing saturates), the status bits
  * in loops of their own (vectorised by a compiler where it can); otherwise the chunk is computed a sample at a time. */
 #define CHUNK 32u
-#define FAST_B 0x800000u /* 2^23 */
 #define FAST_T 0x8000u   /* 2^15 */
-#define FAST_I 0x80000u  /* 2^19 */
 /* round19(u) - OUT_OFFSET is out + 2^31: within 0..2^32 - 1 when out is an int32 */
 #define OUT_OFFSET (((uint64_t)1 << 44) - ((uint64_t)1 << 31))
 /* precomputed terms are read ahead of their use when a chunk's temperatures are more than FAR entries apart */
@@ -521,6 +564,17 @@ typedef struct {
 static inline int32_t low_int32(uint64_t v)
 {
     return (int32_t)((int64_t)((v + 0x80000000u) & 0xFFFFFFFFu) - ((int64_t)1 << 31));
+}
+
+/* 1 when no output can leave int32 for terms of this reach (reach_of), currents of reach dsum, fields of magnitude at
+ * most bmag + 1 and currents of magnitude at most cmag + 1: |acc_i| <= 2^50 - 2^19 on every axis (the bound is below
+ * 2^61). Then a kernel need not check its outputs. */
+static inline unsigned cannot_saturate(const uint64_t reach[2][3], const uint64_t dsum[3], uint32_t bmag, uint32_t cmag)
+{
+    const uint64_t lim = ((uint64_t)1 << 50) - ((uint64_t)1 << 19), bm = (uint64_t)bmag + 1u, cm = (uint64_t)cmag + 1u;
+    return (unsigned)(reach[1][0] + reach[0][0] * bm + dsum[0] * cm <= lim) &
+           (unsigned)(reach[1][1] + reach[0][1] * bm + dsum[1] * cm <= lim) &
+           (unsigned)(reach[1][2] + reach[0][2] * bm + dsum[2] * cm <= lim);
 }
 
 /* The terms of p in locals. */
@@ -533,7 +587,7 @@ static inline int32_t low_int32(uint64_t v)
 
 /* The outputs of sample r with K currents, inputs inside the kernel bounds, from the terms g.., c..; without a branch.
  * chk collects out + 2^31 of every output (an int32 output: below 2^32); o[] keeps the outputs by axis. */
-#define OUTPUTS(K, r)                                                                                             \
+#define OUTPUTS(K, r, CHK)                                                                                           \
     do {                                                                                                          \
         const uint64_t x = (uint64_t)(int64_t)b[3u * (r)], y = (uint64_t)(int64_t)b[3u * (r) + 1u];               \
         const uint64_t z = (uint64_t)(int64_t)b[3u * (r) + 2u];                                                   \
@@ -549,47 +603,63 @@ static inline int32_t low_int32(uint64_t v)
         u0 = round19(u0);                                                                                         \
         u1 = round19(u1);                                                                                         \
         u2 = round19(u2);                                                                                         \
-        chk |= (u0 - OUT_OFFSET) | (u1 - OUT_OFFSET) | (u2 - OUT_OFFSET);                                         \
+        if (CHK) {                                                                                                \
+            chk |= (u0 - OUT_OFFSET) | (u1 - OUT_OFFSET) | (u2 - OUT_OFFSET);                                     \
+        }                                                                                                         \
         o[0][r] = out[3u * (r)] = low_int32(u0);                                                                  \
         o[1][r] = out[3u * (r) + 1u] = low_int32(u1);                                                             \
         o[2][r] = out[3u * (r) + 2u] = low_int32(u2);                                                             \
     } while (0)
 
 /* The outputs of samples 0..m-1, two a step; TERMS(R) declares the terms of sample R in locals. */
-#define OUTPUTS_LOOP(K, TERMS)                                                                                    \
+#define OUTPUTS_LOOP(K, TERMS, CHK)                                                                                  \
     do {                                                                                                          \
         for (r = 0; r + 1u < m; r += 2u) {                                                                        \
             {                                                                                                     \
                 TERMS(r)                                                                                          \
-                OUTPUTS(K, r);                                                                                    \
+                OUTPUTS(K, r, CHK);                                                                               \
             }                                                                                                     \
             {                                                                                                     \
                 TERMS(r + 1u)                                                                                     \
-                OUTPUTS(K, r + 1u);                                                                               \
+                OUTPUTS(K, r + 1u, CHK);                                                                               \
             }                                                                                                     \
         }                                                                                                         \
         if (r < m) {                                                                                              \
             TERMS(r)                                                                                              \
-            OUTPUTS(K, r);                                                                                        \
+            OUTPUTS(K, r, CHK);                                                                                      \
         }                                                                                                         \
     } while (0)
+/* The outputs of samples 0..m-1 at one temperature (a loop a compiler with wide vectors vectorises; elsewhere two
+ * samples a step). */
+#if defined(__AVX2__)
+#define RUN_LOOP(K, CHK)                                                                                          \
+    do {                                                                                                          \
+        for (r = 0; r < m; r++) {                                                                                 \
+            OUTPUTS(K, r, CHK);                                                                                   \
+        }                                                                                                         \
+    } while (0)
+#else
+#define RUN_LOOP(K, CHK) OUTPUTS_LOOP(K, RUN_TERMS, CHK)
+#endif
+#define RUN_TERMS(R) /* the terms of the one temperature: in locals before the loop */
 #define PRE_AT(R) ((const magstack_cal_terms *)(pre_bytes + idx[R])) /* idx: byte offsets */
 #define PRE_TERMS(R) TERMS_LOCALS(PRE_AT(R));
 #define CACHED_TERMS(R) TERMS_LOCALS(terms_of(t, cache, temp[R]));
 
-/* Whether m samples' inputs are inside the kernel bounds (wide, twide, cwide below 2^24, 2^16, 2^20), and whether
- * their temperatures are all one (diff 0); loops a compiler may vectorise when M is a constant. */
+/* The largest field and current magnitude of m samples, less one at most (bmag, cmag: the OR of each input's ones'
+ * complement magnitude, x or -x - 1), whether their temperatures are inside +-(2^15 - 1) (twide below 2^16), and
+ * whether they are all one (diff 0); loops a compiler may vectorise when M is a constant. */
 #define INSIDE(M, K)                                                                                              \
     do {                                                                                                          \
         for (r = 0; r < 3u * (M); r++) {                                                                          \
-            wide |= (uint32_t)b[r] + FAST_B;                                                                      \
+            bmag |= (uint32_t)b[r] ^ (0u - ((uint32_t)b[r] >> 31));                                               \
         }                                                                                                         \
         for (r = 0; r < (M); r++) {                                                                               \
             twide |= (uint32_t)temp[r] + FAST_T;                                                                  \
             diff |= (uint32_t)temp[r] ^ (uint32_t)temp[0];                                                        \
         }                                                                                                         \
         for (k = 0; k < (K) * (int)(M); k++) {                                                                    \
-            cwide |= (uint32_t)cur[k] + FAST_I;                                                                   \
+            cmag |= (uint32_t)cur[k] ^ (0u - ((uint32_t)cur[k] >> 31));                                           \
         }                                                                                                         \
     } while (0)
 
@@ -649,9 +719,13 @@ static inline int32_t low_int32(uint64_t v)
                     (void)*(const volatile uint64_t *)&PRE_AT(r)->c[2];                                           \
                 }                                                                                                 \
             }                                                                                                     \
-            OUTPUTS_LOOP(K, PRE_TERMS);                                                                           \
+            if (cannot_saturate(t->pre_reach, bt->dsum, bmag, cmag)) {                                            \
+                OUTPUTS_LOOP(K, PRE_TERMS, 0);                                                                    \
+            } else {                                                                                              \
+                OUTPUTS_LOOP(K, PRE_TERMS, 1);                                                                    \
+            }                                                                                                     \
         } else {                                                                                                  \
-            OUTPUTS_LOOP(K, CACHED_TERMS);                                                                        \
+            OUTPUTS_LOOP(K, CACHED_TERMS, 1);                                                                     \
         }                                                                                                         \
     } while (0)
 #else
@@ -673,7 +747,7 @@ static inline int32_t low_int32(uint64_t v)
             const uint64_t g00 = G[0][r], g01 = G[1][r], g02 = G[2][r], g10 = G[3][r], g11 = G[4][r];             \
             const uint64_t g12 = G[5][r], g20 = G[6][r], g21 = G[7][r], g22 = G[8][r];                            \
             const uint64_t c0 = G[9][r], c1 = G[10][r], c2 = G[11][r];                                            \
-            OUTPUTS(K, r);                                                                                        \
+            OUTPUTS(K, r, 1);                                                                                     \
         }                                                                                                         \
     } while (0)
 #endif
@@ -686,7 +760,7 @@ static inline int32_t low_int32(uint64_t v)
                      const int32_t *restrict b, const int32_t *restrict temp, const int32_t *restrict cur,         \
                      int32_t *restrict out, uint8_t *restrict status)                                              \
     {                                                                                                             \
-        uint32_t wide = 0, twide = 0, cwide = 0, diff = 0, flag[CHUNK];                                           \
+        uint32_t bmag = 0, twide = 0, cmag = 0, diff = 0, flag[CHUNK];                                            \
         int32_t o[3][CHUNK];                                                                                      \
         uint64_t chk = 0;                                                                                         \
         size_t r;                                                                                                 \
@@ -696,12 +770,15 @@ static inline int32_t low_int32(uint64_t v)
         } else {                                                                                                  \
             INSIDE(m, K);                                                                                         \
         }                                                                                                         \
-        if (((wide >> 24) | (twide >> 16) | (cwide >> 20)) == 0u) {                                               \
+        if (((bmag >> 23) | (twide >> 16) | (cmag >> 19)) == 0u) { /* nothing clips */                           \
             if (diff == 0u) {                                                                                     \
-                const magstack_cal_terms *tt = terms_of(t, cache, temp[0]);                                       \
+                const uint64_t(*reach)[3];                                                                        \
+                const magstack_cal_terms *tt = terms_reach(t, cache, temp[0], &reach);                            \
                 TERMS_LOCALS(tt);                                                                                 \
-                for (r = 0; r < m; r++) {                                                                         \
-                    OUTPUTS(K, r);                                                                                \
+                if (cannot_saturate(reach, bt->dsum, bmag, cmag)) {                                               \
+                    RUN_LOOP(K, 0);                                                                               \
+                } else {                                                                                          \
+                    RUN_LOOP(K, 1);                                                                               \
                 }                                                                                                 \
             } else {                                                                                              \
                 MIXED_LOOP(K);                                                                                    \
@@ -742,6 +819,10 @@ void magstack_cal_apply_block(const magstack_cal_table *table, size_t n, const i
     }
     for (i = 0; i < 3u; i++) {
         bt.lim[i] = (uint32_t)table->field_axes_nT[i];
+        bt.dsum[i] = 0;
+        for (k = 0; k < table->n_currents; k++) {
+            bt.dsum[i] += mag64(table->D[k][i]) * 128u;
+        }
     }
     bt.nn = norm2_limit(table);
     bt.t_lo = (uint32_t)(table->has_temp_range ? table->temp_lo_cdeg : -MAGSTACK_CAL_T_LIMIT_CDEG);

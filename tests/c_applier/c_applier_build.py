@@ -75,7 +75,7 @@ class CTable(ctypes.Structure):
                 ("K_S2", ctypes.c_int32 * 3), ("O", ctypes.c_int32 * 3), ("K_O", ctypes.c_int32 * 3),
                 ("D", (ctypes.c_int32 * 3) * 4), ("current_lo_mA", ctypes.c_int32 * 4),
                 ("current_hi_mA", ctypes.c_int32 * 4), ("pre", ctypes.c_void_p), ("pre_lo_cdeg", ctypes.c_int32),
-                ("pre_count", ctypes.c_uint32)]
+                ("pre_count", ctypes.c_uint32), ("pre_reach", (ctypes.c_uint64 * 3) * 2)]
 
     def as_fixed(self) -> fp.FixedPointTable:
         """The decoded integers as a FixedPointTable (to compare with the Python decoder)."""
