@@ -642,6 +642,8 @@ static inline unsigned cannot_saturate(const uint64_t reach[2][3], const uint64_
 #define RUN_LOOP(K, CHK) OUTPUTS_LOOP(K, RUN_TERMS, CHK)
 #endif
 #define RUN_TERMS(R) /* the terms of the one temperature: in locals before the loop */
+#define TEMP_OUTSIDE(R) (uint32_t)((uint32_t)temp[R] - t_lo > t_span)
+#define RUN_OUTSIDE(R) t_out /* one temperature */
 #define PRE_AT(R) ((const magstack_cal_terms *)(pre_bytes + idx[R])) /* idx: byte offsets */
 #define PRE_TERMS(R) TERMS_LOCALS(PRE_AT(R));
 #define CACHED_TERMS(R) TERMS_LOCALS(terms_of(t, cache, temp[R]));
@@ -676,17 +678,17 @@ static inline unsigned cannot_saturate(const uint64_t reach[2][3], const uint64_
         }                                                                                                         \
     } while (0)
 
-/* The status bits of m samples from their outputs o[], temperatures and currents; loops a compiler may vectorise when
- * M is a constant. */
-#define STATUS(M, K)                                                                                              \
+/* The status bits of m samples from their outputs o[], currents and OUTSIDE(r), 1 when sample r's temperature is outside
+ * its range; loops a compiler may vectorise when M is a constant. */
+#define STATUS(M, K, OUTSIDE)                                                                                     \
     do {                                                                                                          \
-        const uint32_t l0 = bt->lim[0], l1 = bt->lim[1], l2 = bt->lim[2], t_lo = bt->t_lo, t_span = bt->t_span;  \
+        const uint32_t l0 = bt->lim[0], l1 = bt->lim[1], l2 = bt->lim[2];                                         \
         const uint64_t nn = bt->nn;                                                                               \
         for (r = 0; r < (M); r++) {                                                                               \
             const uint32_t n0 = whole_nT(o[0][r]), n1 = whole_nT(o[1][r]), n2 = whole_nT(o[2][r]);                \
             uint32_t oov = (uint32_t)(n0 > l0) | (uint32_t)(n1 > l1) | (uint32_t)(n2 > l2);                       \
             oov |= (uint32_t)((nn - ((uint64_t)n0 * n0 + (uint64_t)n1 * n1 + (uint64_t)n2 * n2)) >> 63);          \
-            oov |= (uint32_t)((uint32_t)temp[r] - t_lo > t_span);                                                 \
+            oov |= OUTSIDE(r);                                                                                    \
             for (k = 0; k < (K); k++) {                                                                           \
                 oov |= (uint32_t)((uint32_t)cur[(size_t)(K) * r + (size_t)k] - bt->c_lo[k] > bt->c_span[k]);     \
             }                                                                                                     \
@@ -784,10 +786,13 @@ static inline unsigned cannot_saturate(const uint64_t reach[2][3], const uint64_
                 MIXED_LOOP(K);                                                                                    \
             }                                                                                                     \
             if (chk >> 32 == 0u) {                                                                                \
-                if (m == CHUNK) {                                                                                 \
-                    STATUS(CHUNK, K);                                                                             \
+                const uint32_t t_lo = bt->t_lo, t_span = bt->t_span, t_out = TEMP_OUTSIDE(0);                     \
+                if (diff == 0u && m == CHUNK) {                                                                   \
+                    STATUS(CHUNK, K, RUN_OUTSIDE);                                                                \
+                } else if (m == CHUNK) {                                                                          \
+                    STATUS(CHUNK, K, TEMP_OUTSIDE);                                                               \
                 } else {                                                                                          \
-                    STATUS(m, K);                                                                                 \
+                    STATUS(m, K, TEMP_OUTSIDE);                                                                   \
                 }                                                                                                 \
                 return;                                                                                           \
             }                                                                                                     \
