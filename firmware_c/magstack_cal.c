@@ -679,14 +679,15 @@ static inline unsigned cannot_saturate(const uint64_t reach[2][3], const uint64_
     } while (0)
 
 /* The status bits of m samples from their outputs o[], currents and OUTSIDE(r), 1 when sample r's temperature is outside
- * its range; loops a compiler may vectorise when M is a constant. */
+ * its range; loops a compiler may vectorise when M is a constant. Whole nT (at most 2^23) and the axis limits (at most
+ * 2^24) are compared as int32. */
 #define STATUS(M, K, OUTSIDE)                                                                                     \
     do {                                                                                                          \
-        const uint32_t l0 = bt->lim[0], l1 = bt->lim[1], l2 = bt->lim[2];                                         \
+        const int32_t l0 = (int32_t)bt->lim[0], l1 = (int32_t)bt->lim[1], l2 = (int32_t)bt->lim[2];              \
         const uint64_t nn = bt->nn;                                                                               \
         for (r = 0; r < (M); r++) {                                                                               \
             const uint32_t n0 = whole_nT(o[0][r]), n1 = whole_nT(o[1][r]), n2 = whole_nT(o[2][r]);                \
-            uint32_t oov = (uint32_t)(n0 > l0) | (uint32_t)(n1 > l1) | (uint32_t)(n2 > l2);                       \
+            uint32_t oov = (uint32_t)((int32_t)n0 > l0) | (uint32_t)((int32_t)n1 > l1) | (uint32_t)((int32_t)n2 > l2); \
             oov |= (uint32_t)((nn - ((uint64_t)n0 * n0 + (uint64_t)n1 * n1 + (uint64_t)n2 * n2)) >> 63);          \
             oov |= OUTSIDE(r);                                                                                    \
             for (k = 0; k < (K); k++) {                                                                           \
