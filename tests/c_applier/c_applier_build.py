@@ -444,3 +444,83 @@ def cases(draw, n_random: int = 200):
     if draw(st.integers(0, 2)):
         fx = limits_at_outputs(rng, fx, b, t, c)
     return fx, names, b, t, c
+
+
+# ---------------------------------------------------------------------- chunks for the block path's kernels
+#: ``magstack_cal_apply_block`` works in chunks of this many samples; a chunk whose inputs are all inside the kernel
+#: bounds goes through a kernel (firmware_c/magstack_cal.c, CHUNK and the bounds below), any other a sample at a time.
+CHUNK = 32
+#: The kernel bounds: fields -2^23..2^23-1 nT, temperatures -2^15..2^15-1 centi-degC, currents -2^19..2^19-1 mA.
+KERNEL_B, KERNEL_T, KERNEL_I = 2 ** 23, 2 ** 15, 2 ** 19
+
+
+def _kernel_temps(rng: np.random.Generator, fx: fp.FixedPointTable) -> np.ndarray:
+    """One chunk's temperatures inside the kernel bound: one value (in or out of the table's range, or near t0), runs
+    of 4, noise of +-2 around one value, a new value every sample (in the table's range and beyond), or anywhere."""
+    lo, hi = fx.temp_range_cdeg or (fx.t0_cdeg - 5000, fx.t0_cdeg + 5000)
+    lo, hi = max(lo - 200, -KERNEL_T), min(hi + 200, KERNEL_T - 1)
+    lo, hi = min(lo, hi), max(lo, hi)
+    kind = int(rng.integers(0, 6))
+    if kind == 0:
+        t = np.full(CHUNK, int(rng.integers(lo, hi, endpoint=True)))
+    elif kind == 1:
+        t = np.full(CHUNK, fx.t0_cdeg + int(rng.integers(-3, 4)))
+    elif kind == 2:
+        t = np.repeat(rng.integers(lo, hi, CHUNK // 4, endpoint=True), 4)
+    elif kind == 3:
+        t = int(rng.integers(lo, hi, endpoint=True)) + rng.integers(-2, 3, CHUNK)
+    elif kind == 4:
+        t = rng.integers(lo, hi, CHUNK, endpoint=True)
+    else:
+        t = rng.integers(-KERNEL_T, KERNEL_T, CHUNK)
+    return np.clip(t, -KERNEL_T, KERNEL_T - 1)
+
+
+def kernel_samples(rng: np.random.Generator, n_chunks: int, fx: fp.FixedPointTable):
+    """(b (n,3), temp (n,), cur (n,4)) int32: ``n_chunks`` chunks of CHUNK samples and a tail of 0..CHUNK-1, most with
+    every input inside the kernel bounds (fields and currents of one scale a chunk, from a few units to the bound;
+    temperatures by :func:`_kernel_temps`), some with one input on a bound or one past it, at a random place."""
+    n = n_chunks * CHUNK + int(rng.integers(0, CHUNK))
+    b = np.empty((n, 3), np.int64)
+    t = np.empty(n, np.int64)
+    c = np.empty((n, 4), np.int64)
+    for start in range(0, n, CHUNK):
+        m = min(CHUNK, n - start)
+        sb = int(rng.choice([2 ** 4, 2 ** 10, 2 ** 17, 2 ** 20, KERNEL_B]))
+        sc = int(rng.choice([2 ** 4, 2 ** 12, KERNEL_I]))
+        b[start:start + m] = rng.integers(-sb, sb, (m, 3))
+        c[start:start + m] = rng.integers(-sc, sc, (m, 4))
+        t[start:start + m] = _kernel_temps(rng, fx)[:m]
+        if rng.random() < 0.3:   # one input on a kernel bound or one past it
+            r, what = start + int(rng.integers(0, m)), int(rng.integers(0, 3))
+            if what == 0:
+                b[r, int(rng.integers(0, 3))] = rng.choice([KERNEL_B - 1, KERNEL_B, -KERNEL_B, -KERNEL_B - 1])
+            elif what == 1:
+                t[r] = rng.choice([KERNEL_T - 1, KERNEL_T, -KERNEL_T, -KERNEL_T - 1])
+            else:
+                c[r, int(rng.integers(0, 4))] = rng.choice([KERNEL_I - 1, KERNEL_I, -KERNEL_I, -KERNEL_I - 1])
+    return b.astype(np.int32), t.astype(np.int32), c.astype(np.int32)
+
+
+@st.composite
+def kernel_cases(draw, n_chunks: int = 8):
+    """(table, names, b, temp, cur) for the block path's kernels (:func:`kernel_samples`), tables from
+    :func:`fixed_tables` (extreme ones saturate on inputs inside the bounds); in 2 cases of 3 the table's field limits
+    are then put on these samples' outputs (:func:`limits_at_outputs`)."""
+    fx, names = draw(fixed_tables())
+    rng = np.random.default_rng(draw(st.integers(0, 2 ** 32 - 1)))
+    b, t, c = kernel_samples(rng, n_chunks, fx)
+    if draw(st.integers(0, 2)):
+        fx = limits_at_outputs(rng, fx, b, t, c)
+    return fx, names, b, t, c
+
+
+def precomputed_range(rng: np.random.Generator, temp: np.ndarray) -> tuple[int, int]:
+    """A temperature range (centi-degC) for ``magstack_cal_precompute``: the samples' whole span (clipped), or a part
+    of it (some samples then have no precomputed terms)."""
+    lo, hi = int(max(temp.min(), -fp.T_LIMIT_cdeg)), int(min(temp.max(), fp.T_LIMIT_cdeg))
+    lo, hi = min(lo, hi), max(lo, hi)
+    if rng.random() < 0.5 or hi - lo < 2:
+        return lo, hi
+    a, z = sorted(int(x) for x in rng.integers(lo, hi, 2, endpoint=True))
+    return a, z
