@@ -483,7 +483,9 @@ unsigned magstack_cal_apply(const magstack_cal_table *table, const int32_t b_nT[
 /* The terms of the last MAGSTACK_CAL_TERMS_CACHE clipped temperatures (a tag outside the clip range: empty). */
 typedef struct {
     magstack_cal_terms tt[MAGSTACK_CAL_TERMS_CACHE];
-    uint64_t reach[MAGSTACK_CAL_TERMS_CACHE][2][3];
+#ifndef MAGSTACK_CAL_COMPACT
+    uint64_t reach[MAGSTACK_CAL_TERMS_CACHE][2][3]; /* reach_of(tt[i]) */
+#endif
     int32_t tag[MAGSTACK_CAL_TERMS_CACHE];
 } terms_cache;
 
@@ -495,6 +497,7 @@ static void cache_init(terms_cache *cache)
     }
 }
 
+#ifndef MAGSTACK_CAL_COMPACT
 /* The terms of clipped temperature tc: precomputed, or from the cache (computed on a miss); *reach: how far they
  * reach (reach_of; for precomputed terms, the largest of them all). */
 static inline const magstack_cal_terms *terms_reach(const magstack_cal_table *t, terms_cache *cache, int32_t tc,
@@ -521,6 +524,22 @@ static inline const magstack_cal_terms *terms_of(const magstack_cal_table *t, te
     const uint64_t(*reach)[3];
     return terms_reach(t, cache, tc, &reach);
 }
+#else
+/* The terms of clipped temperature tc: precomputed, or from the cache (computed on a miss). */
+static const magstack_cal_terms *terms_of(const magstack_cal_table *t, terms_cache *cache, int32_t tc)
+{
+    const magstack_cal_terms *p = precomputed_terms(t, tc);
+    uint32_t slot = (uint32_t)tc & (MAGSTACK_CAL_TERMS_CACHE - 1u);
+    if (p != NULL) {
+        return p;
+    }
+    if (cache->tag[slot] != tc) {
+        make_terms(t, (int64_t)tc - t->t0_cdeg, &cache->tt[slot]);
+        cache->tag[slot] = tc;
+    }
+    return &cache->tt[slot];
+}
+#endif
 
 /* m samples of a block, one at a time. */
 static void samples(const magstack_cal_table *t, terms_cache *cache, size_t m, const int32_t *b, const int32_t *temp,
