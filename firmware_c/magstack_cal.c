@@ -11,10 +11,10 @@
  *                    or the temperature or a current outside its range
  *
  * rdiv and rshift_round round half away from zero; they work in unsigned arithmetic (no shift or
- * division of a negative number). The accumulator bound |acc| < 2^61.3
- * holds for every image the loader accepts (|K_S2| < 2^28, |t0| <= 2^15, the input clips), so no
- * product or sum overflows; only the final int32 conversion can, and it saturates. |n_i| <= 2^23, so the
- * squares' sum is below 2^49.
+ * division of a negative number): the accumulator is kept as acc + ROUND_BIAS modulo 2^64 (round19). The
+ * accumulator bound |acc| < 2^61.3 holds for every image the loader accepts (|K_S2| < 2^28, |t0| <= 2^15, the
+ * input clips), so the modular sum is the exact one; only the final int32 conversion can overflow, and it
+ * saturates. |n_i| <= 2^23, so the squares' sum is below 2^49.
  */
 #include "magstack_cal.h"
 

@@ -13,13 +13,14 @@
  * any image the loader accepts.
  *
  * Build options (preprocessor): MAGSTACK_CAL_COMPACT gives magstack_cal_apply_block a plain loop over
- * samples (smallest code; otherwise branch-free kernels per number of currents, which a compiler can
- * vectorise over runs of one temperature); MAGSTACK_CAL_TERMS_CACHE (a power of two, default 8) is how
- * many temperatures' terms magstack_cal_apply_block keeps on its stack (about 100 bytes each);
- * MAGSTACK_CAL_VECTOR (hosts with 64-bit vector multiplies, -O3) lets a compiler vectorise samples whose
- * temperatures vary as well (3 KiB more stack; slower in scalar builds). The functions keep no state: a
- * table is read-only once loaded (to replace the active table, load the new image into a second table and
- * swap the pointer between samples).
+ * samples (smallest code, smallest stack; otherwise chunks of 32 samples go through branch-free kernels per
+ * number of currents, with loops a compiler vectorises); MAGSTACK_CAL_TERMS_CACHE (a power of two, default 8)
+ * is how many temperatures' terms magstack_cal_apply_block keeps on its stack (about 100 bytes each, 150 with
+ * the kernels); MAGSTACK_CAL_VECTOR (hosts with 64-bit vector multiplies, -O3) lets a compiler vectorise
+ * samples whose temperatures vary as well (3 KiB more stack; slower in scalar builds). A computer with the
+ * memory can precompute the temperature terms of a range of temperatures (magstack_cal_precompute). The
+ * functions keep no state: a table is read-only once loaded (to replace the active table, load the new image
+ * into a second table, with storage of its own for precomputed terms, and swap the pointer between samples).
  */
 #ifndef MAGSTACK_CAL_H
 #define MAGSTACK_CAL_H
@@ -130,8 +131,9 @@ int magstack_cal_load(magstack_cal_table *table, const uint8_t *image, size_t le
 /* Precompute the temperature terms of every temperature lo_cdeg..hi_cdeg (centi-degC, within
  * +-MAGSTACK_CAL_T_LIMIT_CDEG) into storage[0 .. hi_cdeg - lo_cdeg] (count entries available), for a loaded table:
  * its samples at these temperatures then cost no terms computation (for a computer with the memory: 96 bytes a
- * temperature, 1.2 MB for -40..85 degC). Call it after magstack_cal_load and before applying; storage must stay
- * while the table is used, and magstack_cal_load forgets it. storage NULL with count 0: no precomputed terms.
+ * temperature, 1.2 MB for -40..85 degC). Call it after magstack_cal_load and before applying; storage (aligned as
+ * magstack_cal_terms is) must stay while the table is used, and magstack_cal_load forgets it. storage NULL with
+ * count 0: no precomputed terms.
  * Returns MAGSTACK_CAL_OK, or MAGSTACK_CAL_E_ARGUMENT (a NULL table, lo_cdeg > hi_cdeg, a temperature beyond the
  * clip, count too small) with no precomputed terms. The outputs are the same integers either way. */
 int magstack_cal_precompute(magstack_cal_table *table, magstack_cal_terms *storage, size_t count, int32_t lo_cdeg,
@@ -147,7 +149,8 @@ unsigned magstack_cal_apply(const magstack_cal_table *table, const int32_t b_nT[
 
 /* n samples: b_nT[3n], temp_cdeg[n], currents_mA[n * table->n_currents] (row-major; NULL when there are
  * none) -> out[3n], status[n]. The same integers as n calls of magstack_cal_apply; the temperature terms
- * are computed once per temperature and kept for the last MAGSTACK_CAL_TERMS_CACHE temperatures. */
+ * are precomputed (magstack_cal_precompute) or computed once per temperature and kept for the last
+ * MAGSTACK_CAL_TERMS_CACHE temperatures. */
 void magstack_cal_apply_block(const magstack_cal_table *table, size_t n, const int32_t *b_nT,
                               const int32_t *temp_cdeg, const int32_t *currents_mA, int32_t *out,
                               uint8_t *status);
