@@ -630,27 +630,41 @@ static inline unsigned cannot_saturate(const uint64_t reach[2][3], const uint64_
         o[2][r] = out[3u * (r) + 2u] = low_int32(u2);                                                             \
     } while (0)
 
-/* The outputs of samples 0..m-1, two a step; TERMS(R) declares the terms of sample R in locals. */
-#define OUTPUTS_LOOP(K, TERMS, CHK)                                                                                  \
+#if defined(__OPTIMIZE_SIZE__) /* -Os: one sample a step, and every output checked (no second copy of a loop) */
+/* The outputs of samples 0..m-1; TERMS(R) declares the terms of sample R in locals. */
+#define OUTPUTS_LOOP(K, TERMS, CHK)                                                                               \
     do {                                                                                                          \
-        for (r = 0; r + 1u < m; r += 2u) {                                                                        \
+        for (r = 0; r < m; r++) {                                                                                 \
+            TERMS(r)                                                                                              \
+            OUTPUTS(K, r, 1);                                                                                     \
+        }                                                                                                         \
+    } while (0)
+#define CANNOT_SATURATE(REACH) 0
+#else
+/* The outputs of samples 0..m-1, two a step (one when every output is checked: the rarer, shorter loop); TERMS(R)
+ * declares the terms of sample R in locals. */
+#define OUTPUTS_LOOP(K, TERMS, CHK)                                                                               \
+    do {                                                                                                          \
+        for (r = 0; r + 1u < m && !(CHK); r += 2u) {                                                              \
             {                                                                                                     \
                 TERMS(r)                                                                                          \
                 OUTPUTS(K, r, CHK);                                                                               \
             }                                                                                                     \
             {                                                                                                     \
                 TERMS(r + 1u)                                                                                     \
-                OUTPUTS(K, r + 1u, CHK);                                                                               \
+                OUTPUTS(K, r + 1u, CHK);                                                                          \
             }                                                                                                     \
         }                                                                                                         \
-        if (r < m) {                                                                                              \
+        for (; r < m; r++) {                                                                                      \
             TERMS(r)                                                                                              \
-            OUTPUTS(K, r, CHK);                                                                                      \
+            OUTPUTS(K, r, CHK);                                                                                   \
         }                                                                                                         \
     } while (0)
+#define CANNOT_SATURATE(REACH) cannot_saturate(REACH, bt->dsum, bmag, cmag)
+#endif
 /* The outputs of samples 0..m-1 at one temperature (a loop a compiler with wide vectors vectorises; elsewhere two
  * samples a step). */
-#if defined(__AVX2__)
+#if defined(__AVX2__) || defined(__OPTIMIZE_SIZE__)
 #define RUN_LOOP(K, CHK)                                                                                          \
     do {                                                                                                          \
         for (r = 0; r < m; r++) {                                                                                 \
@@ -741,7 +755,7 @@ static inline unsigned cannot_saturate(const uint64_t reach[2][3], const uint64_
                     (void)*(const volatile uint64_t *)&PRE_AT(r)->c[2];                                           \
                 }                                                                                                 \
             }                                                                                                     \
-            if (cannot_saturate(t->pre_reach, bt->dsum, bmag, cmag)) {                                            \
+            if (CANNOT_SATURATE(t->pre_reach)) {                                            \
                 OUTPUTS_LOOP(K, PRE_TERMS, 0);                                                                    \
             } else {                                                                                              \
                 OUTPUTS_LOOP(K, PRE_TERMS, 1);                                                                    \
@@ -797,7 +811,7 @@ static inline unsigned cannot_saturate(const uint64_t reach[2][3], const uint64_
                 const uint64_t(*reach)[3];                                                                        \
                 const magstack_cal_terms *tt = terms_reach(t, cache, temp[0], &reach);                            \
                 TERMS_LOCALS(tt);                                                                                 \
-                if (cannot_saturate(reach, bt->dsum, bmag, cmag)) {                                               \
+                if (CANNOT_SATURATE(reach)) {                                               \
                     RUN_LOOP(K, 0);                                                                               \
                 } else {                                                                                          \
                     RUN_LOOP(K, 1);                                                                               \
