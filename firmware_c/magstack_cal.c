@@ -345,6 +345,7 @@ static void make_terms(const magstack_cal_table *t, int64_t dtc, magstack_cal_te
     }
 }
 
+#ifndef MAGSTACK_CAL_COMPACT
 /* |v| of an int64 as uint64 */
 static uint64_t mag64(int64_t v)
 {
@@ -362,6 +363,7 @@ static void reach_of(const magstack_cal_terms *p, uint64_t reach[2][3])
         reach[1][i] = c >> 63 ? 0u - c : c;
     }
 }
+#endif
 
 /* The precomputed terms of clipped temperature tc (magstack_cal_precompute), or NULL. */
 static inline const magstack_cal_terms *precomputed_terms(const magstack_cal_table *t, int32_t tc)
@@ -396,15 +398,20 @@ int magstack_cal_precompute(magstack_cal_table *table, magstack_cal_terms *stora
         return MAGSTACK_CAL_E_ARGUMENT;
     }
     for (k = 0; k < m; k++) {
-        uint64_t reach[2][3];
-        unsigned i, j;
         make_terms(table, (int64_t)lo_cdeg + (int64_t)k - table->t0_cdeg, &storage[k]);
-        reach_of(&storage[k], reach);
-        for (i = 0; i < 2u; i++) {
-            for (j = 0; j < 3u; j++) {
-                table->pre_reach[i][j] = reach[i][j] > table->pre_reach[i][j] ? reach[i][j] : table->pre_reach[i][j];
+#ifndef MAGSTACK_CAL_COMPACT /* the kernels' no-saturation bound */
+        {
+            uint64_t reach[2][3];
+            unsigned i, j;
+            reach_of(&storage[k], reach);
+            for (i = 0; i < 2u; i++) {
+                for (j = 0; j < 3u; j++) {
+                    table->pre_reach[i][j] = reach[i][j] > table->pre_reach[i][j] ? reach[i][j]
+                                                                                  : table->pre_reach[i][j];
+                }
             }
         }
+#endif
     }
     table->pre = storage;
     table->pre_lo_cdeg = lo_cdeg;

@@ -118,7 +118,8 @@ typedef struct {
     const magstack_cal_terms *pre; /* precomputed terms of pre_lo_cdeg.. (magstack_cal_precompute), or NULL */
     int32_t pre_lo_cdeg;
     uint32_t pre_count;            /* temperatures with precomputed terms (0: none) */
-    uint64_t pre_reach[2][3];      /* the precomputed terms' largest gain row sum and constant per axis */
+    uint64_t pre_reach[2][3];      /* the precomputed terms' largest gain row sum and constant per axis (not with
+                                      MAGSTACK_CAL_COMPACT) */
 } magstack_cal_table;
 
 /* CRC-32 (the zlib / IEEE 802.3 one). */
