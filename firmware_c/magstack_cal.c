@@ -586,6 +586,22 @@ typedef struct {
 /* precomputed terms are read ahead of their use when a chunk's temperatures are more than FAR entries apart */
 #define FAR 64u
 
+/* Targets with a vector unit get the status bits in loops of their own, which a compiler vectorises (x86-64 has SSE2,
+ * AArch64 NEON); elsewhere each sample's bits are found with its outputs. */
+#if defined(__SSE2__) || defined(__ARM_NEON) || defined(__ARM_NEON__) || defined(__aarch64__) || defined(__ALTIVEC__)
+#define STATUS_LOOPS 1
+#else
+#define STATUS_LOOPS 0
+#endif
+
+/* 1 when the outputs o0..o2 (nT * 2^8) in whole nT are beyond an axis limit or, in all, beyond the magnitude limit */
+static inline uint32_t field_outside(const block_terms *bt, int32_t o0, int32_t o1, int32_t o2)
+{
+    const uint32_t n0 = whole_nT(o0), n1 = whole_nT(o1), n2 = whole_nT(o2);
+    return (uint32_t)(n0 > bt->lim[0]) | (uint32_t)(n1 > bt->lim[1]) | (uint32_t)(n2 > bt->lim[2]) |
+           (uint32_t)((uint64_t)n0 * n0 + (uint64_t)n1 * n1 + (uint64_t)n2 * n2 > bt->nn);
+}
+
 /* The int32 whose two's complement is the low 32 bits of v (v = out + 2^44: out, as 2^44 is a multiple of 2^32) */
 static inline int32_t low_int32(uint64_t v)
 {
@@ -632,9 +648,23 @@ static inline unsigned cannot_saturate(const uint64_t reach[2][3], const uint64_
         if (CHK) {                                                                                                \
             chk |= (u0 - OUT_OFFSET) | (u1 - OUT_OFFSET) | (u2 - OUT_OFFSET);                                     \
         }                                                                                                         \
-        o[0][r] = out[3u * (r)] = low_int32(u0);                                                                  \
-        o[1][r] = out[3u * (r) + 1u] = low_int32(u1);                                                             \
-        o[2][r] = out[3u * (r) + 2u] = low_int32(u2);                                                             \
+        {                                                                                                         \
+            const int32_t o0 = low_int32(u0), o1 = low_int32(u1), o2 = low_int32(u2);                             \
+            out[3u * (r)] = o0;                                                                                   \
+            out[3u * (r) + 1u] = o1;                                                                              \
+            out[3u * (r) + 2u] = o2;                                                                              \
+            if (STATUS_LOOPS) {                                                                                   \
+                o[0][r] = o0;                                                                                     \
+                o[1][r] = o1;                                                                                     \
+                o[2][r] = o2;                                                                                     \
+            } else {                                                                                              \
+                uint32_t oov = (uint32_t)((uint32_t)temp[r] - bt->t_lo > bt->t_span);                             \
+                for (k = 0; k < (K); k++) {                                                                       \
+                    oov |= (uint32_t)((uint32_t)cur[(size_t)(K) * (r) + (size_t)k] - bt->c_lo[k] > bt->c_span[k]); \
+                }                                                                                                 \
+                status[r] = (uint8_t)((oov | field_outside(bt, o0, o1, o2)) << 1);                                \
+            }                                                                                                     \
+        }                                                                                                         \
     } while (0)
 
 #if defined(__OPTIMIZE_SIZE__) /* -Os: one sample a step, and every output checked (no second copy of a loop) */
@@ -828,7 +858,9 @@ static inline unsigned cannot_saturate(const uint64_t reach[2][3], const uint64_
             }                                                                                                     \
             if (chk >> 32 == 0u) {                                                                                \
                 const uint32_t t_lo = bt->t_lo, t_span = bt->t_span, t_out = TEMP_OUTSIDE(0);                     \
-                if (diff == 0u && m == CHUNK) {                                                                   \
+                if (!STATUS_LOOPS) {                                                                              \
+                    (void)t_out;                                                                                  \
+                } else if (diff == 0u && m == CHUNK) {                                                            \
                     STATUS(CHUNK, K, RUN_OUTSIDE);                                                                \
                 } else if (m == CHUNK) {                                                                          \
                     STATUS(CHUNK, K, TEMP_OUTSIDE);                                                               \
