@@ -8,10 +8,10 @@ need Debian's gcc-arm-linux-gnueabihf and qemu-user, the Cortex-M4 size gcc-arm-
   table's validity box, temperatures in runs and near t0, exact rounding halves), and ``--kernel-tables`` more with
   16 whole chunks of 64 samples each for the block path's kernels (``c_applier_build.kernel_cases``). Compared bit
   for bit with the Python applier (``apply_block`` on every row, ``apply_sample`` on every row unless
-  ``--no-per-sample``): the host library through ctypes (``magstack_cal_apply_block`` and ``magstack_cal_apply`` on every row, and the
-  block again with terms precomputed for all or part of the temperatures), and the harness cross-compiled for 32-bit
-  ARM run by qemu-arm (``magstack_cal_apply`` on every row, and the block path checked against it inside the
-  harness), without and with precomputed terms.
+  ``--no-per-sample``): the host library through ctypes (``magstack_cal_apply_block`` and ``magstack_cal_apply``
+  on every row, and the block again with terms precomputed for all or part of the temperatures), and the harness
+  cross-compiled for 32-bit ARM run by qemu-arm (``magstack_cal_apply`` on every row, and the block path checked
+  against it inside the harness), without and with precomputed terms.
 * ``speed``: CPU time per sample of ``magstack_cal_apply_block`` (ctypes, one call per block; the builds of
   ``HOST_BUILDS``, with and without terms precomputed for the streams' -40..85 degC by ``magstack_cal_precompute``)
   against ``FixedPointTable.apply_block`` (numpy) on the same block, in this process, best of ``--repeat``; four
