@@ -6,7 +6,7 @@ need Debian's gcc-arm-linux-gnueabihf and qemu-user, the Cortex-M4 size gcc-arm-
 * ``equality``: ``--tables`` hypothesis-generated tables (half physical calibrations, half any int32 coefficient
   with every limit) with ``--samples`` rows each (edges from hypothesis, the rest inside, on and beyond the
   table's validity box, temperatures in runs and near t0, exact rounding halves), and ``--kernel-tables`` more with
-  16 whole chunks of 64 samples each for the block path's kernels (``c_applier_build.kernel_cases``). Compared bit
+  32 whole chunks of 32 samples each for the block path's kernels (``c_applier_build.kernel_cases``). Compared bit
   for bit with the Python applier (``apply_block`` on every row, ``apply_sample`` on every row unless
   ``--no-per-sample``): the host library through ctypes (``magstack_cal_apply_block`` and ``magstack_cal_apply``
   on every row, and the block again with terms precomputed for all or part of the temperatures), and the harness
@@ -43,7 +43,7 @@ from magstack.firmware import cal_image  # noqa: E402
 from magstack.firmware import fixed_point as fp  # noqa: E402
 
 
-def collect_cases(n_tables: int, n_samples: int, n_kernel: int = 0, n_chunks: int = 16) -> list:
+def collect_cases(n_tables: int, n_samples: int, n_kernel: int = 0, n_chunks: int = 32) -> list:
     """``n_tables`` cases of ``cb.cases`` and ``n_kernel`` of ``cb.kernel_cases`` (whole chunks for the block path's
     kernels) drawn by hypothesis (generation only, derandomised: the same cases every run)."""
     from hypothesis import HealthCheck, Phase, given, settings
@@ -296,7 +296,7 @@ def main() -> None:
     ap.add_argument("--tables", type=int, default=256)
     ap.add_argument("--samples", type=int, default=4096, help="random rows per table (plus up to 12 edge rows)")
     ap.add_argument("--kernel-tables", type=int, default=128,
-                    help="further tables with 16 whole chunks of 64 samples for the block path's kernels")
+                    help="further tables with 32 whole chunks of 32 samples for the block path's kernels")
     ap.add_argument("--no-per-sample", action="store_true", help="Python reference by apply_block only")
     ap.add_argument("--block", type=int, default=1_000_000)
     ap.add_argument("--repeat", type=int, default=5)

@@ -576,24 +576,23 @@ typedef struct {
 } block_terms;
 
 /* A block goes in chunks of CHUNK samples. A chunk whose inputs all lie inside the kernel bounds (fields
- * -2^23..2^23-1 nT, temperatures -2^15..2^15-1 centi-degC, currents -2^19..2^19-1 mA: nothing clips) goes to a
- * kernel, which computes the outputs and, when every output is an int32 (nothing saturates), the status bits; any
- * other chunk is computed a sample at a time. Targets with a vector unit (x86-64 has SSE2, AArch64 NEON) get the
- * status bits and the input checks in loops of their own, which a compiler vectorises, and chunks of 64; elsewhere
- * each sample's bits are found with its outputs, in chunks of 32 (less stack). */
-#if defined(__SSE2__) || defined(__ARM_NEON) || defined(__ARM_NEON__) || defined(__aarch64__) || defined(__ALTIVEC__)
-#define STATUS_LOOPS 1
-#define CHUNK 64u
-#else
-#define STATUS_LOOPS 0
+ * -2^23..2^23-1 nT, temperatures -2^15..2^15-1 centi-degC, currents -2^19..2^19-1 mA: nothing clips) goes to a kernel,
+ * which computes the outputs and, when every output is an int32 (nothing saturates), the status bits (STATUS_LOOPS);
+ * any other chunk is computed a sample at a time. */
 #define CHUNK 32u
-#endif
 #define FAST_T 0x8000u   /* 2^15 */
 /* round19(u) - OUT_OFFSET is out + 2^31: within 0..2^32 - 1 when out is an int32 */
 #define OUT_OFFSET (((uint64_t)1 << 44) - ((uint64_t)1 << 31))
 /* precomputed terms are read ahead of their use when a chunk's temperatures are more than FAR entries apart */
 #define FAR 64u
 
+/* Targets with a vector unit get the status bits in loops of their own, which a compiler vectorises (x86-64 has SSE2,
+ * AArch64 NEON); elsewhere each sample's bits are found with its outputs. */
+#if defined(__SSE2__) || defined(__ARM_NEON) || defined(__ARM_NEON__) || defined(__aarch64__) || defined(__ALTIVEC__)
+#define STATUS_LOOPS 1
+#else
+#define STATUS_LOOPS 0
+#endif
 
 /* 1 when the outputs o0..o2 (nT * 2^8) in whole nT are beyond an axis limit or, in all, beyond the magnitude limit */
 static inline uint32_t field_outside(const block_terms *bt, int32_t o0, int32_t o1, int32_t o2)

@@ -447,10 +447,9 @@ def cases(draw, n_random: int = 200):
 
 
 # ---------------------------------------------------------------------- chunks for the block path's kernels
-#: ``magstack_cal_apply_block`` works in chunks of this many samples on the host (32, each half of one of these, on
-#: targets without a vector unit); a chunk whose inputs are all inside the kernel bounds goes through a kernel
-#: (firmware_c/magstack_cal.c, CHUNK and the bounds below), any other a sample at a time.
-CHUNK = 64
+#: ``magstack_cal_apply_block`` works in chunks of this many samples; a chunk whose inputs are all inside the kernel
+#: bounds goes through a kernel (firmware_c/magstack_cal.c, CHUNK and the bounds below), any other a sample at a time.
+CHUNK = 32
 #: The kernel bounds: fields -2^23..2^23-1 nT, temperatures -2^15..2^15-1 centi-degC, currents -2^19..2^19-1 mA.
 KERNEL_B, KERNEL_T, KERNEL_I = 2 ** 23, 2 ** 15, 2 ** 19
 
@@ -504,7 +503,7 @@ def kernel_samples(rng: np.random.Generator, n_chunks: int, fx: fp.FixedPointTab
 
 
 @st.composite
-def kernel_cases(draw, n_chunks: int = 4):
+def kernel_cases(draw, n_chunks: int = 8):
     """(table, names, b, temp, cur) for the block path's kernels (:func:`kernel_samples`), tables from
     :func:`fixed_tables` (extreme ones saturate on inputs inside the bounds); in 2 cases of 3 the table's field limits
     are then put on these samples' outputs (:func:`limits_at_outputs`)."""
