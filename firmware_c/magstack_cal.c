@@ -628,8 +628,9 @@ static inline unsigned cannot_saturate(const uint64_t reach[2][3], const uint64_
     const uint64_t g22 = (uint64_t)(int64_t)(p)->g[2][2], c0 = (p)->c[0], c1 = (p)->c[1], c2 = (p)->c[2]
 
 /* The outputs of sample r with K currents, inputs inside the kernel bounds, from the terms g.., c..; without a branch.
- * chk collects out + 2^31 of every output (an int32 output: below 2^32); o[] keeps the outputs by axis. */
-#define OUTPUTS(K, r, CHK)                                                                                           \
+ * With CHK, chk collects out + 2^31 of every output (an int32 output: below 2^32). o[] keeps the outputs by axis for
+ * the status loops, or the status bits are found here. */
+#define OUTPUTS(K, r, CHK)                                                                                        \
     do {                                                                                                          \
         const uint64_t x = (uint64_t)(int64_t)b[3u * (r)], y = (uint64_t)(int64_t)b[3u * (r) + 1u];               \
         const uint64_t z = (uint64_t)(int64_t)b[3u * (r) + 2u];                                                   \
@@ -748,9 +749,9 @@ static inline unsigned cannot_saturate(const uint64_t reach[2][3], const uint64_
         }                                                                                                         \
     } while (0)
 
-/* The status bits of m samples from their outputs o[], currents and OUTSIDE(r), 1 when sample r's temperature is outside
- * its range; loops a compiler may vectorise when M is a constant. Whole nT (at most 2^23) and the axis limits (at most
- * 2^24) are compared as int32. */
+/* The status bits of m samples from their outputs o[], currents and OUTSIDE(r), 1 when sample r's temperature is
+ * outside its range; loops a compiler may vectorise when M is a constant. Whole nT (at most 2^23) and the axis limits
+ * (at most 2^24) are compared as int32. */
 #define STATUS(M, K, OUTSIDE)                                                                                     \
     do {                                                                                                          \
         const int32_t l0 = (int32_t)bt->lim[0], l1 = (int32_t)bt->lim[1], l2 = (int32_t)bt->lim[2];              \
