@@ -11,10 +11,10 @@
  *                    or the temperature or a current outside its range
  *
  * rdiv and rshift_round round half away from zero; they work in unsigned arithmetic (no shift or
- * division of a negative number). The accumulator bound |acc| < 2^61.3
- * holds for every image the loader accepts (|K_S2| < 2^28, |t0| <= 2^15, the input clips), so no
- * product or sum overflows; only the final int32 conversion can, and it saturates. |n_i| <= 2^23, so the
- * squares' sum is below 2^49.
+ * division of a negative number): the accumulator is kept as acc + ROUND_BIAS modulo 2^64 (round19). The
+ * accumulator bound |acc| < 2^61.3 holds for every image the loader accepts (|K_S2| < 2^28, |t0| <= 2^15, the
+ * input clips), so the modular sum is the exact one; only the final int32 conversion can overflow, and it
+ * saturates. |n_i| <= 2^23, so the squares' sum is below 2^49.
  */
 #include "magstack_cal.h"
 
@@ -312,12 +312,17 @@ static int64_t rdiv(int64_t a, uint64_t d)
     return (int64_t)(u / d) - (int64_t)q0;
 }
 
-/* a / 2^19 rounded half away from zero (|a| < 2^62), without a branch: floor((a + 2^18 - [a < 0]) / 2^19),
- * the floor taken on a + 2^63 in unsigned arithmetic (2^63 is a multiple of 2^19) */
-static int64_t rshift_round19(int64_t a)
+/* An axis' accumulator is kept as u = acc + ROUND_BIAS in unsigned (modulo 2^64) arithmetic, so no product or sum
+ * can overflow whatever the operands; for the inputs of a sample (|acc| < 2^62) u lies in (2^62, 3 * 2^62). */
+#define ROUND_BIAS (((uint64_t)1 << 63) + ((uint64_t)1 << 18) - 1u)
+
+/* From u = acc + ROUND_BIAS (|acc| < 2^62): acc / 2^19 rounded half away from zero, plus 2^44, without a branch.
+ * Rounded half away from zero is floor((a2 + [acc >= 0]) / 2^19) with a2 = acc + 2^18 - 1; [acc >= 0] is replaced by
+ * [a2 >= 0], bit 63 of u = a2 + 2^63 (the two differ only for -2^18 < acc < 0, where a2 + 1 < 2^19 keeps the
+ * quotient 0), and 2^63 / 2^19 = 2^44 keeps the floor on a positive number. */
+static inline uint64_t round19(uint64_t u)
 {
-    uint64_t u = (uint64_t)a + ((uint64_t)1 << 63) + ((uint64_t)1 << 18) - (uint64_t)(a < 0);
-    return (int64_t)(u >> 19) - ((int64_t)1 << 44);
+    return (u + (u >> 63)) >> 19;
 }
 
 /* v clipped to [-lim, lim]; sets *hit when it was outside */
@@ -327,13 +332,8 @@ static int32_t clip(int32_t v, int32_t lim, unsigned *hit)
     return v > lim ? lim : v < -lim ? -lim : v;
 }
 
-/* the temperature-dependent part of one dTc: the gain matrix (2^-27) and each axis' constant (2^-27 nT) */
-typedef struct {
-    int64_t g[3][3];
-    int64_t c[3];
-} temperature_terms;
-
-static void make_terms(const magstack_cal_table *t, int64_t dtc, temperature_terms *tt)
+/* the terms of dTc: the gain matrix (2^-27) and each axis' constant (2^-27 nT) plus ROUND_BIAS */
+static void make_terms(const magstack_cal_table *t, int64_t dtc, magstack_cal_terms *tt)
 {
     unsigned i, j;
     for (i = 0; i < 3u; i++) {
@@ -341,55 +341,127 @@ static void make_terms(const magstack_cal_table *t, int64_t dtc, temperature_ter
             tt->g[i][j] = (int64_t)t->S[i][j] + rdiv((int64_t)t->K_S[i][j] * dtc, 12800u);
         }
         tt->g[i][i] += rdiv(rdiv((int64_t)t->K_S2[i] * dtc, 100u) * dtc, 819200u);
-        tt->c[i] = (int64_t)t->O[i] * 524288 + rdiv((int64_t)t->K_O[i] * dtc * 2048, 100u);
+        tt->c[i] = (uint64_t)((int64_t)t->O[i] * 524288 + rdiv((int64_t)t->K_O[i] * dtc * 2048, 100u)) + ROUND_BIAS;
     }
 }
 
-/* The squared magnitude limit (nT^2), or one above any output's square sum when the table has none. */
-static int64_t norm2_limit(const magstack_cal_table *t)
+#ifndef MAGSTACK_CAL_COMPACT
+/* |v| of an int64 as uint64 */
+static uint64_t mag64(int64_t v)
 {
-    return t->has_field_norm ? (int64_t)t->field_norm_nT * t->field_norm_nT : INT64_MAX;
+    return v < 0 ? 0u - (uint64_t)v : (uint64_t)v;
 }
 
-/* Validity of the calibrated field: 1 when an output (nT * 2^8, within int32) in whole nT, rounded half away from
- * zero, is beyond its axis' limit (l0, l1, l2), or the sum of their squares beyond nn (the squared magnitude
- * limit). Whole nT are at most 2^23, so the squares' sum is below 2^49; a difference below zero is outside. */
-static unsigned field_outside(int64_t o0, int64_t o1, int64_t o2, int64_t l0, int64_t l1, int64_t l2, int64_t nn)
+/* How far the accumulators of terms p reach, per axis: reach[0][i] = sum_j |G_ij|, reach[1][i] = |constant_i|
+ * (below 2^36.4 and 2^52). */
+static void reach_of(const magstack_cal_terms *p, uint64_t reach[2][3])
 {
-    int64_t n0 = ((o0 < 0 ? -o0 : o0) + 128) >> 8;
-    int64_t n1 = ((o1 < 0 ? -o1 : o1) + 128) >> 8;
-    int64_t n2 = ((o2 < 0 ? -o2 : o2) + 128) >> 8;
-    return (unsigned)((uint64_t)((l0 - n0) | (l1 - n1) | (l2 - n2) | (nn - (n0 * n0 + n1 * n1 + n2 * n2))) >> 63);
+    unsigned i;
+    for (i = 0; i < 3u; i++) {
+        const uint64_t c = p->c[i] - ROUND_BIAS;
+        reach[0][i] = mag64(p->g[i][0]) + mag64(p->g[i][1]) + mag64(p->g[i][2]);
+        reach[1][i] = c >> 63 ? 0u - c : c;
+    }
+}
+#endif
+
+/* The precomputed terms of clipped temperature tc (magstack_cal_precompute), or NULL. */
+static inline const magstack_cal_terms *precomputed_terms(const magstack_cal_table *t, int32_t tc)
+{
+    uint32_t i = (uint32_t)tc - (uint32_t)t->pre_lo_cdeg;
+    return i < t->pre_count ? t->pre + i : NULL;
 }
 
-/* One sample with the temperature terms of its dTc: the status bits. b_nT, cur_mA as given (clipped here). */
-static unsigned sample(const magstack_cal_table *t, const temperature_terms *tt, const int32_t *b_nT,
-                       int32_t tc, const int32_t *cur_mA, unsigned sat, int32_t out[3])
+int magstack_cal_precompute(magstack_cal_table *table, magstack_cal_terms *storage, size_t count, int32_t lo_cdeg,
+                            int32_t hi_cdeg)
+{
+    uint32_t k, m;
+    if (table == NULL) {
+        return MAGSTACK_CAL_E_ARGUMENT;
+    }
+    table->pre = NULL;
+    table->pre_lo_cdeg = 0;
+    table->pre_count = 0;
+    for (k = 0; k < 3u; k++) {
+        table->pre_reach[0][k] = 0;
+        table->pre_reach[1][k] = 0;
+    }
+    if (storage == NULL && count == 0u) {
+        return MAGSTACK_CAL_OK;
+    }
+    if (storage == NULL || lo_cdeg > hi_cdeg || lo_cdeg < -MAGSTACK_CAL_T_LIMIT_CDEG ||
+        hi_cdeg > MAGSTACK_CAL_T_LIMIT_CDEG) {
+        return MAGSTACK_CAL_E_ARGUMENT;
+    }
+    m = (uint32_t)(hi_cdeg - lo_cdeg) + 1u; /* at most 2^16 + 1 */
+    if (count < m) {
+        return MAGSTACK_CAL_E_ARGUMENT;
+    }
+    for (k = 0; k < m; k++) {
+        make_terms(table, (int64_t)lo_cdeg + (int64_t)k - table->t0_cdeg, &storage[k]);
+#ifndef MAGSTACK_CAL_COMPACT /* the kernels' no-saturation bound */
+        {
+            uint64_t reach[2][3];
+            unsigned i, j;
+            reach_of(&storage[k], reach);
+            for (i = 0; i < 2u; i++) {
+                for (j = 0; j < 3u; j++) {
+                    table->pre_reach[i][j] = reach[i][j] > table->pre_reach[i][j] ? reach[i][j]
+                                                                                  : table->pre_reach[i][j];
+                }
+            }
+        }
+#endif
+    }
+    table->pre = storage;
+    table->pre_lo_cdeg = lo_cdeg;
+    table->pre_count = m;
+    return MAGSTACK_CAL_OK;
+}
+
+/* The squared magnitude limit (nT^2, below 2^50), or 2^62, above any outputs' square sum, when the table has none. */
+static uint64_t norm2_limit(const magstack_cal_table *t)
+{
+    return t->has_field_norm ? (uint64_t)t->field_norm_nT * (uint64_t)t->field_norm_nT : (uint64_t)1 << 62;
+}
+
+/* An output (nT * 2^8) in whole nT, rounded half away from zero: |o| + 2^7 (at most 2^31 + 2^7), then / 2^8. */
+static inline uint32_t whole_nT(int32_t o)
+{
+    uint32_t a = (uint32_t)o, s = 0u - (a >> 31);
+    return (((a ^ s) - s) + 128u) >> 8;
+}
+
+/* One sample with the terms of its temperature: the status bits. b_nT, cur_mA as given (clipped here). */
+static unsigned sample(const magstack_cal_table *t, const magstack_cal_terms *tt, const int32_t *b_nT, int32_t tc,
+                       const int32_t *cur_mA, unsigned sat, int32_t out[3])
 {
     unsigned oov = 0, i, k;
-    int32_t bx = clip(b_nT[0], MAGSTACK_CAL_B_LIMIT_NT, &sat);
-    int32_t by = clip(b_nT[1], MAGSTACK_CAL_B_LIMIT_NT, &sat);
-    int32_t bz = clip(b_nT[2], MAGSTACK_CAL_B_LIMIT_NT, &sat);
-    int64_t acc[3];
+    uint32_t n[3];
+    uint64_t b[3], u[3];
+    for (i = 0; i < 3u; i++) {
+        b[i] = (uint64_t)(int64_t)clip(b_nT[i], MAGSTACK_CAL_B_LIMIT_NT, &sat);
+    }
     oov |= (unsigned)t->has_temp_range & ((unsigned)(tc < t->temp_lo_cdeg) | (unsigned)(tc > t->temp_hi_cdeg));
     for (i = 0; i < 3u; i++) {
-        acc[i] = tt->g[i][0] * bx + tt->g[i][1] * by + tt->g[i][2] * bz + tt->c[i];
+        u[i] = tt->c[i] + (uint64_t)tt->g[i][0] * b[0] + (uint64_t)tt->g[i][1] * b[1] + (uint64_t)tt->g[i][2] * b[2];
     }
     for (k = 0; k < t->n_currents; k++) {
         int32_t c = clip(cur_mA[k], MAGSTACK_CAL_I_LIMIT_MA, &sat);
         oov |= (unsigned)(c < t->current_lo_mA[k]) | (unsigned)(c > t->current_hi_mA[k]);
         for (i = 0; i < 3u; i++) {
-            acc[i] += (int64_t)t->D[k][i] * c * 128;
+            u[i] += (uint64_t)t->D[k][i] * 128u * (uint64_t)(int64_t)c;
         }
     }
     for (i = 0; i < 3u; i++) {
-        int64_t o = rshift_round19(acc[i]);
+        int64_t o = (int64_t)round19(u[i]) - ((int64_t)1 << 44);
         sat |= (unsigned)(o > INT32_MAX) | (unsigned)(o < INT32_MIN);
-        acc[i] = o > INT32_MAX ? INT32_MAX : o < INT32_MIN ? INT32_MIN : o;
-        out[i] = (int32_t)acc[i];
+        out[i] = (int32_t)(o > INT32_MAX ? INT32_MAX : o < INT32_MIN ? INT32_MIN : o);
+        n[i] = whole_nT(out[i]);
+        oov |= (unsigned)(n[i] > (uint32_t)t->field_axes_nT[i]);
     }
-    oov |= field_outside(acc[0], acc[1], acc[2], t->field_axes_nT[0], t->field_axes_nT[1], t->field_axes_nT[2],
-                         norm2_limit(t));
+    /* whole nT are at most 2^23: the squares' sum is below 2^48 */
+    oov |= (unsigned)((uint64_t)n[0] * n[0] + (uint64_t)n[1] * n[1] + (uint64_t)n[2] * n[2] > norm2_limit(t));
     return (sat ? MAGSTACK_CAL_SATURATED : 0u) | (oov ? MAGSTACK_CAL_OUT_OF_VALIDITY : 0u);
 }
 
@@ -398,9 +470,13 @@ unsigned magstack_cal_apply(const magstack_cal_table *table, const int32_t b_nT[
 {
     unsigned sat = 0;
     int32_t tc = clip(temp_cdeg, MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
-    temperature_terms tt;
-    make_terms(table, (int64_t)tc - table->t0_cdeg, &tt);
-    return sample(table, &tt, b_nT, tc, currents_mA, sat, out);
+    magstack_cal_terms tt;
+    const magstack_cal_terms *p = precomputed_terms(table, tc);
+    if (p == NULL) {
+        make_terms(table, (int64_t)tc - table->t0_cdeg, &tt);
+        p = &tt;
+    }
+    return sample(table, p, b_nT, tc, currents_mA, sat, out);
 }
 
 /* ------------------------------------------------------------------ blocks */
@@ -413,7 +489,10 @@ unsigned magstack_cal_apply(const magstack_cal_table *table, const int32_t b_nT[
 
 /* The terms of the last MAGSTACK_CAL_TERMS_CACHE clipped temperatures (a tag outside the clip range: empty). */
 typedef struct {
-    temperature_terms tt[MAGSTACK_CAL_TERMS_CACHE];
+    magstack_cal_terms tt[MAGSTACK_CAL_TERMS_CACHE];
+#ifndef MAGSTACK_CAL_COMPACT
+    uint64_t reach[MAGSTACK_CAL_TERMS_CACHE][2][3]; /* reach_of(tt[i]) */
+#endif
     int32_t tag[MAGSTACK_CAL_TERMS_CACHE];
 } terms_cache;
 
@@ -425,221 +504,381 @@ static void cache_init(terms_cache *cache)
     }
 }
 
-/* The terms of clipped temperature tc from the cache (computed on a miss). */
-static const temperature_terms *cached_terms(const magstack_cal_table *t, terms_cache *cache, int32_t tc)
+#ifndef MAGSTACK_CAL_COMPACT
+/* The terms of clipped temperature tc: precomputed, or from the cache (computed on a miss); *reach: how far they
+ * reach (reach_of; for precomputed terms, the largest of them all). */
+static inline const magstack_cal_terms *terms_reach(const magstack_cal_table *t, terms_cache *cache, int32_t tc,
+                                                    const uint64_t (**reach)[3])
 {
+    const magstack_cal_terms *p = precomputed_terms(t, tc);
     uint32_t slot = (uint32_t)tc & (MAGSTACK_CAL_TERMS_CACHE - 1u);
+    if (p != NULL) {
+        *reach = t->pre_reach;
+        return p;
+    }
+    if (cache->tag[slot] != tc) {
+        make_terms(t, (int64_t)tc - t->t0_cdeg, &cache->tt[slot]);
+        reach_of(&cache->tt[slot], cache->reach[slot]);
+        cache->tag[slot] = tc;
+    }
+    *reach = (const uint64_t(*)[3])cache->reach[slot];
+    return &cache->tt[slot];
+}
+
+/* The terms of clipped temperature tc: precomputed, or from the cache (computed on a miss). */
+static inline const magstack_cal_terms *terms_of(const magstack_cal_table *t, terms_cache *cache, int32_t tc)
+{
+    const uint64_t(*reach)[3];
+    return terms_reach(t, cache, tc, &reach);
+}
+#else
+/* The terms of clipped temperature tc: precomputed, or from the cache (computed on a miss). */
+static const magstack_cal_terms *terms_of(const magstack_cal_table *t, terms_cache *cache, int32_t tc)
+{
+    const magstack_cal_terms *p = precomputed_terms(t, tc);
+    uint32_t slot = (uint32_t)tc & (MAGSTACK_CAL_TERMS_CACHE - 1u);
+    if (p != NULL) {
+        return p;
+    }
     if (cache->tag[slot] != tc) {
         make_terms(t, (int64_t)tc - t->t0_cdeg, &cache->tt[slot]);
         cache->tag[slot] = tc;
     }
     return &cache->tt[slot];
 }
+#endif
 
-#ifndef MAGSTACK_CAL_COMPACT /* a kernel per number of currents, vectorisable over runs of one temperature */
-
-/* What every sample of a block shares: the currents' coefficients (x 2^7) and ranges, the field limits, the
- * temperature range (the clip range without one); and, for a run of one temperature, its terms and the status
- * bits of the temperature itself. */
-typedef struct {
-    int64_t d[MAGSTACK_CAL_MAX_CURRENTS][3];
-    int32_t lo[MAGSTACK_CAL_MAX_CURRENTS], hi[MAGSTACK_CAL_MAX_CURRENTS];
-    int64_t lim[3], nn;
-    int32_t t_lo, t_hi;
-    const temperature_terms *tt;
-    unsigned base;
-} block_terms;
-
-/* The kernels compute a sample on a fast path: every field input within +-2^23 nT and every current within
- * +-2^19 mA (inside the clips: nothing clips) and every output within int32 (nothing saturates). A sample off it
- * is marked SLOW in its status and computed again by sample() once the kernel's loop is done. */
-#define FAST_B 0x800000u /* 2^23 */
-#define FAST_I 0x80000u  /* 2^19 */
-#define SLOW 0x80u
-#define HALF32 ((int64_t)1 << 31) /* o is an int32 when o + 2^31 is within 0..2^32 - 1 */
-
-#define OUTSIDE(v, lim) ((uint32_t)(v) + (uint32_t)(lim) > 2u * (uint32_t)(lim)) /* v < -lim or v > lim */
-
-/* The coefficients every sample uses, in locals (registers). */
-#define BLOCK_LOCALS                                                                                              \
-    const int64_t l0 = bt->lim[0], l1 = bt->lim[1], l2 = bt->lim[2], nn = bt->nn;                                 \
-    unsigned slow = 0;                                                                                            \
-    int k
-
-/* The terms of a run, in locals. */
-#define RUN_LOCALS                                                                                                \
-    const int64_t g00 = bt->tt->g[0][0], g01 = bt->tt->g[0][1], g02 = bt->tt->g[0][2];                            \
-    const int64_t g10 = bt->tt->g[1][0], g11 = bt->tt->g[1][1], g12 = bt->tt->g[1][2];                            \
-    const int64_t g20 = bt->tt->g[2][0], g21 = bt->tt->g[2][1], g22 = bt->tt->g[2][2];                            \
-    const int64_t c0 = bt->tt->c[0], c1 = bt->tt->c[1], c2 = bt->tt->c[2];                                        \
-    const unsigned base = bt->base
-
-/* Sample r with K currents on the fast path, the terms g.., c.. and the temperature's status bits in base; without
- * a branch. Off the fast path the inputs are taken as zero and the outputs as zero (no overflow either way). */
-#define SAMPLE(K, r)                                                                                              \
-    do {                                                                                                          \
-        int32_t x = b[3u * (r)], y = b[3u * (r) + 1u], z = b[3u * (r) + 2u], mask;                                \
-        uint32_t wide = ((uint32_t)x + FAST_B) | ((uint32_t)y + FAST_B) | ((uint32_t)z + FAST_B), cwide = 0;      \
-        unsigned oov = 0, fast;                                                                                   \
-        int64_t a0, a1, a2, o0, o1, o2, m64;                                                                      \
-        for (k = 0; k < (K); k++) {                                                                               \
-            cwide |= (uint32_t)cur[(size_t)(K) * (r) + (size_t)k] + FAST_I;                                       \
-        }                                                                                                         \
-        fast = (unsigned)(((wide >> 23) | (cwide >> 19)) <= 1u);                                                  \
-        mask = -(int32_t)fast;                                                                                    \
-        x &= mask;                                                                                                \
-        y &= mask;                                                                                                \
-        z &= mask;                                                                                                \
-        a0 = g00 * x + g01 * y + g02 * z + c0;                                                                    \
-        a1 = g10 * x + g11 * y + g12 * z + c1;                                                                    \
-        a2 = g20 * x + g21 * y + g22 * z + c2;                                                                    \
-        for (k = 0; k < (K); k++) {                                                                               \
-            int32_t c = cur[(size_t)(K) * (r) + (size_t)k] & mask;                                                \
-            oov |= (unsigned)((uint32_t)c - (uint32_t)bt->lo[k] > (uint32_t)bt->hi[k] - (uint32_t)bt->lo[k]);     \
-            a0 += bt->d[k][0] * c;                                                                                \
-            a1 += bt->d[k][1] * c;                                                                                \
-            a2 += bt->d[k][2] * c;                                                                                \
-        }                                                                                                         \
-        o0 = rshift_round19(a0);                                                                                  \
-        o1 = rshift_round19(a1);                                                                                  \
-        o2 = rshift_round19(a2);                                                                                  \
-        fast &= (unsigned)((((uint64_t)(o0 + HALF32) | (uint64_t)(o1 + HALF32) | (uint64_t)(o2 + HALF32)) >> 32) == \
-                           0u);                                                                                   \
-        m64 = -(int64_t)fast;                                                                                     \
-        o0 &= m64;                                                                                                \
-        o1 &= m64;                                                                                                \
-        o2 &= m64;                                                                                                \
-        out[3u * (r)] = (int32_t)o0;                                                                              \
-        out[3u * (r) + 1u] = (int32_t)o1;                                                                         \
-        out[3u * (r) + 2u] = (int32_t)o2;                                                                         \
-        oov |= field_outside(o0, o1, o2, l0, l1, l2, nn);                                                         \
-        slow |= fast ^ 1u;                                                                                        \
-        status[r] = (uint8_t)(base | (oov << 1) | ((fast ^ 1u) << 7));                                            \
-    } while (0)
-
-/* The samples of m marked SLOW, computed by sample(). */
-static void slow_samples(const magstack_cal_table *t, terms_cache *cache, size_t m, const int32_t *b,
-                         const int32_t *temp, const int32_t *cur, int32_t *out, uint8_t *status)
+/* m samples of a block, one at a time. */
+static void samples(const magstack_cal_table *t, terms_cache *cache, size_t m, const int32_t *b, const int32_t *temp,
+                    const int32_t *cur, int32_t *out, uint8_t *status)
 {
     size_t r, nk = t->n_currents;
     for (r = 0; r < m; r++) {
-        if (status[r] & SLOW) {
-            unsigned sat = 0;
-            int32_t tc = clip(temp[r], MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
-            status[r] = (uint8_t)sample(t, cached_terms(t, cache, tc), b + 3u * r, tc, nk ? cur + nk * r : NULL, sat,
-                                        out + 3u * r);
-        }
+        unsigned sat = 0;
+        int32_t tc = clip(temp[r], MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
+        status[r] = (uint8_t)sample(t, terms_of(t, cache, tc), b + 3u * r, tc, nk ? cur + nk * r : NULL, sat,
+                                    out + 3u * r);
     }
 }
 
-/* A run of at least RUN_MIN samples of one temperature goes to a run kernel; otherwise the next MIXED_CHUNK samples
- * go to a mixed kernel. */
-#define RUN_MIN 8u
-#define MIXED_CHUNK 32u
+#ifndef MAGSTACK_CAL_COMPACT /* chunks of samples through kernels per number of currents */
 
-#ifndef MAGSTACK_CAL_VECTOR
-/* m samples whose temperatures vary: each sample's terms from the cache (computed on a miss), in the loop. */
-#define MIXED_LOOP(K)                                                                                             \
+/* What every sample of a block shares: the currents' coefficients (x 2^7, modulo 2^64) and ranges (lower end, width),
+ * the field limits, the temperature range (lower end, width; the clip range without one), how far the currents
+ * reach. */
+typedef struct {
+    uint64_t d[MAGSTACK_CAL_MAX_CURRENTS][3];
+    uint32_t c_lo[MAGSTACK_CAL_MAX_CURRENTS], c_span[MAGSTACK_CAL_MAX_CURRENTS];
+    uint32_t lim[3];
+    uint64_t nn;
+    uint32_t t_lo, t_span;
+    uint64_t dsum[3]; /* sum_k |D_k,i| 2^7 */
+} block_terms;
+
+/* A block goes in chunks of CHUNK samples. A chunk whose inputs all lie inside the kernel bounds (fields
+ * -2^23..2^23-1 nT, temperatures -2^15..2^15-1 centi-degC, currents -2^19..2^19-1 mA: nothing clips) goes to a kernel,
+ * which computes the outputs and, when every output is an int32 (nothing saturates), the status bits (STATUS_LOOPS);
+ * any other chunk is computed a sample at a time. */
+#define CHUNK 32u
+#define FAST_T 0x8000u   /* 2^15 */
+/* round19(u) - OUT_OFFSET is out + 2^31: within 0..2^32 - 1 when out is an int32 */
+#define OUT_OFFSET (((uint64_t)1 << 44) - ((uint64_t)1 << 31))
+/* precomputed terms are read ahead of their use when a chunk's temperatures are more than FAR entries apart */
+#define FAR 64u
+
+/* Targets with a vector unit get the status bits in loops of their own, which a compiler vectorises (x86-64 has SSE2,
+ * AArch64 NEON); elsewhere each sample's bits are found with its outputs. */
+#if defined(__SSE2__) || defined(__ARM_NEON) || defined(__ARM_NEON__) || defined(__aarch64__) || defined(__ALTIVEC__)
+#define STATUS_LOOPS 1
+#else
+#define STATUS_LOOPS 0
+#endif
+
+/* 1 when the outputs o0..o2 (nT * 2^8) in whole nT are beyond an axis limit or, in all, beyond the magnitude limit */
+static inline uint32_t field_outside(const block_terms *bt, int32_t o0, int32_t o1, int32_t o2)
+{
+    const uint32_t n0 = whole_nT(o0), n1 = whole_nT(o1), n2 = whole_nT(o2);
+    return (uint32_t)(n0 > bt->lim[0]) | (uint32_t)(n1 > bt->lim[1]) | (uint32_t)(n2 > bt->lim[2]) |
+           (uint32_t)((uint64_t)n0 * n0 + (uint64_t)n1 * n1 + (uint64_t)n2 * n2 > bt->nn);
+}
+
+/* The int32 whose two's complement is the low 32 bits of v (v = out + 2^44: out, as 2^44 is a multiple of 2^32) */
+static inline int32_t low_int32(uint64_t v)
+{
+    return (int32_t)((int64_t)((v + 0x80000000u) & 0xFFFFFFFFu) - ((int64_t)1 << 31));
+}
+
+/* 1 when no output can leave int32 for terms of this reach (reach_of), currents of reach dsum, fields of magnitude at
+ * most bmag + 1 and currents of magnitude at most cmag + 1: |acc_i| <= 2^50 - 2^19 on every axis (the bound is below
+ * 2^61). Then a kernel need not check its outputs. */
+static inline unsigned cannot_saturate(const uint64_t reach[2][3], const uint64_t dsum[3], uint32_t bmag, uint32_t cmag)
+{
+    const uint64_t lim = ((uint64_t)1 << 50) - ((uint64_t)1 << 19), bm = (uint64_t)bmag + 1u, cm = (uint64_t)cmag + 1u;
+    return (unsigned)(reach[1][0] + reach[0][0] * bm + dsum[0] * cm <= lim) &
+           (unsigned)(reach[1][1] + reach[0][1] * bm + dsum[1] * cm <= lim) &
+           (unsigned)(reach[1][2] + reach[0][2] * bm + dsum[2] * cm <= lim);
+}
+
+/* The terms of p in locals. */
+#define TERMS_LOCALS(p)                                                                                           \
+    const uint64_t g00 = (uint64_t)(int64_t)(p)->g[0][0], g01 = (uint64_t)(int64_t)(p)->g[0][1];                 \
+    const uint64_t g02 = (uint64_t)(int64_t)(p)->g[0][2], g10 = (uint64_t)(int64_t)(p)->g[1][0];                 \
+    const uint64_t g11 = (uint64_t)(int64_t)(p)->g[1][1], g12 = (uint64_t)(int64_t)(p)->g[1][2];                 \
+    const uint64_t g20 = (uint64_t)(int64_t)(p)->g[2][0], g21 = (uint64_t)(int64_t)(p)->g[2][1];                 \
+    const uint64_t g22 = (uint64_t)(int64_t)(p)->g[2][2], c0 = (p)->c[0], c1 = (p)->c[1], c2 = (p)->c[2]
+
+/* The outputs of sample r with K currents, inputs inside the kernel bounds, from the terms g.., c..; without a branch.
+ * With CHK, chk collects out + 2^31 of every output (an int32 output: below 2^32). o[] keeps the outputs by axis for
+ * the status loops, or the status bits are found here. */
+#define OUTPUTS(K, r, CHK)                                                                                        \
     do {                                                                                                          \
-        const int32_t TL = MAGSTACK_CAL_T_LIMIT_CDEG, t_lo = bt->t_lo, t_hi = bt->t_hi;                           \
-        for (r = 0; r < m; r++) {                                                                                 \
-            int32_t tc = temp[r];                                                                                 \
-            unsigned base = (unsigned)OUTSIDE(tc, TL) << 2;                                                       \
-            const temperature_terms *tt;                                                                          \
-            tc = tc > TL ? TL : tc < -TL ? -TL : tc;                                                              \
-            base |= (unsigned)((uint32_t)tc - (uint32_t)t_lo > (uint32_t)t_hi - (uint32_t)t_lo) << 1;             \
-            tt = cached_terms(t, cache, tc);                                                                      \
-            {                                                                                                     \
-                const int64_t g00 = tt->g[0][0], g01 = tt->g[0][1], g02 = tt->g[0][2];                            \
-                const int64_t g10 = tt->g[1][0], g11 = tt->g[1][1], g12 = tt->g[1][2];                            \
-                const int64_t g20 = tt->g[2][0], g21 = tt->g[2][1], g22 = tt->g[2][2];                            \
-                const int64_t c0 = tt->c[0], c1 = tt->c[1], c2 = tt->c[2];                                        \
-                SAMPLE(K, r);                                                                                     \
+        const uint64_t x = (uint64_t)(int64_t)b[3u * (r)], y = (uint64_t)(int64_t)b[3u * (r) + 1u];               \
+        const uint64_t z = (uint64_t)(int64_t)b[3u * (r) + 2u];                                                   \
+        uint64_t u0 = c0 + g00 * x + g01 * y + g02 * z;                                                           \
+        uint64_t u1 = c1 + g10 * x + g11 * y + g12 * z;                                                           \
+        uint64_t u2 = c2 + g20 * x + g21 * y + g22 * z;                                                           \
+        for (k = 0; k < (K); k++) {                                                                               \
+            const uint64_t c = (uint64_t)(int64_t)cur[(size_t)(K) * (r) + (size_t)k];                             \
+            u0 += bt->d[k][0] * c;                                                                                \
+            u1 += bt->d[k][1] * c;                                                                                \
+            u2 += bt->d[k][2] * c;                                                                                \
+        }                                                                                                         \
+        u0 = round19(u0);                                                                                         \
+        u1 = round19(u1);                                                                                         \
+        u2 = round19(u2);                                                                                         \
+        if (CHK) {                                                                                                \
+            chk |= (u0 - OUT_OFFSET) | (u1 - OUT_OFFSET) | (u2 - OUT_OFFSET);                                     \
+        }                                                                                                         \
+        {                                                                                                         \
+            const int32_t o0 = low_int32(u0), o1 = low_int32(u1), o2 = low_int32(u2);                             \
+            out[3u * (r)] = o0;                                                                                   \
+            out[3u * (r) + 1u] = o1;                                                                              \
+            out[3u * (r) + 2u] = o2;                                                                              \
+            if (STATUS_LOOPS) {                                                                                   \
+                o[0][r] = o0;                                                                                     \
+                o[1][r] = o1;                                                                                     \
+                o[2][r] = o2;                                                                                     \
+            } else {                                                                                              \
+                uint32_t oov = (uint32_t)((uint32_t)temp[r] - bt->t_lo > bt->t_span);                             \
+                for (k = 0; k < (K); k++) {                                                                       \
+                    oov |= (uint32_t)((uint32_t)cur[(size_t)(K) * (r) + (size_t)k] - bt->c_lo[k] > bt->c_span[k]); \
+                }                                                                                                 \
+                status[r] = (uint8_t)((oov | field_outside(bt, o0, o1, o2)) << 1);                                \
             }                                                                                                     \
         }                                                                                                         \
     } while (0)
+
+#if defined(__OPTIMIZE_SIZE__) /* -Os: one sample a step, and every output checked (no second copy of a loop) */
+/* The outputs of samples 0..m-1; TERMS(R) declares the terms of sample R in locals. */
+#define OUTPUTS_LOOP(K, TERMS, CHK)                                                                               \
+    do {                                                                                                          \
+        for (r = 0; r < m; r++) {                                                                                 \
+            TERMS(r)                                                                                              \
+            OUTPUTS(K, r, 1);                                                                                     \
+        }                                                                                                         \
+    } while (0)
+#define CANNOT_SATURATE(REACH) 0
 #else
-/* m samples whose temperatures vary: each sample's terms from the cache copied into arrays first, then a loop a
- * compiler may vectorise (MAGSTACK_CAL_VECTOR: for targets with 64-bit vector multiplies). */
+/* The outputs of samples 0..m-1, two a step (one when every output is checked: the rarer, shorter loop); TERMS(R)
+ * declares the terms of sample R in locals. */
+#define OUTPUTS_LOOP(K, TERMS, CHK)                                                                               \
+    do {                                                                                                          \
+        for (r = 0; r + 1u < m && !(CHK); r += 2u) {                                                              \
+            {                                                                                                     \
+                TERMS(r)                                                                                          \
+                OUTPUTS(K, r, CHK);                                                                               \
+            }                                                                                                     \
+            {                                                                                                     \
+                TERMS(r + 1u)                                                                                     \
+                OUTPUTS(K, r + 1u, CHK);                                                                          \
+            }                                                                                                     \
+        }                                                                                                         \
+        for (; r < m; r++) {                                                                                      \
+            TERMS(r)                                                                                              \
+            OUTPUTS(K, r, CHK);                                                                                   \
+        }                                                                                                         \
+    } while (0)
+#define CANNOT_SATURATE(REACH) cannot_saturate(REACH, bt->dsum, bmag, cmag)
+#endif
+/* The outputs of samples 0..m-1 at one temperature (a loop a compiler with wide vectors vectorises; elsewhere two
+ * samples a step). */
+#if defined(__AVX2__) || defined(__OPTIMIZE_SIZE__)
+#define RUN_LOOP(K, CHK)                                                                                          \
+    do {                                                                                                          \
+        for (r = 0; r < m; r++) {                                                                                 \
+            OUTPUTS(K, r, CHK);                                                                                   \
+        }                                                                                                         \
+    } while (0)
+#else
+#define RUN_LOOP(K, CHK) OUTPUTS_LOOP(K, RUN_TERMS, CHK)
+#endif
+#define RUN_TERMS(R) /* the terms of the one temperature: in locals before the loop */
+#define TEMP_OUTSIDE(R) (uint32_t)((uint32_t)temp[R] - t_lo > t_span)
+#define RUN_OUTSIDE(R) t_out /* one temperature */
+#define PRE_AT(R) ((const magstack_cal_terms *)(pre_bytes + idx[R])) /* idx: byte offsets */
+#define PRE_TERMS(R) TERMS_LOCALS(PRE_AT(R));
+#define CACHED_TERMS(R) TERMS_LOCALS(terms_of(t, cache, temp[R]));
+
+/* The largest field and current magnitude of m samples, less one at most (bmag, cmag: the OR of each input's ones'
+ * complement magnitude, x or -x - 1), whether their temperatures are inside +-(2^15 - 1) (twide below 2^16), and
+ * whether they are all one (diff 0); loops a compiler may vectorise when M is a constant. */
+#define INSIDE(M, K)                                                                                              \
+    do {                                                                                                          \
+        for (r = 0; r < 3u * (M); r++) {                                                                          \
+            bmag |= (uint32_t)b[r] ^ (0u - ((uint32_t)b[r] >> 31));                                               \
+        }                                                                                                         \
+        for (r = 0; r < (M); r++) {                                                                               \
+            twide |= (uint32_t)temp[r] + FAST_T;                                                                  \
+            diff |= (uint32_t)temp[r] ^ (uint32_t)temp[0];                                                        \
+        }                                                                                                         \
+        for (k = 0; k < (K) * (int)(M); k++) {                                                                    \
+            cmag |= (uint32_t)cur[k] ^ (0u - ((uint32_t)cur[k] >> 31));                                           \
+        }                                                                                                         \
+    } while (0)
+
+/* The byte offset of each of m samples' precomputed terms (0 where it has none: missing not 0), and whether two of
+ * them are more than FAR entries apart (far / 2^7 not 0); a loop a compiler may vectorise when M is a constant. */
+#define PRECOMPUTED(M)                                                                                            \
+    do {                                                                                                          \
+        const uint32_t lo = (uint32_t)t->pre_lo_cdeg, count = t->pre_count, i0 = (uint32_t)temp[0] - lo;         \
+        for (r = 0; r < (M); r++) {                                                                               \
+            const uint32_t i = (uint32_t)temp[r] - lo, in = (uint32_t)(i < count);                                \
+            idx[r] = (i & (0u - in)) * (uint32_t)sizeof(magstack_cal_terms); /* below 2^23 */                   \
+            missing |= in ^ 1u;                                                                                   \
+            far |= i - i0 + FAR;                                                                                  \
+        }                                                                                                         \
+    } while (0)
+
+/* The status bits of m samples from their outputs o[], currents and OUTSIDE(r), 1 when sample r's temperature is
+ * outside its range; loops a compiler may vectorise when M is a constant. Whole nT (at most 2^23) and the axis limits
+ * (at most 2^24) are compared as int32. */
+#define STATUS(M, K, OUTSIDE)                                                                                     \
+    do {                                                                                                          \
+        const int32_t l0 = (int32_t)bt->lim[0], l1 = (int32_t)bt->lim[1], l2 = (int32_t)bt->lim[2];              \
+        const uint64_t nn = bt->nn;                                                                               \
+        for (r = 0; r < (M); r++) {                                                                               \
+            const uint32_t n0 = whole_nT(o[0][r]), n1 = whole_nT(o[1][r]), n2 = whole_nT(o[2][r]);                \
+            uint32_t oov = (uint32_t)((int32_t)n0 > l0) | (uint32_t)((int32_t)n1 > l1) | (uint32_t)((int32_t)n2 > l2); \
+            oov |= (uint32_t)((nn - ((uint64_t)n0 * n0 + (uint64_t)n1 * n1 + (uint64_t)n2 * n2)) >> 63);          \
+            oov |= OUTSIDE(r);                                                                                    \
+            for (k = 0; k < (K); k++) {                                                                           \
+                oov |= (uint32_t)((uint32_t)cur[(size_t)(K) * r + (size_t)k] - bt->c_lo[k] > bt->c_span[k]);     \
+            }                                                                                                     \
+            flag[r] = oov << 1;                                                                                   \
+        }                                                                                                         \
+        for (r = 0; r < (M); r++) {                                                                               \
+            status[r] = (uint8_t)flag[r];                                                                         \
+        }                                                                                                         \
+    } while (0)
+
+#ifndef MAGSTACK_CAL_VECTOR
+/* m samples whose temperatures vary: from their precomputed terms when all have them (read first when far apart, so
+ * that they arrive while the loop works: a read of each entry, a C99 way to prefetch), else from the cache. */
 #define MIXED_LOOP(K)                                                                                             \
     do {                                                                                                          \
-        const int32_t TL = MAGSTACK_CAL_T_LIMIT_CDEG, t_lo = bt->t_lo, t_hi = bt->t_hi;                           \
-        int64_t G[12][MIXED_CHUNK];                                                                               \
-        uint8_t tbase[MIXED_CHUNK];                                                                               \
+        const unsigned char *pre_bytes = (const unsigned char *)t->pre;                                           \
+        uint32_t idx[CHUNK], missing = 1, far = 0;                                                                \
+        if (t->pre_count != 0u) {                                                                                 \
+            missing = 0;                                                                                          \
+            if (m == CHUNK) {                                                                                     \
+                PRECOMPUTED(CHUNK);                                                                               \
+            } else {                                                                                              \
+                PRECOMPUTED(m);                                                                                   \
+            }                                                                                                     \
+        }                                                                                                         \
+        if (missing == 0u) {                                                                                      \
+            if (far >> 7) {                                                                                       \
+                for (r = 0; r < m; r++) {                                                                         \
+                    (void)*(const volatile int64_t *)&PRE_AT(r)->g[0][0];                                         \
+                    (void)*(const volatile uint64_t *)&PRE_AT(r)->c[2];                                           \
+                }                                                                                                 \
+            }                                                                                                     \
+            if (CANNOT_SATURATE(t->pre_reach)) {                                            \
+                OUTPUTS_LOOP(K, PRE_TERMS, 0);                                                                    \
+            } else {                                                                                              \
+                OUTPUTS_LOOP(K, PRE_TERMS, 1);                                                                    \
+            }                                                                                                     \
+        } else {                                                                                                  \
+            OUTPUTS_LOOP(K, CACHED_TERMS, 1);                                                                     \
+        }                                                                                                         \
+    } while (0)
+#else
+/* m samples whose temperatures vary: each sample's terms copied into arrays first, then a loop a compiler may
+ * vectorise (MAGSTACK_CAL_VECTOR: for targets with 64-bit vector multiplies). */
+#define MIXED_LOOP(K)                                                                                             \
+    do {                                                                                                          \
+        uint64_t G[12][CHUNK];                                                                                    \
         for (r = 0; r < m; r++) {                                                                                 \
-            int32_t tc = temp[r];                                                                                 \
-            unsigned tb = (unsigned)OUTSIDE(tc, TL) << 2;                                                         \
-            const temperature_terms *tt;                                                                          \
-            tc = tc > TL ? TL : tc < -TL ? -TL : tc;                                                              \
-            tb |= (unsigned)((uint32_t)tc - (uint32_t)t_lo > (uint32_t)t_hi - (uint32_t)t_lo) << 1;               \
-            tbase[r] = (uint8_t)tb;                                                                               \
-            tt = cached_terms(t, cache, tc);                                                                      \
+            const magstack_cal_terms *p = terms_of(t, cache, temp[r]);                                            \
             for (k = 0; k < 3; k++) {                                                                             \
-                G[3 * k][r] = tt->g[k][0];                                                                        \
-                G[3 * k + 1][r] = tt->g[k][1];                                                                    \
-                G[3 * k + 2][r] = tt->g[k][2];                                                                    \
-                G[9 + k][r] = tt->c[k];                                                                           \
+                G[3 * k][r] = (uint64_t)p->g[k][0];                                                               \
+                G[3 * k + 1][r] = (uint64_t)p->g[k][1];                                                           \
+                G[3 * k + 2][r] = (uint64_t)p->g[k][2];                                                           \
+                G[9 + k][r] = p->c[k];                                                                            \
             }                                                                                                     \
         }                                                                                                         \
         for (r = 0; r < m; r++) {                                                                                 \
-            const unsigned base = tbase[r];                                                                       \
-            const int64_t g00 = G[0][r], g01 = G[1][r], g02 = G[2][r], g10 = G[3][r], g11 = G[4][r];              \
-            const int64_t g12 = G[5][r], g20 = G[6][r], g21 = G[7][r], g22 = G[8][r];                             \
-            const int64_t c0 = G[9][r], c1 = G[10][r], c2 = G[11][r];                                             \
-            SAMPLE(K, r);                                                                                         \
+            const uint64_t g00 = G[0][r], g01 = G[1][r], g02 = G[2][r], g10 = G[3][r], g11 = G[4][r];             \
+            const uint64_t g12 = G[5][r], g20 = G[6][r], g21 = G[7][r], g22 = G[8][r];                            \
+            const uint64_t c0 = G[9][r], c1 = G[10][r], c2 = G[11][r];                                            \
+            OUTPUTS(K, r, 1);                                                                                     \
         }                                                                                                         \
     } while (0)
 #endif
 
-/* m samples at the temperature of bt->tt (a loop a compiler may vectorise), and m <= MIXED_CHUNK samples whose
- * temperatures vary; the samples off the fast path computed again by sample(). */
-#define KERNELS(RUN, MIXED, K)                                                                                    \
-    static void RUN(const magstack_cal_table *t, terms_cache *cache, const block_terms *bt, size_t m,             \
-                    const int32_t *restrict b, const int32_t *restrict temp, const int32_t *restrict cur,         \
-                    int32_t *restrict out, uint8_t *restrict status)                                               \
+/* m <= CHUNK samples with K currents: through a kernel when their inputs are inside the kernel bounds (one
+ * temperature: its terms in locals, a loop a compiler may vectorise; else each sample's own terms) and every output is
+ * an int32; else a sample at a time. */
+#define CHUNK_KERNEL(NAME, K)                                                                                     \
+    static void NAME(const magstack_cal_table *t, terms_cache *cache, const block_terms *bt, size_t m,            \
+                     const int32_t *restrict b, const int32_t *restrict temp, const int32_t *restrict cur,         \
+                     int32_t *restrict out, uint8_t *restrict status)                                              \
     {                                                                                                             \
+        uint32_t bmag = 0, twide = 0, cmag = 0, diff = 0, flag[CHUNK];                                            \
+        int32_t o[3][CHUNK];                                                                                      \
+        uint64_t chk = 0;                                                                                         \
         size_t r;                                                                                                 \
-        BLOCK_LOCALS;                                                                                             \
-        RUN_LOCALS;                                                                                               \
-        for (r = 0; r < m; r++) {                                                                                 \
-            SAMPLE(K, r);                                                                                         \
+        int k;                                                                                                    \
+        if (m == CHUNK) {                                                                                         \
+            INSIDE(CHUNK, K);                                                                                     \
+        } else {                                                                                                  \
+            INSIDE(m, K);                                                                                         \
         }                                                                                                         \
-        if (slow) {                                                                                               \
-            slow_samples(t, cache, m, b, temp, cur, out, status);                                                 \
+        if (((bmag >> 23) | (twide >> 16) | (cmag >> 19)) == 0u) { /* nothing clips */                           \
+            if (diff == 0u) {                                                                                     \
+                const uint64_t(*reach)[3];                                                                        \
+                const magstack_cal_terms *tt = terms_reach(t, cache, temp[0], &reach);                            \
+                TERMS_LOCALS(tt);                                                                                 \
+                if (CANNOT_SATURATE(reach)) {                                               \
+                    RUN_LOOP(K, 0);                                                                               \
+                } else {                                                                                          \
+                    RUN_LOOP(K, 1);                                                                               \
+                }                                                                                                 \
+            } else {                                                                                              \
+                MIXED_LOOP(K);                                                                                    \
+            }                                                                                                     \
+            if (chk >> 32 == 0u) {                                                                                \
+                const uint32_t t_lo = bt->t_lo, t_span = bt->t_span, t_out = TEMP_OUTSIDE(0);                     \
+                if (!STATUS_LOOPS) {                                                                              \
+                    (void)t_out;                                                                                  \
+                } else if (diff == 0u && m == CHUNK) {                                                            \
+                    STATUS(CHUNK, K, RUN_OUTSIDE);                                                                \
+                } else if (m == CHUNK) {                                                                          \
+                    STATUS(CHUNK, K, TEMP_OUTSIDE);                                                               \
+                } else {                                                                                          \
+                    STATUS(m, K, TEMP_OUTSIDE);                                                                   \
+                }                                                                                                 \
+                return;                                                                                           \
+            }                                                                                                     \
         }                                                                                                         \
-    }                                                                                                             \
-    static void MIXED(const magstack_cal_table *t, terms_cache *cache, const block_terms *bt, size_t m,           \
-                      const int32_t *restrict b, const int32_t *restrict temp, const int32_t *restrict cur,       \
-                      int32_t *restrict out, uint8_t *restrict status)                                             \
-    {                                                                                                             \
-        size_t r;                                                                                                 \
-        BLOCK_LOCALS;                                                                                             \
-        MIXED_LOOP(K);                                                                                            \
-        if (slow) {                                                                                               \
-            slow_samples(t, cache, m, b, temp, cur, out, status);                                                 \
-        }                                                                                                         \
+        samples(t, cache, m, b, temp, cur, out, status);                                                          \
     }
 
-KERNELS(run0, mixed0, 0)
-KERNELS(run1, mixed1, 1)
-KERNELS(run2, mixed2, 2)
-KERNELS(run3, mixed3, 3)
-KERNELS(run4, mixed4, 4)
-
-/* The end of the run of one temperature that starts at r (eight samples a step, then one). */
-static size_t run_end(const int32_t *temp, size_t r, size_t n)
-{
-    const int32_t v = temp[r];
-    size_t e = r + 1u;
-    while (n - e >= 8u && ((temp[e] ^ v) | (temp[e + 1u] ^ v) | (temp[e + 2u] ^ v) | (temp[e + 3u] ^ v) |
-                           (temp[e + 4u] ^ v) | (temp[e + 5u] ^ v) | (temp[e + 6u] ^ v) | (temp[e + 7u] ^ v)) == 0) {
-        e += 8u;
-    }
-    while (e < n && temp[e] == v) {
-        e++;
-    }
-    return e;
-}
+CHUNK_KERNEL(chunk0, 0)
+CHUNK_KERNEL(chunk1, 1)
+CHUNK_KERNEL(chunk2, 2)
+CHUNK_KERNEL(chunk3, 3)
+CHUNK_KERNEL(chunk4, 4)
 
 void magstack_cal_apply_block(const magstack_cal_table *table, size_t n, const int32_t *b_nT,
                               const int32_t *temp_cdeg, const int32_t *currents_mA, int32_t *out,
@@ -647,52 +886,36 @@ void magstack_cal_apply_block(const magstack_cal_table *table, size_t n, const i
 {
     block_terms bt;
     terms_cache cache;
-    unsigned i, k, nk = table->n_currents;
-    size_t r = 0, end;
+    unsigned i, k;
+    size_t r, nk = table->n_currents;
     cache_init(&cache);
     for (k = 0; k < MAGSTACK_CAL_MAX_CURRENTS; k++) {
         for (i = 0; i < 3u; i++) {
-            bt.d[k][i] = (int64_t)table->D[k][i] * 128;
+            bt.d[k][i] = (uint64_t)table->D[k][i] * 128u;
         }
-        bt.lo[k] = table->current_lo_mA[k];
-        bt.hi[k] = table->current_hi_mA[k];
+        bt.c_lo[k] = (uint32_t)table->current_lo_mA[k];
+        bt.c_span[k] = (uint32_t)table->current_hi_mA[k] - (uint32_t)table->current_lo_mA[k];
     }
     for (i = 0; i < 3u; i++) {
-        bt.lim[i] = table->field_axes_nT[i];
+        bt.lim[i] = (uint32_t)table->field_axes_nT[i];
+        bt.dsum[i] = 0;
+        for (k = 0; k < table->n_currents; k++) {
+            bt.dsum[i] += mag64(table->D[k][i]) * 128u;
+        }
     }
     bt.nn = norm2_limit(table);
-    bt.t_lo = table->has_temp_range ? table->temp_lo_cdeg : -MAGSTACK_CAL_T_LIMIT_CDEG;
-    bt.t_hi = table->has_temp_range ? table->temp_hi_cdeg : MAGSTACK_CAL_T_LIMIT_CDEG;
-    bt.tt = NULL;
-    bt.base = 0;
-    while (r < n) {
-        const int32_t *c = nk ? currents_mA + nk * r : NULL;
-        const int32_t *b = b_nT + 3u * r, *t = temp_cdeg + r;
-        end = run_end(temp_cdeg, r, n);
-        if (end - r >= RUN_MIN) { /* a run of one temperature */
-            unsigned sat = 0;
-            int32_t tc = clip(temp_cdeg[r], MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
-            bt.tt = cached_terms(table, &cache, tc);
-            bt.base = (sat ? MAGSTACK_CAL_SATURATED : 0u) |
-                      ((unsigned)(tc < bt.t_lo) | (unsigned)(tc > bt.t_hi) ? MAGSTACK_CAL_OUT_OF_VALIDITY : 0u);
-            switch (nk) {
-            case 0: run0(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
-            case 1: run1(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
-            case 2: run2(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
-            case 3: run3(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
-            default: run4(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
-            }
-        } else { /* a short run: the next MIXED_CHUNK samples */
-            end = n - r > MIXED_CHUNK ? r + MIXED_CHUNK : n;
-            switch (nk) {
-            case 0: mixed0(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
-            case 1: mixed1(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
-            case 2: mixed2(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
-            case 3: mixed3(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
-            default: mixed4(table, &cache, &bt, end - r, b, t, c, out + 3u * r, status + r); break;
-            }
+    bt.t_lo = (uint32_t)(table->has_temp_range ? table->temp_lo_cdeg : -MAGSTACK_CAL_T_LIMIT_CDEG);
+    bt.t_span = (uint32_t)(table->has_temp_range ? table->temp_hi_cdeg : MAGSTACK_CAL_T_LIMIT_CDEG) - bt.t_lo;
+    for (r = 0; r < n; r += CHUNK) {
+        const size_t m = n - r < CHUNK ? n - r : CHUNK;
+        const int32_t *b = b_nT + 3u * r, *t = temp_cdeg + r, *c = nk ? currents_mA + nk * r : NULL;
+        switch (nk) {
+        case 0: chunk0(table, &cache, &bt, m, b, t, c, out + 3u * r, status + r); break;
+        case 1: chunk1(table, &cache, &bt, m, b, t, c, out + 3u * r, status + r); break;
+        case 2: chunk2(table, &cache, &bt, m, b, t, c, out + 3u * r, status + r); break;
+        case 3: chunk3(table, &cache, &bt, m, b, t, c, out + 3u * r, status + r); break;
+        default: chunk4(table, &cache, &bt, m, b, t, c, out + 3u * r, status + r); break;
         }
-        r = end;
     }
 }
 
@@ -703,13 +926,7 @@ void magstack_cal_apply_block(const magstack_cal_table *table, size_t n, const i
                               uint8_t *status)
 {
     terms_cache cache;
-    size_t r, nk = table->n_currents;
     cache_init(&cache);
-    for (r = 0; r < n; r++) {
-        unsigned sat = 0;
-        int32_t tc = clip(temp_cdeg[r], MAGSTACK_CAL_T_LIMIT_CDEG, &sat);
-        status[r] = (uint8_t)sample(table, cached_terms(table, &cache, tc), b_nT + 3u * r, tc,
-                                    nk ? currents_mA + nk * r : NULL, sat, out + 3u * r);
-    }
+    samples(table, &cache, n, b_nT, temp_cdeg, currents_mA, out, status);
 }
 #endif

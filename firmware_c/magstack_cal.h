@@ -13,13 +13,14 @@
  * any image the loader accepts.
  *
  * Build options (preprocessor): MAGSTACK_CAL_COMPACT gives magstack_cal_apply_block a plain loop over
- * samples (smallest code; otherwise branch-free kernels per number of currents, which a compiler can
- * vectorise over runs of one temperature); MAGSTACK_CAL_TERMS_CACHE (a power of two, default 8) is how
- * many temperatures' terms magstack_cal_apply_block keeps on its stack (about 100 bytes each);
- * MAGSTACK_CAL_VECTOR (hosts with 64-bit vector multiplies, -O3) lets a compiler vectorise samples whose
- * temperatures vary as well (3 KiB more stack; slower in scalar builds). The functions keep no state: a
- * table is read-only once loaded (to replace the active table, load the new image into a second table and
- * swap the pointer between samples).
+ * samples (smallest code, smallest stack; otherwise chunks of 32 samples go through branch-free kernels per
+ * number of currents, with loops a compiler vectorises); MAGSTACK_CAL_TERMS_CACHE (a power of two, default 8)
+ * is how many temperatures' terms magstack_cal_apply_block keeps on its stack (about 100 bytes each, 150 with
+ * the kernels); MAGSTACK_CAL_VECTOR (hosts with 64-bit vector multiplies, -O3) lets a compiler vectorise
+ * samples whose temperatures vary as well (3 KiB more stack; slower in scalar builds). A computer with the
+ * memory can precompute the temperature terms of a range of temperatures (magstack_cal_precompute). The
+ * functions keep no state: a table is read-only once loaded (to replace the active table, load the new image
+ * into a second table, with storage of its own for precomputed terms, and swap the pointer between samples).
  */
 #ifndef MAGSTACK_CAL_H
 #define MAGSTACK_CAL_H
@@ -76,10 +77,22 @@ enum magstack_cal_result {
     MAGSTACK_CAL_E_T0 = 9,         /* |t0| > 2^15 centi-degC */
     MAGSTACK_CAL_E_K_S2 = 10,      /* |K_S2| > 2^28 - 1 */
     MAGSTACK_CAL_E_VALIDITY = 11,  /* a field, magnitude, temperature or current limit out of bounds */
-    MAGSTACK_CAL_E_ARGUMENT = 12   /* a NULL pointer */
+    MAGSTACK_CAL_E_ARGUMENT = 12   /* a NULL pointer (or a bad argument of magstack_cal_precompute) */
 };
 
-/* A loaded table (fill it with magstack_cal_load; do not edit it). */
+/* The temperature terms of one temperature (storage for magstack_cal_precompute; 96 bytes, no fields to read). GCC
+ * and Clang align it to 32 bytes, so that each lies in two cache lines of 64 bytes. */
+#if defined(__GNUC__)
+#define MAGSTACK_CAL_ALIGN32 __attribute__((aligned(32)))
+#else
+#define MAGSTACK_CAL_ALIGN32
+#endif
+typedef struct {
+    int64_t g[3][3];
+    uint64_t c[3];
+} MAGSTACK_CAL_ALIGN32 magstack_cal_terms;
+
+/* A loaded table (fill it with magstack_cal_load, optionally magstack_cal_precompute; do not edit it). */
 typedef struct {
     uint32_t image_crc32;   /* CRC-32 of the image */
     uint32_t source_crc32;  /* crc32 of the JSON table the image was made from */
@@ -102,6 +115,11 @@ typedef struct {
     int32_t K_O[3];                         /* Q15.16 nT/degC */
     int32_t D[MAGSTACK_CAL_MAX_CURRENTS][3]; /* Q11.20 nT/mA */
     int32_t current_lo_mA[MAGSTACK_CAL_MAX_CURRENTS], current_hi_mA[MAGSTACK_CAL_MAX_CURRENTS];
+    const magstack_cal_terms *pre; /* precomputed terms of pre_lo_cdeg.. (magstack_cal_precompute), or NULL */
+    int32_t pre_lo_cdeg;
+    uint32_t pre_count;            /* temperatures with precomputed terms (0: none) */
+    uint64_t pre_reach[2][3];      /* the precomputed terms' largest gain row sum and constant per axis (not with
+                                      MAGSTACK_CAL_COMPACT) */
 } magstack_cal_table;
 
 /* CRC-32 (the zlib / IEEE 802.3 one). */
@@ -110,6 +128,17 @@ uint32_t magstack_cal_crc32(const uint8_t *data, size_t len);
 /* Check an image (size, magic, version, CRC, every field's bounds) and decode it into *table.
  * Returns MAGSTACK_CAL_OK, or an error code with *table zeroed. */
 int magstack_cal_load(magstack_cal_table *table, const uint8_t *image, size_t len);
+
+/* Precompute the temperature terms of every temperature lo_cdeg..hi_cdeg (centi-degC, within
+ * +-MAGSTACK_CAL_T_LIMIT_CDEG) into storage[0 .. hi_cdeg - lo_cdeg] (count entries available), for a loaded table:
+ * its samples at these temperatures then cost no terms computation (for a computer with the memory: 96 bytes a
+ * temperature, 1.2 MB for -40..85 degC). Call it after magstack_cal_load and before applying; storage (aligned as
+ * magstack_cal_terms is) must stay while the table is used, and magstack_cal_load forgets it. storage NULL with
+ * count 0: no precomputed terms.
+ * Returns MAGSTACK_CAL_OK, or MAGSTACK_CAL_E_ARGUMENT (a NULL table, lo_cdeg > hi_cdeg, a temperature beyond the
+ * clip, count too small) with no precomputed terms. The outputs are the same integers either way. */
+int magstack_cal_precompute(magstack_cal_table *table, magstack_cal_terms *storage, size_t count, int32_t lo_cdeg,
+                            int32_t hi_cdeg);
 
 /* A short English name of a loader result code. */
 const char *magstack_cal_result_name(int code);
@@ -121,7 +150,8 @@ unsigned magstack_cal_apply(const magstack_cal_table *table, const int32_t b_nT[
 
 /* n samples: b_nT[3n], temp_cdeg[n], currents_mA[n * table->n_currents] (row-major; NULL when there are
  * none) -> out[3n], status[n]. The same integers as n calls of magstack_cal_apply; the temperature terms
- * are computed once per temperature and kept for the last MAGSTACK_CAL_TERMS_CACHE temperatures. */
+ * are precomputed (magstack_cal_precompute) or computed once per temperature and kept for the last
+ * MAGSTACK_CAL_TERMS_CACHE temperatures. */
 void magstack_cal_apply_block(const magstack_cal_table *table, size_t n, const int32_t *b_nT,
                               const int32_t *temp_cdeg, const int32_t *currents_mA, int32_t *out,
                               uint8_t *status);

@@ -74,7 +74,8 @@ class CTable(ctypes.Structure):
                 ("temp_hi_cdeg", ctypes.c_int32), ("S", (ctypes.c_int32 * 3) * 3), ("K_S", (ctypes.c_int32 * 3) * 3),
                 ("K_S2", ctypes.c_int32 * 3), ("O", ctypes.c_int32 * 3), ("K_O", ctypes.c_int32 * 3),
                 ("D", (ctypes.c_int32 * 3) * 4), ("current_lo_mA", ctypes.c_int32 * 4),
-                ("current_hi_mA", ctypes.c_int32 * 4)]
+                ("current_hi_mA", ctypes.c_int32 * 4), ("pre", ctypes.c_void_p), ("pre_lo_cdeg", ctypes.c_int32),
+                ("pre_count", ctypes.c_uint32), ("pre_reach", (ctypes.c_uint64 * 3) * 2)]
 
     def as_fixed(self) -> fp.FixedPointTable:
         """The decoded integers as a FixedPointTable (to compare with the Python decoder)."""
@@ -90,6 +91,9 @@ class CTable(ctypes.Structure):
 
 
 _P32 = ctypes.POINTER(ctypes.c_int32)
+#: Bytes of one temperature's precomputed terms (``magstack_cal_terms``: 9 int64 gains, 3 uint64 constants), and their
+#: alignment.
+TERMS_BYTES, TERMS_ALIGN = 96, 32
 
 
 class CApplier:
@@ -109,10 +113,22 @@ class CApplier:
         L.magstack_cal_apply_block.argtypes = [ctypes.POINTER(CTable), ctypes.c_size_t, _P32, _P32, _P32, _P32,
                                                ctypes.POINTER(ctypes.c_uint8)]
         L.magstack_cal_apply_block.restype = None
+        L.magstack_cal_precompute.argtypes = [ctypes.POINTER(CTable), ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int32,
+                                              ctypes.c_int32]
+        L.magstack_cal_precompute.restype = ctypes.c_int
 
     def load(self, raw: bytes) -> tuple[int, CTable]:
         t = CTable()
         return self.lib.magstack_cal_load(ctypes.byref(t), raw, len(raw)), t
+
+    def precompute(self, t: CTable, lo_cdeg: int, hi_cdeg: int, count: int | None = None) -> tuple[int, np.ndarray]:
+        """``magstack_cal_precompute`` into a new buffer of ``count`` entries (enough when None), aligned as the C type
+        is (32 bytes); the buffer must be kept while ``t`` is used."""
+        n = max(hi_cdeg - lo_cdeg + 1, 1) if count is None else count
+        raw = np.zeros(n * TERMS_BYTES + TERMS_ALIGN, np.uint8)
+        skip = -raw.ctypes.data % TERMS_ALIGN
+        storage = raw[skip:skip + n * TERMS_BYTES]
+        return self.lib.magstack_cal_precompute(ctypes.byref(t), storage.ctypes.data, n, lo_cdeg, hi_cdeg), storage
 
     def apply(self, t: CTable, b, temp: int, cur) -> tuple[tuple[int, int, int], int]:
         bb = (ctypes.c_int32 * 3)(*b)
@@ -428,3 +444,83 @@ def cases(draw, n_random: int = 200):
     if draw(st.integers(0, 2)):
         fx = limits_at_outputs(rng, fx, b, t, c)
     return fx, names, b, t, c
+
+
+# ---------------------------------------------------------------------- chunks for the block path's kernels
+#: ``magstack_cal_apply_block`` works in chunks of this many samples; a chunk whose inputs are all inside the kernel
+#: bounds goes through a kernel (firmware_c/magstack_cal.c, CHUNK and the bounds below), any other a sample at a time.
+CHUNK = 32
+#: The kernel bounds: fields -2^23..2^23-1 nT, temperatures -2^15..2^15-1 centi-degC, currents -2^19..2^19-1 mA.
+KERNEL_B, KERNEL_T, KERNEL_I = 2 ** 23, 2 ** 15, 2 ** 19
+
+
+def _kernel_temps(rng: np.random.Generator, fx: fp.FixedPointTable) -> np.ndarray:
+    """One chunk's temperatures inside the kernel bound: one value (in or out of the table's range, or near t0), runs
+    of 4, noise of +-2 around one value, a new value every sample (in the table's range and beyond), or anywhere."""
+    lo, hi = fx.temp_range_cdeg or (fx.t0_cdeg - 5000, fx.t0_cdeg + 5000)
+    lo, hi = max(lo - 200, -KERNEL_T), min(hi + 200, KERNEL_T - 1)
+    lo, hi = min(lo, hi), max(lo, hi)
+    kind = int(rng.integers(0, 6))
+    if kind == 0:
+        t = np.full(CHUNK, int(rng.integers(lo, hi, endpoint=True)))
+    elif kind == 1:
+        t = np.full(CHUNK, fx.t0_cdeg + int(rng.integers(-3, 4)))
+    elif kind == 2:
+        t = np.repeat(rng.integers(lo, hi, CHUNK // 4, endpoint=True), 4)
+    elif kind == 3:
+        t = int(rng.integers(lo, hi, endpoint=True)) + rng.integers(-2, 3, CHUNK)
+    elif kind == 4:
+        t = rng.integers(lo, hi, CHUNK, endpoint=True)
+    else:
+        t = rng.integers(-KERNEL_T, KERNEL_T, CHUNK)
+    return np.clip(t, -KERNEL_T, KERNEL_T - 1)
+
+
+def kernel_samples(rng: np.random.Generator, n_chunks: int, fx: fp.FixedPointTable):
+    """(b (n,3), temp (n,), cur (n,4)) int32: ``n_chunks`` chunks of CHUNK samples and a tail of 0..CHUNK-1, most with
+    every input inside the kernel bounds (fields and currents of one scale a chunk, from a few units to the bound;
+    temperatures by :func:`_kernel_temps`), some with one input on a bound or one past it, at a random place."""
+    n = n_chunks * CHUNK + int(rng.integers(0, CHUNK))
+    b = np.empty((n, 3), np.int64)
+    t = np.empty(n, np.int64)
+    c = np.empty((n, 4), np.int64)
+    for start in range(0, n, CHUNK):
+        m = min(CHUNK, n - start)
+        sb = int(rng.choice([2 ** 4, 2 ** 10, 2 ** 17, 2 ** 20, KERNEL_B]))
+        sc = int(rng.choice([2 ** 4, 2 ** 12, KERNEL_I]))
+        b[start:start + m] = rng.integers(-sb, sb, (m, 3))
+        c[start:start + m] = rng.integers(-sc, sc, (m, 4))
+        t[start:start + m] = _kernel_temps(rng, fx)[:m]
+        if rng.random() < 0.3:   # one input on a kernel bound or one past it
+            r, what = start + int(rng.integers(0, m)), int(rng.integers(0, 3))
+            if what == 0:
+                b[r, int(rng.integers(0, 3))] = rng.choice([KERNEL_B - 1, KERNEL_B, -KERNEL_B, -KERNEL_B - 1])
+            elif what == 1:
+                t[r] = rng.choice([KERNEL_T - 1, KERNEL_T, -KERNEL_T, -KERNEL_T - 1])
+            else:
+                c[r, int(rng.integers(0, 4))] = rng.choice([KERNEL_I - 1, KERNEL_I, -KERNEL_I, -KERNEL_I - 1])
+    return b.astype(np.int32), t.astype(np.int32), c.astype(np.int32)
+
+
+@st.composite
+def kernel_cases(draw, n_chunks: int = 8):
+    """(table, names, b, temp, cur) for the block path's kernels (:func:`kernel_samples`), tables from
+    :func:`fixed_tables` (extreme ones saturate on inputs inside the bounds); in 2 cases of 3 the table's field limits
+    are then put on these samples' outputs (:func:`limits_at_outputs`)."""
+    fx, names = draw(fixed_tables())
+    rng = np.random.default_rng(draw(st.integers(0, 2 ** 32 - 1)))
+    b, t, c = kernel_samples(rng, n_chunks, fx)
+    if draw(st.integers(0, 2)):
+        fx = limits_at_outputs(rng, fx, b, t, c)
+    return fx, names, b, t, c
+
+
+def precomputed_range(rng: np.random.Generator, temp: np.ndarray) -> tuple[int, int]:
+    """A temperature range (centi-degC) for ``magstack_cal_precompute``: the samples' whole span (clipped), or a part
+    of it (some samples then have no precomputed terms)."""
+    lo, hi = int(max(temp.min(), -fp.T_LIMIT_cdeg)), int(min(temp.max(), fp.T_LIMIT_cdeg))
+    lo, hi = min(lo, hi), max(lo, hi)
+    if rng.random() < 0.5 or hi - lo < 2:
+        return lo, hi
+    a, z = sorted(int(x) for x in rng.integers(lo, hi, 2, endpoint=True))
+    return a, z

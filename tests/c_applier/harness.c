@@ -7,10 +7,12 @@
  *
  * "check" writes per record: int32 loader result, then (when 0) n x (3 int32 outputs, uint32 status)
  * from magstack_cal_apply, then uint32 count of samples where magstack_cal_apply_block differs.
+ * "check pre" does the same with terms precomputed (magstack_cal_precompute) for the records' temperatures from the
+ * lowest (clipped) to at most 4096 centi-degC above it.
  * "bench R" writes per record: int32 loader result, uint64 ns of R passes of magstack_cal_apply_block
- * over the n samples.
+ * over the n samples ("bench R pre": with terms precomputed for all the records' temperatures, clipped).
  */
-#define _POSIX_C_SOURCE 199309L
+#define _POSIX_C_SOURCE 200112L
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -33,6 +35,8 @@ static void write_all(const void *src, size_t n)
 int main(int argc, char **argv)
 {
     int bench = argc >= 2 && strcmp(argv[1], "bench") == 0;
+    int pre = (argc >= 3 && strcmp(argv[1], "check") == 0 && strcmp(argv[2], "pre") == 0) ||
+              (argc >= 4 && bench && strcmp(argv[3], "pre") == 0);
     long repeat = bench && argc >= 3 ? strtol(argv[2], NULL, 10) : 1;
     uint32_t len, n;
     static uint8_t image[4096];
@@ -70,6 +74,23 @@ int main(int argc, char **argv)
                     c[(size_t)table.n_currents * i + k] = samples[8u * i + 4u + k];
                 }
             }
+            void *storage = NULL;
+            if (pre && n > 0u) {
+                int32_t lo = MAGSTACK_CAL_T_LIMIT_CDEG, hi = -MAGSTACK_CAL_T_LIMIT_CDEG;
+                for (i = 0; i < n; i++) {
+                    lo = t[i] < lo ? t[i] : lo;
+                    hi = t[i] > hi ? t[i] : hi;
+                }
+                lo = lo < -MAGSTACK_CAL_T_LIMIT_CDEG ? -MAGSTACK_CAL_T_LIMIT_CDEG : lo;
+                hi = hi > MAGSTACK_CAL_T_LIMIT_CDEG ? MAGSTACK_CAL_T_LIMIT_CDEG : hi < lo ? lo : hi;
+                if (!bench && hi - lo > 4096) {
+                    hi = lo + 4096; /* check: some samples without precomputed terms */
+                }
+                if (posix_memalign(&storage, 64, (size_t)(hi - lo + 1) * sizeof(magstack_cal_terms)) != 0 ||
+                    magstack_cal_precompute(&table, storage, (size_t)(hi - lo + 1), lo, hi) != MAGSTACK_CAL_OK) {
+                    return 5;
+                }
+            }
             if (bench) {
                 struct timespec t0, t1;
                 uint64_t ns;
@@ -95,6 +116,7 @@ int main(int argc, char **argv)
                 }
                 write_all(&differ, 4);
             }
+            free(storage);
         }
         free(samples);
         free(b);

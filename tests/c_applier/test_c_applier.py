@@ -9,6 +9,7 @@ run by ``qemu-arm``. The full count (>= 1e6 samples over >= 200 tables, host and
 """
 from __future__ import annotations
 
+import ctypes
 import re
 import struct
 import subprocess
@@ -27,6 +28,8 @@ from magstack.firmware.cal_table import CalTable
 from magstack.firmware.float_applier import ApplyFlag
 
 R = cal_image.ImageResult
+#: The C loader's code for a bad argument (no Python counterpart).
+E_ARGUMENT = int(re.search(r"MAGSTACK_CAL_E_ARGUMENT = (\d+)", cb.C_DIR.joinpath("magstack_cal.h").read_text())[1])
 
 
 # ---------------------------------------------------------------------- builds (once per session)
@@ -74,6 +77,81 @@ def test_equal_to_the_python_applier_bit_for_bit(clib, case):
     for r in range(b.shape[0]):
         assert clib.apply(table, b[r], int(t[r]), c[r]) == (tuple(int(x) for x in q[r]), s[r]), r
     _same(fx, names, b, t, c, *clib.apply_block(table, b, t, c))
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(case=cb.kernel_cases(), seed=st.integers(0, 2 ** 32 - 1))
+def test_kernels_and_precomputed_terms_are_the_python_applier_bit_for_bit(clib, case, seed):
+    """Blocks of whole chunks inside the kernel bounds (one temperature, runs of 4, noise, a new one every sample; some
+    chunks with one input on a bound or one past it; a tail): magstack_cal_apply_block, without and with terms
+    precomputed for all or part of the temperatures, and magstack_cal_apply with them, equal the Python applier."""
+    fx, names, b, t, c = case
+    rng = np.random.default_rng(seed)
+    rc, table = clib.load(cb.image_of(fx, names))
+    assert rc == 0
+    _same(fx, names, b, t, c, *clib.apply_block(table, b, t, c))
+    lo, hi = cb.precomputed_range(rng, t)
+    rc, storage = clib.precompute(table, lo, hi)
+    assert rc == 0 and (table.pre_lo_cdeg, table.pre_count) == (lo, hi - lo + 1)
+    _same(fx, names, b, t, c, *clib.apply_block(table, b, t, c))
+    q, s_ = cb.python_reference(fx, b, t, c, per_sample=False)
+    for r in rng.integers(0, b.shape[0], 20):
+        assert clib.apply(table, b[r], int(t[r]), c[r]) == (tuple(int(x) for x in q[r]), s_[r]), r
+    del storage
+
+
+def test_precompute_refuses_bad_arguments_and_load_forgets_it(clib):
+    """E_ARGUMENT (and no precomputed terms) for a NULL table, NULL storage with a count, lo > hi, a temperature beyond
+    the clip or too small a count; NULL storage with count 0 takes them away; loading an image forgets them. At the
+    clip's ends they are accepted and give the same bits."""
+    raw = cal_image.image_from_table(_table())
+    fx = fp.FixedPointTable.from_table(_table())
+    rc, table = clib.load(raw)
+    L = clib.lib
+    for lo, hi, count in ((5, 4, 10), (-(2 ** 15) - 1, 0, 2 ** 15 + 2), (0, 2 ** 15 + 1, 2 ** 15 + 2), (0, 99, 99)):
+        rc, _storage = clib.precompute(table, lo, hi, count=count)
+        assert rc == E_ARGUMENT
+        assert table.pre_count == 0 and not table.pre
+    assert L.magstack_cal_precompute(None, None, 0, 0, 0) == E_ARGUMENT
+    assert L.magstack_cal_precompute(ctypes.byref(table), None, 5, 0, 4) == E_ARGUMENT
+    rc, storage = clib.precompute(table, 2 ** 15 - 100, 2 ** 15)
+    assert rc == 0 and table.pre_count == 101
+    b = np.array([[12345, -23456, 34567]] * 3)
+    t, c = np.array([2 ** 15, 2 ** 15 + 7, -(2 ** 15) - 7]), np.array([[1500, -250]] * 3)
+    _same(fx, ["heater", "torquer"], b, t, c, *clib.apply_block(table, b, t, c))
+    assert L.magstack_cal_precompute(ctypes.byref(table), None, 0, 0, 0) == 0 and table.pre_count == 0
+    rc, storage = clib.precompute(table, -(2 ** 15), -(2 ** 15) + 10)
+    assert rc == 0 and table.pre_count == 11
+    _same(fx, ["heater", "torquer"], b, t, c, *clib.apply_block(table, b, t, c))
+    assert clib.lib.magstack_cal_load(ctypes.byref(table), raw, len(raw)) == 0 and table.pre_count == 0
+    del storage
+
+
+@pytest.mark.parametrize("gain", [2 ** 31 - 1, -(2 ** 31), 2 ** 30 + 1])
+def test_outputs_next_to_int32_with_inputs_inside_the_kernel_bounds(clib, gain):
+    """A gain of about +-16 and fields of -2^19..2^19-1 nT (each chunk's largest magnitudes tight on the kernels'
+    no-saturation bound, |acc| <= 2^50 - 2^19): with -2^31 the output of -2^19 nT is 2^31 and saturates, which the
+    bound must see; with 2^31 - 1 it is on the bound and does not; then one nT more either way, and other terms
+    precomputed. The outputs and status bits are the Python applier's."""
+    zero3 = ((0, 0, 0),) * 3
+    fx = fp.FixedPointTable(S=((gain, 0, 0), (0, gain, 0), (0, 0, gain)), K_S=zero3, O=(0, 0, 0), K_O=(0, 0, 0), D=(),
+                            t0_cdeg=0, field_limit_nT=fp.B_LIMIT_nT, temp_range_cdeg=None, current_ranges_mA=())
+    rc, table = clib.load(cb.image_of(fx, []))
+    assert rc == 0
+    rng = np.random.default_rng(abs(gain) % 1000)
+    for lo, hi in ((-(2 ** 19), 2 ** 19 - 1), (-(2 ** 19) - 1, 2 ** 19), (-(2 ** 19) + 1, 2 ** 19 - 2)):
+        b = rng.integers(lo, hi, (4 * cb.CHUNK, 3), endpoint=True)
+        b[::5], b[2::5] = lo, hi
+        t = np.zeros(len(b), np.int64)
+        t[cb.CHUNK:2 * cb.CHUNK] = rng.integers(-5, 6, cb.CHUNK)   # a chunk of varying temperatures
+        c = np.zeros((len(b), 0))
+        out, st_ = clib.apply_block(table, b, t, c)
+        _same(fx, [], b, t, c, out, st_)
+        rc, storage = clib.precompute(table, -5, 5)
+        assert rc == 0
+        _same(fx, [], b, t, c, *clib.apply_block(table, b, t, c))
+        assert clib.lib.magstack_cal_precompute(ctypes.byref(table), None, 0, 0, 0) == 0
+        del storage
 
 
 def test_extremes_every_flag_and_the_limits(clib):
@@ -218,7 +296,8 @@ def test_a_version_1_image_is_refused_by_both_loaders(clib):
                                    ("-O2", "-DMAGSTACK_CAL_VECTOR", "-DMAGSTACK_CAL_TERMS_CACHE=2u")])
 def test_other_builds_are_the_same(build_dir, clib, flags):
     """The compact block path, a one-entry terms cache, the vectorised kernels of -O3 -march=native, and the mixed
-    kernels of MAGSTACK_CAL_VECTOR; temperatures in long runs, in short runs and on every sample."""
+    kernels of MAGSTACK_CAL_VECTOR; temperatures in long runs, in short runs and on every sample; whole chunks inside
+    the kernel bounds; without and with precomputed terms."""
     r = subprocess.run(["gcc", *flags, "-x", "c", "-c", "-o", "/dev/null", "-"], input="int x;\n", capture_output=True,
                        text=True, timeout=60)
     if r.returncode != 0:
@@ -232,24 +311,38 @@ def test_other_builds_are_the_same(build_dir, clib, flags):
         b, t, c = cb.random_samples(rng, 600, fx)
         t[:300] = np.repeat(t[:300:50], 50)       # long runs of one temperature (the vector kernel)
         t[300:400] = np.repeat(t[300:400:4], 4)   # short runs (the mixed kernel)
+        kb, kt, kc = cb.kernel_samples(rng, 6, fx)   # whole chunks inside the kernel bounds
+        b, t, c = np.vstack([b, kb]), np.concatenate([t, kt]), np.vstack([c, kc])
         fx = cb.limits_at_outputs(rng, fx, b, t, c)
         rc, table = lib.load(cb.image_of(fx, names))
         assert rc == 0
         _same(fx, names, b, t, c, *lib.apply_block(table, b, t, c))
         q, st_ = cb.python_reference(fx, b[:1], t[:1], c[:1], per_sample=False)
         assert lib.apply(table, b[0], int(t[0]), c[0]) == (tuple(q[0].tolist()), int(st_[0]))
+        rc, storage = lib.precompute(table, *cb.precomputed_range(rng, t))
+        assert rc == 0
+        _same(fx, names, b, t, c, *lib.apply_block(table, b, t, c))
+        del storage
 
 
 # ---------------------------------------------------------------------- sanitizers and ARM
 def _batch_check(cmd, batch) -> None:
+    """The harness on ``batch``, without and with precomputed terms (``check pre``: the records' lowest temperature
+    and up to 4096 centi-degC above it)."""
     records = [cb.Record(cb.image_of(fx, names), b, t, c) for fx, names, b, t, c in batch]
-    for (fx, names, b, t, c), (rc, out, status, differ) in zip(batch, cb.run_harness(cmd, records), strict=True):
-        assert rc == 0 and differ == 0
-        _same(fx, names, b, t, c, out, status)
+    for mode in (("check",), ("check", "pre")):
+        for (fx, names, b, t, c), (rc, out, status, differ) in zip(batch, cb.run_harness(cmd, records, mode=mode),
+                                                                   strict=True):
+            assert rc == 0 and differ == 0
+            _same(fx, names, b, t, c, out, status)
+
+
+_BATCH = st.tuples(st.lists(cb.cases(n_random=300), min_size=8, max_size=8),
+                   st.lists(cb.kernel_cases(n_chunks=6), min_size=6, max_size=6)).map(lambda p: p[0] + p[1])
 
 
 @settings(max_examples=3, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
-@given(batch=st.lists(cb.cases(n_random=300), min_size=12, max_size=12))
+@given(batch=_BATCH)
 def test_equal_under_undefined_behaviour_and_address_sanitizers(sanitized, batch):
     """-fsanitize=undefined,address -fno-sanitize-recover=all: any report ends the harness with an error."""
     _batch_check(sanitized, batch)
@@ -266,7 +359,7 @@ def test_the_sanitizers_do_report_here(build_dir, clib):
 
 
 @settings(max_examples=3, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
-@given(batch=st.lists(cb.cases(n_random=300), min_size=12, max_size=12))
+@given(batch=_BATCH)
 def test_equal_on_32_bit_arm(arm, batch):
     """arm-linux-gnueabihf-gcc -O2 -static, run by qemu-arm: the same bits on a 32-bit target."""
     _batch_check(arm, batch)
