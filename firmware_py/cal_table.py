@@ -523,7 +523,8 @@ def _validity_from_posterior(result, block: dict, validity_sd_uT: float | None, 
     max_region = (np.minimum(np.maximum(max_F, data_F), caps), min(max(max_R, data_R), norm_cap))
     if data_t is not None:      # the data's best-pinned temperature (over its own fields): where the region starts
         grid = np.linspace(data_t[0], data_t[1], 41)
-        centre = float(grid[int(np.argmin([pred.worst_vector_sd_uT(t, *data_region, currents) for t in grid]))])
+        per_t = pred.worst_per_temperature_uT(grid, *data_region, currents)
+        centre = float(grid[int(np.argmin([per_t[float(t)] for t in grid]))])
     if validity_sd_uT is not None:
         sd = validity_sd_uT
     else:

@@ -505,19 +505,22 @@ def _ok(pred: Predictive, lo: float, hi: float, F, R: float, sd_max: float, curr
             seen.update(pred.worst_per_temperature_uT(todo, F, R, currents, stop_above_uT=sd_max))
         return all(t in seen and seen[t] <= sd_max for t in ts)
 
-    coarse = [t for i, t in enumerate(temps) if i in (0, len(temps) - 1)
-              or abs(t / COARSE_STEP_C - round(t / COARSE_STEP_C)) < 1e-9]
+    ta = np.asarray(temps)
+    on = np.abs(ta / COARSE_STEP_C - np.round(ta / COARSE_STEP_C)) < 1e-9
+    on[[0, -1]] = True
+    coarse = ta[on].tolist()
     if len(coarse) < 3:
         return need(temps)
     if not need(coarse):
         return False
-    c = np.array(coarse)
+    c = ta[on]
     v = np.array([seen[t] for t in coarse])
     h = np.diff(c)
     dd = np.abs(2.0 * ((v[2:] - v[1:-1]) / h[1:] - (v[1:-1] - v[:-2]) / h[:-1]) / (h[1:] + h[:-1]))   # |f''| est.
     k_gap = np.maximum(np.r_[dd, dd[-1]], np.r_[dd[0], dd])          # each gap: the two estimates beside it
     room = np.maximum(v[:-1], v[1:]) + k_gap * h * h / 4.0 + 0.01 * sd_max
-    fine = [t for t in temps if t not in coarse and room[min(int(np.searchsorted(c, t)) - 1, h.size - 1)] > sd_max]
+    gap = np.minimum(np.searchsorted(c, ta) - 1, h.size - 1)
+    fine = ta[~on & (room[np.maximum(gap, 0)] > sd_max)].tolist()
     return need(fine) if fine else True
 
 
