@@ -520,7 +520,7 @@ def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutM
             moments.add(X, left_out_features(union, d.b_meas_uT[sl], d.temp_c[sl] - t0),
                         None if d.weights is None else d.weights[sl])
         pc = piece[sl] if any(folds) else None
-        blocks = {}                           # a time-block fold's held-out rows' time blocks (any model's)
+        held = {}            # a time-block fold's held-out rows' time blocks and design moments per bin (any model's)
         for run, fs, th, own_x in zip(runs, folds, theta_f, own, strict=True):
             if not fs:
                 continue
@@ -539,12 +539,18 @@ def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutM
                 if f.kind == "blocks" and (run.bins is not None or run.block_sse is not None):
                     rows_k = sl.start + keep
                     if run.bins is not None:
-                        Xk = np.take(X, keep, axis=0) if own_x else X[np.ix_(keep, run.cols)]
-                        run.bins.add(Xk, rf, d.b_meas_uT[rows_k], d.temp_c[rows_k], run.fits[0].n / f.n)
+                        scale = run.fits[0].n / f.n
+                        bins = run.bins
+                        k = bins.add_residuals(rf, d.b_meas_uT[rows_k], d.temp_c[rows_k], scale)
+                        key = ("M", f.key, bins.field_edges_uT.tobytes(), bins.temp_edges_c.tobytes())
+                        if key not in held:
+                            held[key] = bins.design_moments(k, np.take(X, keep, axis=0))
+                        G = held[key]
+                        bins.M += scale * (G if own_x else G[:, run.cols][:, :, run.cols])
                     if run.block_sse is not None:
-                        if f.key not in blocks:
-                            blocks[f.key] = piece.time_block(rows_k)
-                        run.block_sse.add(*blocks[f.key], np.einsum("ij,ij->j", rf, rf))
+                        if ("blocks", f.key) not in held:
+                            held["blocks", f.key] = piece.time_block(rows_k)
+                        run.block_sse.add(*held["blocks", f.key], np.einsum("ij,ij->j", rf, rf))
             del Pf
     while active or later:
         for _, fig in active:
