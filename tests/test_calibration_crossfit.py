@@ -150,3 +150,96 @@ def test_cross_fit_memory_per_row_is_below_one_copy_of_the_design():
 
     per_row = (peak(300_000) - peak(100_000)) / 200_000
     assert per_row < 8 * (model.n_columns + 3)
+
+
+def _same(a, b, what):
+    """Two cross-fits' results equal to rounding (RTOL of each array's largest magnitude)."""
+    def close(x, y, name):
+        x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+        assert x.shape == y.shape, name
+        np.testing.assert_array_equal(np.isfinite(x), np.isfinite(y), err_msg=name)
+        f = np.isfinite(y)
+        scale = max(float(np.max(np.abs(y[f]), initial=0.0)), 1e-300)
+        np.testing.assert_allclose(x[f], y[f], rtol=0, atol=RTOL * scale, err_msg=f"{what}: {name}")
+
+    ca, cb = a.core, b.core
+    for name in ("theta", "se", "conds"):
+        close(getattr(ca, name), getattr(cb, name), name)
+    for name in ("kappa", "sigma_uT", "cov", "dof"):
+        close(np.nan_to_num(getattr(ca.posterior, name)), np.nan_to_num(getattr(cb.posterior, name)), name)
+    assert [h.name for h in ca.held] == [h.name for h in cb.held]
+    for name in ("holdout_blocks_uT", "holdout_sessions_uT"):
+        close(getattr(a, name), getattr(b, name), name)
+    assert sorted(a.holdout_per_session_uT) == sorted(b.holdout_per_session_uT)
+    for s, v in b.holdout_per_session_uT.items():
+        close(a.holdout_per_session_uT[s], v, f"session {s}")
+    assert a.notes == b.notes
+    assert (a.figures is None) == (b.figures is None) and (a.resid_uT is None) == (b.resid_uT is None)
+    if b.figures is not None:
+        close(a.figures.sse_uT2, b.figures.sse_uT2, "sse")
+        close(a.figures.raw_sse_uT2, b.figures.raw_sse_uT2, "raw sse")
+        close(a.figures.noise_floor_uT(), b.figures.noise_floor_uT(), "noise floor")
+        assert (a.figures.steps is None) == (b.figures.steps is None)
+    else:
+        close(a.resid_uT, b.resid_uT, "residuals")
+    x, y = a.acc, b.acc
+    close(x.XtWX, y.XtWX, "X'WX")
+    close(x.taus_s, y.taus_s, "taus")
+    assert len(x.grams) == len(y.grams)
+    for k, (g, h) in enumerate(zip(x.grams, y.grams, strict=True)):
+        close(g, h, f"slow-noise Gram {k}")
+    assert [(L, n) for L, n, _ in x.levels] == [(L, n) for L, n, _ in y.levels]
+    for (L, _, u), (_, _, v) in zip(x.levels, y.levels, strict=True):
+        close(u, v, f"level {L}")
+    close(x.dt_s, y.dt_s, "dt")
+    assert [t.name for t in x.terms] == [t.name for t in y.terms]
+    close([(t.mean, t.sd) for t in x.terms], [(t.mean, t.sd) for t in y.terms], "left-out priors")
+    close(x.moments.XtWG, y.moments.XtWG, "X'WG")
+    close(x.moments.GtWG, y.moments.GtWG, "G'WG")
+    close(x.moments.sum_w, y.moments.sum_w, "sum w")
+    for name in ("count", "sq", "u_b", "u_t", "M", "scale_sum", "mag_max_uT"):
+        close(getattr(x.bins, name), getattr(y.bins, name), f"bins {name}")
+    assert sorted(a.block_sse.sse) == sorted(b.block_sse.sse)
+    close([a.block_sse.sse[k] for k in sorted(b.block_sse.sse)], [b.block_sse.sse[k] for k in sorted(b.block_sse.sse)],
+          "block SSE")
+
+
+@pytest.mark.parametrize("terms,weights,shuffle", [
+    ([], True, False),
+    (["session_offset", "drift"], True, False),
+    (["session_offset", "drift"], False, True),       # rows out of order: whole residuals
+])
+def test_shared_passes_equal_two_separate_cross_fits(terms, weights, shuffle):
+    """One set of passes for a model and a wider one (the second-order tempco's candidate) gives what a cross-fit
+    of each gives; without the wider one, the model's own."""
+    from magstack.firmware.calibration.fit import build_model
+
+    d = _sessions_data(weights=weights)
+    if shuffle:
+        d = d.select(np.random.default_rng(0).permutation(len(d)))
+    opts = FitOptions()
+    base = build_model(d, resolve_terms("eq3", terms), (), 25.0, "eq3")
+    wider = build_model(d, resolve_terms("eq3", terms + ["temperature_gain2"]), (), 25.0, "eq3+temperature_gain2")
+    one, two = crossfit.cross_fit(d, base, opts), crossfit.cross_fit(d, wider, opts)
+    assert one.core.posterior.kappa.max() > 1.5 and one.acc.terms != two.acc.terms      # K_S2 left out of one
+    seen = []
+    a, b = crossfit.cross_fit_with(d, base, wider, opts, lambda cov: seen.append(cov.temp_span_c) or True)
+    assert seen == [one.core.coverage.temp_span_c]
+    _same(a, one, "model")
+    _same(b, two, "wider model")
+    alone, none = crossfit.cross_fit_with(d, base, wider, opts, lambda cov: False)
+    assert none is None
+    _same(alone, one, "model alone")
+
+
+def test_a_wider_model_must_have_every_column():
+    d = _sessions_data(n=400, weights=False)
+    m = CalModel(resolve_terms("eq3", ["drift"]), (), (), 25.0, 1.6e9)
+    with pytest.raises(ValueError, match="every column"):
+        crossfit.column_map(m, CalModel(resolve_terms("eq3"), (), (), 25.0, 1.6e9))
+    with pytest.raises(ValueError, match="different references"):
+        crossfit.column_map(m, CalModel(m.terms, (), (), 25.0, 1.6e9 + 1))
+    wide = CalModel(resolve_terms("eq3", ["drift", "temperature_gain2"]), (), (), 25.0, 1.6e9)
+    cols = crossfit.column_map(m, wide)
+    X = wide.design(d.b_meas_uT, d.temp_c, {}, d.session, d.t_s)
+    np.testing.assert_array_equal(X[:, cols], m.design(d.b_meas_uT, d.temp_c, {}, d.session, d.t_s))

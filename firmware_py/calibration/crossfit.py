@@ -13,11 +13,13 @@ Rows in (session, time) order hand the full fit's residuals block by block to
 :class:`.residual_figures.ResidualFigures` (noise floor, step split, sums of squares), replaying the last
 pass until its exact medians are found; no per-row array is kept (a row's piece is computed per block).
 Other rows keep the (N, 3) residuals. The results equal refitting each fold's rows to rounding
-(tests/test_calibration_crossfit.py). Robust
+(tests/test_calibration_crossfit.py). A model and a wider one
+(:func:`.fit.fit`'s second-order tempco candidate) share one set of passes (:func:`cross_fit_with`). Robust
 IRLS, ``time_skew`` and ``mount_rotation`` need all rows at once: :func:`applies` sends them to the refit path.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -166,63 +168,144 @@ class _Rows:
             yield slice(a, min(a + CHUNK_ROWS, n)) if order is None else order[a:a + CHUNK_ROWS]
 
 
+def column_map(model: CalModel, wider: CalModel) -> np.ndarray:
+    """(p,) the index of each column of ``model`` among ``wider``'s (matched by term and feature), so that
+    ``model.design(rows) == wider.design(rows)[:, column_map(model, wider)]``. ValueError when ``wider`` lacks a
+    column of ``model`` or builds one otherwise (other currents, sessions, ``t0_c`` or ``t_ref_s``)."""
+    if (model.currents, model.sessions, model.t0_c, model.t_ref_s) != (wider.currents, wider.sessions, wider.t0_c,
+                                                                       wider.t_ref_s):
+        raise ValueError(f"models {model.name} and {wider.name} build their columns from different references")
+    col = {(c.term, c.feature): k for k, c in enumerate(wider.columns)}
+    cols = [col.get((c.term, c.feature)) for c in model.columns]
+    if any(k is None or wider.columns[k].axes != c.axes for k, c in zip(cols, model.columns, strict=True)):
+        raise ValueError(f"model {wider.name} does not have every column of {model.name}")
+    return np.array(cols, dtype=np.intp)
+
+
 def cross_fit(d: FitData, model: CalModel, options: FitOptions, piece_coverage: list | None = None) -> CrossFit:
     """The fit of ``d`` under ``model`` and, when ``options.holdout``, its held-out figures; see the module
     docstring. FitError as the refit path (a failing fold is skipped with a note). ``piece_coverage``: pass 1's
     coverage per piece from another model's cross-fit of the same rows and options (not recomputed)."""
     with single_thread():          # block QRs and products of ~64k x 30: threads only wait (bench_blas.py)
-        return _cross_fit(d, model, options, piece_coverage)
+        rows = _Rows(d, model)
+        piece = _PieceOf(d, rows, options)
+        pcs = _pieces(d, rows, piece, model, options, piece_coverage)
+        return _cross_fit(d, rows, piece, [_Run(model, np.arange(model.n_columns), pcs)], options)[0]
 
 
-def _cross_fit(d: FitData, model: CalModel, options: FitOptions, piece_coverage: list | None) -> CrossFit:
-    rows = _Rows(d, model)
-    piece = _PieceOf(d, rows, options)
-    sessions, n_folds = piece.sessions, piece.n_folds
-    pcs = _pieces(d, rows, piece, sessions, n_folds, model, options, piece_coverage)
-    every = pcs.count > 0
-    fits = [_make("full", 0, every, ~every, pcs, model)]
-    if options.holdout:
-        for f in np.unique(pcs.fold[every]):
-            test = every & (pcs.fold == f)
-            if test.any() and (every & ~test).any():
-                fits.append(_make("blocks", int(f), every & ~test, test, pcs, model))
-        for s in sessions if sessions.size > 1 else ():
-            test = every & (pcs.session == s)
-            fits.append(_make("session", int(s), every & ~test, test, pcs, model))
-    for f in fits:
-        f.first = _run(f, lambda f=f: first_solve(f.R, f.n, f.model, f.coverage, options))
-        f.post = f.first.post if f.first is not None else None
+def cross_fit_with(d: FitData, model: CalModel, wider: CalModel, options: FitOptions,
+                   try_wider: Callable[[Coverage], bool]) -> tuple[CrossFit, CrossFit | None]:
+    """``cross_fit(d, model)`` and, when ``try_wider`` says yes to the full fit's coverage, ``cross_fit(d, wider)``
+    (else None), from one set of passes over the rows; ``wider`` has every column of ``model``
+    (:func:`column_map`). Pass 1 factors the rows of ``wider``'s design; ``model``'s R factor of a piece is the R of
+    its columns of that piece's R (``R^T R = Z^T Z`` holds for any subset of the columns). Passes 2 and 3 take both
+    models' residuals from one product per block (``model``'s coefficients zero on the columns it lacks); the
+    slow-noise Grams and the left-out moments are accumulated once over ``wider``'s design, ``model``'s are their
+    rows and columns of its own. The results equal two :func:`cross_fit` calls to rounding."""
+    cols = column_map(model, wider)
+    with single_thread():
+        rows = _Rows(d, wider)
+        piece = _PieceOf(d, rows, options)
+        pcs = _pieces(d, rows, piece, wider, options)
+        base = _Run(model, cols, _column_pieces(pcs, cols, wider.n_columns))
+        if not try_wider(_coverage(base.pcs, base.pcs.count > 0)):
+            base.cols = np.arange(model.n_columns)         # passes 2 and 3 on the model's own design
+            return _cross_fit(d, _Rows(d, model), piece, [base], options)[0], None
+        out = _cross_fit(d, rows, piece, [base, _Run(wider, np.arange(wider.n_columns), pcs)], options)
+        return out[0], out[1]
+
+
+@dataclass
+class _Run:
+    """One model in passes over the rows that may serve several: its columns in the passes' design (``cols``), its
+    pieces and fits, and what the passes collect for it."""
+
+    model: CalModel
+    cols: np.ndarray
+    pcs: _Pieces
+    fits: list[_Fit] = field(default_factory=list)
+    levels: list = field(default_factory=list)
+    figures: ResidualFigures | None = None
+    resid: np.ndarray | None = None
+    terms: list = field(default_factory=list)
+    bins: HeldOutBins | None = None
+    block_sse: BlockSSE | None = None
+
+    def own_design(self, p: int) -> bool:
+        """Whether the passes' design (``p`` columns) is this model's."""
+        return self.cols.size == p and bool(np.all(self.cols == np.arange(p)))
+
+    def embed(self, theta: np.ndarray, p: int) -> np.ndarray:
+        """``theta`` (p_model, k) as coefficients of the passes' design (p, k): 0 on the columns the model lacks."""
+        if self.own_design(p):
+            return theta
+        out = np.zeros((p, theta.shape[1]))
+        out[self.cols] = theta
+        return out
+
+
+def _cross_fit(d: FitData, rows: _Rows, piece: _PieceOf, runs: list[_Run], options: FitOptions) -> list[CrossFit]:
+    """Every model of ``runs`` fitted and cross-fitted in one set of passes over the rows (design ``rows.model``)."""
+    for run in runs:
+        run.fits = _fits(run.pcs, run.model, piece, options)
+        for f in run.fits:
+            f.first = _run(f, lambda f=f: first_solve(f.R, f.n, f.model, f.coverage, options))
+            f.post = f.first.post if f.first is not None else None
     in_order = ordered(d)
-    rw = SlowNoiseGrams(model.n_columns, _time_span(fits[0].coverage))
-    levels: list = []
+    P = rows.model.n_columns
+    rw = SlowNoiseGrams(P, _time_span(runs[0].fits[0].coverage))
     if options.autocorr:
-        levels = _autocorr(d, rows, piece, fits, pcs.xy_sum, options, in_order, rw)
-    for f in fits:
-        if f.error is None:
-            f.held = _run(f, lambda f=f: held_or_refuse(f.post, f.first.explain, options)) or []
-    full = fits[0]
-    if full.error is not None:
-        raise FitError(full.error)
-    figures = ResidualFigures(d.b_meas_uT, d.b_ref_uT, d.t_s, d.session, options.noise_lag_s,
-                              steps=options.exclude_ref_steps_uT is None) if in_order else None
+        _autocorr(d, rows, piece, runs, options, in_order, rw)
+    for run in runs:
+        for f in run.fits:
+            if f.error is None:
+                f.held = _run(f, lambda f=f: held_or_refuse(f.post, f.first.explain, options)) or []
+    for run in runs:
+        if run.fits[0].error is not None:
+            raise FitError(run.fits[0].error)
     from magstack.drivers.cal_priors import priors_for
 
-    terms = left_out_terms(model, priors_for(options.chip), np.diag(model.unpack(full.post.theta)["S"]))
-    p = model.n_columns
-    bins = HeldOutBins.for_coverage(full.coverage, p) if options.holdout else None
-    moments = LeftOutMoments(p, len(terms))
-    block_sse = BlockSSE() if options.holdout else None
-    resid = _final_pass(d, rows, piece, fits, figures, terms, moments, bins, block_sse)
-    out = CrossFit(CoreFit(None, full.post.theta.copy(), np.where(model.axis_mask(), full.post.sd, np.nan),
-                           full.held, np.vstack([full.post.cond, raw_cond(full.R, model)]), full.coverage, None,
-                           full.post), resid, figures)
-    Rx = full.R[:, :p]
+    chip = priors_for(options.chip)
+    for run in runs:
+        full = run.fits[0]
+        run.figures = ResidualFigures(d.b_meas_uT, d.b_ref_uT, d.t_s, d.session, options.noise_lag_s,
+                                      steps=options.exclude_ref_steps_uT is None) if in_order else None
+        run.terms = left_out_terms(run.model, chip, np.diag(run.model.unpack(full.post.theta)["S"]))
+        run.bins = HeldOutBins.for_coverage(full.coverage, run.model.n_columns) if options.holdout else None
+        run.block_sse = BlockSSE() if options.holdout else None
+    union = list({t.name: t for run in runs for t in run.terms}.values())   # by name: the features
+    moments = LeftOutMoments(P, len(union))
+    _final_pass(d, rows, piece, runs, union, moments)
     taus, ou, rwg, dt = rw.result()
-    out.acc = Accumulated(Rx.T @ Rx, taus, ou + [rwg], levels, dt, terms, moments, bins)
-    out.block_sse = block_sse
-    out.piece_coverage = pcs.cov
-    if options.holdout:
-        _figures(out, fits)
+    outs = []
+    for run in runs:
+        full, model, cols = run.fits[0], run.model, run.cols
+        p = model.n_columns
+        out = CrossFit(CoreFit(None, full.post.theta.copy(), np.where(model.axis_mask(), full.post.sd, np.nan),
+                               full.held, np.vstack([full.post.cond, raw_cond(full.R, model)]), full.coverage, None,
+                               full.post), run.resid, run.figures)
+        Rx = full.R[:, :p]
+        sub = np.ix_(cols, cols)
+        out.acc = Accumulated(Rx.T @ Rx, taus, [g[sub] for g in ou + [rwg]], run.levels, dt, run.terms,
+                              _moments_of(moments, union, run.terms, cols), run.bins)
+        out.block_sse = run.block_sse
+        out.piece_coverage = run.pcs.cov
+        if options.holdout:
+            _figures(out, run.fits)
+        outs.append(out)
+    return outs
+
+
+def _moments_of(moments: LeftOutMoments, union: list, terms: list, cols: np.ndarray) -> LeftOutMoments:
+    """The moments of design columns ``cols`` and left-out ``terms`` (a subset of ``union``, by name) out of
+    ``moments`` (of the passes' design and ``union``)."""
+    at = {t.name: k for k, t in enumerate(union)}
+    idx = np.array([at[t.name] for t in terms], dtype=np.intp)
+    out = LeftOutMoments(cols.size, idx.size)
+    if idx.size:
+        out.XtWG = moments.XtWG[np.ix_(cols, idx)]
+        out.GtWG = moments.GtWG[np.ix_(idx, idx)]
+        out.sum_w = moments.sum_w
     return out
 
 
@@ -262,10 +345,11 @@ def ordered(d: FitData) -> bool:
     return True
 
 
-def _pieces(d: FitData, rows: _Rows, piece: _PieceOf, sessions: np.ndarray, n_folds: int, model: CalModel,
-            options: FitOptions, coverage: list | None = None) -> _Pieces:
+def _pieces(d: FitData, rows: _Rows, piece: _PieceOf, model: CalModel, options: FitOptions,
+            coverage: list | None = None) -> _Pieces:
     """Pass 1: every piece's state (:class:`_Pieces`); piece = session index x n_folds + fold. ``coverage``:
     the pieces' coverage already known (taken as is)."""
+    sessions, n_folds = piece.sessions, piece.n_folds
     m = model.n_columns + 3
     n_pieces = sessions.size * n_folds
     R = [np.zeros((m, m)) for _ in range(n_pieces)]
@@ -299,6 +383,37 @@ def _pieces(d: FitData, rows: _Rows, piece: _PieceOf, sessions: np.ndarray, n_fo
                                                                                         sessions.size))
 
 
+def _column_pieces(pcs: _Pieces, cols: np.ndarray, p: int) -> _Pieces:
+    """The pieces of the design's columns ``cols`` (of ``p``) from ``pcs``: each R factor the R of those columns
+    of the piece's R (and the targets)."""
+    sel = np.r_[cols, p + np.arange(3)]
+    return _Pieces([qr_r(R[:, sel]) for R in pcs.R], pcs.cov, pcs.count, pcs.t_sum, pcs.xy_sum[:, sel], pcs.session,
+                   pcs.fold)
+
+
+def _fits(pcs: _Pieces, model: CalModel, piece: _PieceOf, options: FitOptions) -> list[_Fit]:
+    """The full fit, then (``options.holdout``) one per time-block fold and one per left-out session."""
+    every = pcs.count > 0
+    fits = [_make("full", 0, every, ~every, pcs, model)]
+    if options.holdout:
+        for f in np.unique(pcs.fold[every]):
+            test = every & (pcs.fold == f)
+            if test.any() and (every & ~test).any():
+                fits.append(_make("blocks", int(f), every & ~test, test, pcs, model))
+        for s in piece.sessions if piece.sessions.size > 1 else ():
+            test = every & (pcs.session == s)
+            fits.append(_make("session", int(s), every & ~test, test, pcs, model))
+    return fits
+
+
+def _coverage(pcs: _Pieces, train: np.ndarray) -> Coverage:
+    """The coverage of the pieces ``train``."""
+    c = Coverage()
+    for k in np.flatnonzero(train):
+        c.merge(pcs.cov[k])
+    return c
+
+
 def _make(kind: str, key: int, train: np.ndarray, test: np.ndarray, pcs: _Pieces, model: CalModel) -> _Fit:
     """The fit of the pieces ``train``: its model (sessions it saw, its mean time), stacked R, coverage."""
     if kind == "full":
@@ -312,9 +427,7 @@ def _make(kind: str, key: int, train: np.ndarray, test: np.ndarray, pcs: _Pieces
     Rt = qr_r(np.vstack([pcs.R[k] for k in np.flatnonzero(train)]))
     if not np.array_equal(T, np.eye(p)):
         Rt = qr_r(np.hstack([Rt[:, :p] @ T, Rt[:, p:]]))
-    c = Coverage()
-    for k in np.flatnonzero(train):
-        c.merge(pcs.cov[k])
+    c = _coverage(pcs, train)
     unseen = "session_offset" in model.terms and bool(set(pcs.session[test].tolist()) - set(sub.sessions))
     return _Fit(kind, key, train, test, sub, T, Rt, int(pcs.count[train].sum()), c, unseen=unseen)
 
@@ -333,21 +446,24 @@ def _time_span(cov: Coverage) -> float:
     return float(cov.t_max_s - cov.t_min_s) if np.isfinite(cov.t_max_s - cov.t_min_s) else 0.0
 
 
-def _autocorr(d, rows, piece, fits, xy_sum, options, ordered: bool, rw: SlowNoiseGrams) -> list:
-    """Pass 2: residuals of every fit's training rows in (session, time) order -> kappa -> the final solve.
-    The full fit's rows also feed ``rw`` (its random-walk Gram matrix); returns the adjacent block-mean
-    differences of the full fit's residuals (:meth:`.blocking.BlockingInflation.adjacent_levels`)."""
-    live = [f for f in fits if f.error is None]
+def _autocorr(d, rows, piece, runs: list[_Run], options, ordered: bool, rw: SlowNoiseGrams) -> None:
+    """Pass 2: residuals of every fit's training rows in (session, time) order -> kappa -> the final solve (one
+    product per block for the fits of every model). The rows also feed ``rw`` (the random-walk and correlated
+    noise Grams of the passes' design); each model's ``levels`` are the adjacent block-mean differences of its full
+    fit's residuals (:meth:`.blocking.BlockingInflation.adjacent_levels`)."""
+    live = [(run, f) for run in runs for f in run.fits if f.error is None]
     if not live:
-        return []
-    p = fits[0].T.shape[0]
-    theta = np.hstack([f.theta_full_basis() for f in live])              # (p, 3 F)
+        return
+    P = rows.model.n_columns
+    theta = np.hstack([run.embed(f.theta_full_basis(), P) for run, f in live])         # (P, 3 F)
     center = []                              # each fit's mean training residual, from the column sums
-    for f in live:
-        s = xy_sum[f.train].sum(axis=0)
+    for run, f in live:
+        p = run.model.n_columns
+        s = run.pcs.xy_sum[f.train].sum(axis=0)
         center.append((s[p:] - s[:p] @ f.theta_full_basis()) / f.n)
     center = np.array(center)[:, :, None]
     accs = [BlockingInflation() for _ in live]
+    feed = any(run.fits[0].error is None for run in runs)
     s, t = d.session, d.t_s
     order = None if ordered else np.lexsort((t, s))
     for idx in rows.chunks(order):
@@ -356,81 +472,105 @@ def _autocorr(d, rows, piece, fits, xy_sum, options, ordered: bool, rw: SlowNois
         np.subtract(Y.T[None], r, out=r)
         r -= center
         pc, sess = piece[idx], s[idx]
-        if live[0] is fits[0]:
+        if feed:
             rw.add(X if d.weights is None else X * d.weights[idx][:, None], t[idx], sess)
-        for j, f in enumerate(live):
+        for j, (_, f) in enumerate(live):
             use = f.train[pc]
             if use.all():
                 accs[j].add(r[j], sess)
             else:
                 keep = np.flatnonzero(use)
                 accs[j].add(np.take(r[j], keep, axis=1), sess[keep])
-    for f, acc in zip(live, accs, strict=True):
+    for (_, f), acc in zip(live, accs, strict=True):
         post = _run(f, lambda f=f, acc=acc: gate_solve(f.R, f.n, f.model, f.first.prior, f.first.gated,
                                                        acc.kappa(), options))
         f.post = post if post is not None else f.post
-    return accs[0].adjacent_levels() if live[0] is fits[0] else []
+    for (run, f), acc in zip(live, accs, strict=True):
+        if f is run.fits[0]:
+            run.levels = acc.adjacent_levels()
 
 
-def _final_pass(d, rows, piece, fits, figures: ResidualFigures | None, terms=(),
-                moments: LeftOutMoments | None = None, bins: HeldOutBins | None = None,
-                block_sse: BlockSSE | None = None) -> np.ndarray | None:
-    """Pass 3: the full fit's residuals, into ``figures`` (then replayed while it needs them again) or else
-    returned whole (N, 3); each fold's squared held-out residuals. Also the moments of the design and the
-    left-out features ``terms`` (into ``moments``), the time-block folds' held-out residuals binned (into
-    ``bins``) and summed per time block (into ``block_sse``)."""
-    full = fits[0]
-    folds = [f for f in fits[1:] if f.error is None]
-    scale = {id(f): full.n / f.n for f in folds}
-    theta = full.theta_full_basis()
-    theta_f = np.hstack([f.theta_full_basis() for f in folds]) if folds else None   # (p, 3 F)
-    resid = None if figures is not None else np.empty((len(d), 3))
-    t0 = full.model.t0_c
+def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutMoments) -> None:
+    """Pass 3, for every model of ``runs``: the full fit's residuals, into its ``figures`` (then replayed while they
+    need them again) or else kept whole (``resid`` (N, 3)); each fold's squared held-out residuals; the time-block
+    folds' held-out residuals binned (``bins``) and summed per time block (``block_sse``). Also the moments of the
+    design and the left-out features ``union`` (into ``moments``). The first model's figures take this pass; each
+    further model's start one replay later (their first passes keep up to :data:`.rank_select.COLLECT_CAP` values
+    each: one at a time, as for one model)."""
+    P = rows.model.n_columns
+    theta = np.hstack([run.embed(run.fits[0].theta_full_basis(), P) for run in runs])     # (P, 3 models)
+    folds = [[f for f in run.fits[1:] if f.error is None] for run in runs]
+    theta_f = [np.hstack([run.embed(f.theta_full_basis(), P) for f in fs]) if fs else None   # (P, 3 F) per model
+               for run, fs in zip(runs, folds, strict=True)]
+    own = [run.own_design(P) for run in runs]
+    for run in runs:
+        run.resid = None if run.figures is not None else np.empty((len(d), 3))
+    figs = [(k, run.figures) for k, run in enumerate(runs) if run.figures is not None]
+    active, later = figs[:1], figs[1:]
+    t0 = runs[0].model.t0_c
     for sl in rows.chunks(None):
         X, Y = rows.block(sl)
         r = _resid(X, Y, theta)
-        if figures is not None:
-            figures.add(sl.start, r)
-        else:
-            resid[sl] = r.T
-        if moments is not None and len(terms):
-            moments.add(X, left_out_features(terms, d.b_meas_uT[sl], d.temp_c[sl] - t0),
+        for k, fig in active:
+            fig.add(sl.start, r[k])
+        for k, run in enumerate(runs):
+            if run.resid is not None:
+                run.resid[sl] = r[k].T
+        if union:
+            moments.add(X, left_out_features(union, d.b_meas_uT[sl], d.temp_c[sl] - t0),
                         None if d.weights is None else d.weights[sl])
-        if not folds:
-            continue
-        P = (theta_f.T @ X.T).reshape(-1, 3, X.shape[0])                      # fold, axis, row
-        pc = piece[sl]
-        for j, f in enumerate(folds):
-            keep = np.flatnonzero(f.test[pc])
-            if not keep.size:
+        pc = piece[sl] if any(folds) else None
+        held = {}            # a time-block fold's held-out rows' time blocks and design moments per bin (any model's)
+        for run, fs, th, own_x in zip(runs, folds, theta_f, own, strict=True):
+            if not fs:
                 continue
-            if f.unseen:
-                Xf, Yf = _Rows(d, f.model).block(sl.start + keep)
-                rf = (Yf - f.model.predict(f.post.theta, Xf)).T
-            else:
-                rf = np.take(Y.T, keep, axis=1) - np.take(P[j], keep, axis=1)
-            f.sq += np.einsum("ij,ij->i", rf, rf)
-            f.cnt += keep.size
-            if f.kind == "blocks" and (bins is not None or block_sse is not None):
-                rows_k = sl.start + keep
-                if bins is not None:
-                    bins.add(np.take(X, keep, axis=0), rf, d.b_meas_uT[rows_k], d.temp_c[rows_k], scale[id(f)])
-                if block_sse is not None:
-                    block_sse.add(*piece.time_block(rows_k), np.einsum("ij,ij->j", rf, rf))
-    while figures is not None:
-        figures.end_pass()
-        if not figures.pending:
+            Pf = (th.T @ X.T).reshape(-1, 3, X.shape[0])                      # fold, axis, row
+            for j, f in enumerate(fs):
+                keep = np.flatnonzero(f.test[pc])
+                if not keep.size:
+                    continue
+                if f.unseen:
+                    Xf, Yf = _Rows(d, f.model).block(sl.start + keep)
+                    rf = (Yf - f.model.predict(f.post.theta, Xf)).T
+                else:
+                    rf = np.take(Y.T, keep, axis=1) - np.take(Pf[j], keep, axis=1)
+                f.sq += np.einsum("ij,ij->i", rf, rf)
+                f.cnt += keep.size
+                if f.kind == "blocks" and (run.bins is not None or run.block_sse is not None):
+                    rows_k = sl.start + keep
+                    if run.bins is not None:
+                        scale = run.fits[0].n / f.n
+                        bins = run.bins
+                        k = bins.add_residuals(rf, d.b_meas_uT[rows_k], d.temp_c[rows_k], scale)
+                        key = ("M", f.key, bins.field_edges_uT.tobytes(), bins.temp_edges_c.tobytes())
+                        if key not in held:
+                            held[key] = bins.design_moments(k, np.take(X, keep, axis=0))
+                        G = held[key]
+                        bins.M += scale * (G if own_x else G[:, run.cols][:, :, run.cols])
+                    if run.block_sse is not None:
+                        if ("blocks", f.key) not in held:
+                            held["blocks", f.key] = piece.time_block(rows_k)
+                        run.block_sse.add(*held["blocks", f.key], np.einsum("ij,ij->j", rf, rf))
+            del Pf
+    while active or later:
+        for _, fig in active:
+            fig.end_pass()
+        active = [(k, fig) for k, fig in active if fig.pending] + later[:1]
+        later = later[1:]
+        if not active:
             break
         for sl in rows.chunks(None):                 # the same residuals again, bit for bit
             X, Y = rows.block(sl)
-            figures.add(sl.start, _resid(X, Y, theta))
-    return resid
+            r = _resid(X, Y, theta)
+            for k, fig in active:
+                fig.add(sl.start, r[k])
 
 
 def _resid(X: np.ndarray, Y: np.ndarray, theta: np.ndarray) -> np.ndarray:
-    """(3, m) residuals ``Y - X theta``, axis first (every pass computes them alike, to the bit)."""
-    r = theta.T @ X.T
-    return np.subtract(Y.T, r, out=r)
+    """(k, 3, m) residuals ``Y - X theta_k`` of coefficient sets ``theta`` (p, 3 k), axis then row (every pass
+    computes them alike, to the bit)."""
+    r = (theta.T @ X.T).reshape(-1, 3, X.shape[0])
+    return np.subtract(Y.T[None], r, out=r)
 
 
 def _figures(out: CrossFit, fits: list[_Fit]) -> None:

@@ -867,16 +867,46 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
     With ``options.second_order_tempco == "auto"``, a model with ``temperature_gain`` but not
     ``temperature_gain2``, held-out folds and a temperature span of at least ``TEMPCO2_SPAN_C`` degC with field
     present, the model with the second-order tempco is fitted too and adopted when its held-out improvement is
-    significant (:func:`.heldout_test.paired_block_test`); ``result.term_choice`` says what was compared."""
+    significant (:func:`.heldout_test.paired_block_test`); ``result.term_choice`` says what was compared. Where
+    the cross-fit serves both models, they share its passes over the rows (:func:`.crossfit.cross_fit_with`)."""
+    from magstack.firmware.calibration import crossfit
+
     options = options or FitOptions()
-    res, sse, rows = _fit_model(data, model, terms, currents, t0_c, options)
-    terms_now = set(res.model.terms)
-    span = max(res.coverage.temp_span_with_field(j) for j in range(3))
+    sel = _select(data, model, terms, currents, t0_c, options)
+    terms_now = set(sel.cm.terms)
     if (options.second_order_tempco != "auto" or "temperature_gain" not in terms_now
-            or "temperature_gain2" in terms_now or sse is None or span < TEMPCO2_SPAN_C):
+            or "temperature_gain2" in terms_now or not options.holdout):
+        return _fit_model(data, sel, currents, t0_c, options)[0]
+    cand_terms = list(terms or []) + ["temperature_gain2"]
+    if crossfit.applies(sel.cm, options):
+        all_terms, name = _terms_and_name(model, cand_terms, currents)
+        cm = build_model(sel.d, all_terms, currents, t0_c, name)
+        if len(sel.d) > cm.n_columns and crossfit.applies(cm, options):      # the same rows (same usable mask)
+            cand_sel = dataclasses.replace(sel, all_terms=all_terms, name=name, cm=cm)
+            cross, cross2 = crossfit.cross_fit_with(sel.d, sel.cm, cm, options,
+                                                    lambda cov: _field_temp_span(cov) >= TEMPCO2_SPAN_C)
+            res, sse, _ = _finish(data, sel, cross, currents, t0_c, options)
+            if cross2 is None:
+                return res
+            cand, sse2, _ = _finish(data, cand_sel, cross2, currents, t0_c, options)
+            return _choose_tempco2(res, sse, cand, sse2)
+    res, sse, rows = _fit_model(data, sel, currents, t0_c, options)
+    if sse is None or _field_temp_span(res.coverage) < TEMPCO2_SPAN_C:
         return res
-    cand, sse2, _ = _fit_model(data, model, list(terms or []) + ["temperature_gain2"], currents, t0_c, options,
-                               same_rows=rows)
+    cand, sse2, _ = _fit_model(data, _select(data, model, cand_terms, currents, t0_c, options), currents, t0_c,
+                               options, same_rows=rows)
+    return _choose_tempco2(res, sse, cand, sse2)
+
+
+def _field_temp_span(cov: Coverage) -> float:
+    """The largest temperature span (degC) with field present on an axis."""
+    return max(cov.temp_span_with_field(j) for j in range(3))
+
+
+def _choose_tempco2(res: FitResult, sse: BlockSSE, cand: FitResult, sse2: BlockSSE | None) -> FitResult:
+    """``cand`` (the model with ``temperature_gain2``) when the paired test finds its held-out improvement over
+    ``res`` significant, else ``res``; the chosen one says what was compared (``term_choice``, a note)."""
+    span = _field_temp_span(res.coverage)
     test = paired_block_test(sse.sse, sse2.sse) if sse2 is not None else None
     chosen = cand if test is not None and test.significant else res
     chosen.term_choice = {"candidate": "temperature_gain2", "adopted": chosen is cand,
@@ -888,14 +918,33 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
     return chosen
 
 
-def _fit_model(data: FitData, model: str, terms: Sequence[str] | None, currents: Sequence[str], t0_c: float,
-               options: FitOptions, same_rows: tuple | None = None) -> tuple[FitResult, BlockSSE | None, tuple]:
-    """One model's fit, with the time-block folds' held-out squared residuals per block (None without folds) and
-    ``(rows used, per-piece coverage)``: given back as ``same_rows`` for another model of the same data, the
-    coverage (which does not depend on the model) is taken over when the rows are the same."""
+@dataclass
+class _Selection:
+    """A model's terms and name, the rows it is fitted to (``ok`` of the data; ``d`` those rows), the counts of
+    rows excluded at reference steps and with the reference saturated, and the model built on ``d``."""
+
+    all_terms: tuple[str, ...]
+    name: str
+    ok: np.ndarray
+    n_sat: int
+    n_steps: int
+    d: FitData
+    cm: CalModel
+
+
+def _terms_and_name(model: str, terms: Sequence[str] | None, currents: Sequence[str]) -> tuple[tuple[str, ...], str]:
     all_terms = resolve_terms(model, terms, currents)
     name = model if all_terms == MODELS.get(model) else f"{model}+" + "+".join(
         t for t in all_terms if t not in MODELS[model])
+    return all_terms, name
+
+
+def _select(data: FitData, model: str, terms: Sequence[str] | None, currents: Sequence[str], t0_c: float,
+            options: FitOptions) -> _Selection:
+    """The rows a model is fitted to and the model (FitError when they are too few for its columns)."""
+    from magstack.firmware.calibration import crossfit
+
+    all_terms, name = _terms_and_name(model, terms, currents)
     ok = data.usable(all_terms, currents)
     n_sat = 0
     if options.ref_range_uT is not None:
@@ -908,8 +957,6 @@ def _fit_model(data: FitData, model: str, terms: Sequence[str] | None, currents:
         at_step = ok & reference_steps(data.b_ref_uT, data.session, options.exclude_ref_steps_uT)
         n_steps = int(at_step.sum())
         ok &= ~at_step
-    from magstack.firmware.calibration import crossfit
-
     d = data if ok.all() else data.kept(ok)
     cm = build_model(d, all_terms, currents, t0_c, name)
     if d is not data and not (crossfit.applies(cm, options) and crossfit.ordered(d)):
@@ -926,8 +973,26 @@ def _fit_model(data: FitData, model: str, terms: Sequence[str] | None, currents:
                 why.append(f"{label} missing/flagged on {int(bad.sum())} rows")
         raise FitError(f"{len(d)} usable rows of {len(data)} for {cm.n_columns} columns: not enough data"
                        + (f" ({'; '.join(why)})" if why else ""))
-    coverage = same_rows[1] if same_rows is not None and np.array_equal(same_rows[0], ok) else None
-    cross = crossfit.cross_fit(d, cm, options, coverage) if crossfit.applies(cm, options) else None
+    return _Selection(all_terms, name, ok, n_sat, n_steps, d, cm)
+
+
+def _fit_model(data: FitData, sel: _Selection, currents: Sequence[str], t0_c: float, options: FitOptions,
+               same_rows: tuple | None = None) -> tuple[FitResult, BlockSSE | None, tuple]:
+    """One model's fit on its rows ``sel``, with the time-block folds' held-out squared residuals per block (None
+    without folds) and ``(rows used, per-piece coverage)``: given back as ``same_rows`` for another model of the
+    same data, the coverage (which does not depend on the model) is taken over when the rows are the same."""
+    from magstack.firmware.calibration import crossfit
+
+    coverage = same_rows[1] if same_rows is not None and np.array_equal(same_rows[0], sel.ok) else None
+    cross = crossfit.cross_fit(sel.d, sel.cm, options, coverage) if crossfit.applies(sel.cm, options) else None
+    return _finish(data, sel, cross, currents, t0_c, options)
+
+
+def _finish(data: FitData, sel: _Selection, cross, currents: Sequence[str], t0_c: float,
+            options: FitOptions) -> tuple[FitResult, BlockSSE | None, tuple]:
+    """:func:`_fit_model` from the cross-fit ``cross`` (None: the refit path fits here)."""
+    all_terms, name, ok, n_sat, n_steps, d, cm = (sel.all_terms, sel.name, sel.ok, sel.n_sat, sel.n_steps, sel.d,
+                                                  sel.cm)
     core = cross.core if cross is not None else _fit_core(d, cm, options)
     X, theta, se, held, conds, cov, mount = (core.X, core.theta, core.se, core.held, core.conds, core.coverage,
                                              core.mount)

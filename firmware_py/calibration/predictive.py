@@ -482,6 +482,12 @@ class HeldOutBins:
 
     def add(self, z: np.ndarray, resid_uT: np.ndarray, b_uT: np.ndarray, temp_c: np.ndarray, scale: float) -> None:
         """Held-out rows: design ``z`` (m, p), residuals (3, m) uT, DUT field (m, 3), temperature (m,)."""
+        k = self.add_residuals(resid_uT, b_uT, temp_c, scale)
+        self.M += scale * self.design_moments(k, z)
+
+    def add_residuals(self, resid_uT: np.ndarray, b_uT: np.ndarray, temp_c: np.ndarray, scale: float) -> np.ndarray:
+        """:meth:`add` without the design moments (add ``scale`` x :meth:`design_moments` to :attr:`M`); returns
+        the rows' bins."""
         mag = np.linalg.norm(b_uT, axis=1)
         if mag.size and np.isfinite(mag).any():
             self.mag_max_uT = max(self.mag_max_uT, float(np.nanmax(mag)))
@@ -497,12 +503,19 @@ class HeldOutBins:
             self.sq[:, i] += np.bincount(k, weights=resid_uT[i] ** 2, minlength=nb)
         self.u_b += np.bincount(k, weights=ub, minlength=nb)
         self.u_t += np.bincount(k, weights=ut, minlength=nb)
+        return k
+
+    def design_moments(self, k: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """(bins, q, q) ``sum z z^T`` of design rows ``z`` (m, q) per bin ``k`` (m,) (any q: the rows of a design
+        whose columns include the model's)."""
+        out = np.zeros((self.count.size, z.shape[1], z.shape[1]))
         order = np.argsort(k, kind="stable")
         ks = k[order]
         cuts = np.r_[0, np.flatnonzero(ks[1:] != ks[:-1]) + 1, ks.size]
         for lo, hi in zip(cuts[:-1], cuts[1:], strict=True):
             zz = z[order[lo:hi]]
-            self.M[ks[lo]] += scale * (zz.T @ zz)
+            out[ks[lo]] = zz.T @ zz
+        return out
 
 
 def discrepancy(bins: HeldOutBins, noise_uT: np.ndarray, cov: np.ndarray, temp_range_c: tuple[float, float],
