@@ -365,19 +365,6 @@ class Predictive:
         out = sorted(out, key=lambda kv: -abs(kv[1]))[:top]
         return [(k, float(np.sign(v) * np.sqrt(abs(v)) * 1e3)) for k, v in out]
 
-    def to_readings(self, b_cal_uT: np.ndarray, temps_c: np.ndarray) -> np.ndarray:
-        """(n_T, m, 3) the readings that calibrate to ``b_cal_uT`` (m, 3) at each of ``temps_c`` (n_T,):
-        :meth:`to_reading` for many temperatures at once."""
-        b = np.asarray(b_cal_uT, dtype=float).reshape(-1, 3)
-        t = np.asarray(temps_c, dtype=float).reshape(-1)
-        if self.calibration is None:
-            return np.broadcast_to(b, (t.size, *b.shape))
-        S, K_S, K_S2, O, K_O = self.calibration
-        dT = (t - self.t0_c)[:, None, None]
-        G = S[None] + K_S[None] * dT + np.diag(K_S2)[None] * dT * dT
-        rhs = b[None, :, :] - (O[None, :] + K_O[None, :] * dT[:, :, 0])[:, None, :]
-        return np.linalg.solve(G, np.swapaxes(rhs, 1, 2)).swapaxes(1, 2)
-
     def worst_over_region_uT(self, temps_c: Sequence[float], field_axes_uT: Sequence[float],
                              field_norm_uT: float = math.inf,
                              currents_A: Mapping[str, tuple[float, float]] | None = None,

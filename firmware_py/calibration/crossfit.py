@@ -147,7 +147,6 @@ class CrossFit:
     notes: list[str] = field(default_factory=list)
     acc: Accumulated | None = None       # what the passes collected for the predictive parts
     block_sse: BlockSSE | None = None    # the time-block folds' squared held-out residuals per time block
-    piece_coverage: list | None = None   # pass 1's coverage per piece (the same for any model of these rows)
 
 
 class _Rows:
@@ -182,14 +181,13 @@ def column_map(model: CalModel, wider: CalModel) -> np.ndarray:
     return np.array(cols, dtype=np.intp)
 
 
-def cross_fit(d: FitData, model: CalModel, options: FitOptions, piece_coverage: list | None = None) -> CrossFit:
+def cross_fit(d: FitData, model: CalModel, options: FitOptions) -> CrossFit:
     """The fit of ``d`` under ``model`` and, when ``options.holdout``, its held-out figures; see the module
-    docstring. FitError as the refit path (a failing fold is skipped with a note). ``piece_coverage``: pass 1's
-    coverage per piece from another model's cross-fit of the same rows and options (not recomputed)."""
+    docstring. FitError as the refit path (a failing fold is skipped with a note)."""
     with single_thread():          # block QRs and products of ~64k x 30: threads only wait (bench_blas.py)
         rows = _Rows(d, model)
         piece = _PieceOf(d, rows, options)
-        pcs = _pieces(d, rows, piece, model, options, piece_coverage)
+        pcs = _pieces(d, rows, piece, model, options)
         return _cross_fit(d, rows, piece, [_Run(model, np.arange(model.n_columns), pcs)], options)[0]
 
 
@@ -289,7 +287,6 @@ def _cross_fit(d: FitData, rows: _Rows, piece: _PieceOf, runs: list[_Run], optio
         out.acc = Accumulated(Rx.T @ Rx, taus, [g[sub] for g in ou + [rwg]], run.levels, dt, run.terms,
                               _moments_of(moments, union, run.terms, cols), run.bins)
         out.block_sse = run.block_sse
-        out.piece_coverage = run.pcs.cov
         if options.holdout:
             _figures(out, run.fits)
         outs.append(out)
@@ -345,16 +342,13 @@ def ordered(d: FitData) -> bool:
     return True
 
 
-def _pieces(d: FitData, rows: _Rows, piece: _PieceOf, model: CalModel, options: FitOptions,
-            coverage: list | None = None) -> _Pieces:
-    """Pass 1: every piece's state (:class:`_Pieces`); piece = session index x n_folds + fold. ``coverage``:
-    the pieces' coverage already known (taken as is)."""
+def _pieces(d: FitData, rows: _Rows, piece: _PieceOf, model: CalModel, options: FitOptions) -> _Pieces:
+    """Pass 1: every piece's state (:class:`_Pieces`); piece = session index x n_folds + fold."""
     sessions, n_folds = piece.sessions, piece.n_folds
     m = model.n_columns + 3
     n_pieces = sessions.size * n_folds
     R = [np.zeros((m, m)) for _ in range(n_pieces)]
-    known = coverage is not None and len(coverage) == n_pieces
-    cov = list(coverage) if known else [Coverage() for _ in range(n_pieces)]
+    cov = [Coverage() for _ in range(n_pieces)]
     count = np.zeros(n_pieces, dtype=np.int64)
     t_sum = np.zeros(n_pieces)
     xy_sum = np.zeros((n_pieces, m))
@@ -374,9 +368,8 @@ def _pieces(d: FitData, rows: _Rows, piece: _PieceOf, model: CalModel, options: 
             k = int(pc[a])
             xy_sum[k] += np.ones(e - a) @ Z[a:e]
             R[k] = qr_r(np.vstack([R[k], Z[a:e] if w is None else Z[a:e] * np.sqrt(w[a:e])[:, None]]))
-            if not known:
-                cov[k].update(b[a:e], temp[a:e], {c: v[a:e] for c, v in cur.items()}, sess[a:e], t[a:e],
-                              options.field_present_uT, np.ones(e - a) if w is None else w[a:e], ref_uT=Y[a:e])
+            cov[k].update(b[a:e], temp[a:e], {c: v[a:e] for c, v in cur.items()}, sess[a:e], t[a:e],
+                          options.field_present_uT, np.ones(e - a) if w is None else w[a:e], ref_uT=Y[a:e])
             count[k] += e - a
             t_sum[k] += float(np.sum(t[a:e]))
     return _Pieces(R, cov, count, t_sum, xy_sum, np.repeat(sessions, n_folds), np.tile(np.arange(n_folds),

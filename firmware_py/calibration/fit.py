@@ -885,16 +885,16 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
             cand_sel = dataclasses.replace(sel, all_terms=all_terms, name=name, cm=cm)
             cross, cross2 = crossfit.cross_fit_with(sel.d, sel.cm, cm, options,
                                                     lambda cov: _field_temp_span(cov) >= TEMPCO2_SPAN_C)
-            res, sse, _ = _finish(data, sel, cross, currents, t0_c, options)
+            res, sse = _finish(data, sel, cross, currents, t0_c, options)
             if cross2 is None:
                 return res
-            cand, sse2, _ = _finish(data, cand_sel, cross2, currents, t0_c, options)
+            cand, sse2 = _finish(data, cand_sel, cross2, currents, t0_c, options)
             return _choose_tempco2(res, sse, cand, sse2)
-    res, sse, rows = _fit_model(data, sel, currents, t0_c, options)
+    res, sse = _fit_model(data, sel, currents, t0_c, options)
     if sse is None or _field_temp_span(res.coverage) < TEMPCO2_SPAN_C:
         return res
-    cand, sse2, _ = _fit_model(data, _select(data, model, cand_terms, currents, t0_c, options), currents, t0_c,
-                               options, same_rows=rows)
+    cand, sse2 = _fit_model(data, _select(data, model, cand_terms, currents, t0_c, options), currents, t0_c,
+                            options)
     return _choose_tempco2(res, sse, cand, sse2)
 
 
@@ -920,12 +920,11 @@ def _choose_tempco2(res: FitResult, sse: BlockSSE, cand: FitResult, sse2: BlockS
 
 @dataclass
 class _Selection:
-    """A model's terms and name, the rows it is fitted to (``ok`` of the data; ``d`` those rows), the counts of
-    rows excluded at reference steps and with the reference saturated, and the model built on ``d``."""
+    """A model's terms and name, the counts of rows excluded with the reference saturated and at reference
+    steps, the rows it is fitted to (``d``) and the model built on them."""
 
     all_terms: tuple[str, ...]
     name: str
-    ok: np.ndarray
     n_sat: int
     n_steps: int
     d: FitData
@@ -973,26 +972,23 @@ def _select(data: FitData, model: str, terms: Sequence[str] | None, currents: Se
                 why.append(f"{label} missing/flagged on {int(bad.sum())} rows")
         raise FitError(f"{len(d)} usable rows of {len(data)} for {cm.n_columns} columns: not enough data"
                        + (f" ({'; '.join(why)})" if why else ""))
-    return _Selection(all_terms, name, ok, n_sat, n_steps, d, cm)
+    return _Selection(all_terms, name, n_sat, n_steps, d, cm)
 
 
-def _fit_model(data: FitData, sel: _Selection, currents: Sequence[str], t0_c: float, options: FitOptions,
-               same_rows: tuple | None = None) -> tuple[FitResult, BlockSSE | None, tuple]:
+def _fit_model(data: FitData, sel: _Selection, currents: Sequence[str], t0_c: float, options: FitOptions
+               ) -> tuple[FitResult, BlockSSE | None]:
     """One model's fit on its rows ``sel``, with the time-block folds' held-out squared residuals per block (None
-    without folds) and ``(rows used, per-piece coverage)``: given back as ``same_rows`` for another model of the
-    same data, the coverage (which does not depend on the model) is taken over when the rows are the same."""
+    without folds)."""
     from magstack.firmware.calibration import crossfit
 
-    coverage = same_rows[1] if same_rows is not None and np.array_equal(same_rows[0], sel.ok) else None
-    cross = crossfit.cross_fit(sel.d, sel.cm, options, coverage) if crossfit.applies(sel.cm, options) else None
+    cross = crossfit.cross_fit(sel.d, sel.cm, options) if crossfit.applies(sel.cm, options) else None
     return _finish(data, sel, cross, currents, t0_c, options)
 
 
 def _finish(data: FitData, sel: _Selection, cross, currents: Sequence[str], t0_c: float,
-            options: FitOptions) -> tuple[FitResult, BlockSSE | None, tuple]:
+            options: FitOptions) -> tuple[FitResult, BlockSSE | None]:
     """:func:`_fit_model` from the cross-fit ``cross`` (None: the refit path fits here)."""
-    all_terms, name, ok, n_sat, n_steps, d, cm = (sel.all_terms, sel.name, sel.ok, sel.n_sat, sel.n_steps, sel.d,
-                                                  sel.cm)
+    all_terms, name, n_sat, n_steps, d, cm = sel.all_terms, sel.name, sel.n_sat, sel.n_steps, sel.d, sel.cm
     core = cross.core if cross is not None else _fit_core(d, cm, options)
     X, theta, se, held, conds, cov, mount = (core.X, core.theta, core.se, core.held, core.conds, core.coverage,
                                              core.mount)
@@ -1048,7 +1044,7 @@ def _finish(data: FitData, sel: _Selection, cross, currents: Sequence[str], t0_c
                                  d.b_ref_uT - _rotate_from_frame(cm.predict(theta, X), d.session, mount),
                                  options, block_folds(d, options) if options.holdout else None,
                                  res.holdout_blocks_uT)
-    return res, block_sse, (ok, cross.piece_coverage if cross is not None else None)
+    return res, block_sse
 
 
 def _accumulate_whole(d: FitData, model: CalModel, core: CoreFit, resid: np.ndarray,
