@@ -169,6 +169,8 @@ class Predictive:
             lay["blocks"] = {"ff": C[np.ix_(jf, jf)], "fn": C[np.ix_(jf, jn)], "cf": C[np.ix_(jc, jf)],
                              "cn": C[np.ix_(jc, jn)], "cc": C[np.ix_(jc, jc)]}
             np.add.at(self._qnn, np.ix_(lay["mono"], lay["mono"]), C[np.ix_(jn, jn)])
+        self._forms_memo: dict = {}
+        self._forms_const: dict = {}
 
     def to_reading(self, b_cal_uT: np.ndarray, temp_c: float) -> np.ndarray:
         """(m, 3) the readings that calibrate to ``b_cal_uT`` (m, 3) at ``temp_c`` (the table's affine part)."""
@@ -255,31 +257,49 @@ class Predictive:
         M[:, :3, 3] = -np.einsum("tij,tj->ti", Gi, O[None, :] + K_O[None, :] * dT[:, :, 0])
         return M
 
-    def _worst_var_forms(self, temps_c: np.ndarray, cal: np.ndarray, corners: Sequence[Mapping[str, float]]
-                         ) -> np.ndarray:
-        """(n_T, m) the predictive vector variance (uT^2) at calibrated points ``cal`` (m, 3), worst over the
-        current corners. With ``v = [B_cal; 1]`` and the reading ``b = M(T) v``, each axis's affine features are
-        ``B(T) v`` (k x 4) and its polynomial features (``c3``, ``P``) pick from the six monomials ``n(b)``
-        (``_MONOMIALS``), so the parameter part summed over axes is the quadratic form
-        ``v'Q_vv v + 2 v'Q_vn n + n'Q_nn n`` and each current corner adds a term affine in ``(v, n)``; ``|b|^2``
-        for the discrepancy is a quadratic form in ``v`` too. The same values as evaluating every feature at
-        every mapped reading (:meth:`param_var_uT2`, :meth:`disc_var_uT2`), to rounding, at a fraction of the
-        cost."""
-        t = np.asarray(temps_c, dtype=float).reshape(-1)
+    def _forms(self, t: np.ndarray, corners: Sequence[Mapping[str, float]]) -> tuple:
+        """``(M (n_T, 4, 4), QL (n_T, k + n_c, k), const (n_c,))`` of :meth:`_worst_var_forms` at temperatures ``t``:
+        the reading maps, and the form over ``z = [v; n]`` (``k`` = 4, or 10 with the monomials) stacked over each
+        current corner's affine row. They depend on the temperature and the current corners only, not on the
+        field region, so each temperature's are computed once and kept (up to ``_FORMS_KEPT`` temperatures)."""
+        ckey = tuple(tuple(sorted(c.items())) for c in corners)
+        memo = self._forms_memo.setdefault(ckey, {})
+        todo = np.unique(t[[x not in memo for x in t.tolist()]]) if memo else np.unique(t)
+        if todo.size:
+            if len(memo) + todo.size > _FORMS_KEPT:
+                memo.clear()
+            M, Qvv, Qvn, lin_v, lin_n, const = self._compute_forms(todo, corners)
+            nt, nc, nm = todo.size, len(corners), len(_MONOMIALS)
+            poly = any(lay["jn"].size for lay in self._layout)          # the same for every temperature
+            k = 4 + nm if poly else 4
+            cur = any(lay["jc"] for lay in self._layout)
+            QL = np.zeros((nt, k + (nc if cur else 0), k))
+            QL[:, :4, :4] = Qvv
+            if poly:
+                QL[:, :4, 4:k] = Qvn
+                QL[:, 4:k, :4] = np.swapaxes(Qvn, 1, 2)
+                QL[:, 4:k, 4:k] = self._qnn
+            if cur:
+                QL[:, k:, :4] = lin_v
+                if poly:
+                    QL[:, k:, 4:] = lin_n
+            for j, x in enumerate(todo.tolist()):
+                memo[x] = (M[j], QL[j])
+            self._forms_const[ckey] = const
+        rows = [memo[x] for x in t.tolist()]
+        return np.stack([r[0] for r in rows]), np.stack([r[1] for r in rows]), self._forms_const[ckey]
+
+    def _compute_forms(self, t: np.ndarray, corners: Sequence[Mapping[str, float]]) -> tuple:
+        """:meth:`_forms` computed (every temperature of ``t``)."""
         nt, nc = t.size, len(corners)
         nm = len(_MONOMIALS)
         dT = t - self.t0_c
         M = self._reading_maps(t)
-        v = np.hstack([np.asarray(cal, dtype=float).reshape(-1, 3), np.ones((cal.shape[0], 1))])   # (m, 4)
-        m = v.shape[0]
-        vt = np.ascontiguousarray(v.T)                                                             # (4, m)
-        vv = (v[:, :, None] * v[:, None, :]).reshape(-1, 16)                                       # (m, 16)
         Qvv = np.zeros((nt, 4, 4))
         Qvn = np.zeros((nt, 4, nm))
         lin_v = np.zeros((nt, nc, 4))
         lin_n = np.zeros((nc, nm))
         const = np.zeros(nc)
-        Qnn = self._qnn
         for lay in self._layout:
             blk = lay["blocks"]
             B = (dT[:, None] ** lay["pw"][None, :])[:, :, None] * M[:, lay["col"], :]         # (n_T, k_f, 4)
@@ -293,37 +313,49 @@ class Predictive:
                 if lay["jn"].size:
                     lin_n[:, lay["mono"]] += 2.0 * (cv @ blk["cn"])
                 const += np.einsum("cj,jl,cl->c", cv, blk["cc"], cv)
-        var = Qvv.reshape(nt, 16) @ vv.T                                                          # (n_T, m)
-        n = None
-        if np.any(Qnn) or np.any(Qvn) or np.any(lin_n):
-            b = np.moveaxis(M[:, :3, :] @ vt, 1, 0)                                               # (3, n_T, m)
-            n = np.empty((nm, nt, m))                                                             # (6, n_T, m)
-            for k, mono in enumerate(_MONOMIALS):
-                np.multiply(b[mono[0]], b[mono[1]], out=n[k])
+        return M, Qvv, Qvn, lin_v, lin_n, const
+
+    def _worst_var_forms(self, temps_c: np.ndarray, cal: np.ndarray, corners: Sequence[Mapping[str, float]]
+                         ) -> np.ndarray:
+        """(n_T, m) the predictive vector variance (uT^2) at calibrated points ``cal`` (m, 3), worst over the
+        current corners. With ``v = [B_cal; 1]`` and the reading ``b = M(T) v``, each axis's affine features are
+        ``B(T) v`` (k x 4) and its polynomial features (``c3``, ``P``) pick from the six monomials ``n(b)``
+        (``_MONOMIALS``), so the parameter part summed over axes is the quadratic form
+        ``v'Q_vv v + 2 v'Q_vn n + n'Q_nn n`` and each current corner adds a term affine in ``(v, n)``; ``|b|^2``
+        for the discrepancy is a quadratic form in ``v`` too. The same values as evaluating every feature at
+        every mapped reading (:meth:`param_var_uT2`, :meth:`disc_var_uT2`), to rounding, at a fraction of the
+        cost."""
+        t = np.asarray(temps_c, dtype=float).reshape(-1)
+        nt = t.size
+        M, QL, const = self._forms(t, corners)
+        k = QL.shape[2]                                       # 4 (v only) or 10 (v and the six monomials)
+        v = np.hstack([np.asarray(cal, dtype=float).reshape(-1, 3), np.ones((cal.shape[0], 1))])   # (m, 4)
+        m = v.shape[0]
+        b = M[:, :3, :] @ v.T                                                                     # (n_T, 3, m)
+        Z = np.empty((nt, k, m))                                                                  # z = [v; n(b)]
+        Z[:, :4] = v.T
+        if k > 4:
+            for j, mono in enumerate(_MONOMIALS):
+                np.multiply(b[:, mono[0]], b[:, mono[1]], out=Z[:, 4 + j])
                 if len(mono) == 3:
-                    n[k] *= b[mono[2]]
-            g = (Qnn @ n.reshape(nm, -1)).reshape(n.shape)
-            for k in range(nm):
-                g[k] += 2.0 * (Qvn[:, :, k] @ vt)
-            var += np.einsum("ktm,ktm->tm", n, g)
+                    Z[:, 4 + j] *= b[:, mono[2]]
+        A = QL @ Z                                                        # (n_T, k + n_c, m): Q z, then L_c z
+        var = np.einsum("tkm,tkm->tm", A[:, :k], Z)                                               # z'Qz
         var = np.maximum(var, 0.0) + float(np.sum(self.noise_uT ** 2))
         if self.disc is not None:
             d = self.disc
-            Mb = M[:, :3, :]
-            b2 = (np.swapaxes(Mb, 1, 2) @ Mb).reshape(nt, 16) @ vv.T                                # |b|^2 (n_T, m)
+            b2 = np.einsum("tjm,tjm->tm", b, b)                                                    # |b|^2 (n_T, m)
             mag2 = np.minimum(np.sqrt(np.maximum(b2, 0.0)), float(d["field_max_uT"])) ** 2 \
                 / float(d["field_ref_uT"]) ** 2
             lo, hi = d["temp_range_c"]
             u = (np.clip(t, lo, hi) - float(d["temp_centre_c"])) / float(d["temp_ref_c"])
             var += float(np.sum(d["d0_uT2"])) + float(np.sum(d["dB_uT2"])) * mag2 \
                 + float(np.sum(d["dT_uT2"])) * (u * u)[:, None]
-        if not (np.any(lin_v) or np.any(lin_n) or np.any(const)):
+        if QL.shape[1] == k:                                  # no current terms
             return var
-        cur = (np.swapaxes(lin_v, 0, 1).reshape(-1, 4) @ vt).reshape(nc, nt, m)                 # (n_c, n_T, m)
-        if n is not None and np.any(lin_n):
-            cur += (lin_n @ n.reshape(nm, -1)).reshape(nc, nt, m)
-        cur += const[:, None, None]
-        return var + cur.max(axis=0)
+        cur = A[:, k:]
+        cur += const[None, :, None]
+        return var + cur.max(axis=1)
 
     def worst_vector_sd_uT(self, temp_c: float, field_axes_uT: Sequence[float], field_norm_uT: float = math.inf,
                            currents_A: Mapping[str, tuple[float, float]] | None = None) -> float:
@@ -402,6 +434,9 @@ class Predictive:
                 break
         return out
 
+
+#: Temperatures whose forms a :class:`Predictive` keeps (:meth:`Predictive._forms`).
+_FORMS_KEPT = 4096
 
 #: (temperature, point, current corner) triples evaluated per vectorised pass of
 #: :meth:`Predictive.worst_per_temperature_uT` (memory ~ 3 x 8 B each).
