@@ -20,16 +20,19 @@ import numpy as np
 class BlockingInflation:
     """Accumulate residuals with :meth:`add`, then :meth:`kappa`.
 
-    Residuals arrive axis-first, ``(3, m)`` uT (a contiguous row per output axis: the reductions run
-    along memory), ordered by (session, time): a session's rows contiguous, possibly over several calls.
+    Residuals arrive series-first, ``(k, m)`` uT (``k`` = 3 output axes by default, or the axes of several fits of
+    the same rows stacked: each series is accumulated on its own, exactly as alone; a contiguous row per series: the
+    reductions run along memory), ordered by (session, time): a session's rows contiguous, possibly over several
+    calls.
     The spread is taken about the accumulated mean, so any centre gives the same result up to rounding;
     callers subtract (an estimate of) the mean first so that rounding stays at the level of the spread.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, k: int = 3) -> None:
+        self.k = k
         self.n = 0
-        self._sum = np.zeros(3)
-        self._sum_sq = np.zeros(3)
+        self._sum = np.zeros(k)
+        self._sum_sq = np.zeros(k)
         self._count: list[int] = []              # level j: blocks of 2**(j+1) rows
         self._s1: list[np.ndarray] = []
         self._s2: list[np.ndarray] = []
@@ -40,8 +43,8 @@ class BlockingInflation:
         self._session = None
 
     def add(self, resid_uT, session) -> None:
-        """Residuals ``resid_uT`` (3, m) of rows of sessions ``session`` (m,), in (session, time) order."""
-        r = np.asarray(resid_uT, dtype=float).reshape(3, -1)
+        """Residuals ``resid_uT`` (k, m) of rows of sessions ``session`` (m,), in (session, time) order."""
+        r = np.asarray(resid_uT, dtype=float).reshape(self.k, -1)
         s = np.asarray(session).reshape(-1)
         if r.shape[1] == 0:
             return
@@ -58,7 +61,7 @@ class BlockingInflation:
             self._climb(r[:, a:b])
 
     def _climb(self, items: np.ndarray) -> None:
-        """Pair up ``items`` (3, k: means of 2**j rows) level by level, keeping an odd one pending."""
+        """Pair up ``items`` (k, n: means of 2**j rows) level by level, keeping an odd one pending."""
         j = 0
         while items.shape[1]:
             if j == len(self._carry):
@@ -72,20 +75,20 @@ class BlockingInflation:
                 self._adjacent(j + 1, items)
                 if j == len(self._count):
                     self._count.append(0)
-                    self._s1.append(np.zeros(3))
-                    self._s2.append(np.zeros(3))
+                    self._s1.append(np.zeros(self.k))
+                    self._s2.append(np.zeros(self.k))
                 self._count[j] += k
                 self._s1[j] += items.sum(axis=1)
                 self._s2[j] += np.einsum("ij,ij->i", items, items)
             j += 1
 
     def _adjacent(self, level: int, items: np.ndarray) -> None:
-        """Squared differences of adjacent items (3, k) of ``level`` (means of 2**level rows), this session."""
+        """Squared differences of adjacent items (k, n) of ``level`` (means of 2**level rows), this session."""
         while len(self._last) <= level:
             self._last.append(None)
         while len(self._dcount) <= level:
             self._dcount.append(0)
-            self._d2.append(np.zeros(3))
+            self._d2.append(np.zeros(self.k))
         prev = self._last[level]
         x = items if prev is None else np.hstack([prev, items])
         if x.shape[1] > 1:
@@ -95,13 +98,13 @@ class BlockingInflation:
         self._last[level] = items[:, -1:].copy()
 
     def adjacent_levels(self) -> list[tuple[int, int, np.ndarray]]:
-        """``[(L rows per block, number of adjacent pairs, mean squared difference (3,) uT^2)]``, L = 1, 2, 4..."""
+        """``[(L rows per block, number of adjacent pairs, mean squared difference (k,) uT^2)]``, L = 1, 2, 4..."""
         return [(2 ** j, k, self._d2[j] / k) for j, k in enumerate(self._dcount) if k]
 
     def kappa(self, min_blocks: int = 16, cap: float = 1e4) -> np.ndarray:
-        """(3,) ``kappa >= 1``: the largest ``kappa(L)`` over the ``L`` that leave at least ``min_blocks``
+        """(k,) ``kappa >= 1``: the largest ``kappa(L)`` over the ``L`` that leave at least ``min_blocks``
         blocks, capped at ``cap``; 1 for fewer than ``2 min_blocks`` rows."""
-        out = np.ones(3)
+        out = np.ones(self.k)
         if self.n < 2 * min_blocks:
             return out
         mean = self._sum / self.n

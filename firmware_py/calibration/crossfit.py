@@ -455,7 +455,10 @@ def _autocorr(d, rows, piece, runs: list[_Run], options, ordered: bool, rw: Slow
         s = run.pcs.xy_sum[f.train].sum(axis=0)
         center.append((s[p:] - s[:p] @ f.theta_full_basis()) / f.n)
     center = np.array(center)[:, :, None]
-    accs = [BlockingInflation() for _ in live]
+    groups: dict[bytes, list[int]] = {}      # fits of the same training rows (a fold of each model) share one
+    for j, (_, f) in enumerate(live):        # accumulator, their residuals stacked (each series on its own)
+        groups.setdefault(f.train.tobytes(), []).append(j)
+    accs = {key: BlockingInflation(3 * len(js)) for key, js in groups.items()}
     feed = any(run.fits[0].error is None for run in runs)
     s, t = d.session, d.t_s
     order = None if ordered else np.lexsort((t, s))
@@ -467,20 +470,27 @@ def _autocorr(d, rows, piece, runs: list[_Run], options, ordered: bool, rw: Slow
         pc, sess = piece[idx], s[idx]
         if feed:
             rw.add(X if d.weights is None else X * d.weights[idx][:, None], t[idx], sess)
-        for j, (_, f) in enumerate(live):
-            use = f.train[pc]
+        for key, js in groups.items():
+            rj = r[js[0]] if len(js) == 1 else r[js].reshape(3 * len(js), -1)
+            use = live[js[0]][1].train[pc]
             if use.all():
-                accs[j].add(r[j], sess)
+                accs[key].add(rj, sess)
             else:
                 keep = np.flatnonzero(use)
-                accs[j].add(np.take(r[j], keep, axis=1), sess[keep])
-    for (_, f), acc in zip(live, accs, strict=True):
-        post = _run(f, lambda f=f, acc=acc: gate_solve(f.R, f.n, f.model, f.first.prior, f.first.gated,
-                                                       acc.kappa(), options))
+                accs[key].add(np.take(rj, keep, axis=1), sess[keep])
+    kappa, levels = {}, {}
+    for key, js in groups.items():
+        kap, lev = accs[key].kappa(), accs[key].adjacent_levels()
+        for q, j in enumerate(js):
+            kappa[j] = kap[3 * q:3 * q + 3]
+            levels[j] = [(L, k, d2[3 * q:3 * q + 3]) for L, k, d2 in lev]
+    for j, (_, f) in enumerate(live):
+        post = _run(f, lambda f=f, j=j: gate_solve(f.R, f.n, f.model, f.first.prior, f.first.gated, kappa[j],
+                                                   options))
         f.post = post if post is not None else f.post
-    for (run, f), acc in zip(live, accs, strict=True):
+    for j, (run, f) in enumerate(live):
         if f is run.fits[0]:
-            run.levels = acc.adjacent_levels()
+            run.levels = levels[j]
 
 
 def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutMoments) -> None:

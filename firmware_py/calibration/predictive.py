@@ -70,6 +70,28 @@ def bin_rows(x: np.ndarray, t_s: np.ndarray, width_s: float) -> tuple[np.ndarray
     return np.add.reduceat(x, starts, axis=0), np.add.reduceat(t_s, starts) / counts
 
 
+def nested_bins(x: np.ndarray, t_s: np.ndarray, widths_s: Sequence[float]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """:func:`bin_rows` of ``x`` at each of ``widths_s`` (ascending, each a power-of-two multiple of the previous, as
+    the correlation times of :class:`SlowNoiseGrams`), each from the one before: a bin of a wider width is a union of
+    bins of the narrower (``floor(u / 4) = floor(floor(u) / 4)``, and scaling by a power of two is exact), so its
+    sums are sums of theirs (the same bins; sums to rounding) and the rows are summed once."""
+    out = []
+    if t_s.size < 2:
+        return [(x, t_s)] * len(widths_s)
+    cur_x, cur_t, cur_n = x, t_s, None          # the previous level's sums, times (sums), counts (None: rows)
+    first = np.arange(t_s.size)                 # each current item's first row
+    for w in widths_s:
+        k = np.floor((t_s[first] - t_s[0]) / w).astype(np.int64)
+        starts = np.r_[0, np.flatnonzero(k[1:] != k[:-1]) + 1]
+        if starts.size < k.size:
+            cur_x = np.add.reduceat(cur_x, starts, axis=0)
+            cur_t = np.add.reduceat(cur_t, starts)
+            cur_n = np.diff(np.r_[first[starts], t_s.size])
+            first = first[starts]
+        out.append((cur_x, cur_t if cur_n is None else cur_t / cur_n))
+    return out
+
+
 class RandomWalkGram:
     """``G = sum_sessions sum_k dt_k U_k U_k^T`` (p x p), ``U_k`` the tail sum of ``w x`` from row ``k`` to the
     session's end, ``dt_k`` the time since the previous row (0 at a session's first row): the covariance of the
@@ -162,13 +184,20 @@ class OUGram:
         t = np.asarray(t_s, dtype=float).reshape(-1)
         cuts = np.r_[0, np.flatnonzero(s[1:] != s[:-1]) + 1, s.size]
         for a, b in zip(cuts[:-1], cuts[1:], strict=True):
-            if self._session is None or s[a] != self._session:
-                self._session, self._h, self._t = s[a], np.zeros(self.p), None
-            self._run(xw[a:b], t[a:b])
+            x, tt = xw[a:b], t[a:b]
+            if tt.size > 1:
+                x, tt = bin_rows(x, tt, self.bin_s)
+            self.add_binned(x, tt, s[a])
 
-    def _run(self, x: np.ndarray, t: np.ndarray) -> None:
-        if t.size > 1:
-            x, t = bin_rows(x, t, self.tau / BINS_PER_TAU)
+    @property
+    def bin_s(self) -> float:
+        """Width (s) of the bins rows are summed over, from a run's first row."""
+        return self.tau / BINS_PER_TAU
+
+    def add_binned(self, x: np.ndarray, t: np.ndarray, session) -> None:
+        """Rows of one session already summed over bins of :attr:`bin_s` (sums ``x``, mean times ``t``)."""
+        if self._session is None or session != self._session:
+            self._session, self._h, self._t = session, np.zeros(self.p), None
         self.D += x.T @ x
         i = 0
         while i < t.size:
@@ -205,8 +234,12 @@ class SlowNoiseGrams:
             taus = [dt0 * 32.0 * 4.0 ** k for k in range(12)]
             self.ou = [OUGram(self.p, tau) for tau in taus if tau <= 4.0 * max(self.span_s, 32.0 * dt0)][:MAX_OU]
         self.rw.add(xw, t_s, session)
-        for g in self.ou:
-            g.add(xw, t_s, session)
+        s = np.asarray(session).reshape(-1)
+        t = np.asarray(t_s, dtype=float).reshape(-1)
+        cuts = np.r_[0, np.flatnonzero(s[1:] != s[:-1]) + 1, s.size]
+        for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+            for g, (x, tb) in zip(self.ou, nested_bins(xw[a:b], t[a:b], [g.bin_s for g in self.ou]), strict=True):
+                g.add_binned(x, tb, s[a])
 
     def result(self) -> tuple[list[float], list[np.ndarray], np.ndarray, float]:
         """``(taus (s), OU Grams, random-walk Gram, mean sampling interval (s))``."""
