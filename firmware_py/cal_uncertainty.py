@@ -102,6 +102,17 @@ def features_t(names: Sequence[str], b_uT: np.ndarray, dT: np.ndarray,
     return out
 
 
+def feature_key(name: str) -> tuple:
+    """What the feature of parameter ``name`` depends on, so that two parameters with the same key multiply the same
+    feature (``P[x,xy]`` and ``P[y,xy]``: ``b_x b_y`` on two outputs; ``K_O2`` on every axis: ``dT^2``)."""
+    p, i, j = parse_name(name)
+    if p in ("S", "K_S", "P"):
+        return p, j
+    if p in ("K_S2", "K_S3", "c3"):
+        return p, i
+    return (p,)
+
+
 def features(names: Sequence[str], b_uT: np.ndarray, dT: np.ndarray,
              currents_A: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
     """(N, k) values of the features that multiply the parameters ``names`` (one axis's)."""

@@ -195,7 +195,7 @@ def _same(a, b, what):
     assert [t.name for t in x.terms] == [t.name for t in y.terms]
     close([(t.mean, t.sd) for t in x.terms], [(t.mean, t.sd) for t in y.terms], "left-out priors")
     close(x.moments.XtWG, y.moments.XtWG, "X'WG")
-    close(x.moments.GtWG, y.moments.GtWG, "G'WG")
+    close(x.moments.g2, y.moments.g2, "diag G'WG")
     close(x.moments.sum_w, y.moments.sum_w, "sum w")
     for name in ("count", "sq", "u_b", "u_t", "M", "scale_sum", "mag_max_uT"):
         close(getattr(x.bins, name), getattr(y.bins, name), f"bins {name}")

@@ -48,7 +48,6 @@ from magstack.firmware.calibration.predictive import (
     HeldOutBins,
     LeftOutMoments,
     SlowNoiseGrams,
-    left_out_features,
     left_out_terms,
 )
 from magstack.firmware.calibration.residual_figures import ResidualFigures
@@ -301,7 +300,7 @@ def _moments_of(moments: LeftOutMoments, union: list, terms: list, cols: np.ndar
     out = LeftOutMoments(cols.size, idx.size)
     if idx.size:
         out.XtWG = moments.XtWG[np.ix_(cols, idx)]
-        out.GtWG = moments.GtWG[np.ix_(idx, idx)]
+        out.g2 = moments.g2[idx]
         out.sum_w = moments.sum_w
     return out
 
@@ -520,8 +519,7 @@ def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutM
             if run.resid is not None:
                 run.resid[sl] = r[k].T
         if union:
-            moments.add(X, left_out_features(union, d.b_meas_uT[sl], d.temp_c[sl] - t0),
-                        None if d.weights is None else d.weights[sl])
+            moments.add_rows(X, union, d.b_meas_uT[sl], d.temp_c[sl] - t0, None if d.weights is None else d.weights[sl])
         pc = piece[sl] if any(folds) else None
         held = {}            # a time-block fold's held-out rows' time blocks and design moments per bin (any model's)
         for run, fs, th, own_x in zip(runs, folds, theta_f, own, strict=True):
@@ -544,8 +542,11 @@ def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutM
                     if run.bins is not None:
                         scale = run.fits[0].n / f.n
                         bins = run.bins
-                        k = bins.add_residuals(rf, d.b_meas_uT[rows_k], d.temp_c[rows_k], scale)
-                        key = ("M", f.key, bins.field_edges_uT.tobytes(), bins.temp_edges_c.tobytes())
+                        edges = (bins.field_edges_uT.tobytes(), bins.temp_edges_c.tobytes(), bins.temp_centre_c)
+                        if ("where", f.key, edges) not in held:       # the rows' bins: any model's
+                            held["where", f.key, edges] = bins.locate(d.b_meas_uT[rows_k], d.temp_c[rows_k])
+                        k = bins.add_residuals(rf, None, None, scale, held["where", f.key, edges])
+                        key = ("M", f.key, edges)
                         if key not in held:
                             held[key] = bins.design_moments(k, np.take(X, keep, axis=0))
                         G = held[key]

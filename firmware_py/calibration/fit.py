@@ -53,7 +53,6 @@ from magstack.firmware.calibration.predictive import (
     SlowNoiseGrams,
     Uncertainty,
     assemble,
-    left_out_features,
     left_out_terms,
 )
 from magstack.firmware.calibration.reference import SATURATION_MARGIN, saturated_rows
@@ -1077,7 +1076,7 @@ def _accumulate_whole(d: FitData, model: CalModel, core: CoreFit, resid: np.ndar
     bl.add((r[order] - r.mean(axis=0)).T, d.session[order])
     terms = left_out_terms(model, priors_for(options.chip), np.diag(model.unpack(core.theta)["S"]))
     moments = LeftOutMoments(model.n_columns, len(terms))
-    moments.add(X, left_out_features(terms, d.b_meas_uT, d.temp_c - model.t0_c), d.weights)
+    moments.add_rows(X, terms, d.b_meas_uT, d.temp_c - model.t0_c, d.weights)
     bins = HeldOutBins.for_coverage(core.coverage, model.n_columns) if options.holdout else None
     taus, ou, rwg, dt = rw.result()
     return Accumulated((X * w[:, None]).T @ X, taus, ou + [rwg], bl.adjacent_levels(), dt, terms, moments, bins)

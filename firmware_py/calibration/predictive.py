@@ -419,32 +419,37 @@ def left_out_terms(model: CalModel, chip, s_diag: np.ndarray) -> list[LeftOut]:
     return out
 
 
-def left_out_features(terms: Sequence[LeftOut], b_uT: np.ndarray, dT: np.ndarray) -> np.ndarray:
-    """(N, m) the features of the left-out parameters (each on its own axis's output)."""
-    from magstack.firmware.cal_uncertainty import features
-
-    return features([t.name for t in terms], b_uT, dT) if terms else np.zeros((np.asarray(b_uT).shape[0], 0))
-
-
 class LeftOutMoments:
-    """Weighted moments of the design and the left-out features over the fit rows: ``X'WG`` (p, m) and
-    ``G'WG`` (m, m), and the sum of weights (NaN features count as 0)."""
+    """Weighted moments of the design and the left-out features over the fit rows: ``X'WG`` (p, m), the diagonal
+    of ``G'WG`` (``g2`` (m,): ``sum w g_k^2``) and the sum of weights (NaN features count as 0)."""
 
     def __init__(self, p: int, m: int) -> None:
         self.XtWG = np.zeros((p, m))
-        self.GtWG = np.zeros((m, m))
+        self.g2 = np.zeros(m)
         self.sum_w = 0.0
 
-    def add(self, X: np.ndarray, G: np.ndarray, w: np.ndarray | None = None) -> None:
-        G = np.nan_to_num(G)
-        Gw = G if w is None else G * w[:, None]
-        self.XtWG += X.T @ Gw
-        self.GtWG += G.T @ Gw
-        self.sum_w += float(G.shape[0] if w is None else np.sum(w))
+    def add_rows(self, X: np.ndarray, terms: Sequence[LeftOut], b_uT: np.ndarray, dT: np.ndarray,
+                 w: np.ndarray | None = None) -> None:
+        """Rows of design ``X`` (N, p), DUT field (N, 3) uT, ``dT = T - t0`` (N,) degC and weights: the features of
+        ``terms`` (m of them) formed there, each distinct feature once (:func:`.cal_uncertainty.feature_key`)."""
+        from magstack.firmware.cal_uncertainty import feature_key, features_t
+
+        keys = [feature_key(t.name) for t in terms]
+        first = {k: j for j, k in reversed(list(enumerate(keys)))}
+        uniq = sorted(first.values())
+        col = {keys[j]: q for q, j in enumerate(uniq)}
+        at = np.array([col[k] for k in keys], dtype=np.intp)
+        n = np.asarray(X).shape[0]
+        if uniq:
+            Gt = np.nan_to_num(features_t([terms[j].name for j in uniq], b_uT, dT))          # (u, N)
+            Gw = Gt if w is None else Gt * w[None, :]
+            self.XtWG += (Gw @ X).T[:, at]
+            self.g2 += np.einsum("kn,kn->k", Gt, Gw)[at]
+        self.sum_w += float(n if w is None else np.sum(w))
 
     def merge(self, other: LeftOutMoments) -> LeftOutMoments:
         self.XtWG += other.XtWG
-        self.GtWG += other.GtWG
+        self.g2 += other.g2
         self.sum_w += other.sum_w
         return self
 
@@ -518,25 +523,35 @@ class HeldOutBins:
         k = self.add_residuals(resid_uT, b_uT, temp_c, scale)
         self.M += scale * self.design_moments(k, z)
 
-    def add_residuals(self, resid_uT: np.ndarray, b_uT: np.ndarray, temp_c: np.ndarray, scale: float) -> np.ndarray:
+    def add_residuals(self, resid_uT: np.ndarray, b_uT: np.ndarray, temp_c: np.ndarray, scale: float,
+                      where: tuple | None = None) -> np.ndarray:
         """:meth:`add` without the design moments (add ``scale`` x :meth:`design_moments` to :attr:`M`); returns
-        the rows' bins."""
+        the rows' bins. ``where``: :meth:`locate` of the same rows, when another model's residuals there had it."""
+        k, mag_max, per_bin = self.locate(b_uT, temp_c) if where is None else where
+        nb = self.count.size
+        self.mag_max_uT = max(self.mag_max_uT, mag_max)
+        self.scale_sum += scale * k.size
+        self.count += per_bin[0]
+        self.u_b += per_bin[1]
+        self.u_t += per_bin[2]
+        r = np.asarray(resid_uT, dtype=float)
+        self.sq += np.bincount((k + nb * np.arange(3)[:, None]).reshape(-1), weights=(r * r).reshape(-1),
+                               minlength=3 * nb).reshape(3, nb).T
+        return k
+
+    def locate(self, b_uT: np.ndarray, temp_c: np.ndarray) -> tuple:
+        """``(bin of each row, largest finite |b| (0 if none), per-bin (count, sum u_b, sum u_t))`` of rows with DUT
+        field ``b_uT`` (m, 3) uT and temperature (m,) degC: what :meth:`add_residuals` adds besides the residuals."""
         mag = np.linalg.norm(b_uT, axis=1)
-        if mag.size and np.isfinite(mag).any():
-            self.mag_max_uT = max(self.mag_max_uT, float(np.nanmax(mag)))
+        mag_max = float(np.nanmax(mag)) if mag.size and np.isfinite(mag).any() else 0.0
         t = np.where(np.isfinite(temp_c), temp_c, self.temp_centre_c)
         k = np.searchsorted(self.field_edges_uT, mag) * (len(self.temp_edges_c) + 1) + np.searchsorted(
             self.temp_edges_c, t)
+        nb = self.count.size
         ub = (mag / FIELD_REF_uT) ** 2
         ut = ((t - self.temp_centre_c) / TEMP_REF_C) ** 2
-        nb = self.count.size
-        self.scale_sum += scale * k.size
-        self.count += np.bincount(k, minlength=nb)
-        for i in range(3):
-            self.sq[:, i] += np.bincount(k, weights=resid_uT[i] ** 2, minlength=nb)
-        self.u_b += np.bincount(k, weights=ub, minlength=nb)
-        self.u_t += np.bincount(k, weights=ut, minlength=nb)
-        return k
+        return k, mag_max, (np.bincount(k, minlength=nb), np.bincount(k, weights=ub, minlength=nb),
+                            np.bincount(k, weights=ut, minlength=nb))
 
     def design_moments(self, k: np.ndarray, z: np.ndarray) -> np.ndarray:
         """(bins, q, q) ``sum z z^T`` of design rows ``z`` (m, q) per bin ``k`` (m,) (any q: the rows of a design
@@ -664,7 +679,7 @@ def capped_left_var(terms: Sequence[LeftOut], beta: np.ndarray, mo: LeftOutMomen
     h2 = np.zeros(len(terms))
     for k, t in enumerate(terms):
         b = beta[k]
-        h2[k] = (mo.GtWG[k, k] - 2.0 * b @ mo.XtWG[:, k] + b @ XtWX @ b) / max(mo.sum_w, 1e-300)
+        h2[k] = (mo.g2[k] - 2.0 * b @ mo.XtWG[:, k] + b @ XtWX @ b) / max(mo.sum_w, 1e-300)
         r2 = float(resid2_uT2[t.axis])
         var[k] = t.var if not h2[k] > 0 or r2 <= 0 else min(t.var, r2 / h2[k])
     for i in range(3):

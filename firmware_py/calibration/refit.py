@@ -73,7 +73,6 @@ from magstack.firmware.calibration.model import FLIGHT_TERMS, FLOAT_ONLY_TERMS, 
 from magstack.firmware.calibration.predictive import (
     LeftOutMoments,
     from_holdout,
-    left_out_features,
     left_out_terms,
 )
 from magstack.firmware.calibration.streaming import StreamingFit
@@ -386,7 +385,7 @@ def _block_pass(st: PassStats, blk: telemetry.TelemetryBlock, plan: Plan, theta,
         st.fit.add(*arrays)
         if st.left_moments is not None and arrays[0].shape[0]:
             X = plan.model.design(arrays[0], arrays[2], arrays[3], arrays[4], arrays[5])
-            st.left_moments.add(X, left_out_features(plan.left_out, arrays[0], arrays[2] - plan.model.t0_c))
+            st.left_moments.add_rows(X, plan.left_out, arrays[0], arrays[2] - plan.model.t0_c)
         st.bins.update(b_ref[fit_rows], blk.temp_c[fit_rows])
         held = _rows(blk, b_ref, cur, use & held_out)
         st.hold.add(*held)
