@@ -211,7 +211,8 @@ def _same(a, b, what):
 ])
 def test_shared_passes_equal_two_separate_cross_fits(terms, weights, shuffle):
     """One set of passes for a model and a wider one (the second-order tempco's candidate) gives what a cross-fit
-    of each gives; without the wider one, the model's own."""
+    of each gives; without the wider one, the model's own; with a choice between them, the chosen one's (the
+    other's held-out figures and block SSE, which the choice compares, and no more)."""
     from magstack.firmware.calibration.fit import build_model
 
     d = _sessions_data(weights=weights)
@@ -230,6 +231,16 @@ def test_shared_passes_equal_two_separate_cross_fits(terms, weights, shuffle):
     alone, none = crossfit.cross_fit_with(d, base, wider, opts, lambda cov: False)
     assert none is None
     _same(alone, one, "model alone")
+    for pick in (False, True):           # only the adopted model is finished; the other keeps its held-out figures
+        seen_by = []
+        a, b = crossfit.cross_fit_with(d, base, wider, opts, lambda cov: True,
+                                       lambda x, y, pick=pick: seen_by.append((x, y)) or pick)
+        assert seen_by == [(a, b)]
+        done, other, ref, ref_other = (b, a, two, one) if pick else (a, b, one, two)
+        _same(done, ref, f"adopted={pick}")
+        assert other.acc is None and other.figures is None and other.resid_uT is None
+        np.testing.assert_allclose(other.holdout_blocks_uT, ref_other.holdout_blocks_uT, rtol=RTOL)
+        assert sorted(other.block_sse.sse) == sorted(ref_other.block_sse.sse)
 
 
 def test_a_wider_model_must_have_every_column():

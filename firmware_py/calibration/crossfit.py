@@ -191,7 +191,9 @@ def cross_fit(d: FitData, model: CalModel, options: FitOptions) -> CrossFit:
 
 
 def cross_fit_with(d: FitData, model: CalModel, wider: CalModel, options: FitOptions,
-                   try_wider: Callable[[Coverage], bool]) -> tuple[CrossFit, CrossFit | None]:
+                   try_wider: Callable[[Coverage], bool],
+                   adopt: Callable[[CrossFit, CrossFit], bool] | None = None
+                   ) -> tuple[CrossFit, CrossFit | None]:
     """``cross_fit(d, model)`` and, when ``try_wider`` says yes to the full fit's coverage, ``cross_fit(d, wider)``
     (else None), from one set of passes over the rows; ``wider`` has every column of ``model``
     (:func:`column_map`). Pass 1 factors the rows of ``wider``'s design; ``model``'s R factor of a piece is the R of
@@ -208,7 +210,8 @@ def cross_fit_with(d: FitData, model: CalModel, wider: CalModel, options: FitOpt
         if not try_wider(_coverage(base.pcs, base.pcs.count > 0)):
             base.cols = np.arange(model.n_columns)         # passes 2 and 3 on the model's own design
             return _cross_fit(d, _Rows(d, model), piece, [base], options)[0], None
-        out = _cross_fit(d, rows, piece, [base, _Run(wider, np.arange(wider.n_columns), pcs)], options)
+        choose = None if adopt is None else (lambda outs: 1 if adopt(outs[0], outs[1]) else 0)
+        out = _cross_fit(d, rows, piece, [base, _Run(wider, np.arange(wider.n_columns), pcs)], options, choose)
         return out[0], out[1]
 
 
@@ -241,8 +244,12 @@ class _Run:
         return out
 
 
-def _cross_fit(d: FitData, rows: _Rows, piece: _PieceOf, runs: list[_Run], options: FitOptions) -> list[CrossFit]:
-    """Every model of ``runs`` fitted and cross-fitted in one set of passes over the rows (design ``rows.model``)."""
+def _cross_fit(d: FitData, rows: _Rows, piece: _PieceOf, runs: list[_Run], options: FitOptions,
+               choose: Callable[[list[CrossFit]], int] | None = None) -> list[CrossFit]:
+    """Every model of ``runs`` fitted and cross-fitted in one set of passes over the rows (design ``rows.model``).
+    ``choose``: given every model's held-out figures and block SSE (after pass 3's first pass), the index of the one
+    to finish; the others' figures, discrepancy bins and predictive parts are then not computed (their CrossFit
+    holds the fit, the held-out figures and the block SSE only)."""
     for run in runs:
         run.fits = _fits(run.pcs, run.model, piece, options)
         for f in run.fits:
@@ -272,23 +279,28 @@ def _cross_fit(d: FitData, rows: _Rows, piece: _PieceOf, runs: list[_Run], optio
         run.block_sse = BlockSSE() if options.holdout else None
     union = list({t.name: t for run in runs for t in run.terms}.values())   # by name: the features
     moments = LeftOutMoments(P, len(union))
-    _final_pass(d, rows, piece, runs, union, moments)
+    outs = [CrossFit(CoreFit(None, run.fits[0].post.theta.copy(),
+                             np.where(run.model.axis_mask(), run.fits[0].post.sd, np.nan), run.fits[0].held,
+                             np.vstack([run.fits[0].post.cond, raw_cond(run.fits[0].R, run.model)]),
+                             run.fits[0].coverage, None, run.fits[0].post), None) for run in runs]
+
+    def decide() -> list[int]:
+        for out, run in zip(outs, runs, strict=True):
+            out.block_sse = run.block_sse
+            if options.holdout:
+                _figures(out, run.fits)
+        return list(range(len(runs))) if choose is None or len(runs) == 1 else [choose(outs)]
+
+    keep = _final_pass(d, rows, piece, runs, union, moments, decide)
     taus, ou, rwg, dt = rw.result()
-    outs = []
-    for run in runs:
-        full, model, cols = run.fits[0], run.model, run.cols
-        p = model.n_columns
-        out = CrossFit(CoreFit(None, full.post.theta.copy(), np.where(model.axis_mask(), full.post.sd, np.nan),
-                               full.held, np.vstack([full.post.cond, raw_cond(full.R, model)]), full.coverage, None,
-                               full.post), run.resid, run.figures)
+    for k in keep:
+        run, out = runs[k], outs[k]
+        full, p, cols = run.fits[0], run.model.n_columns, run.cols
+        out.resid_uT, out.figures = run.resid, run.figures
         Rx = full.R[:, :p]
         sub = np.ix_(cols, cols)
         out.acc = Accumulated(Rx.T @ Rx, taus, [g[sub] for g in ou + [rwg]], run.levels, dt, run.terms,
                               _moments_of(moments, union, run.terms, cols), run.bins)
-        out.block_sse = run.block_sse
-        if options.holdout:
-            _figures(out, run.fits)
-        outs.append(out)
     return outs
 
 
@@ -492,13 +504,16 @@ def _autocorr(d, rows, piece, runs: list[_Run], options, ordered: bool, rw: Slow
             run.levels = levels[j]
 
 
-def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutMoments) -> None:
-    """Pass 3, for every model of ``runs``: the full fit's residuals, into its ``figures`` (then replayed while they
-    need them again) or else kept whole (``resid`` (N, 3)); each fold's squared held-out residuals; the time-block
-    folds' held-out residuals binned (``bins``) and summed per time block (``block_sse``). Also the moments of the
-    design and the left-out features ``union`` (into ``moments``). The first model's figures take this pass; each
-    further model's start one replay later (their first passes keep up to :data:`.rank_select.COLLECT_CAP` values
-    each: one at a time, as for one model)."""
+def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutMoments,
+                decide: Callable[[], list[int]]) -> list[int]:
+    """Pass 3, for every model of ``runs``: each fold's squared held-out residuals, the time-block folds' summed per
+    time block (``block_sse``); the moments of the design and the left-out features ``union`` (into ``moments``).
+    Then ``decide()`` names the models to finish (returned): their full fit's residuals go into their ``figures``
+    (replayed while they need them again) or else are kept whole (``resid`` (N, 3)), and their time-block folds'
+    held-out residuals are binned (``bins``). The first model's figures and bins ride on pass 3 itself (it is
+    finished whatever the decision; when it is not, they are dropped); each further finished model's start one
+    replay later (their first passes keep up to :data:`.rank_select.COLLECT_CAP` values each: one at a time, as for
+    one model)."""
     P = rows.model.n_columns
     theta = np.hstack([run.embed(run.fits[0].theta_full_basis(), P) for run in runs])     # (P, 3 models)
     folds = [[f for f in run.fits[1:] if f.error is None] for run in runs]
@@ -507,67 +522,84 @@ def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutM
     own = [run.own_design(P) for run in runs]
     for run in runs:
         run.resid = None if run.figures is not None else np.empty((len(d), 3))
-    figs = [(k, run.figures) for k, run in enumerate(runs) if run.figures is not None]
-    active, later = figs[:1], figs[1:]
     t0 = runs[0].model.t0_c
+
+    def held_out(j: int, sl, X, Y, held: dict, sums: bool, bins: bool) -> None:
+        """Model ``j``'s folds on the block ``sl``: ``sums``: squared held-out residuals and block SSE; ``bins``:
+        the discrepancy bins (``held``: what the block's folds share between models)."""
+        run, fs, th, own_x = runs[j], folds[j], theta_f[j], own[j]
+        if not fs:
+            return
+        pc = piece[sl]
+        Pf = (th.T @ X.T).reshape(-1, 3, X.shape[0])                      # fold, axis, row
+        for q, f in enumerate(fs):
+            keep = np.flatnonzero(f.test[pc])
+            if not keep.size:
+                continue
+            if f.unseen:
+                Xf, Yf = _Rows(d, f.model).block(sl.start + keep)
+                rf = (Yf - f.model.predict(f.post.theta, Xf)).T
+            else:
+                rf = np.take(Y.T, keep, axis=1) - np.take(Pf[q], keep, axis=1)
+            rows_k = sl.start + keep
+            if sums:
+                f.sq += np.einsum("ij,ij->i", rf, rf)
+                f.cnt += keep.size
+                if f.kind == "blocks" and run.block_sse is not None:
+                    if ("blocks", f.key) not in held:
+                        held["blocks", f.key] = piece.time_block(rows_k)
+                    run.block_sse.add(*held["blocks", f.key], np.einsum("ij,ij->j", rf, rf))
+            if bins and f.kind == "blocks" and run.bins is not None:
+                scale = run.fits[0].n / f.n
+                bn = run.bins
+                edges = (bn.field_edges_uT.tobytes(), bn.temp_edges_c.tobytes(), bn.temp_centre_c)
+                if ("where", f.key, edges) not in held:       # the rows' bins: any model's
+                    held["where", f.key, edges] = bn.locate(d.b_meas_uT[rows_k], d.temp_c[rows_k])
+                k = bn.add_residuals(rf, None, None, scale, held["where", f.key, edges])
+                key = ("M", f.key, edges)
+                if key not in held:
+                    held[key] = bn.design_moments(k, np.take(X, keep, axis=0))
+                G = held[key]
+                bn.M += scale * (G if own_x else G[:, run.cols][:, :, run.cols])
+
+    fig0 = runs[0].figures
     for sl in rows.chunks(None):
         X, Y = rows.block(sl)
         r = _resid(X, Y, theta)
-        for k, fig in active:
-            fig.add(sl.start, r[k])
+        if fig0 is not None:
+            fig0.add(sl.start, r[0])
         for k, run in enumerate(runs):
             if run.resid is not None:
                 run.resid[sl] = r[k].T
         if union:
             moments.add_rows(X, union, d.b_meas_uT[sl], d.temp_c[sl] - t0, None if d.weights is None else d.weights[sl])
-        pc = piece[sl] if any(folds) else None
-        held = {}            # a time-block fold's held-out rows' time blocks and design moments per bin (any model's)
-        for run, fs, th, own_x in zip(runs, folds, theta_f, own, strict=True):
-            if not fs:
-                continue
-            Pf = (th.T @ X.T).reshape(-1, 3, X.shape[0])                      # fold, axis, row
-            for j, f in enumerate(fs):
-                keep = np.flatnonzero(f.test[pc])
-                if not keep.size:
-                    continue
-                if f.unseen:
-                    Xf, Yf = _Rows(d, f.model).block(sl.start + keep)
-                    rf = (Yf - f.model.predict(f.post.theta, Xf)).T
-                else:
-                    rf = np.take(Y.T, keep, axis=1) - np.take(Pf[j], keep, axis=1)
-                f.sq += np.einsum("ij,ij->i", rf, rf)
-                f.cnt += keep.size
-                if f.kind == "blocks" and (run.bins is not None or run.block_sse is not None):
-                    rows_k = sl.start + keep
-                    if run.bins is not None:
-                        scale = run.fits[0].n / f.n
-                        bins = run.bins
-                        edges = (bins.field_edges_uT.tobytes(), bins.temp_edges_c.tobytes(), bins.temp_centre_c)
-                        if ("where", f.key, edges) not in held:       # the rows' bins: any model's
-                            held["where", f.key, edges] = bins.locate(d.b_meas_uT[rows_k], d.temp_c[rows_k])
-                        k = bins.add_residuals(rf, None, None, scale, held["where", f.key, edges])
-                        key = ("M", f.key, edges)
-                        if key not in held:
-                            held[key] = bins.design_moments(k, np.take(X, keep, axis=0))
-                        G = held[key]
-                        bins.M += scale * (G if own_x else G[:, run.cols][:, :, run.cols])
-                    if run.block_sse is not None:
-                        if ("blocks", f.key) not in held:
-                            held["blocks", f.key] = piece.time_block(rows_k)
-                        run.block_sse.add(*held["blocks", f.key], np.einsum("ij,ij->j", rf, rf))
-            del Pf
-    while active or later:
-        for _, fig in active:
-            fig.end_pass()
-        active = [(k, fig) for k, fig in active if fig.pending] + later[:1]
-        later = later[1:]
-        if not active:
+        held = {}            # a time-block fold's held-out rows' time blocks, bins and design moments (any model's)
+        for j in range(len(runs)):
+            held_out(j, sl, X, Y, held, True, j == 0)
+    keep = decide()
+    started = [0] if 0 in keep else []            # models whose first figures pass and bins are done
+    todo = [k for k in keep if k not in started]  # the others, one per replay
+    active = [k for k in started if runs[k].figures is not None]
+    while True:
+        for k in active:
+            runs[k].figures.end_pass()
+        active = [k for k in active if runs[k].figures.pending]
+        new = todo[:1]
+        todo = todo[1:]
+        if not active and not new:
             break
         for sl in rows.chunks(None):                 # the same residuals again, bit for bit
             X, Y = rows.block(sl)
             r = _resid(X, Y, theta)
-            for k, fig in active:
-                fig.add(sl.start, r[k])
+            for k in active:
+                runs[k].figures.add(sl.start, r[k])
+            held = {}
+            for k in new:
+                if runs[k].figures is not None:
+                    runs[k].figures.add(sl.start, r[k])
+                held_out(k, sl, X, Y, held, False, True)
+        active += [k for k in new if runs[k].figures is not None]
+    return keep
 
 
 def _resid(X: np.ndarray, Y: np.ndarray, theta: np.ndarray) -> np.ndarray:

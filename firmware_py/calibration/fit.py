@@ -896,13 +896,20 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
         cm = build_model(sel.d, all_terms, currents, t0_c, name)
         if len(sel.d) > cm.n_columns and crossfit.applies(cm, options):      # the same rows (same usable mask)
             cand_sel = dataclasses.replace(sel, all_terms=all_terms, name=name, cm=cm)
+            tests = []
+
+            def adopt(base, cand) -> bool:       # only the adopted model's figures are finished
+                tests.append(paired_block_test(base.block_sse.sse, cand.block_sse.sse))
+                return tests[-1].significant
+
             cross, cross2 = crossfit.cross_fit_with(sel.d, sel.cm, cm, options,
-                                                    lambda cov: _field_temp_span(cov) >= TEMPCO2_SPAN_C)
-            res, sse = _finish(data, sel, cross, currents, t0_c, options)
+                                                    lambda cov: _field_temp_span(cov) >= TEMPCO2_SPAN_C, adopt)
             if cross2 is None:
-                return res
-            cand, sse2 = _finish(data, cand_sel, cross2, currents, t0_c, options)
-            return _choose_tempco2(res, sse, cand, sse2)
+                return _finish(data, sel, cross, currents, t0_c, options)[0]
+            adopted = tests[0].significant
+            res = _finish(data, cand_sel if adopted else sel, cross2 if adopted else cross, currents, t0_c,
+                          options)[0]
+            return _note_tempco2(res, adopted, tests[0], cross.holdout_blocks_uT, cross2.holdout_blocks_uT)
     res, sse = _fit_model(data, sel, currents, t0_c, options)
     if sse is None or _field_temp_span(res.coverage) < TEMPCO2_SPAN_C:
         return res
@@ -918,16 +925,21 @@ def _field_temp_span(cov: Coverage) -> float:
 
 def _choose_tempco2(res: FitResult, sse: BlockSSE, cand: FitResult, sse2: BlockSSE | None) -> FitResult:
     """``cand`` (the model with ``temperature_gain2``) when the paired test finds its held-out improvement over
-    ``res`` significant, else ``res``; the chosen one says what was compared (``term_choice``, a note)."""
-    span = _field_temp_span(res.coverage)
+    ``res`` significant, else ``res``; the chosen one says what was compared (:func:`_note_tempco2`)."""
     test = paired_block_test(sse.sse, sse2.sse) if sse2 is not None else None
-    chosen = cand if test is not None and test.significant else res
-    chosen.term_choice = {"candidate": "temperature_gain2", "adopted": chosen is cand,
-                          "holdout_blocks_base_uT": res.holdout_blocks_uT, "holdout_blocks_candidate_uT":
-                          cand.holdout_blocks_uT, **({} if test is None else dataclasses.asdict(test))}
+    adopted = test is not None and test.significant
+    return _note_tempco2(cand if adopted else res, adopted, test, res.holdout_blocks_uT, cand.holdout_blocks_uT)
+
+
+def _note_tempco2(chosen: FitResult, adopted: bool, test, base_holdout_uT, cand_holdout_uT) -> FitResult:
+    """``chosen`` with what the choice of ``temperature_gain2`` compared (``term_choice``, a note)."""
+    span = _field_temp_span(chosen.coverage)
+    chosen.term_choice = {"candidate": "temperature_gain2", "adopted": adopted,
+                          "holdout_blocks_base_uT": base_holdout_uT, "holdout_blocks_candidate_uT": cand_holdout_uT,
+                          **({} if test is None else dataclasses.asdict(test))}
     chosen.notes.append(
         f"second-order sensitivity tempco (temperature_gain2, {span:.1f} degC with field): "
-        + ("adopted" if chosen is cand else "not adopted") + (f": {test.describe()}" if test is not None else ""))
+        + ("adopted" if adopted else "not adopted") + (f": {test.describe()}" if test is not None else ""))
     return chosen
 
 
