@@ -234,7 +234,7 @@ def test_shared_passes_equal_two_separate_cross_fits(terms, weights, shuffle):
     for pick in (False, True):           # only the adopted model is finished; the other keeps its held-out figures
         seen_by = []
         a, b = crossfit.cross_fit_with(d, base, wider, opts, lambda cov: True,
-                                       lambda x, y, pick=pick: seen_by.append((x, y)) or pick)
+                                       lambda x, y, pick=pick, seen_by=seen_by: seen_by.append((x, y)) or pick)
         assert seen_by == [(a, b)]
         done, other, ref, ref_other = (b, a, two, one) if pick else (a, b, one, two)
         _same(done, ref, f"adopted={pick}")
