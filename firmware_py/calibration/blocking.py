@@ -28,8 +28,9 @@ class BlockingInflation:
     callers subtract (an estimate of) the mean first so that rounding stays at the level of the spread.
     """
 
-    def __init__(self, k: int = 3) -> None:
+    def __init__(self, k: int = 3, adjacent: bool = True) -> None:
         self.k = k
+        self.adjacent = adjacent             # False: kappa only (no adjacent_levels), at less cost
         self.n = 0
         self._sum = np.zeros(k)
         self._sum_sq = np.zeros(k)
@@ -57,7 +58,8 @@ class BlockingInflation:
                 self._session = s[a]
                 self._carry = []
                 self._last = []
-            self._adjacent(0, r[:, a:b])
+            if self.adjacent:
+                self._adjacent(0, r[:, a:b])
             self._climb(r[:, a:b])
 
     def _climb(self, items: np.ndarray) -> None:
@@ -72,7 +74,8 @@ class BlockingInflation:
             self._carry[j] = items[:, -1:].copy() if items.shape[1] % 2 else None
             items = 0.5 * (items[:, 0:2 * k:2] + items[:, 1:2 * k:2])
             if k:
-                self._adjacent(j + 1, items)
+                if self.adjacent:
+                    self._adjacent(j + 1, items)
                 if j == len(self._count):
                     self._count.append(0)
                     self._s1.append(np.zeros(self.k))
@@ -98,7 +101,8 @@ class BlockingInflation:
         self._last[level] = items[:, -1:].copy()
 
     def adjacent_levels(self) -> list[tuple[int, int, np.ndarray]]:
-        """``[(L rows per block, number of adjacent pairs, mean squared difference (k,) uT^2)]``, L = 1, 2, 4..."""
+        """``[(L rows per block, number of adjacent pairs, mean squared difference (k,) uT^2)]``, L = 1, 2, 4...
+        (empty for an accumulator made with ``adjacent=False``)."""
         return [(2 ** j, k, self._d2[j] / k) for j, k in enumerate(self._dcount) if k]
 
     def kappa(self, min_blocks: int = 16, cap: float = 1e4) -> np.ndarray:

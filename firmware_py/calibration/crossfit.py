@@ -469,7 +469,8 @@ def _autocorr(d, rows, piece, runs: list[_Run], options, ordered: bool, rw: Slow
     groups: dict[bytes, list[int]] = {}      # fits of the same training rows (a fold of each model) share one
     for j, (_, f) in enumerate(live):        # accumulator, their residuals stacked (each series on its own)
         groups.setdefault(f.train.tobytes(), []).append(j)
-    accs = {key: BlockingInflation(3 * len(js)) for key, js in groups.items()}
+    accs = {key: BlockingInflation(3 * len(js), adjacent=any(live[j][1] is live[j][0].fits[0] for j in js))
+            for key, js in groups.items()}                  # the adjacent levels: of the full fits only
     feed = any(run.fits[0].error is None for run in runs)
     s, t = d.session, d.t_s
     order = None if ordered else np.lexsort((t, s))

@@ -59,6 +59,17 @@ MIN_PAIRS = 8
 
 
 # ---------------------------------------------------------------------- random walk
+def segment_sums(x: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """Sums of the rows of ``x`` (m, p) over the consecutive segments that begin at ``starts`` (increasing, from 0):
+    ``np.add.reduceat(x, starts, axis=0)``, each sum in row order, as a sparse matrix product (several times
+    faster on a C-ordered ``x``)."""
+    from scipy.sparse import csr_matrix
+
+    m = x.shape[0]
+    S = csr_matrix((np.ones(m), np.arange(m), np.r_[starts, m]), shape=(starts.size, m))
+    return S @ x
+
+
 def bin_rows(x: np.ndarray, t_s: np.ndarray, width_s: float) -> tuple[np.ndarray, np.ndarray]:
     """Rows ``x`` (m, p) at times ``t_s`` (sorted) summed over bins of ``width_s`` from the first row, each bin at
     its rows' mean time: ``(sums (k, p), times (k,))``."""
@@ -67,7 +78,7 @@ def bin_rows(x: np.ndarray, t_s: np.ndarray, width_s: float) -> tuple[np.ndarray
     if starts.size == t_s.size:
         return x, t_s
     counts = np.diff(np.r_[starts, t_s.size])
-    return np.add.reduceat(x, starts, axis=0), np.add.reduceat(t_s, starts) / counts
+    return segment_sums(x, starts), np.add.reduceat(t_s, starts) / counts
 
 
 def nested_bins(x: np.ndarray, t_s: np.ndarray, widths_s: Sequence[float]) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -84,7 +95,7 @@ def nested_bins(x: np.ndarray, t_s: np.ndarray, widths_s: Sequence[float]) -> li
         k = np.floor((t_s[first] - t_s[0]) / w).astype(np.int64)
         starts = np.r_[0, np.flatnonzero(k[1:] != k[:-1]) + 1]
         if starts.size < k.size:
-            cur_x = np.add.reduceat(cur_x, starts, axis=0)
+            cur_x = segment_sums(cur_x, starts)
             cur_t = np.add.reduceat(cur_t, starts)
             cur_n = np.diff(np.r_[first[starts], t_s.size])
             first = first[starts]
@@ -206,7 +217,10 @@ class OUGram:
             t0 = t[i]
             e = np.exp((t[i:j] - t0) / self.tau)[:, None]
             carry = 0.0 if self._t is None else np.exp(-(t0 - self._t) / self.tau)
-            h = (np.cumsum(x[i:j] * e, axis=0) + carry * self._h) / e
+            h = x[i:j] * e
+            np.cumsum(h, axis=0, out=h)
+            h += carry * self._h
+            h /= e
             self.H += x[i:j].T @ h
             self._h, self._t = h[-1].copy(), float(t[j - 1])
             i = j
