@@ -518,8 +518,7 @@ def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutM
     P = rows.model.n_columns
     theta = np.hstack([run.embed(run.fits[0].theta_full_basis(), P) for run in runs])     # (P, 3 models)
     folds = [[f for f in run.fits[1:] if f.error is None] for run in runs]
-    theta_f = [np.hstack([run.embed(f.theta_full_basis(), P) for f in fs]) if fs else None   # (P, 3 F) per model
-               for run, fs in zip(runs, folds, strict=True)]
+    theta_f = [[run.embed(f.theta_full_basis(), P) for f in fs] for run, fs in zip(runs, folds, strict=True)]
     own = [run.own_design(P) for run in runs]
     for run in runs:
         run.resid = None if run.figures is not None else np.empty((len(d), 3))
@@ -527,29 +526,33 @@ def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutM
 
     def held_out(j: int, sl, X, Y, held: dict, sums: bool, bins: bool) -> None:
         """Model ``j``'s folds on the block ``sl``: ``sums``: squared held-out residuals and block SSE; ``bins``:
-        the discrepancy bins (``held``: what the block's folds share between models)."""
-        run, fs, th, own_x = runs[j], folds[j], theta_f[j], own[j]
+        the discrepancy bins (``held``: what the block's folds share between models: their held-out rows, the
+        rows' design and targets, time blocks, bins and design moments)."""
+        run, fs, own_x = runs[j], folds[j], own[j]
         if not fs:
             return
-        pc = piece[sl]
-        Pf = (th.T @ X.T).reshape(-1, 3, X.shape[0])                      # fold, axis, row
-        for q, f in enumerate(fs):
-            keep = np.flatnonzero(f.test[pc])
+        if "piece" not in held:
+            held["piece"] = piece[sl]
+        for f, th in zip(fs, theta_f[j], strict=True):
+            if ("rows", f.kind, f.key) not in held:
+                keep = np.flatnonzero(f.test[held["piece"]])
+                held["rows", f.kind, f.key] = (keep, np.take(X, keep, axis=0), np.take(Y, keep, axis=0).T)
+            keep, Xk, Yt = held["rows", f.kind, f.key]
             if not keep.size:
                 continue
             if f.unseen:
                 Xf, Yf = _Rows(d, f.model).block(sl.start + keep)
                 rf = (Yf - f.model.predict(f.post.theta, Xf)).T
             else:
-                rf = np.take(Y.T, keep, axis=1) - np.take(Pf[q], keep, axis=1)
+                rf = Yt - (Xk @ th).T
             rows_k = sl.start + keep
             if sums:
                 f.sq += np.einsum("ij,ij->i", rf, rf)
                 f.cnt += keep.size
                 if f.kind == "blocks" and run.block_sse is not None:
-                    if ("blocks", f.key) not in held:
-                        held["blocks", f.key] = piece.time_block(rows_k)
-                    run.block_sse.add(*held["blocks", f.key], np.einsum("ij,ij->j", rf, rf))
+                    if ("sse", f.key) not in held:
+                        held["sse", f.key] = BlockSSE.group(*piece.time_block(rows_k))
+                    run.block_sse.add_grouped(held["sse", f.key], np.einsum("ij,ij->j", rf, rf))
             if bins and f.kind == "blocks" and run.bins is not None:
                 scale = run.fits[0].n / f.n
                 bn = run.bins
@@ -559,7 +562,7 @@ def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutM
                 k = bn.add_residuals(rf, None, None, scale, held["where", f.key, edges])
                 key = ("M", f.key, edges)
                 if key not in held:
-                    held[key] = bn.design_moments(k, np.take(X, keep, axis=0))
+                    held[key] = bn.design_moments(k, Xk)
                 G = held[key]
                 bn.M += scale * (G if own_x else G[:, run.cols][:, :, run.cols])
 

@@ -68,14 +68,31 @@ class BlockSSE:
 
     def add(self, session_index: np.ndarray, block: np.ndarray, sq: np.ndarray) -> None:
         """Rows' session index and block number, and their squared residual (summed over axes), uT^2."""
+        self.add_grouped(self.group(session_index, block), sq)
+
+    @staticmethod
+    def group(session_index: np.ndarray, block: np.ndarray) -> tuple[list, np.ndarray | None, np.ndarray | None]:
+        """``(keys, starts, inverse)`` of rows' (session index, block number), for :meth:`add_grouped` (rows of
+        several models' residuals share it): ``starts`` of runs of one key when the rows come in key order, else
+        ``inverse`` (each row's key)."""
+        key = np.asarray(session_index, dtype=np.int64) * (1 << 32) + np.asarray(block, dtype=np.int64)
+        if key.size and np.all(key[1:] >= key[:-1]):
+            starts = np.r_[0, np.flatnonzero(key[1:] != key[:-1]) + 1]
+            u, inv = key[starts], None
+        else:
+            u, inv = np.unique(key, return_inverse=True)
+            starts = None
+        return [(int(k) >> 32, int(k) & 0xFFFFFFFF) for k in u.tolist()], starts, inv
+
+    def add_grouped(self, group: tuple, sq: np.ndarray) -> None:
+        """:meth:`add` with the rows' keys grouped by :meth:`group`."""
         if not sq.size:
             return
-        key = np.asarray(session_index, dtype=np.int64) * (1 << 32) + np.asarray(block, dtype=np.int64)
-        u, inv = np.unique(key, return_inverse=True)
-        sums = np.bincount(inv, weights=sq)
-        for k, v in zip(u.tolist(), sums.tolist(), strict=True):
-            kk = (k >> 32, k & 0xFFFFFFFF)
-            self.sse[kk] = self.sse.get(kk, 0.0) + v
+        keys, starts, inv = group
+        sums = np.add.reduceat(sq, starts) if inv is None else np.bincount(inv, weights=sq)
+        sse = self.sse
+        for kk, v in zip(keys, sums.tolist(), strict=True):
+            sse[kk] = sse.get(kk, 0.0) + v
 
 
 def _one_sided_t(x: np.ndarray) -> tuple[float, float]:

@@ -556,7 +556,8 @@ class HeldOutBins:
     def locate(self, b_uT: np.ndarray, temp_c: np.ndarray) -> tuple:
         """``(bin of each row, largest finite |b| (0 if none), per-bin (count, sum u_b, sum u_t))`` of rows with DUT
         field ``b_uT`` (m, 3) uT and temperature (m,) degC: what :meth:`add_residuals` adds besides the residuals."""
-        mag = np.linalg.norm(b_uT, axis=1)
+        b = np.asarray(b_uT, dtype=float)
+        mag = np.sqrt(np.einsum("ij,ij->i", b, b))
         mag_max = float(np.nanmax(mag)) if mag.size and np.isfinite(mag).any() else 0.0
         t = np.where(np.isfinite(temp_c), temp_c, self.temp_centre_c)
         k = np.searchsorted(self.field_edges_uT, mag) * (len(self.temp_edges_c) + 1) + np.searchsorted(
