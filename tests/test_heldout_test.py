@@ -68,3 +68,29 @@ def test_enough_blocks_are_tested_as_whole_blocks():
     t = paired_test_over_parts(act, cand, scale_free=True)
     assert t.parts_of == 0 and t.blocks == MIN_BATCHES and "parts" not in t.describe()
     assert not t.significant
+
+
+def test_block_sse_sums_per_block_in_any_row_order():
+    """Squared residuals summed per (session, block): rows in key order (runs) or shuffled (grouped) alike, and
+    over several calls."""
+    from magstack.firmware.calibration.heldout_test import BlockSSE
+
+    rng = np.random.default_rng(3)
+    sess = np.repeat([0, 0, 1, 2], 50)
+    blk = np.sort(rng.integers(0, 7, sess.size)) + 10 * (sess == 2)
+    order = np.lexsort((blk, sess))
+    sess, blk = sess[order], blk[order]
+    sq = rng.random(sess.size)
+    want: dict = {}
+    for s, b, v in zip(sess.tolist(), blk.tolist(), sq.tolist(), strict=True):
+        want[s, b] = want.get((s, b), 0.0) + v
+    in_order, shuffled = BlockSSE(), BlockSSE()
+    half = sess.size // 2
+    in_order.add(sess[:half], blk[:half], sq[:half])
+    in_order.add(sess[half:], blk[half:], sq[half:])
+    p = rng.permutation(sess.size)
+    assert BlockSSE.group(sess[p], blk[p])[1] is None            # out of order: grouped by key
+    shuffled.add(sess[p], blk[p], sq[p])
+    for got in (in_order.sse, shuffled.sse):
+        assert sorted(got) == sorted(want)
+        np.testing.assert_allclose([got[k] for k in sorted(want)], [want[k] for k in sorted(want)], rtol=1e-12)
