@@ -458,6 +458,10 @@ def _autocorr(d, rows, piece, runs: list[_Run], options, ordered: bool, rw: Slow
     live = [(run, f) for run in runs for f in run.fits if f.error is None]
     if not live:
         return
+    by_rows: dict[bytes, list] = {}          # fits of the same training rows (a fold of each model) side by side:
+    for run, f in live:                      # one accumulator, their residuals a contiguous stack (each series
+        by_rows.setdefault(f.train.tobytes(), []).append((run, f))     # accumulated on its own)
+    live = [x for group in by_rows.values() for x in group]
     P = rows.model.n_columns
     theta = np.hstack([run.embed(f.theta_full_basis(), P) for run, f in live])         # (P, 3 F)
     center = []                              # each fit's mean training residual, from the column sums
@@ -466,8 +470,8 @@ def _autocorr(d, rows, piece, runs: list[_Run], options, ordered: bool, rw: Slow
         s = run.pcs.xy_sum[f.train].sum(axis=0)
         center.append((s[p:] - s[:p] @ f.theta_full_basis()) / f.n)
     center = np.array(center)[:, :, None]
-    groups: dict[bytes, list[int]] = {}      # fits of the same training rows (a fold of each model) share one
-    for j, (_, f) in enumerate(live):        # accumulator, their residuals stacked (each series on its own)
+    groups: dict[bytes, list[int]] = {}
+    for j, (_, f) in enumerate(live):
         groups.setdefault(f.train.tobytes(), []).append(j)
     accs = {key: BlockingInflation(3 * len(js), adjacent=any(live[j][1] is live[j][0].fits[0] for j in js))
             for key, js in groups.items()}                  # the adjacent levels: of the full fits only
@@ -483,7 +487,7 @@ def _autocorr(d, rows, piece, runs: list[_Run], options, ordered: bool, rw: Slow
         if feed:
             rw.add(X if d.weights is None else X * d.weights[idx][:, None], t[idx], sess)
         for key, js in groups.items():
-            rj = r[js[0]] if len(js) == 1 else r[js].reshape(3 * len(js), -1)
+            rj = r[js[0]:js[-1] + 1].reshape(3 * len(js), -1)                  # a view
             use = live[js[0]][1].train[pc]
             if use.all():
                 accs[key].add(rj, sess)
