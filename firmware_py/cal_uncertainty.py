@@ -472,10 +472,11 @@ def region_points(field_axes_uT: Sequence[float], field_norm_uT: float = math.in
     """The extreme points of ``{|b_j| <= F_j, |b| <= R}``: the box's corners pulled onto the ball where they
     stick out, and 192 directions on the sphere of radius R clipped to the box. A convex function's maximum
     over this convex region is at an extreme point: exactly a corner when the ball does not cut the box, else
-    on the sphere, found to about 1 % by the directions (768 with ``dense``)."""
-    F = np.maximum(np.asarray(field_axes_uT, dtype=float).reshape(3), 0.0)
-    c = _CORNERS * F
+    on the sphere, found to about 1 % by the directions (768 with ``dense``). A limit ``F_j`` above ``R`` binds
+    nothing (``|b_j| <= |b| <= R``) and is taken as ``R``: the same region, the same points."""
     R = float(field_norm_uT)
+    F = np.minimum(np.maximum(np.asarray(field_axes_uT, dtype=float).reshape(3), 0.0), R)   # above R: no bind
+    c = _CORNERS * F
     if not math.isfinite(R) or R >= float(np.linalg.norm(F)):
         return c
     nc = np.linalg.norm(c, axis=1)
@@ -528,7 +529,8 @@ def _ok(pred: Predictive, lo: float, hi: float, F, R: float, sd_max: float, curr
     ``K`` is the largest second divided difference of the coarse values next to the gap (the bound on a smooth
     function's excess over its chord, ``K h^2 / 8``, taken twice)."""
     temps = _grid(lo, hi).tolist()
-    seen = {} if memo is None else memo.setdefault((tuple(np.asarray(F, dtype=float).tolist()), float(R)), {})
+    F = np.minimum(np.asarray(F, dtype=float), float(R))       # the same region: |b_j| <= |b| <= R
+    seen = {} if memo is None else memo.setdefault((tuple(F.tolist()), float(R)), {})
     if any(seen.get(t, -math.inf) > sd_max for t in temps):
         return False
 
