@@ -14,7 +14,8 @@ Rows in (session, time) order hand the full fit's residuals block by block to
 pass until its exact medians are found; no per-row array is kept (a row's piece is computed per block).
 Other rows keep the (N, 3) residuals. The results equal refitting each fold's rows to rounding
 (tests/test_calibration_crossfit.py). A model and a wider one
-(:func:`.fit.fit`'s second-order tempco candidate) share one set of passes (:func:`cross_fit_with`). Robust
+(:func:`.fit.fit`'s second-order tempco candidate) share one set of passes (:func:`cross_fit_with`); a choice
+between them, made on their held-out figures after pass 3's first pass, leaves the rest to the chosen one. Robust
 IRLS, ``time_skew`` and ``mount_rotation`` need all rows at once: :func:`applies` sends them to the refit path.
 """
 from __future__ import annotations
@@ -200,7 +201,10 @@ def cross_fit_with(d: FitData, model: CalModel, wider: CalModel, options: FitOpt
     its columns of that piece's R (``R^T R = Z^T Z`` holds for any subset of the columns). Passes 2 and 3 take both
     models' residuals from one product per block (``model``'s coefficients zero on the columns it lacks); the
     slow-noise Grams and the left-out moments are accumulated once over ``wider``'s design, ``model``'s are their
-    rows and columns of its own. The results equal two :func:`cross_fit` calls to rounding."""
+    rows and columns of its own. The results equal two :func:`cross_fit` calls to rounding. ``adopt(base, wider)``,
+    given both CrossFits after pass 3's first pass (held-out figures and block SSE), says whether ``wider`` is the
+    one to finish: only that one's figures, discrepancy bins and predictive parts are then computed (the other's
+    CrossFit keeps its fit, held-out figures and block SSE)."""
     cols = column_map(model, wider)
     with single_thread():
         rows = _Rows(d, wider)

@@ -298,11 +298,13 @@ class Coverage:
     t_max_s: float = -np.inf
 
     def update(self, b_uT, temp_c, currents_A, session, t_s, field_present_uT: float, weights=None,
-               ref_uT=None) -> None:
+               ref_uT=None, hist: bool = True) -> None:
+        """Rows (units as :class:`FitData`); ``hist``: False leaves the field histograms out (the caller takes them
+        from another pass over the same rows)."""
         b = np.asarray(b_uT).reshape(-1, 3)
         if b.shape[0] == 0:
             return
-        if ref_uT is not None:
+        if ref_uT is not None and hist:
             self.ref_hist += _field_hist(np.asarray(ref_uT, dtype=float).reshape(-1, 3))
         self.n += b.shape[0]
         self.sum_w += float(b.shape[0] if weights is None else np.sum(weights))
@@ -322,7 +324,8 @@ class Coverage:
         nrm = np.einsum("ij,ij->j", mag, mag)
         if np.isfinite(nrm).any():
             self.norm_max_uT = max(self.norm_max_uT, float(np.sqrt(np.nanmax(nrm))))
-        self.field_hist += _field_hist(b, mag)
+        if hist:
+            self.field_hist += _field_hist(b, mag)
         for k, v in (currents_A or {}).items():
             lo, hi = self.currents_A.get(k, [np.inf, -np.inf])
             self.currents_A[k] = [min(lo, float(np.min(v))), max(hi, float(np.max(v)))]

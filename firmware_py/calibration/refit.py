@@ -324,13 +324,14 @@ def _robust_add(st: PassStats, arrays: tuple, plan: Plan, theta, sigma_uT) -> No
     if bm.shape[0] == 0:
         return
     model = plan.model
-    r = y - model.predict(theta, model.design(bm, tc, cc, ss, tt))
+    X = model.design(bm, tc, cc, ss, tt)
+    r = y - model.predict(theta, X)
     for i in range(3):
         st.abs_resid_hist[i] += np.bincount(np.searchsorted(HIST_EDGES_uT, np.abs(r[:, i])),
                                             minlength=HIST_EDGES_uT.size + 1)
     u = np.abs(r) / (plan.options.huber_k * np.maximum(sigma_uT, 1e-12))
     w = np.min(np.where(u <= 1, 1.0, 1.0 / np.maximum(u, 1e-300)), axis=1)
-    st.fit.add(bm, y, tc, cc, ss, tt, weights=w)
+    st.fit.add(bm, y, tc, cc, ss, tt, weights=w, design=X, hist=False)    # pass 1's rows: its histograms
 
 
 def _prepare_block(st: PassStats, blk: telemetry.TelemetryBlock, plan: Plan):
@@ -635,6 +636,8 @@ def _refit(paths, active, options, progress, mapper, metadata) -> RefitResult:
     scale = res.rmse_uT
     for k in range(2, n_pass + 1):
         stats = run(res.theta, scale, k)   # same rows as pass 1 (Huber weights are never 0)
+        stats.fit.coverage.field_hist = first.fit.coverage.field_hist.copy()       # so its field histograms
+        stats.fit.coverage.ref_hist = first.fit.coverage.ref_hist.copy()
         scale = stats.robust_scale_uT()
         if scale is None:
             break

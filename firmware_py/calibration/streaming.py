@@ -58,9 +58,11 @@ class StreamingFit:
         self.n_excluded = 0
 
     def add(self, b_meas_uT, b_ref_uT, temp_c=None, currents_A=None, session=None, t_s=None,
-            weights=None) -> None:
+            weights=None, design: np.ndarray | None = None, hist: bool = True) -> None:
         """One block of rows (same meanings and units as :class:`FitData`). Rows with a
-        non-finite needed value or zero weight are counted as excluded."""
+        non-finite needed value or zero weight are counted as excluded. ``design``: the model's design of these rows
+        when the caller has it; ``hist``: False leaves the coverage's field histograms out (another pass over the
+        same rows has them)."""
         b = np.asarray(b_meas_uT, dtype=float).reshape(-1, 3)
         n = b.shape[0]
         y = np.asarray(b_ref_uT, dtype=float).reshape(n, 3)
@@ -88,12 +90,14 @@ class StreamingFit:
         self.n_excluded += int((~ok).sum())
         if not ok.any():
             return
-        b, y, temp, sess, t, w = b[ok], y[ok], temp[ok], sess[ok], t[ok], w[ok]
-        cur = {k: v[ok] for k, v in cur.items()}
-        X = self.model.design(b, temp, cur, sess, t)
+        every = bool(ok.all())
+        b, y, temp, sess, t, w = (b, y, temp, sess, t, w) if every else (b[ok], y[ok], temp[ok], sess[ok], t[ok], w[ok])
+        cur = cur if every else {k: v[ok] for k, v in cur.items()}
+        X = self.model.design(b, temp, cur, sess, t) if design is None else (
+            np.asarray(design, dtype=float) if every else np.asarray(design, dtype=float)[ok])
         with single_thread():           # a block QR of ~16k x 30: 4-7x slower on threaded BLAS (bench_blas.py)
             self._R = qr_r(np.vstack([self._R, np.hstack([X, y]) * np.sqrt(w)[:, None]]))
-        self.coverage.update(b, temp, cur, sess, t, self.options.field_present_uT, w, ref_uT=y)
+        self.coverage.update(b, temp, cur, sess, t, self.options.field_present_uT, w, ref_uT=y, hist=hist)
         self._raw_sq += np.sum((y - b) ** 2, axis=0)
         self.n_used += b.shape[0]
 
