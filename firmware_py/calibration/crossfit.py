@@ -295,7 +295,7 @@ def _cross_fit(d: FitData, rows: _Rows, piece: _PieceOf, runs: list[_Run], optio
                 _figures(out, run.fits)
         return list(range(len(runs))) if choose is None or len(runs) == 1 else [choose(outs)]
 
-    keep = _final_pass(d, rows, piece, runs, union, moments, decide)
+    keep = _final_pass(d, rows, piece, runs, union, moments, decide, choose is not None and len(runs) > 1)
     taus, ou, rwg, dt = rw.result()
     for k in keep:
         run, out = runs[k], outs[k]
@@ -514,15 +514,16 @@ def _autocorr(d, rows, piece, runs: list[_Run], options, ordered: bool, rw: Slow
 
 
 def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutMoments,
-                decide: Callable[[], list[int]]) -> list[int]:
+                decide: Callable[[], list[int]], deciding: bool = False) -> list[int]:
     """Pass 3, for every model of ``runs``: each fold's squared held-out residuals, the time-block folds' summed per
-    time block (``block_sse``); the moments of the design and the left-out features ``union`` (into ``moments``).
-    Then ``decide()`` names the models to finish (returned): their full fit's residuals go into their ``figures``
-    (replayed while they need them again) or else are kept whole (``resid`` (N, 3)), and their time-block folds'
-    held-out residuals are binned (``bins``). The first model's figures and bins ride on pass 3 itself (it is
-    finished whatever the decision; when it is not, they are dropped); each further finished model's start one
-    replay later (their first passes keep up to :data:`.rank_select.COLLECT_CAP` values each: one at a time, as for
-    one model)."""
+    time block (``block_sse``); the moments of the design and the left-out features ``union`` (into ``moments``);
+    every model's full-fit residuals kept whole (``resid`` (N, 3)) where it has no streamed ``figures``. Then
+    ``decide()`` names the models to finish (returned): their full fit's residuals go into their ``figures``
+    (replayed while they need them again) and their time-block folds' held-out residuals are binned (``bins``).
+    The first model's figures ride on pass 3 itself (dropped when it is not finished), and so do its bins, or
+    every model's when there is no choice to make (``deciding`` False); each further finished model's figures (and
+    bins, when ``deciding``) start one replay later (the figures' first passes keep up to
+    :data:`.rank_select.COLLECT_CAP` values each: one at a time, as for one model)."""
     P = rows.model.n_columns
     theta = np.hstack([run.embed(run.fits[0].theta_full_basis(), P) for run in runs])     # (P, 3 models)
     folds = [[f for f in run.fits[1:] if f.error is None] for run in runs]
@@ -575,6 +576,7 @@ def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutM
                 bn.M += scale * (G if own_x else G[:, run.cols][:, :, run.cols])
 
     fig0 = runs[0].figures
+    binned = {0} if deciding else set(range(len(runs)))
     for sl in rows.chunks(None):
         X, Y = rows.block(sl)
         r = _resid(X, Y, theta)
@@ -587,11 +589,10 @@ def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutM
             moments.add_rows(X, union, d.b_meas_uT[sl], d.temp_c[sl] - t0, None if d.weights is None else d.weights[sl])
         held = {}            # a time-block fold's held-out rows' time blocks, bins and design moments (any model's)
         for j in range(len(runs)):
-            held_out(j, sl, X, Y, held, True, j == 0)
+            held_out(j, sl, X, Y, held, True, j in binned)
     keep = decide()
-    started = [0] if 0 in keep else []            # models whose first figures pass and bins are done
-    todo = [k for k in keep if k not in started]  # the others, one per replay
-    active = [k for k in started if runs[k].figures is not None]
+    todo = [k for k in keep if k != 0 and (runs[k].figures is not None or k not in binned)]   # one per replay
+    active = [0] if 0 in keep and fig0 is not None else []
     while True:
         for k in active:
             runs[k].figures.end_pass()
@@ -609,7 +610,8 @@ def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutM
             for k in new:
                 if runs[k].figures is not None:
                     runs[k].figures.add(sl.start, r[k])
-                held_out(k, sl, X, Y, held, False, True)
+                if k not in binned:
+                    held_out(k, sl, X, Y, held, False, True)
         active += [k for k in new if runs[k].figures is not None]
     return keep
 
