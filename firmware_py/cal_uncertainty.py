@@ -332,10 +332,10 @@ class Predictive:
         current corners. With ``v = [B_cal; 1]`` and the reading ``b = M(T) v``, each axis's affine features are
         ``B(T) v`` (k x 4) and its polynomial features (``c3``, ``P``) pick from the six monomials ``n(b)``
         (``_MONOMIALS``), so the parameter part summed over axes is the quadratic form
-        ``v'Q_vv v + 2 v'Q_vn n + n'Q_nn n`` and each current corner adds a term affine in ``(v, n)``; ``|b|^2``
-        for the discrepancy is a quadratic form in ``v`` too. The same values as evaluating every feature at
-        every mapped reading (:meth:`param_var_uT2`, :meth:`disc_var_uT2`), to rounding, at a fraction of the
-        cost."""
+        ``v'Q_vv v + 2 v'Q_vn n + n'Q_nn n = z'Qz`` (``z = [v; n]``) and each current corner adds a term affine in
+        ``z``: one product per temperature of ``z`` with ``Q`` stacked over the corners' rows (:meth:`_forms`); ``|b|``
+        for the discrepancy from the mapped reading. The same values as evaluating every feature at every mapped
+        reading (:meth:`param_var_uT2`, :meth:`disc_var_uT2`), to rounding, at a fraction of the cost."""
         t = np.asarray(temps_c, dtype=float).reshape(-1)
         nt = t.size
         M, QL, const = self._forms(t, corners)
@@ -434,7 +434,8 @@ class Predictive:
         corners = self._current_corners(currents_A)
         nc = len(corners)
         out: dict[float, float] = {}
-        step = max(1, _ROWS_PER_PASS // max(m * nc, 1))
+        k = 4 + len(_MONOMIALS) if any(lay["jn"].size for lay in self._layout) else 4
+        step = max(1, _VALUES_PER_PASS // max(m * (2 * k + nc + 4), 1))     # z, its products, b, the variance
         cuts = sorted({0, min(2, n), min(2 + (n + 15) // 16, n), *range(2 + (n + 15) // 16, n, step), n})
         for a, b in zip(cuts[:-1], cuts[1:], strict=True):
             t = t_all[order[a:b]]
@@ -449,9 +450,9 @@ class Predictive:
 #: Temperatures whose forms a :class:`Predictive` keeps (:meth:`Predictive._forms`).
 _FORMS_KEPT = 4096
 
-#: (temperature, point, current corner) triples evaluated per vectorised pass of
-#: :meth:`Predictive.worst_per_temperature_uT` (memory ~ 3 x 8 B each).
-_ROWS_PER_PASS = 1 << 20
+#: Values (float64) the arrays of one vectorised pass of :meth:`Predictive.worst_per_temperature_uT` hold at most
+#: (32 MiB): per (temperature, point) ``z`` (4 or 10), its form and current rows, the reading and the variance.
+_VALUES_PER_PASS = 1 << 22
 
 
 def _sphere(n: int) -> np.ndarray:

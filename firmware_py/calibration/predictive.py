@@ -233,7 +233,8 @@ class SlowNoiseGrams:
     """The score Grams of every slow-noise component the fit can weigh: exponentially correlated residuals with
     correlation times ``tau_k`` = 32, 128, 512, ... rows (up to 4x the data's time span) and a random walk; the
     grid is set from the first rows' sampling interval; the random walk's rows are summed over ``RW_BINS`` bins of
-    the span. Feed rows with :meth:`add` in (session, time) order."""
+    the span, each correlated component's over its :attr:`OUGram.bin_s`, all of those from one binning of the rows
+    (:func:`nested_bins`). Feed rows with :meth:`add` in (session, time) order."""
 
     def __init__(self, p: int, span_s: float) -> None:
         self.p, self.span_s = p, max(float(span_s), 0.0)
