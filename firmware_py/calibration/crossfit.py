@@ -543,6 +543,8 @@ def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutM
         if "piece" not in held:
             held["piece"] = piece[sl]
         for f, th in zip(fs, theta_f[j], strict=True):
+            if not sums and not (bins and f.kind == "blocks" and run.bins is not None):
+                continue                                   # nothing of this fold's to add
             if ("rows", f.kind, f.key) not in held:
                 keep = np.flatnonzero(f.test[held["piece"]])
                 held["rows", f.kind, f.key] = (keep, np.take(X, keep, axis=0), np.take(Y, keep, axis=0).T)
