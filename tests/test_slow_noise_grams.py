@@ -62,3 +62,26 @@ def test_binned_random_walk_gram_is_within_a_bin_of_the_exact_sum(bins):
     err = np.max(np.abs(got - exact) / scale)
     assert 0 < err <= 2.0 / bins * 3          # sessions span a third of the data or more
     assert g.n == g_exact.n and g.mean_dt_s == pytest.approx(g_exact.mean_dt_s, rel=1e-12)
+
+
+def test_slow_noise_grams_bin_once_as_each_gram_alone():
+    """The Grams binned once for every correlation time (each time's bins from the previous one's, the sums as a
+    sparse product) equal each correlated Gram fed its rows alone, to rounding; so do the sparse segment sums and
+    ``reduceat``'s."""
+    from magstack.firmware.calibration.predictive import SlowNoiseGrams, segment_sums
+
+    x, t, session = _rows(4, n=3000)
+    starts = np.r_[0, np.flatnonzero(np.diff(np.floor(t / 1.7))) + 1]
+    want = np.add.reduceat(x, starts, axis=0)
+    np.testing.assert_allclose(segment_sums(x, starts), want, rtol=0, atol=1e-14 * np.abs(want).max())
+    sn = SlowNoiseGrams(x.shape[1], float(t[-1] - t[0]))
+    for lo in range(0, len(t), 256):
+        sn.add(x[lo:lo + 256], t[lo:lo + 256], session[lo:lo + 256])
+    taus, grams, _, _ = sn.result()
+    assert len(taus) >= 3
+    for tau, got in zip(taus, grams, strict=True):
+        alone = OUGram(x.shape[1], tau)
+        for lo in range(0, len(t), 256):
+            alone.add(x[lo:lo + 256], t[lo:lo + 256], session[lo:lo + 256])
+        want = alone.result()
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())

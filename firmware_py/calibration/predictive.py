@@ -61,8 +61,8 @@ MIN_PAIRS = 8
 # ---------------------------------------------------------------------- random walk
 def segment_sums(x: np.ndarray, starts: np.ndarray) -> np.ndarray:
     """Sums of the rows of ``x`` (m, p) over the consecutive segments that begin at ``starts`` (increasing, from 0):
-    ``np.add.reduceat(x, starts, axis=0)``, each sum in row order, as a sparse matrix product (several times
-    faster on a C-ordered ``x``)."""
+    ``np.add.reduceat(x, starts, axis=0)`` to rounding, as a sparse matrix product (several times faster on a
+    C-ordered ``x``)."""
     from scipy.sparse import csr_matrix
 
     m = x.shape[0]
