@@ -75,6 +75,57 @@ def test_exact_median_equals_numpy_on_any_values(x, chunk, cap):
     assert mad.value == np.median(np.abs(x - np.median(x)))
 
 
+@settings(max_examples=80, deadline=None)
+@given(arrays(np.float64, st.integers(1, 300), elements=st.floats(-50, 50, allow_nan=False, width=16)),
+       st.lists(st.tuples(st.floats(-60, 60), st.floats(0, 40)), min_size=1, max_size=4),
+       st.floats(-60, 60), st.integers(1, 40))
+def test_bracket_ranks_are_exact_or_none(x, spans, c, chunk):
+    """A bracket answers a rank only when it is sure: the value numpy sorts there, or None."""
+    b = rank_select.Bracket([(lo, lo + w) for lo, w in spans], 1 << 20)
+    for a in range(0, x.size, chunk):
+        b.feed(x[a:a + chunk])
+    srt, dev = np.sort(x), np.sort(np.abs(x - c))
+    for r in {0, x.size // 3, (x.size - 1) // 2, x.size // 2, x.size - 1}:
+        got, got_dev = b.rank_value(r), b.deviation_rank_value(c, r)
+        assert got is None or got == srt[r]
+        assert got_dev is None or got_dev == dev[r]
+    everything = rank_select.Bracket([(-np.inf, np.inf)], 1 << 20)
+    everything.feed(x)
+    assert everything.rank_value(x.size // 2) == srt[x.size // 2]
+    assert everything.deviation_rank_value(c, x.size // 2) == dev[x.size // 2]
+
+
+def test_guessed_bracket_gives_exact_medians_in_one_pass(monkeypatch):
+    """Stationary values: median and MAD exact after the one pass the guess brackets (the bracket far smaller
+    than the stream); a first block unlike the rest: exact after more passes, the guess only lost."""
+    monkeypatch.setattr(rank_select, "COLLECT_CAP", 1 << 14)
+    rng = np.random.default_rng(5)
+    x = rng.standard_normal(300_001) * 0.03 + 0.001
+    med, mad = ExactMedian(expected_n=x.size), MedianAbsDeviation(expected_n=x.size)
+    assert _replay(med, x, 65536) == 1 and _replay(mad, x, 65536) == 1
+    assert med.value == np.median(x)
+    assert mad.value == np.median(np.abs(x - np.median(x)))
+    drift = np.r_[rng.standard_normal(70_000) * 3.0 + 1.0, x]                # the guess from the first block
+    med, mad = ExactMedian(expected_n=drift.size), MedianAbsDeviation(expected_n=drift.size)
+    assert _replay(med, drift, 65536) > 1 and _replay(mad, drift, 65536) > 1
+    assert med.value == np.median(drift)
+    assert mad.value == np.median(np.abs(drift - np.median(drift)))
+
+
+@pytest.mark.parametrize("cap", [1 << 18, 64, 3])
+def test_guessed_medians_equal_numpy(monkeypatch, cap):
+    """Whatever the guess, the bracket too small or too full: the values numpy gives."""
+    monkeypatch.setattr(rank_select, "COLLECT_CAP", cap)
+    monkeypatch.setattr(rank_select, "GUESS_MIN_VALUES", 4)
+    for x in _cases():
+        for chunk in (997, 50):
+            med, mad = ExactMedian(expected_n=x.size), MedianAbsDeviation(expected_n=x.size)
+            _replay(med, x, chunk)
+            _replay(mad, x, chunk)
+            assert med.value == np.median(x)
+            assert mad.value == np.median(np.abs(x - np.median(x)))
+
+
 def _ordered_rows(rng, n: int, irregular: bool):
     """Rows in (session, time) order: 1-3 sessions, steps in the reference, residuals with ties."""
     s = np.sort(rng.integers(0, int(rng.integers(1, 4)), n)) * 3 + 2

@@ -6,6 +6,11 @@ wanted rank; each further pass either counts the next 16 bits of the keys in tha
 most ``cap`` values, collects them and takes the rank with ``np.partition``. Ties need nothing special: at most
 four counting passes fix all 64 bits. The answer is the element ``np.median`` would pick (the mean of the two
 middle elements for an even count, computed as ``np.median`` does), so equal to it, not an approximation.
+
+Given the number of values a pass will carry, the first values fed also set a guess (:class:`Bracket`): the values
+in a few intervals about the guessed median (and, for the deviations, about the median plus and minus the guessed
+deviation) are collected and the others counted per gap. Where the wanted ranks fall inside (stationary data), the
+answer is exact after that one pass; where they do not, the passes above follow, from the next pass on.
 """
 from __future__ import annotations
 
@@ -13,6 +18,10 @@ import numpy as np
 
 #: Values collected at most per wanted rank (8 bytes each): above it, another counting pass narrows the bin.
 COLLECT_CAP = 1 << 18
+#: Share of :data:`COLLECT_CAP` a guessed :class:`Bracket` is sized to hold (the rest is headroom).
+GUESS_FILL = 0.75
+#: Fewest first values a guess is made from.
+GUESS_MIN_VALUES = 2000
 _BITS = 16
 _SIGN = np.uint64(1 << 63)
 
@@ -89,27 +98,169 @@ class _Target:
             self.value = float(key_values(np.array([self.prefix]))[0])
 
 
+class Bracket:
+    """The values of one pass that fall in a few intervals ``[lo, hi)`` collected, the others counted below each
+    edge: any rank whose value falls in an interval is then known exactly (:meth:`rank_value`), and so is any
+    rank of the deviations from a point whose value is decided by collected values alone
+    (:meth:`deviation_rank_value`). More than ``cap`` collected values: the bracket gives up (:attr:`full`)."""
+
+    def __init__(self, intervals: list[tuple[float, float]], cap: int) -> None:
+        merged: list[list[float]] = []
+        for lo, hi in sorted((float(a), float(b)) for a, b in intervals if b > a):
+            if merged and lo <= merged[-1][1]:
+                merged[-1][1] = max(merged[-1][1], hi)
+            else:
+                merged.append([lo, hi])
+        self.edges = np.array([e for pair in merged for e in pair], dtype=np.float64)
+        self.below = np.zeros(self.edges.size, dtype=np.int64)     # values below each edge
+        self.n = 0
+        self.cap = cap
+        self.full = False
+        self._got: list[np.ndarray] = []
+        self._n_got = 0
+        self._values: np.ndarray | None = None
+
+    def feed(self, v: np.ndarray) -> None:
+        self.n += v.size
+        if self.full or not self.edges.size:
+            return
+        lt = [v < e for e in self.edges]
+        self.below += np.array([np.count_nonzero(x) for x in lt], dtype=np.int64)
+        inside = lt[0] ^ lt[1]                  # below an odd number of edges: inside an interval
+        for x in lt[2:]:
+            inside ^= x
+        keep = v[inside]
+        self._n_got += keep.size
+        if self._n_got > self.cap:
+            self.full, self._got = True, []
+        else:
+            self._got.append(keep)
+
+    def _collected(self) -> np.ndarray:
+        if self._values is None:
+            self._values = np.concatenate(self._got) if self._got else np.empty(0)
+            self._got = []
+        return self._values
+
+    def rank_value(self, rank: int) -> float | None:
+        """The ``rank``-th (0-based) smallest value fed, or None where it is not in an interval."""
+        if self.full:
+            return None
+        off = 0
+        for i in range(0, self.edges.size, 2):
+            lo, hi = int(self.below[i]), int(self.below[i + 1])
+            if lo <= rank < hi:
+                return _kth(self._collected(), off + rank - lo)
+            off += hi - lo
+        return None
+
+    def deviation_rank_value(self, c: float, rank: int) -> float | None:
+        """The ``rank``-th smallest of ``|x - c|`` over every value ``x`` fed, or None where a gap between the
+        intervals (values only counted) may hold deviations equal to it. ``fl(|x - c|)`` is monotone in ``x`` on
+        either side of ``c``, so a gap's deviations lie between those of its edges: away from those ranges a gap
+        counts whole or not at all, and the answer is the collected deviations' element of rank ``rank`` less
+        the gaps' rows below it (each distinct such count tried)."""
+        if self.full:
+            return None
+        dev = np.abs(self._collected() - c)
+        edges = np.r_[-np.inf, self.edges, np.inf]
+        counts = np.diff(np.r_[0, self.below, self.n])[0::2]                    # per gap
+        lo, hi = edges[0::2], edges[1::2]
+        with np.errstate(invalid="ignore"):
+            dl, dh = np.abs(lo - c), np.abs(hi - c)
+        used = counts > 0
+        dmin = np.where((lo <= c) & (c <= hi), 0.0, np.minimum(dl, dh))[used]
+        dmax, counts = np.maximum(dl, dh)[used], counts[used]
+        for below in sorted({int(counts[dmax < m].sum()) for m in np.r_[dmax, np.inf]}):
+            r = rank - below
+            if not 0 <= r < dev.size:
+                continue
+            m = _kth(dev, r)
+            if int(counts[dmax < m].sum()) == below and not np.any((dmin <= m) & (m <= dmax)):
+                return m
+        return None
+
+
+def _kth(a: np.ndarray, k: int) -> float:
+    """The ``k``-th (0-based) smallest element of ``a``."""
+    return float(np.partition(a, k)[k])
+
+
+def guess_intervals(v: np.ndarray, share: float, deviations: bool) -> tuple[float, list[tuple[float, float]]]:
+    """Intervals expected to hold about ``share`` of a stream like ``v`` (its first values) and the ranks that
+    decide its median (and, ``deviations``, the median of its absolute deviations from the median): the middle
+    ``share / 3`` of ``v`` and the middle ``2 share / 3`` of its deviations on either side (or the middle
+    ``share`` alone). Returns the guessed median and the intervals."""
+    c = float(np.median(v))
+    q = share / 3.0 if deviations else share
+    iv = [tuple(np.quantile(v, [max(0.5 - q / 2, 0.0), min(0.5 + q / 2, 1.0)]))]
+    if deviations:
+        d_lo, d_hi = np.quantile(np.abs(v - c), [max(0.5 - q, 0.0), min(0.5 + q, 1.0)])
+        iv += [(c - d_hi, c - d_lo), (c + d_lo, c + d_hi)]
+    iv = [(lo, float(np.nextafter(hi, np.inf))) for lo, hi in iv]             # the upper quantile inside
+    return c, iv
+
+
+def open_guess(v: np.ndarray, expected_n: int | None, deviations: bool) -> Bracket | None:
+    """The :class:`Bracket` of a pass of about ``expected_n`` values whose first values are ``v``: everything when
+    :data:`COLLECT_CAP` holds them all, else intervals about the guess from ``v`` (:func:`guess_intervals`), or
+    None when ``v`` is too few to guess from."""
+    if expected_n is None:
+        return None
+    share = GUESS_FILL * COLLECT_CAP / max(expected_n, 1)
+    if share >= 1.0:
+        return Bracket([(-np.inf, np.inf)], COLLECT_CAP)
+    if v.size < GUESS_MIN_VALUES:
+        return None
+    return Bracket(guess_intervals(v, share, deviations)[1], COLLECT_CAP)
+
+
+def _median_ranks(n: int) -> list[int]:
+    return sorted({(n - 1) // 2, n // 2})
+
+
+def _mean_of(values: list[float]) -> float:
+    """The mean of the middle values, as ``np.median`` takes it."""
+    return float(np.mean(np.array(values)))
+
+
 class ExactMedian:
     """``np.median`` of all values passed to :meth:`feed` during one pass; while :attr:`pending` after
     :meth:`end_pass`, the same values are fed again (any chunking and order) and the pass closed again.
     :attr:`value` is then the median (NaN for no values). A first pass of at most :data:`COLLECT_CAP`
-    values is the only one."""
+    values is the only one, and so is one whose median falls in the guessed bracket when ``expected_n`` (about the
+    number of values per pass) is given (module docstring)."""
 
-    def __init__(self) -> None:
+    def __init__(self, expected_n: int | None = None) -> None:
         self.n = 0
         self.top_hist = np.zeros(1 << _BITS, dtype=np.int64)                   # first pass: top 16 bits
         self._first: list[np.ndarray] | None = []                              # ... and the values, if few
         self._targets: list[_Target] | None = None
+        self._known: float | None = None
+        self._expected_n = expected_n
+        self._guess: Bracket | None = None          # the first pass's guess (counting starts a pass later if wrong)
         self.passes = 0
 
     @property
     def pending(self) -> bool:
-        return self._targets is None or any(t.value is None for t in self._targets)
+        return self._known is None and (self._targets is None or any(t.value is None for t in self._targets))
+
+    def settle(self, value: float, n: int) -> None:
+        """The median ``value`` of the ``n`` values of a pass, found otherwise (no more passes)."""
+        self._known, self.n, self._targets = value, n, []
+        self.passes = max(self.passes, 1)
 
     def feed(self, values: np.ndarray) -> None:
         v = np.asarray(values, dtype=np.float64).reshape(-1)
         if not v.size or not self.pending:
             return
+        if self.passes == 0 and self._expected_n is not None:
+            if self._guess is None:
+                self._guess = open_guess(v, self._expected_n, deviations=False)
+                self._expected_n = None if self._guess is None else self._expected_n
+            if self._guess is not None:
+                self._guess.feed(v)
+                return
         k = order_keys(v)
         if self._targets is None:
             self.n += v.size
@@ -125,9 +276,15 @@ class ExactMedian:
 
     def end_pass(self) -> None:
         """Close a pass over all values; replay them while :attr:`pending`."""
+        if self._guess is not None:
+            g, self._guess, self._expected_n = self._guess, None, None
+            got = [g.rank_value(r) for r in _median_ranks(g.n)] if g.n else []
+            if g.n and None not in got:
+                self.settle(_mean_of(got), g.n)
+            return                                   # else the counting passes start with the next pass
         self.passes += 1
         if self._targets is None:
-            self._targets = [_Target(r) for r in sorted({(self.n - 1) // 2, self.n // 2})] if self.n else []
+            self._targets = [_Target(r) for r in _median_ranks(self.n)] if self.n else []
             v = np.concatenate(self._first) if self._first else None
             for t in self._targets:
                 t.count = self.n
@@ -146,9 +303,11 @@ class ExactMedian:
 
     @property
     def value(self) -> float:
+        if self._known is not None:
+            return self._known
         if not self._targets:
             return float("nan")
-        return float(np.mean(np.array([t.value for t in self._targets])))
+        return _mean_of([t.value for t in self._targets])
 
     def interval(self) -> tuple[float, float]:
         """Bounds of the median after the first pass (the values sharing the wanted ranks' key prefixes)."""
@@ -165,9 +324,16 @@ class MedianAbsDeviation:
     pass's counts allow them; (3) once the median ``m`` is exact, the deviations ``|x - m|`` within the
     counted bin of the wanted rank, widened by ``|m - c|``, are collected (order statistics move by at most
     ``|m - c|``). When that bin would hold more than :data:`COLLECT_CAP` values, the deviations' median is
-    found by :class:`ExactMedian` from pass 3 on. ``center`` is the median, :attr:`value` the result."""
+    found by :class:`ExactMedian` from pass 3 on. ``center`` is the median, :attr:`value` the result.
 
-    def __init__(self) -> None:
+    With ``expected_n`` (about the number of values per pass), the first pass is a guess instead
+    (:func:`open_guess`): both medians are exact after it where their ranks fall in the bracket; where only the
+    median's do, the deviations' median is found by :class:`ExactMedian` from the next pass; where neither, the
+    passes above start with the next pass."""
+
+    def __init__(self, expected_n: int | None = None) -> None:
+        self._expected_n = expected_n
+        self._guess: Bracket | None = None
         self.center = ExactMedian()
         self._scan: tuple | None = None         # c, lo, width, counts (below lo / per bin / above), counted
         self._bracket: tuple | None = None      # lo, hi, count below, collected
@@ -181,6 +347,13 @@ class MedianAbsDeviation:
 
     def feed(self, values: np.ndarray) -> None:
         v = np.asarray(values, dtype=np.float64).reshape(-1)
+        if self._expected_n is not None and v.size:
+            if self._guess is None:
+                self._guess = open_guess(v, self._expected_n, deviations=True)
+                self._expected_n = None if self._guess is None else self._expected_n
+            if self._guess is not None:
+                self._guess.feed(v)
+                return
         if self.center.pending:
             self.center.feed(v)
         if self._scan is not None and self._scan[-1] is None:
@@ -197,6 +370,9 @@ class MedianAbsDeviation:
 
     def end_pass(self) -> None:
         """Close a pass over all values; replay them while :attr:`pending`."""
+        if self._guess is not None:
+            self._close_guess()
+            return
         first = self.center.passes == 0
         if self.center.pending:
             self.center.end_pass()
@@ -261,3 +437,21 @@ class MedianAbsDeviation:
             return
         y = np.partition(y, [r - below for r in ranks])
         self.value = float(np.mean(np.array([y[r - below] for r in ranks])))
+
+    def _close_guess(self) -> None:
+        g, self._guess, self._expected_n = self._guess, None, None
+        if g.n == 0:
+            self.center.settle(float("nan"), 0)
+            self.value = float("nan")
+            return
+        ranks = _median_ranks(g.n)
+        got = [g.rank_value(r) for r in ranks]
+        if None in got:
+            return                                   # the counting passes start with the next pass
+        c = _mean_of(got)
+        self.center.settle(c, g.n)
+        dev = [g.deviation_rank_value(c, r) for r in ranks]
+        if None in dev:
+            self._fall_back, self._exact = True, ExactMedian(expected_n=g.n)
+        else:
+            self.value = _mean_of(dev)

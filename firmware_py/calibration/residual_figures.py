@@ -4,9 +4,11 @@ In-sample and raw sums of squares, the noise floor (:func:`.fit.noise_floor`: MA
 ``lag_s`` apart within a session) and the step diagnosis (:func:`.steps.diagnose_steps`: a median threshold
 on row-to-row reference changes, then the squared residual split at steps), equal to those functions on the
 whole residual array, in memory independent of the row count. Rows must be ordered by (session, time). The
-medians are exact (:mod:`.rank_select`), so the caller replays the same residuals
-(:attr:`ResidualFigures.pending`): the first pass counts, typically two more find the noise floor's median
-and the median of absolute deviations from it (the step threshold and split ride along).
+medians are exact (:mod:`.rank_select`): the step threshold is taken from the reference alone before any
+residual arrives (so the step split rides on the first pass); the noise floor's median and median of absolute
+deviations are bracketed about a guess from the first residuals, which decides them in that one pass on
+stationary residuals. Otherwise the caller replays the same residuals while :attr:`ResidualFigures.pending`
+(typically two more passes).
 """
 from __future__ import annotations
 
@@ -16,6 +18,9 @@ import numpy as np
 
 from magstack.firmware.calibration.rank_select import ExactMedian, MedianAbsDeviation
 from magstack.firmware.calibration.steps import STEP_NOISE_FACTOR, StepDiagnosis
+
+#: Rows per block of the reference-only passes that find the step threshold.
+THRESHOLD_ROWS = 1 << 16
 
 
 class LagPairs:
@@ -109,12 +114,24 @@ class ResidualFigures:
         self._pass = 0
         self.sse_uT2 = np.zeros(3)
         self.raw_sse_uT2 = np.zeros(3)
-        self._mad = [MedianAbsDeviation() for _ in range(3)]       # of the pair differences, per axis
-        self._threshold = ExactMedian() if steps else None          # of the non-zero reference changes
+        self._mad = [MedianAbsDeviation(expected_n=self.n) for _ in range(3)]    # of the pair differences, per axis
+        self._threshold = self._step_threshold() if steps else None     # of the non-zero reference changes
         self._split: np.ndarray | None = None                       # (2, 4): at steps / not: sums of r^2, count
         self._split_pass: int | None = None
         self.steps: StepDiagnosis | None = None
         self._start_pass()
+
+    def _step_threshold(self) -> ExactMedian:
+        """The median of the non-zero reference changes (max over axes) between rows of a session, found before
+        any residual arrives (the reference alone decides it), so the step split rides on the first pass."""
+        med = ExactMedian(expected_n=self.n)
+        while med.pending:
+            for a in range(0, self.n, THRESHOLD_ROWS):
+                d, same = _changes(self.b_ref_uT, self.session, max(a - 1, 0), min(a + THRESHOLD_ROWS, self.n))
+                d = np.maximum(np.maximum(d[:, 0], d[:, 1]), d[:, 2])          # max over axes
+                med.feed(d[same & np.isfinite(d) & (d > 0)])
+            med.end_pass()
+        return med
 
     def _start_pass(self) -> None:
         self._pairs.restart()
@@ -126,8 +143,7 @@ class ResidualFigures:
     @property
     def pending(self) -> bool:
         """Another pass over the same residuals is needed."""
-        return (any(m.pending for m in self._mad) or self._split_pass == self._pass
-                or (self._threshold is not None and self._threshold.pending))
+        return any(m.pending for m in self._mad) or self._split_pass == self._pass
 
     def add(self, start: int, r_uT: np.ndarray) -> None:
         """Residuals ``r_uT`` (3, m: one contiguous row per axis) of rows ``start .. start + m``."""
@@ -136,10 +152,6 @@ class ResidualFigures:
             self.sse_uT2 += np.einsum("ij,ij->i", r_uT, r_uT)
             raw = self.b_ref_uT[start:stop] - self.b_meas_uT[start:stop]
             self.raw_sse_uT2 += np.einsum("ij,ij->j", raw, raw)
-        if self._threshold is not None and self._threshold.pending:
-            d, same = _changes(self.b_ref_uT, self.session, max(start - 1, 0), stop)
-            d = np.maximum(np.maximum(d[:, 0], d[:, 1]), d[:, 2])          # max over axes
-            self._threshold.feed(d[same & np.isfinite(d) & (d > 0)])
         if self._split_pass == self._pass:
             self._add_split(start, r_uT)
         if any(m.pending for m in self._mad):
@@ -164,8 +176,6 @@ class ResidualFigures:
 
     def end_pass(self) -> None:
         """Close a pass over every row."""
-        if self._threshold is not None and self._threshold.pending:
-            self._threshold.end_pass()
         for m in self._mad:
             if m.pending:
                 m.end_pass()
