@@ -254,3 +254,28 @@ def test_a_wider_model_must_have_every_column():
     cols = crossfit.column_map(m, wide)
     X = wide.design(d.b_meas_uT, d.temp_c, {}, d.session, d.t_s)
     np.testing.assert_array_equal(X[:, cols], m.design(d.b_meas_uT, d.temp_c, {}, d.session, d.t_s))
+
+
+def test_slow_noise_grams_only_where_the_slow_noise_fit_weighs_them():
+    """Rows in order: pass 3 accumulates only the Grams the slow-noise fit of pass 2's levels weighs; they equal
+    the Grams of every component accumulated in pass 2 (rows out of order) and then weighed, and the uncertainty
+    (which reads them) is the same."""
+    from magstack.firmware.calibration.fit import build_model
+    from magstack.firmware.calibration.predictive import assemble, slow_noise
+
+    d = _sessions_data(weights=True)
+    opts = FitOptions()
+    cm = build_model(d, resolve_terms("eq3", ["session_offset", "drift"]), (), 25.0, "eq3")
+    lazy = crossfit.cross_fit(d, cm, opts)
+    every = crossfit.cross_fit(d.select(np.random.default_rng(1).permutation(len(d))), cm, opts)
+    assert lazy.figures is not None and every.figures is None
+    noise = slow_noise(lazy.acc.levels, lazy.acc.dt_s, lazy.acc.taus_s)
+    used = list(np.any(noise.ou_uT2 > 0, axis=0)) + [bool(np.any(noise.rw_uT2_per_s > 0))]
+    assert any(used) and not all(used)
+    for u, g, h in zip(used, lazy.acc.grams, every.acc.grams, strict=True):
+        assert np.any(g != 0) == u
+        np.testing.assert_allclose(g, h, rtol=0, atol=RTOL * max(np.abs(h).max(), 1e-300))
+    noise_uT = np.full(3, 0.03)
+    a = assemble(lazy.core.posterior, lazy.acc, noise_uT, lazy.core.coverage)
+    b = assemble(every.core.posterior, every.acc, noise_uT, every.core.coverage)
+    np.testing.assert_allclose(a.cov, b.cov, rtol=0, atol=RTOL * np.abs(b.cov).max())

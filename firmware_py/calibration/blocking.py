@@ -72,7 +72,9 @@ class BlockingInflation:
                 items = np.hstack([self._carry[j], items])
             k = items.shape[1] // 2
             self._carry[j] = items[:, -1:].copy() if items.shape[1] % 2 else None
-            items = 0.5 * (items[:, 0:2 * k:2] + items[:, 1:2 * k:2])
+            pairs = np.add(items[:, 0:2 * k:2], items[:, 1:2 * k:2])
+            pairs *= 0.5
+            items = pairs
             if k:
                 if self.adjacent:
                     self._adjacent(j + 1, items)
@@ -93,9 +95,12 @@ class BlockingInflation:
             self._dcount.append(0)
             self._d2.append(np.zeros(self.k))
         prev = self._last[level]
-        x = items if prev is None else np.hstack([prev, items])
-        if x.shape[1] > 1:
-            d = np.diff(x, axis=1)
+        if prev is not None:                 # the pair across calls
+            e = items[:, 0] - prev[:, 0]
+            self._dcount[level] += 1
+            self._d2[level] += e * e
+        if items.shape[1] > 1:
+            d = np.subtract(items[:, 1:], items[:, :-1])
             self._dcount[level] += d.shape[1]
             self._d2[level] += np.einsum("ij,ij->i", d, d)
         self._last[level] = items[:, -1:].copy()

@@ -50,6 +50,8 @@ from magstack.firmware.calibration.predictive import (
     LeftOutMoments,
     SlowNoiseGrams,
     left_out_terms,
+    slow_noise,
+    weighed_grams,
 )
 from magstack.firmware.calibration.residual_figures import ResidualFigures
 from magstack.firmware.errors import FitError
@@ -155,7 +157,21 @@ class _Rows:
     def __init__(self, d: FitData, model: CalModel) -> None:
         self.d, self.model = d, model
 
-    def block(self, idx):
+    def joint(self, idx) -> np.ndarray:
+        """``[X | Y]`` (m, p + 3) of rows ``idx``: design and reference field, in column order (each column
+        contiguous: the design is filled without strides, and QR reads columns)."""
+        d = self.d
+        cur = {k: v[idx] for k, v in d.currents_A.items()}
+        b = d.b_meas_uT[idx]
+        p = self.model.n_columns
+        Z = np.empty((b.shape[0], p + 3), order="F")
+        self.model.design(b, d.temp_c[idx], cur, d.session[idx], d.t_s[idx], out=Z[:, :p])
+        Z[:, p:] = d.b_ref_uT[idx]
+        return Z
+
+    def block(self, idx) -> tuple[np.ndarray, np.ndarray]:
+        """The design (m, p) and reference field (m, 3) of rows ``idx`` in row order (what the passes' row
+        gathers, bin sums and products read fastest)."""
         d = self.d
         cur = {k: v[idx] for k, v in d.currents_A.items()}
         X = self.model.design(d.b_meas_uT[idx], d.temp_c[idx], cur, d.session[idx], d.t_s[idx])
@@ -262,8 +278,11 @@ def _cross_fit(d: FitData, rows: _Rows, piece: _PieceOf, runs: list[_Run], optio
     in_order = ordered(d)
     P = rows.model.n_columns
     rw = SlowNoiseGrams(P, _time_span(runs[0].fits[0].coverage))
+    grams = None                 # rows in order: pass 3 feeds the Grams the slow-noise fits need (else pass 2 all)
     if options.autocorr:
         _autocorr(d, rows, piece, runs, options, in_order, rw)
+        if in_order:
+            grams = _needed_grams(rw, runs)
     for run in runs:
         for f in run.fits:
             if f.error is None:
@@ -295,7 +314,7 @@ def _cross_fit(d: FitData, rows: _Rows, piece: _PieceOf, runs: list[_Run], optio
                 _figures(out, run.fits)
         return list(range(len(runs))) if choose is None or len(runs) == 1 else [choose(outs)]
 
-    keep = _final_pass(d, rows, piece, runs, union, moments, decide, choose is not None and len(runs) > 1)
+    keep = _final_pass(d, rows, piece, runs, union, moments, decide, choose is not None and len(runs) > 1, grams)
     taus, ou, rwg, dt = rw.result()
     for k in keep:
         run, out = runs[k], outs[k]
@@ -303,9 +322,24 @@ def _cross_fit(d: FitData, rows: _Rows, piece: _PieceOf, runs: list[_Run], optio
         out.resid_uT, out.figures = run.resid, run.figures
         Rx = full.R[:, :p]
         sub = np.ix_(cols, cols)
-        out.acc = Accumulated(Rx.T @ Rx, taus, [g[sub] for g in ou + [rwg]], run.levels, dt, run.terms,
+        out.acc = Accumulated(Rx.T @ Rx, taus, weighed_grams(run.levels, dt, taus, [g[sub] for g in ou + [rwg]]),
+                              run.levels, dt, run.terms,
                               _moments_of(moments, union, run.terms, cols), run.bins)
     return outs
+
+
+def _needed_grams(rw: SlowNoiseGrams, runs: list[_Run]) -> SlowNoiseGrams | None:
+    """``rw`` set to keep only the components some model's slow-noise fit weighs (its levels from pass 2, as
+    :func:`.predictive.assemble` will fit them: the same fit, so the others' Grams would be weighed by 0), or None
+    when none is."""
+    use_ou, use_rw = np.zeros(len(rw.taus_s), dtype=bool), False
+    for run in runs:
+        if run.levels:
+            noise = slow_noise(run.levels, rw.mean_dt_s, rw.taus_s)
+            use_ou |= np.any(noise.ou_uT2 > 0, axis=0)
+            use_rw |= bool(np.any(noise.rw_uT2_per_s > 0))
+    rw.keep(use_ou, use_rw)
+    return rw if use_ou.any() or use_rw else None
 
 
 def _moments_of(moments: LeftOutMoments, union: list, terms: list, cols: np.ndarray) -> LeftOutMoments:
@@ -373,8 +407,8 @@ def _pieces(d: FitData, rows: _Rows, piece: _PieceOf, model: CalModel, options: 
         if not np.all(pc[1:] >= pc[:-1]):                                    # piece order
             o = np.argsort(pc, kind="stable")
             idx, pc = sl.start + o, pc[o]
-        X, Y = rows.block(idx)
-        Z = np.hstack([X, Y])
+        Z = rows.joint(idx)
+        Y = Z[:, model.n_columns:]
         w = None if d.weights is None else d.weights[idx]
         b, temp, sess, t = d.b_meas_uT[idx], d.temp_c[idx], d.session[idx], d.t_s[idx]
         cur = {c: d.currents_A[c][idx] for c in model.currents}
@@ -382,7 +416,7 @@ def _pieces(d: FitData, rows: _Rows, piece: _PieceOf, model: CalModel, options: 
         for a, e in zip(cuts[:-1], cuts[1:], strict=True):
             k = int(pc[a])
             xy_sum[k] += np.ones(e - a) @ Z[a:e]
-            R[k] = qr_r(np.vstack([R[k], Z[a:e] if w is None else Z[a:e] * np.sqrt(w[a:e])[:, None]]))
+            R[k] = qr_r(R[k], Z[a:e] if w is None else Z[a:e] * np.sqrt(w[a:e])[:, None])
             cov[k].update(b[a:e], temp[a:e], {c: v[a:e] for c, v in cur.items()}, sess[a:e], t[a:e],
                           options.field_present_uT, np.ones(e - a) if w is None else w[a:e], ref_uT=Y[a:e])
             count[k] += e - a
@@ -432,7 +466,7 @@ def _make(kind: str, key: int, train: np.ndarray, test: np.ndarray, pcs: _Pieces
                        float(pcs.t_sum[train].sum() / pcs.count[train].sum()), model.name)
     p = model.n_columns
     T = np.eye(p) if sub == model else basis_change(model, sub)
-    Rt = qr_r(np.vstack([pcs.R[k] for k in np.flatnonzero(train)]))
+    Rt = qr_r(*[pcs.R[k] for k in np.flatnonzero(train)])
     if not np.array_equal(T, np.eye(p)):
         Rt = qr_r(np.hstack([Rt[:, :p] @ T, Rt[:, p:]]))
     c = _coverage(pcs, train)
@@ -456,7 +490,8 @@ def _time_span(cov: Coverage) -> float:
 
 def _autocorr(d, rows, piece, runs: list[_Run], options, ordered: bool, rw: SlowNoiseGrams) -> None:
     """Pass 2: residuals of every fit's training rows in (session, time) order -> kappa -> the final solve (one
-    product per block for the fits of every model). The rows also feed ``rw`` (the random-walk and correlated
+    product per block for the fits of every model). The rows' times (``ordered``: pass 3 feeds the design), else the
+    rows, also feed ``rw`` (the random-walk and correlated
     noise Grams of the passes' design); each model's ``levels`` are the adjacent block-mean differences of its full
     fit's residuals (:meth:`.blocking.BlockingInflation.adjacent_levels`)."""
     live = [(run, f) for run in runs for f in run.fits if f.error is None]
@@ -488,7 +523,9 @@ def _autocorr(d, rows, piece, runs: list[_Run], options, ordered: bool, rw: Slow
         np.subtract(Y.T[None], r, out=r)
         r -= center
         pc, sess = piece[idx], s[idx]
-        if feed:
+        if feed and ordered:
+            rw.add_times(t[idx], sess)                     # the rows themselves in pass 3 (_needed_grams)
+        elif feed:
             rw.add(X if d.weights is None else X * d.weights[idx][:, None], t[idx], sess)
         for key, js in groups.items():
             rj = r[js[0]:js[-1] + 1].reshape(3 * len(js), -1)                  # a view
@@ -514,10 +551,12 @@ def _autocorr(d, rows, piece, runs: list[_Run], options, ordered: bool, rw: Slow
 
 
 def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutMoments,
-                decide: Callable[[], list[int]], deciding: bool = False) -> list[int]:
+                decide: Callable[[], list[int]], deciding: bool = False, grams: SlowNoiseGrams | None = None
+                ) -> list[int]:
     """Pass 3, for every model of ``runs``: each fold's squared held-out residuals, the time-block folds' summed per
     time block (``block_sse``); the moments of the design and the left-out features ``union`` (into ``moments``);
-    every model's full-fit residuals kept whole (``resid`` (N, 3)) where it has no streamed ``figures``. Then
+    the rows of the slow-noise Grams ``grams`` needs (rows in order); every model's full-fit residuals kept whole
+    (``resid`` (N, 3)) where it has no streamed ``figures``. Then
     ``decide()`` names the models to finish (returned): their full fit's residuals go into their ``figures``
     (replayed while they need them again) and their time-block folds' held-out residuals are binned (``bins``).
     The first model's figures ride on pass 3 itself (dropped when it is not finished), and so do its bins, or
@@ -589,6 +628,8 @@ def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutM
                 run.resid[sl] = r[k].T
         if union:
             moments.add_rows(X, union, d.b_meas_uT[sl], d.temp_c[sl] - t0, None if d.weights is None else d.weights[sl])
+        if grams is not None:
+            grams.add_rows(X if d.weights is None else X * d.weights[sl][:, None], d.t_s[sl], d.session[sl])
         held = {}            # a time-block fold's held-out rows' time blocks, bins and design moments (any model's)
         for j in range(len(runs)):
             held_out(j, sl, X, Y, held, True, j in binned)

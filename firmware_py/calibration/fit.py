@@ -54,6 +54,7 @@ from magstack.firmware.calibration.predictive import (
     Uncertainty,
     assemble,
     left_out_terms,
+    weighed_grams,
 )
 from magstack.firmware.calibration.reference import SATURATION_MARGIN, saturated_rows
 from magstack.firmware.calibration.session_map import compare, comparison_lines
@@ -1094,7 +1095,9 @@ def _accumulate_whole(d: FitData, model: CalModel, core: CoreFit, resid: np.ndar
     moments.add_rows(X, terms, d.b_meas_uT, d.temp_c - model.t0_c, d.weights)
     bins = HeldOutBins.for_coverage(core.coverage, model.n_columns) if options.holdout else None
     taus, ou, rwg, dt = rw.result()
-    return Accumulated((X * w[:, None]).T @ X, taus, ou + [rwg], bl.adjacent_levels(), dt, terms, moments, bins)
+    levels = bl.adjacent_levels()
+    return Accumulated((X * w[:, None]).T @ X, taus, weighed_grams(levels, dt, taus, ou + [rwg]), levels, dt, terms,
+                       moments, bins)
 
 
 def _rotate_from_frame(b_uT: np.ndarray, session: np.ndarray, mount: MountSolution) -> np.ndarray:

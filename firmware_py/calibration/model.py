@@ -171,16 +171,20 @@ class CalModel:
         return pr
 
     def design(self, b_meas_uT, temp_c=None, currents_A: Mapping[str, np.ndarray] | None = None,
-               session=None, t_s=None) -> np.ndarray:
+               session=None, t_s=None, out: np.ndarray | None = None) -> np.ndarray:
         """(N, p) design matrix. Inputs: b_meas_uT (N,3) uT, temp_c (N,) degC,
-        currents_A {name: (N,) A}, session (N,) ints, t_s (N,) s (sorted within a session)."""
+        currents_A {name: (N,) A}, session (N,) ints, t_s (N,) s (sorted within a session). ``out``: an (N, p)
+        array to fill instead (column order, ``np.empty((N, p), order="F")``, fills column by column without
+        strides: several times faster for blocks of many rows)."""
         b = np.asarray(b_meas_uT, dtype=float).reshape(-1, 3)
         n = b.shape[0]
         need_t = set(TEMPERATURE_TERMS) & set(self.terms)
         if need_t and temp_c is None:
             raise FitError(f"terms {sorted(need_t)} need temperature")
         dT = (np.asarray(temp_c, dtype=float).reshape(n) - self.t0_c) if temp_c is not None else None
-        X = np.empty((n, self.n_columns))
+        X = np.empty((n, self.n_columns)) if out is None else out
+        if X.shape != (n, self.n_columns):
+            raise ValueError(f"out has shape {X.shape}, the design {(n, self.n_columns)}")
         deriv = None
         for c, col in enumerate(self.columns):
             t, j = col.term, col.index

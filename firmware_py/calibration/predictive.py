@@ -234,32 +234,84 @@ class SlowNoiseGrams:
     correlation times ``tau_k`` = 32, 128, 512, ... rows (up to 4x the data's time span) and a random walk; the
     grid is set from the first rows' sampling interval; the random walk's rows are summed over ``RW_BINS`` bins of
     the span, each correlated component's over its :attr:`OUGram.bin_s`, all of those from one binning of the rows
-    (:func:`nested_bins`). Feed rows with :meth:`add` in (session, time) order."""
+    (:func:`nested_bins`). Feed rows with :meth:`add` in (session, time) order.
+
+    A component whose variance the slow-noise fit leaves at 0 on every axis is weighed by 0 in the sandwich, so its
+    Gram is not needed: a caller that knows the fit first feeds the rows' times (:meth:`add_times`, the grid and
+    the mean interval), says which components it needs (:meth:`keep`), then feeds the rows (:meth:`add_rows`);
+    the others' Grams stay 0."""
 
     def __init__(self, p: int, span_s: float) -> None:
         self.p, self.span_s = p, max(float(span_s), 0.0)
         self.rw = RandomWalkGram(p, self.span_s / RW_BINS)
         self.ou: list[OUGram] | None = None
+        self._use_ou: list[bool] | None = None          # None: every component
+        self._use_rw = True
+        self._dt_sum, self._n, self._session, self._t_last = 0.0, 0, None, None
+
+    @property
+    def taus_s(self) -> list[float]:
+        """The correlation times (s) of the grid (empty before the first rows)."""
+        return [g.tau for g in self.ou or []]
+
+    @property
+    def mean_dt_s(self) -> float:
+        """Mean sampling interval (s): each session's time span over the rows, less one."""
+        return self._dt_sum / max(self._n - 1, 1)
 
     def add(self, xw: np.ndarray, t_s: np.ndarray, session: np.ndarray) -> None:
+        """Rows ``xw`` (m, p) = weights x design, their times (s) and sessions: :meth:`add_times` and
+        :meth:`add_rows`."""
+        self.add_times(t_s, session)
+        self.add_rows(xw, t_s, session)
+
+    def add_times(self, t_s: np.ndarray, session: np.ndarray) -> None:
+        """The rows' times (s) and sessions, in (session, time) order: the grid (first rows) and the interval."""
+        t = np.asarray(t_s, dtype=float).reshape(-1)
+        s = np.asarray(session).reshape(-1)
+        if t.size == 0:
+            return
         if self.ou is None:
-            dt = np.diff(np.asarray(t_s, dtype=float))
+            dt = np.diff(t)
             dt = dt[dt > 0]
             dt0 = float(np.median(dt)) if dt.size else 1.0
             taus = [dt0 * 32.0 * 4.0 ** k for k in range(12)]
             self.ou = [OUGram(self.p, tau) for tau in taus if tau <= 4.0 * max(self.span_s, 32.0 * dt0)][:MAX_OU]
-        self.rw.add(xw, t_s, session)
+        cuts = np.r_[0, np.flatnonzero(s[1:] != s[:-1]) + 1, s.size]
+        for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+            if self._session is None or s[a] != self._session:
+                self._session, self._t_last = s[a], None
+            self._dt_sum += float(t[b - 1] - (t[a] if self._t_last is None else self._t_last))
+            self._n += b - a
+            self._t_last = float(t[b - 1])
+
+    def keep(self, ou: Sequence[bool], rw: bool) -> None:
+        """Accumulate only the correlated components ``ou`` (one flag per :attr:`taus_s`) and, ``rw``, the random
+        walk (before any :meth:`add_rows`)."""
+        self._use_ou, self._use_rw = [bool(u) for u in ou], bool(rw)
+
+    def add_rows(self, xw: np.ndarray, t_s: np.ndarray, session: np.ndarray) -> None:
+        """Rows ``xw`` (m, p) = weights x design into the Grams of the components kept (times as given to
+        :meth:`add_times`, in the same order)."""
+        if self.ou is None:
+            raise ValueError("add_rows before any add_times: the grid is set from the rows' times")
+        if self._use_rw:
+            self.rw.add(xw, t_s, session)
+        live = [g for k, g in enumerate(self.ou) if self._use_ou is None or self._use_ou[k]]
+        if not live:
+            return
         s = np.asarray(session).reshape(-1)
         t = np.asarray(t_s, dtype=float).reshape(-1)
         cuts = np.r_[0, np.flatnonzero(s[1:] != s[:-1]) + 1, s.size]
         for a, b in zip(cuts[:-1], cuts[1:], strict=True):
-            for g, (x, tb) in zip(self.ou, nested_bins(xw[a:b], t[a:b], [g.bin_s for g in self.ou]), strict=True):
+            for g, (x, tb) in zip(live, nested_bins(xw[a:b], t[a:b], [g.bin_s for g in live]), strict=True):
                 g.add_binned(x, tb, s[a])
 
     def result(self) -> tuple[list[float], list[np.ndarray], np.ndarray, float]:
-        """``(taus (s), OU Grams, random-walk Gram, mean sampling interval (s))``."""
+        """``(taus (s), OU Grams, random-walk Gram, mean sampling interval (s))``; the Grams of components not
+        kept are 0."""
         ou = self.ou or []
-        return [g.tau for g in ou], [g.result() for g in ou], self.rw.result(), self.rw.mean_dt_s
+        return [g.tau for g in ou], [g.result() for g in ou], self.rw.result(), self.mean_dt_s
 
 
 #: Largest number of exponentially correlated components of the slow-noise model.
@@ -324,6 +376,16 @@ def slow_noise(levels: Sequence[tuple[int, int, np.ndarray]], dt_s: float, taus_
         coef = coef / sc
         a[i], v[i], q[i] = coef[0], coef[1:1 + K], coef[1 + K]
     return SlowNoise(a, v, q, list(taus_s))
+
+
+def weighed_grams(levels: Sequence[tuple[int, int, np.ndarray]], dt_s: float, taus_s: Sequence[float],
+                  grams: Sequence[np.ndarray]) -> list[np.ndarray]:
+    """``grams`` (the correlated components' then the random walk's) with those the slow-noise fit of ``levels``
+    weighs by 0 on every axis set to 0: what :func:`sandwich_covariance` reads of them, however they were
+    accumulated (:meth:`SlowNoiseGrams.keep`)."""
+    noise = slow_noise(levels, dt_s, taus_s)
+    used = list(np.any(noise.ou_uT2 > 0, axis=0)) + [bool(np.any(noise.rw_uT2_per_s > 0))]
+    return [g if u else np.zeros_like(g) for g, u in zip(grams, used, strict=True)]
 
 
 def sandwich_covariance(post, XtWX: np.ndarray, grams: Sequence[np.ndarray], noise: SlowNoise) -> np.ndarray:

@@ -96,7 +96,7 @@ class StreamingFit:
         X = self.model.design(b, temp, cur, sess, t) if design is None else (
             np.asarray(design, dtype=float) if every else np.asarray(design, dtype=float)[ok])
         with single_thread():           # a block QR of ~16k x 30: 4-7x slower on threaded BLAS (bench_blas.py)
-            self._R = qr_r(np.vstack([self._R, np.hstack([X, y]) * np.sqrt(w)[:, None]]))
+            self._R = qr_r(self._R, np.hstack([X, y]) * np.sqrt(w)[:, None])
         self.coverage.update(b, temp, cur, sess, t, self.options.field_present_uT, w, ref_uT=y, hist=hist)
         self._raw_sq += np.sum((y - b) ** 2, axis=0)
         self.n_used += b.shape[0]
@@ -106,7 +106,7 @@ class StreamingFit:
         worker): R^T R of the result is the sum of both Gram matrices. Coverage extremes combine."""
         if other.model != self.model:
             raise FitError("cannot merge streaming fits of different models")
-        self._R = qr_r(np.vstack([self._R, other._R]))
+        self._R = qr_r(self._R, other._R)
         self._raw_sq = self._raw_sq + other._raw_sq
         self.n_used += other.n_used
         self.n_excluded += other.n_excluded
