@@ -279,3 +279,91 @@ def test_slow_noise_grams_only_where_the_slow_noise_fit_weighs_them():
     a = assemble(lazy.core.posterior, lazy.acc, noise_uT, lazy.core.coverage)
     b = assemble(every.core.posterior, every.acc, noise_uT, every.core.coverage)
     np.testing.assert_allclose(a.cov, b.cov, rtol=0, atol=RTOL * np.abs(b.cov).max())
+
+
+def _eq3_rows(n: int, seed: int, curved: bool = False) -> FitData:
+    """Eq. 3 truth with white noise over a wide temperature span (the wider model has nothing to find), or with the
+    bridge's 1/(1 + a dT) sensitivity (a second order the linear tempco misses)."""
+    rng = np.random.default_rng(seed)
+    model = CalModel(resolve_terms("eq3"), (), (), 25.0, 0.0)
+    d = make_data(model, random_theta(model, rng), n, rng, noise_uT=0.03, t0_s=0.0)
+    if curved:
+        dT = d.temp_c - 25.0
+        d = FitData(d.b_meas_uT * (1.0 + (2.7e-3 * dT) ** 2)[:, None], d.b_ref_uT, d.temp_c, d.t_s, d.session)
+    return d
+
+
+@pytest.mark.parametrize("case", ["white", "slow misfit", "curved"])
+def test_a_wider_model_that_cannot_gain_enough_is_ruled_out_unfitted(case):
+    """The bound of the wider model's held-out gain holds against the gain the paired test measures with both
+    models fitted; where it is below the adoption threshold the wider model is not fitted and the model's results
+    are those of the passes that fitted both; else (a slow misfit a fold's own rows absorb; a second order the
+    data need) both are fitted, as without the bound."""
+    from magstack.firmware.calibration.fit import build_model
+    from magstack.firmware.calibration.heldout_test import MIN_GAIN, paired_block_test
+
+    if case == "slow misfit":
+        d, terms = _sessions_data(n=20000, seed=1, weights=False), ["session_offset", "drift"]
+    else:
+        d, terms = _eq3_rows(60000, 5, curved=case == "curved"), []
+    opts = FitOptions()
+    base = build_model(d, resolve_terms("eq3", terms), (), 25.0, "eq3")
+    wider = build_model(d, resolve_terms("eq3", terms + ["temperature_gain2"]), (), 25.0, "eq3+temperature_gain2")
+    tests = {"both": [], "bound": []}
+
+    def adopt(key):
+        def decide(x, y):
+            tests[key].append(paired_block_test(x.block_sse.sse, y.block_sse.sse))
+            return tests[key][-1].significant
+        return decide
+
+    a, b = crossfit.cross_fit_with(d, base, wider, opts, lambda cov: True, adopt("both"))
+    bound = crossfit.wider_gain_bound(d, *_runs_of(d, base, wider, opts))
+    a2, b2 = crossfit.cross_fit_with(d, base, wider, opts, lambda cov: True, adopt("bound"), min_gain=MIN_GAIN)
+    test = tests["both"][0]
+    assert test.gain <= bound
+    if case == "white":
+        assert bound < MIN_GAIN and not test.significant
+        assert b2 is None and tests["bound"] == [] and a2.wider_gain_bound == bound
+        _same(a2, a, "model with the wider one ruled out")
+        return
+    assert bound >= MIN_GAIN and a2.wider_gain_bound is None and tests["bound"] == tests["both"]
+    assert test.significant == (case == "curved")
+    done, other, done2, other2 = (b, a, b2, a2) if test.significant else (a, b, a2, b2)
+    _same(done2, done, "the adopted model")
+    assert other.acc is None and other2.acc is None
+    np.testing.assert_allclose(other2.holdout_blocks_uT, other.holdout_blocks_uT, rtol=RTOL)
+
+
+def _runs_of(d, base, wider, opts):
+    """The two runs after the model's pass 2, as :func:`.crossfit.cross_fit_with` has them when it bounds the wider
+    model's gain: (model run, wider run, design width)."""
+    cols = crossfit.column_map(base, wider)
+    rows = crossfit._Rows(d, wider)
+    piece = crossfit._PieceOf(d, rows, opts)
+    pcs = crossfit._pieces(d, rows, piece, wider, opts)
+    run = crossfit._Run(base, cols, crossfit._column_pieces(pcs, cols, wider.n_columns))
+    crossfit._first_solves([run], piece, opts)
+    crossfit._autocorr(d, rows, piece, [run], opts, crossfit.ordered(d),
+                       crossfit.SlowNoiseGrams(wider.n_columns, 1.0))
+    return run, crossfit._Run(wider, np.arange(wider.n_columns), pcs), wider.n_columns
+
+
+def test_the_gain_bound_holds_on_every_fold():
+    """Per fold, the wider model's own held-out sum of squares (fitted without the fold) is never below the least
+    its columns reach fitted to the fold's rows: the bound's premise, on the refit of each fold."""
+    from magstack.firmware.calibration.fit import build_model
+
+    d = _sessions_data(n=5000, seed=4, weights=False)
+    opts = FitOptions()
+    wider = build_model(d, resolve_terms("eq3", ["temperature_gain2"]), (), 25.0, "eq3+temperature_gain2")
+    fold = block_folds(d, opts)
+    for f in np.unique(fold):
+        train, test = d.select(fold != f), d.select(fold == f)
+        r = fit(train, "eq3", ["temperature_gain2"], options=FitOptions(holdout=False, second_order_tempco="off"))
+        X = r.model.design(test.b_meas_uT, test.temp_c, test.currents_A, test.session, test.t_s)
+        held = np.sum((test.b_ref_uT - r.model.predict(r.theta, X)) ** 2)
+        Xw = wider.design(test.b_meas_uT, test.temp_c, test.currents_A, test.session, test.t_s)
+        least = sum(np.sum((Xw[:, m] @ np.linalg.lstsq(Xw[:, m], test.b_ref_uT[:, i], rcond=None)[0]
+                            - test.b_ref_uT[:, i]) ** 2) for i, m in enumerate(wider.axis_mask()))
+        assert least <= held

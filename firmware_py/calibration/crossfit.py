@@ -149,6 +149,7 @@ class CrossFit:
     notes: list[str] = field(default_factory=list)
     acc: Accumulated | None = None       # what the passes collected for the predictive parts
     block_sse: BlockSSE | None = None    # the time-block folds' squared held-out residuals per time block
+    wider_gain_bound: float | None = None   # a wider model ruled out: the most it could gain (:func:`cross_fit_with`)
 
 
 class _Rows:
@@ -157,17 +158,18 @@ class _Rows:
     def __init__(self, d: FitData, model: CalModel) -> None:
         self.d, self.model = d, model
 
-    def joint(self, idx) -> np.ndarray:
+    def joint(self, idx) -> tuple[np.ndarray, dict]:
         """``[X | Y]`` (m, p + 3) of rows ``idx``: design and reference field, in column order (each column
-        contiguous: the design is filled without strides, and QR reads columns)."""
+        contiguous: the design is filled without strides, and QR reads columns); and the rows' inputs it was built
+        from (``b``, ``temp``, ``currents``, ``session``, ``t``)."""
         d = self.d
-        cur = {k: v[idx] for k, v in d.currents_A.items()}
-        b = d.b_meas_uT[idx]
+        got = {"b": d.b_meas_uT[idx], "temp": d.temp_c[idx], "currents": {k: v[idx] for k, v in d.currents_A.items()},
+               "session": d.session[idx], "t": d.t_s[idx]}
         p = self.model.n_columns
-        Z = np.empty((b.shape[0], p + 3), order="F")
-        self.model.design(b, d.temp_c[idx], cur, d.session[idx], d.t_s[idx], out=Z[:, :p])
+        Z = np.empty((got["b"].shape[0], p + 3), order="F")
+        self.model.design(got["b"], got["temp"], got["currents"], got["session"], got["t"], out=Z[:, :p])
         Z[:, p:] = d.b_ref_uT[idx]
-        return Z
+        return Z, got
 
     def block(self, idx) -> tuple[np.ndarray, np.ndarray]:
         """The design (m, p) and reference field (m, 3) of rows ``idx`` in row order (what the passes' row
@@ -209,7 +211,7 @@ def cross_fit(d: FitData, model: CalModel, options: FitOptions) -> CrossFit:
 
 def cross_fit_with(d: FitData, model: CalModel, wider: CalModel, options: FitOptions,
                    try_wider: Callable[[Coverage], bool],
-                   adopt: Callable[[CrossFit, CrossFit], bool] | None = None
+                   adopt: Callable[[CrossFit, CrossFit], bool] | None = None, min_gain: float | None = None
                    ) -> tuple[CrossFit, CrossFit | None]:
     """``cross_fit(d, model)`` and, when ``try_wider`` says yes to the full fit's coverage, ``cross_fit(d, wider)``
     (else None), from one set of passes over the rows; ``wider`` has every column of ``model``
@@ -220,7 +222,14 @@ def cross_fit_with(d: FitData, model: CalModel, wider: CalModel, options: FitOpt
     rows and columns of its own. The results equal two :func:`cross_fit` calls to rounding. ``adopt(base, wider)``,
     given both CrossFits after pass 3's first pass (held-out figures and block SSE), says whether ``wider`` is the
     one to finish: only that one's figures, discrepancy bins and predictive parts are then computed (the other's
-    CrossFit keeps its fit, held-out figures and block SSE)."""
+    CrossFit keeps its fit, held-out figures and block SSE).
+
+    ``min_gain`` (with ``adopt``): the share of ``model``'s held-out sum of squares by which ``adopt`` requires
+    ``wider`` to lower it at least. ``model``'s passes come first; when no time-block fold's held-out rows, fitted
+    by ``wider``'s columns themselves, would come that far below ``model``'s held-out sum of squares there
+    (:func:`wider_gain_bound`: no fit of ``wider`` on the other rows can do better), ``wider`` cannot be adopted
+    and is not fitted: the result is ``(cross_fit(d, model), None)`` with the bound in ``wider_gain_bound``. Else
+    ``wider``'s second pass follows and everything is as without ``min_gain``."""
     cols = column_map(model, wider)
     with single_thread():
         rows = _Rows(d, wider)
@@ -231,8 +240,9 @@ def cross_fit_with(d: FitData, model: CalModel, wider: CalModel, options: FitOpt
             base.cols = np.arange(model.n_columns)         # passes 2 and 3 on the model's own design
             return _cross_fit(d, _Rows(d, model), piece, [base], options)[0], None
         choose = None if adopt is None else (lambda outs: 1 if adopt(outs[0], outs[1]) else 0)
-        out = _cross_fit(d, rows, piece, [base, _Run(wider, np.arange(wider.n_columns), pcs)], options, choose)
-        return out[0], out[1]
+        out = _cross_fit(d, rows, piece, [base, _Run(wider, np.arange(wider.n_columns), pcs)], options, choose,
+                         None if adopt is None else min_gain)
+        return out[0], (out[1] if len(out) > 1 else None)
 
 
 @dataclass
@@ -265,24 +275,34 @@ class _Run:
 
 
 def _cross_fit(d: FitData, rows: _Rows, piece: _PieceOf, runs: list[_Run], options: FitOptions,
-               choose: Callable[[list[CrossFit]], int] | None = None) -> list[CrossFit]:
+               choose: Callable[[list[CrossFit]], int] | None = None, min_gain: float | None = None
+               ) -> list[CrossFit]:
     """Every model of ``runs`` fitted and cross-fitted in one set of passes over the rows (design ``rows.model``).
     ``choose``: given every model's held-out figures and block SSE (after pass 3's first pass), the index of the one
     to finish; the others' figures, discrepancy bins and predictive parts are then not computed (their CrossFit
-    holds the fit, the held-out figures and the block SSE only)."""
-    for run in runs:
-        run.fits = _fits(run.pcs, run.model, piece, options)
-        for f in run.fits:
-            f.first = _run(f, lambda f=f: first_solve(f.R, f.n, f.model, f.coverage, options))
-            f.post = f.first.post if f.first is not None else None
+    holds the fit, the held-out figures and the block SSE only). ``min_gain`` (two runs): the second is ruled out
+    after the first's pass 2 when :func:`wider_gain_bound` stays below it (then one CrossFit is returned, its
+    ``wider_gain_bound`` set), else its own pass 2 follows."""
+    lead = runs if min_gain is None or len(runs) != 2 else runs[:1]
+    _first_solves(lead, piece, options)
     in_order = ordered(d)
     P = rows.model.n_columns
     rw = SlowNoiseGrams(P, _time_span(runs[0].fits[0].coverage))
     grams = None                 # rows in order: pass 3 feeds the Grams the slow-noise fits need (else pass 2 all)
     if options.autocorr:
-        _autocorr(d, rows, piece, runs, options, in_order, rw)
-        if in_order:
-            grams = _needed_grams(rw, runs)
+        _autocorr(d, rows, piece, lead, options, in_order, rw)
+    bound = None
+    if len(lead) < len(runs):
+        bound = wider_gain_bound(d, runs[0], runs[1], P)
+        if bound is not None and bound < min_gain * (1.0 - 1e-9):
+            runs = lead
+        else:
+            bound = None
+            _first_solves(runs[1:], piece, options)
+            if options.autocorr:
+                _autocorr(d, rows, piece, runs[1:], options, in_order, rw, feed_rw=False)
+    if options.autocorr and in_order:
+        grams = _needed_grams(rw, runs)
     for run in runs:
         for f in run.fits:
             if f.error is None:
@@ -306,6 +326,8 @@ def _cross_fit(d: FitData, rows: _Rows, piece: _PieceOf, runs: list[_Run], optio
                              np.where(run.model.axis_mask(), run.fits[0].post.sd, np.nan), run.fits[0].held,
                              np.vstack([run.fits[0].post.cond, raw_cond(run.fits[0].R, run.model)]),
                              run.fits[0].coverage, None, run.fits[0].post), None) for run in runs]
+    if bound is not None:
+        outs[0].wider_gain_bound = bound
 
     def decide() -> list[int]:
         for out, run in zip(outs, runs, strict=True):
@@ -326,6 +348,42 @@ def _cross_fit(d: FitData, rows: _Rows, piece: _PieceOf, runs: list[_Run], optio
                               run.levels, dt, run.terms,
                               _moments_of(moments, union, run.terms, cols), run.bins)
     return outs
+
+
+def _first_solves(runs: list[_Run], piece: _PieceOf, options: FitOptions) -> None:
+    """Each run's fits (:func:`_fits`) and their first solves."""
+    for run in runs:
+        run.fits = _fits(run.pcs, run.model, piece, options)
+        for f in run.fits:
+            f.first = _run(f, lambda f=f: first_solve(f.R, f.n, f.model, f.coverage, options))
+            f.post = f.first.post if f.first is not None else None
+
+
+def wider_gain_bound(d: FitData, base: _Run, wider: _Run, P: int) -> float | None:
+    """The most by which ``wider`` could lower ``base``'s held-out sum of squares on any time-block fold:
+    ``max_f (1 - L_f / B_f)``, ``B_f`` the sum of squares of ``base``'s final fit of fold ``f`` on the fold's
+    held-out rows and ``L_f`` the least ``wider``'s columns reach on those rows when fitted to them (each axis on
+    its own columns; from the held-out pieces' R factors, no pass over the rows). No fit of ``wider`` on the other
+    rows does better than ``L_f``, and a share of several folds' sums is at most the largest fold's, so the paired
+    test's gain over any of the blocks is below the bound. None where it does not apply: weighted rows (the pieces'
+    R factors are of the weighted rows, the held-out sums of the raw ones), a time-block fold of ``base`` not fitted
+    or predicting a session it did not see, or no held-out error."""
+    folds = [f for f in base.fits if f.kind == "blocks"]
+    if d.weights is not None or not folds or any(f.error is not None or f.unseen for f in folds):
+        return None
+    mask = wider.model.axis_mask()
+    worst = -np.inf
+    for f in folds:
+        Rt = qr_r(*[wider.pcs.R[k] for k in np.flatnonzero(f.test)])
+        B = float(np.sum((Rt[:, :P] @ base.embed(f.theta_full_basis(), P) - Rt[:, P:]) ** 2))
+        L = 0.0
+        for i in range(3):
+            A, y = Rt[:, :P][:, mask[i]], Rt[:, P + i]
+            L += float(np.sum((A @ np.linalg.lstsq(A, y, rcond=None)[0] - y) ** 2))
+        if not B > 0:
+            return None
+        worst = max(worst, 1.0 - L / B)
+    return float(worst)
 
 
 def _needed_grams(rw: SlowNoiseGrams, runs: list[_Run]) -> SlowNoiseGrams | None:
@@ -378,6 +436,11 @@ class _PieceOf:
         k = np.searchsorted(self.sessions, self.d.session[idx])
         return k, np.floor((self.d.t_s[idx] - self.t0_s[k]) / self.options.block_s).astype(np.int64)
 
+    def with_blocks(self, idx) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(piece, session index, time-block number)`` of rows ``idx`` (``self[idx]`` and :meth:`time_block`)."""
+        k, blk = self.time_block(idx)
+        return (k if self.n_folds == 1 else k * self.n_folds + blk % self.options.n_folds), k, blk
+
 
 def ordered(d: FitData) -> bool:
     """Whether the rows of ``d`` are in (session, time) order, which the streamed figures need (checked block by
@@ -407,11 +470,11 @@ def _pieces(d: FitData, rows: _Rows, piece: _PieceOf, model: CalModel, options: 
         if not np.all(pc[1:] >= pc[:-1]):                                    # piece order
             o = np.argsort(pc, kind="stable")
             idx, pc = sl.start + o, pc[o]
-        Z = rows.joint(idx)
+        Z, got = rows.joint(idx)
         Y = Z[:, model.n_columns:]
         w = None if d.weights is None else d.weights[idx]
-        b, temp, sess, t = d.b_meas_uT[idx], d.temp_c[idx], d.session[idx], d.t_s[idx]
-        cur = {c: d.currents_A[c][idx] for c in model.currents}
+        b, temp, sess, t = got["b"], got["temp"], got["session"], got["t"]
+        cur = {c: got["currents"][c] for c in model.currents}
         cuts = np.r_[0, np.flatnonzero(pc[1:] != pc[:-1]) + 1, pc.size]
         for a, e in zip(cuts[:-1], cuts[1:], strict=True):
             k = int(pc[a])
@@ -488,7 +551,8 @@ def _time_span(cov: Coverage) -> float:
     return float(cov.t_max_s - cov.t_min_s) if np.isfinite(cov.t_max_s - cov.t_min_s) else 0.0
 
 
-def _autocorr(d, rows, piece, runs: list[_Run], options, ordered: bool, rw: SlowNoiseGrams) -> None:
+def _autocorr(d, rows, piece, runs: list[_Run], options, ordered: bool, rw: SlowNoiseGrams,
+              feed_rw: bool = True) -> None:
     """Pass 2: residuals of every fit's training rows in (session, time) order -> kappa -> the final solve (one
     product per block for the fits of every model). The rows' times (``ordered``: pass 3 feeds the design), else the
     rows, also feed ``rw`` (the random-walk and correlated
@@ -514,7 +578,7 @@ def _autocorr(d, rows, piece, runs: list[_Run], options, ordered: bool, rw: Slow
         groups.setdefault(f.train.tobytes(), []).append(j)
     accs = {key: BlockingInflation(3 * len(js), adjacent=any(live[j][1] is live[j][0].fits[0] for j in js))
             for key, js in groups.items()}                  # the adjacent levels: of the full fits only
-    feed = any(run.fits[0].error is None for run in runs)
+    feed = feed_rw and any(run.fits[0].error is None for run in runs)
     s, t = d.session, d.t_s
     order = None if ordered else np.lexsort((t, s))
     for idx in rows.chunks(order):
@@ -580,7 +644,7 @@ def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutM
         if not fs:
             return
         if "piece" not in held:
-            held["piece"] = piece[sl]
+            held["piece"], held["session"], held["block"] = piece.with_blocks(sl)
         for f, th in zip(fs, theta_f[j], strict=True):
             if not sums and not (bins and f.kind == "blocks" and run.bins is not None):
                 continue                                   # nothing of this fold's to add
@@ -601,7 +665,7 @@ def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutM
                 f.cnt += keep.size
                 if f.kind == "blocks" and run.block_sse is not None:
                     if ("sse", f.key) not in held:
-                        held["sse", f.key] = BlockSSE.group(*piece.time_block(rows_k))
+                        held["sse", f.key] = BlockSSE.group(held["session"][keep], held["block"][keep])
                     run.block_sse.add_grouped(held["sse", f.key], np.einsum("ij,ij->j", rf, rf))
             if bins and f.kind == "blocks" and run.bins is not None:
                 scale = run.fits[0].n / f.n

@@ -35,7 +35,7 @@ from magstack.firmware.calibration.estimator import (
     model_prior,
     names_of,
 )
-from magstack.firmware.calibration.heldout_test import BlockSSE, paired_block_test
+from magstack.firmware.calibration.heldout_test import MIN_GAIN, BlockSSE, paired_block_test
 from magstack.firmware.calibration.identify import (
     CORE_TERMS,
     GATE_RULES,
@@ -907,9 +907,13 @@ def fit(data: FitData, model: str = "eq3", terms: Sequence[str] | None = None, c
                 return tests[-1].significant
 
             cross, cross2 = crossfit.cross_fit_with(sel.d, sel.cm, cm, options,
-                                                    lambda cov: _field_temp_span(cov) >= TEMPCO2_SPAN_C, adopt)
+                                                    lambda cov: _field_temp_span(cov) >= TEMPCO2_SPAN_C, adopt,
+                                                    min_gain=MIN_GAIN)
             if cross2 is None:
-                return _finish(data, sel, cross, currents, t0_c, options)[0]
+                res = _finish(data, sel, cross, currents, t0_c, options)[0]
+                if cross.wider_gain_bound is None:
+                    return res
+                return _note_tempco2(res, False, None, cross.holdout_blocks_uT, None, cross.wider_gain_bound)
             adopted = tests[0].significant
             res = _finish(data, cand_sel if adopted else sel, cross2 if adopted else cross, currents, t0_c,
                           options)[0]
@@ -935,15 +939,22 @@ def _choose_tempco2(res: FitResult, sse: BlockSSE, cand: FitResult, sse2: BlockS
     return _note_tempco2(cand if adopted else res, adopted, test, res.holdout_blocks_uT, cand.holdout_blocks_uT)
 
 
-def _note_tempco2(chosen: FitResult, adopted: bool, test, base_holdout_uT, cand_holdout_uT) -> FitResult:
-    """``chosen`` with what the choice of ``temperature_gain2`` compared (``term_choice``, a note)."""
+def _note_tempco2(chosen: FitResult, adopted: bool, test, base_holdout_uT, cand_holdout_uT,
+                  gain_bound: float | None = None) -> FitResult:
+    """``chosen`` with what the choice of ``temperature_gain2`` compared (``term_choice``, a note); ``gain_bound``:
+    the candidate was ruled out unfitted, since it could not lower any fold's held-out sum of squares by
+    ``MIN_GAIN`` (:func:`.crossfit.wider_gain_bound`)."""
     span = _field_temp_span(chosen.coverage)
     chosen.term_choice = {"candidate": "temperature_gain2", "adopted": adopted,
                           "holdout_blocks_base_uT": base_holdout_uT, "holdout_blocks_candidate_uT": cand_holdout_uT,
-                          **({} if test is None else dataclasses.asdict(test))}
-    chosen.notes.append(
-        f"second-order sensitivity tempco (temperature_gain2, {span:.1f} degC with field): "
-        + ("adopted" if adopted else "not adopted") + (f": {test.describe()}" if test is not None else ""))
+                          **({} if test is None else dataclasses.asdict(test)),
+                          **({} if gain_bound is None else {"gain_bound": gain_bound})}
+    why = f": {test.describe()}" if test is not None else ""
+    if gain_bound is not None:
+        why = (f": fitted to each fold's held-out rows themselves it would lower their sum of squares by at most "
+               f"{gain_bound:.2%} (adopted from {MIN_GAIN:.0%}), so it was not fitted")
+    chosen.notes.append(f"second-order sensitivity tempco (temperature_gain2, {span:.1f} degC with field): "
+                        + ("adopted" if adopted else "not adopted") + why)
     return chosen
 
 

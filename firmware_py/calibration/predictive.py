@@ -518,7 +518,9 @@ class LeftOutMoments:
         at = np.array([col[k] for k in keys], dtype=np.intp)
         n = np.asarray(X).shape[0]
         if uniq:
-            Gt = np.nan_to_num(features_t([terms[j].name for j in uniq], b_uT, dT))          # (u, N)
+            Gt = features_t([terms[j].name for j in uniq], b_uT, dT)                        # (u, N)
+            if not np.isfinite(Gt).all():
+                Gt = np.nan_to_num(Gt)
             Gw = Gt if w is None else Gt * w[None, :]
             self.XtWG += (Gw @ X).T[:, at]
             self.g2 += np.einsum("kn,kn->k", Gt, Gw)[at]
@@ -558,6 +560,17 @@ def extended_covariance(C: np.ndarray, beta: np.ndarray, var: np.ndarray) -> np.
 
 
 # ---------------------------------------------------------------------- discrepancy
+def _bin_index(edges: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``np.searchsorted(edges, x)`` (the number of the few ``edges`` below each ``x``; NaN after them all) by one
+    comparison per edge, several times faster for a handful of edges."""
+    k = np.zeros(x.shape, dtype=np.intp)
+    for e in edges:
+        k += x > e
+    if edges.size:
+        k[np.isnan(x)] = edges.size
+    return k
+
+
 @dataclass
 class HeldOutBins:
     """Held-out residuals of the time-block folds, binned by field magnitude x temperature: per bin the row
@@ -623,8 +636,7 @@ class HeldOutBins:
         mag = np.sqrt(np.einsum("ij,ij->i", b, b))
         mag_max = float(np.nanmax(mag)) if mag.size and np.isfinite(mag).any() else 0.0
         t = np.where(np.isfinite(temp_c), temp_c, self.temp_centre_c)
-        k = np.searchsorted(self.field_edges_uT, mag) * (len(self.temp_edges_c) + 1) + np.searchsorted(
-            self.temp_edges_c, t)
+        k = _bin_index(self.field_edges_uT, mag) * (len(self.temp_edges_c) + 1) + _bin_index(self.temp_edges_c, t)
         nb = self.count.size
         ub = (mag / FIELD_REF_uT) ** 2
         ut = ((t - self.temp_centre_c) / TEMP_REF_C) ** 2

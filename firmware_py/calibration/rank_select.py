@@ -129,7 +129,7 @@ class Bracket:
         inside = lt[0] ^ lt[1]                  # below an odd number of edges: inside an interval
         for x in lt[2:]:
             inside ^= x
-        keep = v[inside]
+        keep = np.compress(inside, v)                 # (several times faster than v[inside] on scattered rows)
         self._n_got += keep.size
         if self._n_got > self.cap:
             self.full, self._got = True, []
@@ -186,16 +186,23 @@ def _kth(a: np.ndarray, k: int) -> float:
     return float(np.partition(a, k)[k])
 
 
+def _ranked(v: np.ndarray, shares: list[float]) -> list[float]:
+    """The elements of ``v`` at the given shares of its sorted order (nearest rank; one partition)."""
+    k = [min(int(round(q * (v.size - 1))), v.size - 1) for q in shares]
+    part = np.partition(v, sorted(set(k)))
+    return [float(part[i]) for i in k]
+
+
 def guess_intervals(v: np.ndarray, share: float, deviations: bool) -> tuple[float, list[tuple[float, float]]]:
     """Intervals expected to hold about ``share`` of a stream like ``v`` (its first values) and the ranks that
     decide its median (and, ``deviations``, the median of its absolute deviations from the median): the middle
     ``share / 3`` of ``v`` and the middle ``2 share / 3`` of its deviations on either side (or the middle
-    ``share`` alone). Returns the guessed median and the intervals."""
-    c = float(np.median(v))
+    ``share`` alone), by nearest rank. Returns the guessed median and the intervals."""
     q = share / 3.0 if deviations else share
-    iv = [tuple(np.quantile(v, [max(0.5 - q / 2, 0.0), min(0.5 + q / 2, 1.0)]))]
+    c, lo, hi = _ranked(v, [0.5, max(0.5 - q / 2, 0.0), min(0.5 + q / 2, 1.0)])
+    iv = [(lo, hi)]
     if deviations:
-        d_lo, d_hi = np.quantile(np.abs(v - c), [max(0.5 - q, 0.0), min(0.5 + q, 1.0)])
+        d_lo, d_hi = _ranked(np.abs(v - c), [max(0.5 - q, 0.0), min(0.5 + q, 1.0)])
         iv += [(c - d_hi, c - d_lo), (c + d_lo, c + d_hi)]
     iv = [(lo, float(np.nextafter(hi, np.inf))) for lo, hi in iv]             # the upper quantile inside
     return c, iv

@@ -29,11 +29,13 @@ class LagPairs:
     arriving in consecutive blocks: each block gives the pairs whose later row it holds. Waiting: the
     residuals of earlier rows whose partner has not arrived (rows within ``1.5 lag_s`` of the block's end).
     A block's session runs whose every row pairs with the row a fixed number of rows later (regular
-    sampling) are remembered as that shift: replays of the block then pair by slicing."""
+    sampling) are remembered as that shift: replays of the block then pair by slicing, and the next block is
+    first checked at the same shift (no search)."""
 
     def __init__(self, t_s: np.ndarray, session: np.ndarray, lag_s: float) -> None:
         self.t_s, self.session, self.lag_s = t_s, session, lag_s
         self._shift: dict[tuple[int, int], int] = {}       # rows (from, to) -> their partners' offset
+        self._last_shift: int | None = None                 # the offset of the last run that had one
         self.restart()
 
     def restart(self) -> None:
@@ -65,6 +67,21 @@ class LagPairs:
         good = (np.abs((t[j] - ti) - lag) <= 0.5 * lag) & (j > i)
         return a + i[good], a + j[good]
 
+    def _at_shift(self, lo: int, hi: int, s, k: int) -> bool:
+        """Whether every row ``lo .. hi`` (of session ``s``) pairs with the row ``k`` later, as :meth:`_pairs` would
+        find (the same nearest-row rule and tolerance, checked for that offset alone: no search)."""
+        end = int(self.session.searchsorted(s, side="right"))
+        if k < 1 or hi + k + 1 > end:
+            return False
+        t, lag = self.t_s, self.lag_s
+        ti = t[lo:hi]
+        x = ti + lag
+        t0, t1, t2 = t[lo + k - 1:hi + k - 1], t[lo + k:hi + k], t[lo + k + 1:hi + k + 1]
+        d0, d1, d2 = np.abs(t0 - ti - lag), np.abs(t1 - ti - lag), np.abs(t2 - ti - lag)
+        found_at = (t0 < x) & (x <= t1) & ~(d0 < d1)          # the search lands on the row, nearer than the one before
+        found_after = (t1 < x) & (x <= t2) & (d1 < d2)        # the search lands after it, and it is nearer
+        return bool(np.all((found_at | found_after) & (np.abs((t1 - ti) - lag) <= 0.5 * lag)))
+
     def diffs(self, start: int, r: np.ndarray) -> np.ndarray:
         """(3, k) differences completed by the block of rows ``start ..`` with residuals ``r`` (3, m)."""
         m = r.shape[1]
@@ -75,10 +92,15 @@ class LagPairs:
         wait_r, wait_later = [self._r[:, ~due]], [self._later[~due]]
         for a, b in zip(cuts[:-1], cuts[1:], strict=True):
             k = self._shift.get((start + a, start + b))
+            if k is None and self._last_shift is not None and self._at_shift(start + a, start + b, s[a],
+                                                                            self._last_shift):
+                k = self._shift[(start + a, start + b)] = self._last_shift
             if k is None:
                 e, lt = self._pairs(start, a, b, s[a])
                 if e.size == b - a and e.size and np.all(lt - e == lt[0] - e[0]):
                     k = self._shift[(start + a, start + b)] = int(lt[0] - e[0])
+            if k is not None:
+                self._last_shift = k
             if k is not None:           # rows a .. b pair with a + k .. b + k
                 c = max(a, min(b, m - k))
                 out.append(r[:, a + k:c + k] - r[:, a:c])
@@ -129,7 +151,7 @@ class ResidualFigures:
             for a in range(0, self.n, THRESHOLD_ROWS):
                 d, same = _changes(self.b_ref_uT, self.session, max(a - 1, 0), min(a + THRESHOLD_ROWS, self.n))
                 d = np.maximum(np.maximum(d[:, 0], d[:, 1]), d[:, 2])          # max over axes
-                med.feed(d[same & np.isfinite(d) & (d > 0)])
+                med.feed(np.compress(same & np.isfinite(d) & (d > 0), d))
             med.end_pass()
         return med
 
@@ -171,8 +193,8 @@ class ResidualFigures:
         at = at[start - lo:stop - lo]
         sq = r_uT ** 2
         for k, rows in enumerate((at, ~at)):
-            self._split[k, :3] += sq[:, rows].sum(axis=1)
-            self._split[k, 3] += rows.sum()
+            self._split[k, :3] += np.compress(rows, sq, axis=1).sum(axis=1)
+            self._split[k, 3] += np.count_nonzero(rows)
 
     def end_pass(self) -> None:
         """Close a pass over every row."""
