@@ -367,3 +367,32 @@ def test_the_gain_bound_holds_on_every_fold():
         least = sum(np.sum((Xw[:, m] @ np.linalg.lstsq(Xw[:, m], test.b_ref_uT[:, i], rcond=None)[0]
                             - test.b_ref_uT[:, i]) ** 2) for i, m in enumerate(wider.axis_mask()))
         assert least <= held
+
+
+def test_the_wider_model_fitted_after_the_bound_equals_both_fitted_together(monkeypatch):
+    """Where the first solves' bound is low but the final one is not, the wider model's pass 2 follows the model's
+    on its own: the same results as both models sharing the pass."""
+    from magstack.firmware.calibration.fit import build_model
+    from magstack.firmware.calibration.heldout_test import MIN_GAIN, paired_block_test
+
+    d = _eq3_rows(40000, 6, curved=True)
+    opts = FitOptions()
+    base = build_model(d, resolve_terms("eq3"), (), 25.0, "eq3")
+    wider = build_model(d, resolve_terms("eq3", ["temperature_gain2"]), (), 25.0, "eq3+temperature_gain2")
+
+    def adopt(x, y):
+        return paired_block_test(x.block_sse.sse, y.block_sse.sse).significant
+
+    together = crossfit.cross_fit_with(d, base, wider, opts, lambda cov: True, adopt, min_gain=MIN_GAIN)
+    true_bound, calls = crossfit.wider_gain_bound, []
+
+    def low_guess(*args):
+        calls.append(true_bound(*args))
+        return 0.0 if len(calls) == 1 else calls[-1]
+
+    monkeypatch.setattr(crossfit, "wider_gain_bound", low_guess)
+    apart = crossfit.cross_fit_with(d, base, wider, opts, lambda cov: True, adopt, min_gain=MIN_GAIN)
+    assert len(calls) == 2 and calls[1] >= MIN_GAIN
+    assert together[1].acc is not None and apart[1].acc is not None          # adopted both ways
+    _same(apart[1], together[1], "the wider model fitted apart")
+    np.testing.assert_allclose(apart[0].holdout_blocks_uT, together[0].holdout_blocks_uT, rtol=RTOL)

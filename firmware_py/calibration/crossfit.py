@@ -10,12 +10,13 @@ own mean time); its design is a fixed linear map of the full design on its train
 (it is never kept whole): the residual autocorrelation of every fit's training rows in time order
 (:class:`.blocking.BlockingInflation`), then the full fit's residuals and each fold's held-out residuals.
 Rows in (session, time) order hand the full fit's residuals block by block to
-:class:`.residual_figures.ResidualFigures` (noise floor, step split, sums of squares), replaying the last
-pass until its exact medians are found; no per-row array is kept (a row's piece is computed per block).
+:class:`.residual_figures.ResidualFigures` (noise floor, step split, sums of squares; exact medians in that pass as
+a rule, else in replays of it); no per-row array is kept (a row's piece is computed per block).
 Other rows keep the (N, 3) residuals. The results equal refitting each fold's rows to rounding
 (tests/test_calibration_crossfit.py). A model and a wider one
 (:func:`.fit.fit`'s second-order tempco candidate) share one set of passes (:func:`cross_fit_with`); a choice
-between them, made on their held-out figures after pass 3's first pass, leaves the rest to the chosen one. Robust
+between them, made on their held-out figures after pass 3, leaves the rest to the chosen one, and a wider model
+that provably cannot reach the gain the choice requires is not fitted at all (:func:`wider_gain_bound`). Robust
 IRLS, ``time_skew`` and ``mount_rotation`` need all rows at once: :func:`applies` sends them to the refit path.
 """
 from __future__ import annotations
@@ -220,9 +221,9 @@ def cross_fit_with(d: FitData, model: CalModel, wider: CalModel, options: FitOpt
     models' residuals from one product per block (``model``'s coefficients zero on the columns it lacks); the
     slow-noise Grams and the left-out moments are accumulated once over ``wider``'s design, ``model``'s are their
     rows and columns of its own. The results equal two :func:`cross_fit` calls to rounding. ``adopt(base, wider)``,
-    given both CrossFits after pass 3's first pass (held-out figures and block SSE), says whether ``wider`` is the
-    one to finish: only that one's figures, discrepancy bins and predictive parts are then computed (the other's
-    CrossFit keeps its fit, held-out figures and block SSE).
+    given both CrossFits after pass 3 (held-out figures and block SSE), says whether ``wider`` is the one to
+    finish: only that one's figures, discrepancy bins and predictive parts are then returned (the other's CrossFit
+    keeps its fit, held-out figures and block SSE).
 
     ``min_gain`` (with ``adopt``): the share of ``model``'s held-out sum of squares by which ``adopt`` requires
     ``wider`` to lower it at least. ``model``'s passes come first; when no time-block fold's held-out rows, fitted
@@ -278,15 +279,22 @@ def _cross_fit(d: FitData, rows: _Rows, piece: _PieceOf, runs: list[_Run], optio
                choose: Callable[[list[CrossFit]], int] | None = None, min_gain: float | None = None
                ) -> list[CrossFit]:
     """Every model of ``runs`` fitted and cross-fitted in one set of passes over the rows (design ``rows.model``).
-    ``choose``: given every model's held-out figures and block SSE (after pass 3's first pass), the index of the one
-    to finish; the others' figures, discrepancy bins and predictive parts are then not computed (their CrossFit
-    holds the fit, the held-out figures and the block SSE only). ``min_gain`` (two runs): the second is ruled out
+    ``choose``: given every model's held-out figures and block SSE (after pass 3), the index of the one to finish;
+    the others' figures, discrepancy bins and predictive parts are then dropped (their CrossFit holds the fit, the
+    held-out figures and the block SSE only). ``min_gain`` (two runs): the second is ruled out
     after the first's pass 2 when :func:`wider_gain_bound` stays below it (then one CrossFit is returned, its
-    ``wider_gain_bound`` set), else its own pass 2 follows."""
-    lead = runs if min_gain is None or len(runs) != 2 else runs[:1]
-    _first_solves(lead, piece, options)
-    in_order = ordered(d)
+    ``wider_gain_bound`` set), else its own pass 2 follows; where the bound of the first solves is already twice
+    ``min_gain``, both share pass 2 as without it."""
     P = rows.model.n_columns
+    lead = runs
+    if min_gain is not None and len(runs) == 2:       # the bound from the first solves foretells the final one's:
+        _first_solves(runs[:1], piece, options)          # where it is far above, both models share pass 2
+        guess = wider_gain_bound(d, runs[0], runs[1], P)
+        lead = runs[:1] if guess is not None and guess < 2.0 * min_gain else runs
+        _first_solves(lead[1:], piece, options)
+    else:
+        _first_solves(runs, piece, options)
+    in_order = ordered(d)
     rw = SlowNoiseGrams(P, _time_span(runs[0].fits[0].coverage))
     grams = None                 # rows in order: pass 3 feeds the Grams the slow-noise fits need (else pass 2 all)
     if options.autocorr:
@@ -336,7 +344,7 @@ def _cross_fit(d: FitData, rows: _Rows, piece: _PieceOf, runs: list[_Run], optio
                 _figures(out, run.fits)
         return list(range(len(runs))) if choose is None or len(runs) == 1 else [choose(outs)]
 
-    keep = _final_pass(d, rows, piece, runs, union, moments, decide, choose is not None and len(runs) > 1, grams)
+    keep = _final_pass(d, rows, piece, runs, union, moments, decide, grams)
     taus, ou, rwg, dt = rw.result()
     for k in keep:
         run, out = runs[k], outs[k]
@@ -615,18 +623,15 @@ def _autocorr(d, rows, piece, runs: list[_Run], options, ordered: bool, rw: Slow
 
 
 def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutMoments,
-                decide: Callable[[], list[int]], deciding: bool = False, grams: SlowNoiseGrams | None = None
-                ) -> list[int]:
+                decide: Callable[[], list[int]], grams: SlowNoiseGrams | None = None) -> list[int]:
     """Pass 3, for every model of ``runs``: each fold's squared held-out residuals, the time-block folds' summed per
-    time block (``block_sse``); the moments of the design and the left-out features ``union`` (into ``moments``);
-    the rows of the slow-noise Grams ``grams`` needs (rows in order); every model's full-fit residuals kept whole
-    (``resid`` (N, 3)) where it has no streamed ``figures``. Then
-    ``decide()`` names the models to finish (returned): their full fit's residuals go into their ``figures``
-    (replayed while they need them again) and their time-block folds' held-out residuals are binned (``bins``).
-    The first model's figures ride on pass 3 itself (dropped when it is not finished), and so do its bins, or
-    every model's when there is no choice to make (``deciding`` False); each further finished model's figures (and
-    bins, when ``deciding``) start one replay later (the figures' first passes keep up to
-    :data:`.rank_select.COLLECT_CAP` values each: one at a time, as for one model)."""
+    time block (``block_sse``) and binned (``bins``); the full fit's residuals into its streamed ``figures`` (or kept
+    whole, ``resid`` (N, 3), where rows are not in order); the moments of the design and the left-out features
+    ``union`` (into ``moments``); the rows of the slow-noise Grams ``grams`` needs (rows in order). Then
+    ``decide()`` names the models to finish (returned); those whose figures need the residuals again (a median
+    outside its guessed bracket, :mod:`.rank_select`) get them in replays of the pass. A model not finished has
+    its figures and bins dropped (each model's figures hold at most :data:`.rank_select.COLLECT_CAP` values per
+    axis while they wait)."""
     P = rows.model.n_columns
     theta = np.hstack([run.embed(run.fits[0].theta_full_basis(), P) for run in runs])     # (P, 3 models)
     folds = [[f for f in run.fits[1:] if f.error is None] for run in runs]
@@ -636,18 +641,16 @@ def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutM
         run.resid = None if run.figures is not None else np.empty((len(d), 3))
     t0 = runs[0].model.t0_c
 
-    def held_out(j: int, sl, X, Y, held: dict, sums: bool, bins: bool) -> None:
-        """Model ``j``'s folds on the block ``sl``: ``sums``: squared held-out residuals and block SSE; ``bins``:
-        the discrepancy bins (``held``: what the block's folds share between models: their held-out rows, the
-        rows' design and targets, time blocks, bins and design moments)."""
+    def held_out(j: int, sl, X, Y, held: dict) -> None:
+        """Model ``j``'s folds on the block ``sl``: squared held-out residuals, block SSE and the discrepancy bins
+        (``held``: what the block's folds share between models: their held-out rows, the rows' design and targets,
+        time blocks, bins and design moments)."""
         run, fs, own_x = runs[j], folds[j], own[j]
         if not fs:
             return
         if "piece" not in held:
             held["piece"], held["session"], held["block"] = piece.with_blocks(sl)
         for f, th in zip(fs, theta_f[j], strict=True):
-            if not sums and not (bins and f.kind == "blocks" and run.bins is not None):
-                continue                                   # nothing of this fold's to add
             if ("rows", f.kind, f.key) not in held:
                 keep = np.flatnonzero(f.test[held["piece"]])
                 held["rows", f.kind, f.key] = (keep, np.take(X, keep, axis=0), np.take(Y, keep, axis=0).T)
@@ -660,14 +663,13 @@ def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutM
             else:
                 rf = Yt - (Xk @ th).T
             rows_k = sl.start + keep
-            if sums:
-                f.sq += np.einsum("ij,ij->i", rf, rf)
-                f.cnt += keep.size
-                if f.kind == "blocks" and run.block_sse is not None:
-                    if ("sse", f.key) not in held:
-                        held["sse", f.key] = BlockSSE.group(held["session"][keep], held["block"][keep])
-                    run.block_sse.add_grouped(held["sse", f.key], np.einsum("ij,ij->j", rf, rf))
-            if bins and f.kind == "blocks" and run.bins is not None:
+            f.sq += np.einsum("ij,ij->i", rf, rf)
+            f.cnt += keep.size
+            if f.kind == "blocks" and run.block_sse is not None:
+                if ("sse", f.key) not in held:
+                    held["sse", f.key] = BlockSSE.group(held["session"][keep], held["block"][keep])
+                run.block_sse.add_grouped(held["sse", f.key], np.einsum("ij,ij->j", rf, rf))
+            if f.kind == "blocks" and run.bins is not None:
                 scale = run.fits[0].n / f.n
                 bn = run.bins
                 edges = (bn.field_edges_uT.tobytes(), bn.temp_edges_c.tobytes(), bn.temp_centre_c)
@@ -680,14 +682,12 @@ def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutM
                 G = held[key]
                 bn.M += scale * (G if own_x else G[:, run.cols][:, :, run.cols])
 
-    fig0 = runs[0].figures
-    binned = {0} if deciding else set(range(len(runs)))
     for sl in rows.chunks(None):
         X, Y = rows.block(sl)
         r = _resid(X, Y, theta)
-        if fig0 is not None:
-            fig0.add(sl.start, r[0])
         for k, run in enumerate(runs):
+            if run.figures is not None:
+                run.figures.add(sl.start, r[k])
             if run.resid is not None:
                 run.resid[sl] = r[k].T
         if union:
@@ -696,30 +696,20 @@ def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutM
             grams.add_rows(X if d.weights is None else X * d.weights[sl][:, None], d.t_s[sl], d.session[sl])
         held = {}            # a time-block fold's held-out rows' time blocks, bins and design moments (any model's)
         for j in range(len(runs)):
-            held_out(j, sl, X, Y, held, True, j in binned)
+            held_out(j, sl, X, Y, held)
     keep = decide()
-    todo = [k for k in keep if k != 0 and (runs[k].figures is not None or k not in binned)]   # one per replay
-    active = [0] if 0 in keep and fig0 is not None else []
+    active = [k for k in keep if runs[k].figures is not None]
     while True:
         for k in active:
             runs[k].figures.end_pass()
         active = [k for k in active if runs[k].figures.pending]
-        new = todo[:1]
-        todo = todo[1:]
-        if not active and not new:
+        if not active:
             break
         for sl in rows.chunks(None):                 # the same residuals again, bit for bit
             X, Y = rows.block(sl)
             r = _resid(X, Y, theta)
             for k in active:
                 runs[k].figures.add(sl.start, r[k])
-            held = {}
-            for k in new:
-                if runs[k].figures is not None:
-                    runs[k].figures.add(sl.start, r[k])
-                if k not in binned:
-                    held_out(k, sl, X, Y, held, False, True)
-        active += [k for k in new if runs[k].figures is not None]
     return keep
 
 
