@@ -641,46 +641,44 @@ def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutM
         run.resid = None if run.figures is not None else np.empty((len(d), 3))
     t0 = runs[0].model.t0_c
 
-    def held_out(j: int, sl, X, Y, held: dict) -> None:
-        """Model ``j``'s folds on the block ``sl``: squared held-out residuals, block SSE and the discrepancy bins
-        (``held``: what the block's folds share between models: their held-out rows, the rows' design and targets,
-        time blocks, bins and design moments)."""
-        run, fs, own_x = runs[j], folds[j], own[j]
-        if not fs:
+    order = list({(f.kind, f.key): None for fs in folds for f in fs})      # every fold, any model's
+    by_fold = [{(f.kind, f.key): (f, th) for f, th in zip(fs, ths, strict=True)}
+               for fs, ths in zip(folds, theta_f, strict=True)]
+
+    def held_out(j: int, f: _Fit, th: np.ndarray, sl, X, Y, held: dict) -> None:
+        """Model ``j``'s fold ``f`` (coefficients ``th`` of the passes' design) on the block ``sl``: squared held-out
+        residuals, block SSE and the discrepancy bins (``held``: what the models' same fold shares on the block:
+        its held-out rows, their design and targets, time blocks, bins and design moments)."""
+        run, own_x = runs[j], own[j]
+        if "rows" not in held:
+            keep = np.flatnonzero(f.test[held["piece"]])
+            held["rows"] = (keep, np.take(X, keep, axis=0), np.take(Y, keep, axis=0).T)
+        keep, Xk, Yt = held["rows"]
+        if not keep.size:
             return
-        if "piece" not in held:
-            held["piece"], held["session"], held["block"] = piece.with_blocks(sl)
-        for f, th in zip(fs, theta_f[j], strict=True):
-            if ("rows", f.kind, f.key) not in held:
-                keep = np.flatnonzero(f.test[held["piece"]])
-                held["rows", f.kind, f.key] = (keep, np.take(X, keep, axis=0), np.take(Y, keep, axis=0).T)
-            keep, Xk, Yt = held["rows", f.kind, f.key]
-            if not keep.size:
-                continue
-            if f.unseen:
-                Xf, Yf = _Rows(d, f.model).block(sl.start + keep)
-                rf = (Yf - f.model.predict(f.post.theta, Xf)).T
-            else:
-                rf = Yt - (Xk @ th).T
-            rows_k = sl.start + keep
-            f.sq += np.einsum("ij,ij->i", rf, rf)
-            f.cnt += keep.size
-            if f.kind == "blocks" and run.block_sse is not None:
-                if ("sse", f.key) not in held:
-                    held["sse", f.key] = BlockSSE.group(held["session"][keep], held["block"][keep])
-                run.block_sse.add_grouped(held["sse", f.key], np.einsum("ij,ij->j", rf, rf))
-            if f.kind == "blocks" and run.bins is not None:
-                scale = run.fits[0].n / f.n
-                bn = run.bins
-                edges = (bn.field_edges_uT.tobytes(), bn.temp_edges_c.tobytes(), bn.temp_centre_c)
-                if ("where", f.key, edges) not in held:       # the rows' bins: any model's
-                    held["where", f.key, edges] = bn.locate(d.b_meas_uT[rows_k], d.temp_c[rows_k])
-                k = bn.add_residuals(rf, None, None, scale, held["where", f.key, edges])
-                key = ("M", f.key, edges)
-                if key not in held:
-                    held[key] = bn.design_moments(k, Xk)
-                G = held[key]
-                bn.M += scale * (G if own_x else G[:, run.cols][:, :, run.cols])
+        if f.unseen:
+            Xf, Yf = _Rows(d, f.model).block(sl.start + keep)
+            rf = (Yf - f.model.predict(f.post.theta, Xf)).T
+        else:
+            rf = Yt - (Xk @ th).T
+        f.sq += np.einsum("ij,ij->i", rf, rf)
+        f.cnt += keep.size
+        if f.kind == "blocks" and run.block_sse is not None:
+            if "sse" not in held:
+                held["sse"] = BlockSSE.group(held["session"][keep], held["block"][keep])
+            run.block_sse.add_grouped(held["sse"], np.einsum("ij,ij->j", rf, rf))
+        if f.kind == "blocks" and run.bins is not None:
+            scale = run.fits[0].n / f.n
+            bn = run.bins
+            edges = (bn.field_edges_uT.tobytes(), bn.temp_edges_c.tobytes(), bn.temp_centre_c)
+            if ("where", edges) not in held:                  # the rows' bins: any model's
+                rows_k = sl.start + keep
+                held["where", edges] = bn.locate(d.b_meas_uT[rows_k], d.temp_c[rows_k])
+            k = bn.add_residuals(rf, None, None, scale, held["where", edges])
+            if ("M", edges) not in held:
+                held["M", edges] = bn.design_moments(k, Xk)
+            G = held["M", edges]
+            bn.M += scale * (G if own_x else G[:, run.cols][:, :, run.cols])
 
     for sl in rows.chunks(None):
         X, Y = rows.block(sl)
@@ -690,13 +688,20 @@ def _final_pass(d, rows, piece, runs: list[_Run], union: list, moments: LeftOutM
                 run.figures.add(sl.start, r[k])
             if run.resid is not None:
                 run.resid[sl] = r[k].T
+        del r
         if union:
             moments.add_rows(X, union, d.b_meas_uT[sl], d.temp_c[sl] - t0, None if d.weights is None else d.weights[sl])
         if grams is not None:
             grams.add_rows(X if d.weights is None else X * d.weights[sl][:, None], d.t_s[sl], d.session[sl])
-        held = {}            # a time-block fold's held-out rows' time blocks, bins and design moments (any model's)
-        for j in range(len(runs)):
-            held_out(j, sl, X, Y, held)
+        if order:
+            at = dict(zip(("piece", "session", "block"), piece.with_blocks(sl), strict=True))
+            for key in order:                  # one fold at a time: its held-out rows' copies live while it is done
+                held = dict(at)
+                for j in range(len(runs)):
+                    if key in by_fold[j]:
+                        held_out(j, *by_fold[j][key], sl, X, Y, held)
+                del held
+        del X, Y                               # before the next block's are built
     keep = decide()
     active = [k for k in keep if runs[k].figures is not None]
     while True:
