@@ -335,8 +335,9 @@ class MedianAbsDeviation:
 
     With ``expected_n`` (about the number of values per pass), the first pass is a guess instead
     (:func:`open_guess`): both medians are exact after it where their ranks fall in the bracket; where only the
-    median's do, the deviations' median is found by :class:`ExactMedian` from the next pass; where neither, the
-    passes above start with the next pass."""
+    median's do, the deviations' median is found by counting (:class:`ExactMedian`, two more passes as a rule:
+    the first block that misled the guess would mislead a second one); where neither, the passes above start
+    with the next pass."""
 
     def __init__(self, expected_n: int | None = None) -> None:
         self._expected_n = expected_n
@@ -459,6 +460,6 @@ class MedianAbsDeviation:
         self.center.settle(c, g.n)
         dev = [g.deviation_rank_value(c, r) for r in ranks]
         if None in dev:
-            self._fall_back, self._exact = True, ExactMedian(expected_n=g.n)
+            self._fall_back, self._exact = True, ExactMedian()       # counting: a second guess would miss alike
         else:
             self.value = _mean_of(dev)
