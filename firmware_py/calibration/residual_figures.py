@@ -99,9 +99,8 @@ class LagPairs:
                 e, lt = self._pairs(start, a, b, s[a])
                 if e.size == b - a and e.size and np.all(lt - e == lt[0] - e[0]):
                     k = self._shift[(start + a, start + b)] = int(lt[0] - e[0])
-            if k is not None:
-                self._last_shift = k
             if k is not None:           # rows a .. b pair with a + k .. b + k
+                self._last_shift = k
                 c = max(a, min(b, m - k))
                 out.append(r[:, a + k:c + k] - r[:, a:c])
                 wait_r.append(r[:, c:b])
