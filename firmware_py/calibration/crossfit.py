@@ -51,7 +51,7 @@ from magstack.firmware.calibration.predictive import (
     LeftOutMoments,
     SlowNoiseGrams,
     left_out_terms,
-    slow_noise,
+    weighed_components,
     weighed_grams,
 )
 from magstack.firmware.calibration.residual_figures import ResidualFigures
@@ -159,26 +159,28 @@ class _Rows:
     def __init__(self, d: FitData, model: CalModel) -> None:
         self.d, self.model = d, model
 
+    def inputs(self, idx) -> dict:
+        """The design's inputs of rows ``idx``: ``b``, ``temp``, ``currents``, ``session``, ``t``."""
+        d = self.d
+        return {"b": d.b_meas_uT[idx], "temp": d.temp_c[idx], "currents": {k: v[idx] for k, v in d.currents_A.items()},
+                "session": d.session[idx], "t": d.t_s[idx]}
+
     def joint(self, idx) -> tuple[np.ndarray, dict]:
         """``[X | Y]`` (m, p + 3) of rows ``idx``: design and reference field, in column order (each column
-        contiguous: the design is filled without strides, and QR reads columns); and the rows' inputs it was built
-        from (``b``, ``temp``, ``currents``, ``session``, ``t``)."""
-        d = self.d
-        got = {"b": d.b_meas_uT[idx], "temp": d.temp_c[idx], "currents": {k: v[idx] for k, v in d.currents_A.items()},
-               "session": d.session[idx], "t": d.t_s[idx]}
+        contiguous: the design is filled without strides, and QR reads columns); and the rows' :meth:`inputs`."""
+        got = self.inputs(idx)
         p = self.model.n_columns
         Z = np.empty((got["b"].shape[0], p + 3), order="F")
         self.model.design(got["b"], got["temp"], got["currents"], got["session"], got["t"], out=Z[:, :p])
-        Z[:, p:] = d.b_ref_uT[idx]
+        Z[:, p:] = self.d.b_ref_uT[idx]
         return Z, got
 
     def block(self, idx) -> tuple[np.ndarray, np.ndarray]:
         """The design (m, p) and reference field (m, 3) of rows ``idx`` in row order (what the passes' row
         gathers, bin sums and products read fastest)."""
-        d = self.d
-        cur = {k: v[idx] for k, v in d.currents_A.items()}
-        X = self.model.design(d.b_meas_uT[idx], d.temp_c[idx], cur, d.session[idx], d.t_s[idx])
-        return X, d.b_ref_uT[idx]
+        got = self.inputs(idx)
+        X = self.model.design(got["b"], got["temp"], got["currents"], got["session"], got["t"])
+        return X, self.d.b_ref_uT[idx]
 
     def chunks(self, order: np.ndarray | None):
         n = len(self.d)
@@ -398,14 +400,12 @@ def _needed_grams(rw: SlowNoiseGrams, runs: list[_Run]) -> SlowNoiseGrams | None
     """``rw`` set to keep only the components some model's slow-noise fit weighs (its levels from pass 2, as
     :func:`.predictive.assemble` will fit them: the same fit, so the others' Grams would be weighed by 0), or None
     when none is."""
-    use_ou, use_rw = np.zeros(len(rw.taus_s), dtype=bool), False
+    use = np.zeros(len(rw.taus_s) + 1, dtype=bool)
     for run in runs:
         if run.levels:
-            noise = slow_noise(run.levels, rw.mean_dt_s, rw.taus_s)
-            use_ou |= np.any(noise.ou_uT2 > 0, axis=0)
-            use_rw |= bool(np.any(noise.rw_uT2_per_s > 0))
-    rw.keep(use_ou, use_rw)
-    return rw if use_ou.any() or use_rw else None
+            use |= weighed_components(run.levels, rw.mean_dt_s, rw.taus_s)
+    rw.keep(use[:-1], bool(use[-1]))
+    return rw if use.any() else None
 
 
 def _moments_of(moments: LeftOutMoments, union: list, terms: list, cols: np.ndarray) -> LeftOutMoments:

@@ -114,8 +114,6 @@ class RandomWalkGram:
     def __init__(self, p: int, bin_s: float = 0.0) -> None:
         self.p, self.bin_s = p, float(bin_s)
         self.G = np.zeros((p, p))
-        self.dt_sum = 0.0
-        self.n = 0
         self._session = None
         self._reset()
 
@@ -125,7 +123,6 @@ class RandomWalkGram:
         self._v = np.zeros(self.p)
         self._W = np.zeros((self.p, self.p))
         self._t = None
-        self._t_row = None                # the last row's own time (the binned rows carry mean times)
 
     def _close(self) -> None:
         T = self._P
@@ -146,9 +143,6 @@ class RandomWalkGram:
                     self._close()
                 self._session = s[a]
             x, tt = xw[a:b], t[a:b]
-            self.dt_sum += float(tt[-1] - (tt[0] if self._t_row is None else self._t_row))
-            self.n += b - a
-            self._t_row = float(tt[-1])
             if self.bin_s > 0 and tt.size > 1:
                 x, tt = bin_rows(x, tt, self.bin_s)
             dt = np.diff(tt, prepend=tt[0] if self._t is None else self._t)
@@ -165,10 +159,6 @@ class RandomWalkGram:
             self._close()
             self._session = None
         return self.G
-
-    @property
-    def mean_dt_s(self) -> float:
-        return self.dt_sum / max(self.n - 1, 1)
 
 
 class OUGram:
@@ -378,13 +368,20 @@ def slow_noise(levels: Sequence[tuple[int, int, np.ndarray]], dt_s: float, taus_
     return SlowNoise(a, v, q, list(taus_s))
 
 
+def weighed_components(levels: Sequence[tuple[int, int, np.ndarray]], dt_s: float,
+                       taus_s: Sequence[float]) -> list[bool]:
+    """Per slow-noise component (the correlated ones, then the random walk) whether the slow-noise fit of
+    ``levels`` (:func:`slow_noise`) gives it a variance on some axis: the Grams the sandwich weighs."""
+    noise = slow_noise(levels, dt_s, taus_s)
+    return [bool(u) for u in np.any(noise.ou_uT2 > 0, axis=0)] + [bool(np.any(noise.rw_uT2_per_s > 0))]
+
+
 def weighed_grams(levels: Sequence[tuple[int, int, np.ndarray]], dt_s: float, taus_s: Sequence[float],
                   grams: Sequence[np.ndarray]) -> list[np.ndarray]:
     """``grams`` (the correlated components' then the random walk's) with those the slow-noise fit of ``levels``
-    weighs by 0 on every axis set to 0: what :func:`sandwich_covariance` reads of them, however they were
-    accumulated (:meth:`SlowNoiseGrams.keep`)."""
-    noise = slow_noise(levels, dt_s, taus_s)
-    used = list(np.any(noise.ou_uT2 > 0, axis=0)) + [bool(np.any(noise.rw_uT2_per_s > 0))]
+    weighs by 0 on every axis set to 0 (:func:`weighed_components`): what :func:`sandwich_covariance` reads of
+    them, however they were accumulated (:meth:`SlowNoiseGrams.keep`)."""
+    used = weighed_components(levels, dt_s, taus_s)
     return [g if u else np.zeros_like(g) for g, u in zip(grams, used, strict=True)]
 
 

@@ -222,6 +222,21 @@ def open_guess(v: np.ndarray, expected_n: int | None, deviations: bool) -> Brack
     return Bracket(guess_intervals(v, share, deviations)[1], COLLECT_CAP)
 
 
+def _fed_guess(stat, v: np.ndarray, deviations: bool) -> bool:
+    """Feed ``v`` to the guessed bracket of ``stat`` (an :class:`ExactMedian` or :class:`MedianAbsDeviation` in
+    its first pass, ``expected_n`` given), opening it from these first values; False where there is none (no
+    ``expected_n``, or too few values to guess from: then none is tried again)."""
+    if stat._expected_n is None:
+        return False
+    if stat._guess is None:
+        stat._guess = open_guess(v, stat._expected_n, deviations)
+        if stat._guess is None:
+            stat._expected_n = None
+            return False
+    stat._guess.feed(v)
+    return True
+
+
 def _median_ranks(n: int) -> list[int]:
     return sorted({(n - 1) // 2, n // 2})
 
@@ -261,13 +276,8 @@ class ExactMedian:
         v = np.asarray(values, dtype=np.float64).reshape(-1)
         if not v.size or not self.pending:
             return
-        if self.passes == 0 and self._expected_n is not None:
-            if self._guess is None:
-                self._guess = open_guess(v, self._expected_n, deviations=False)
-                self._expected_n = None if self._guess is None else self._expected_n
-            if self._guess is not None:
-                self._guess.feed(v)
-                return
+        if _fed_guess(self, v, deviations=False):
+            return
         k = order_keys(v)
         if self._targets is None:
             self.n += v.size
@@ -355,13 +365,8 @@ class MedianAbsDeviation:
 
     def feed(self, values: np.ndarray) -> None:
         v = np.asarray(values, dtype=np.float64).reshape(-1)
-        if self._expected_n is not None and v.size:
-            if self._guess is None:
-                self._guess = open_guess(v, self._expected_n, deviations=True)
-                self._expected_n = None if self._guess is None else self._expected_n
-            if self._guess is not None:
-                self._guess.feed(v)
-                return
+        if v.size and _fed_guess(self, v, deviations=True):
+            return
         if self.center.pending:
             self.center.feed(v)
         if self._scan is not None and self._scan[-1] is None:
